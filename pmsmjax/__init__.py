@@ -1,0 +1,85 @@
+"""pmsmjax: differentiable JAX simulator, analyser and gain tuner for sensorless PMSM drives.
+
+Importing pmsmjax enables float64 in JAX (analysis needs it); pass float32 arrays (or
+cast a PyTree with `astype`) for bulk sweeps in single precision.
+"""
+
+import importlib.metadata
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+from . import observers as observers  # noqa: E402
+from ._control import (  # noqa: E402
+    FOC as FOC,
+    CurrentController as CurrentController,
+    CurrentRefs as CurrentRefs,
+    SpeedController as SpeedController,
+    limit_vector as limit_vector,
+    mtpa_i_d as mtpa_i_d,
+)
+from ._frames import (  # noqa: E402
+    J as J,
+    angle_error as angle_error,
+    clarke as clarke,
+    clarke0 as clarke0,
+    inv_clarke as inv_clarke,
+    inv_park as inv_park,
+    inv_vsd as inv_vsd,
+    jmul as jmul,
+    park as park,
+    rot_matrix as rot_matrix,
+    rotate as rotate,
+    vsd as vsd,
+    vsd_matrix as vsd_matrix,
+    wrap_angle as wrap_angle,
+)
+from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
+from ._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
+from ._params import (  # noqa: E402
+    PRESET_NAMES as PRESET_NAMES,
+    BaseValues as BaseValues,
+    Drive as Drive,
+    DualThreePhaseParams as DualThreePhaseParams,
+    EMFHarmonics as EMFHarmonics,
+    Inverter as Inverter,
+    Mechanics as Mechanics,
+    PMSMParams as PMSMParams,
+    preset as preset,
+    replace_params as replace_params,
+)
+from ._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
+from ._simulate import (  # noqa: E402
+    PlantTrace as PlantTrace,
+    Sensing as Sensing,
+    run_plant as run_plant,
+    scale_motor as scale_motor,
+    simulate as simulate,
+)
+from ._solution import RESULTS as RESULTS, Trajectory as Trajectory  # noqa: E402
+from .observers import (  # noqa: E402
+    AbstractObserver as AbstractObserver,
+    Estimate as Estimate,
+    Measurement as Measurement,
+    SensoredObserver as SensoredObserver,
+)
+
+
+def astype(tree, dtype):
+    """Cast every floating-point array leaf of `tree` to `dtype` (e.g. jnp.float32)."""
+    import jax.numpy as jnp
+
+    def cast(x):
+        if isinstance(x, jax.Array | float) and jnp.issubdtype(jnp.result_type(x), jnp.floating):
+            return jnp.asarray(x, dtype)
+        return x
+
+    return jax.tree_util.tree_map(cast, tree)
+
+
+try:
+    __version__ = importlib.metadata.version("pmsmjax")
+except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+    __version__ = "0.0.0"

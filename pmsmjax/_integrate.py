@@ -1,0 +1,81 @@
+"""Integration of the plant over one sampling period with the inputs held (ZOH).
+
+Any diffrax Runge-Kutta solver can be used; the default is the classical fourth-order
+method `RK4`, stepped manually `n_substeps` times with a fixed step (diffrax
+`solver.step`, no adaptive control, no while loop), which keeps the closed-loop scan
+cheap and reverse-mode differentiable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import diffrax as dfx
+import jax
+import numpy as np
+
+
+_RK4_TABLEAU = dfx.ButcherTableau(
+    c=np.array([0.5, 0.5, 1.0]),
+    b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+    b_error=np.zeros(4),
+    a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])),
+)
+
+
+class RK4(dfx.AbstractERK):
+    """Classical fourth-order Runge-Kutta method (fixed step; no error estimate)."""
+
+    tableau = _RK4_TABLEAU
+    interpolation_cls = dfx.ThirdOrderHermitePolynomialInterpolation.from_k
+
+    def order(self, terms):
+        return 4
+
+
+# Largest h * |lambda| on the negative real axis for which each explicit method is
+# stable; used to reject sampling periods the plant cannot be integrated with.
+_STABILITY_RADIUS = {
+    "Euler": 2.0, "Heun": 2.0, "Midpoint": 2.0, "Ralston": 2.0,
+    "Bosh3": 2.51, "RK4": 2.78, "Tsit5": 3.5, "Dopri5": 3.3, "Dopri8": 5.0,
+}
+
+
+def stability_radius(solver) -> float:
+    return _STABILITY_RADIUS.get(type(solver).__name__, 2.0)
+
+
+def integrate(vector_field, y0, args, T_s, *, solver, n_substeps: int):
+    """Integrate `dy/dt = vector_field(t, y, args)` over [0, T_s] with fixed steps."""
+    term = dfx.ODETerm(vector_field)
+    h = T_s / n_substeps
+    state = solver.init(term, 0.0, h, y0, args)
+
+    def one(y, k):
+        t0 = k * h
+        y1, _, _, _, _ = solver.step(term, t0, t0 + h, y, args, state, made_jump=False)
+        return y1, None
+
+    if n_substeps == 1:
+        return one(y0, 0)[0]
+    y, _ = jax.lax.scan(one, y0, np.arange(n_substeps, dtype=float), unroll=True)
+    return y
+
+
+def check_step(T_s, n_substeps, rate, solver) -> None:
+    """Reject a step `T_s / n_substeps` (s) outside the solver's stability region.
+
+    `rate` is an upper bound of the plant's fastest eigenvalue magnitude (1/s).
+    """
+    if not isinstance(n_substeps, int | np.integer) or n_substeps < 1:
+        raise ValueError(f"`n_substeps` must be a positive integer; got {n_substeps!r}.")
+    h = float(T_s) / n_substeps
+    r = stability_radius(solver)
+    if h * float(rate) >= r:
+        need = math.ceil(float(T_s) * float(rate) / r * 1.05)
+        raise ValueError(
+            f"`T_s={float(T_s):.6g}` s is too long for {type(solver).__name__} with "
+            f"n_substeps={n_substeps}: the plant's fastest mode ({float(rate):.4g} 1/s) "
+            f"needs T_s/n_substeps < {r / float(rate):.4g} s; use n_substeps >= {need} "
+            f"or a shorter T_s."
+        )

@@ -1,0 +1,220 @@
+r"""Continuous-time PMSM plant (electrical + mechanical), in a form diffrax integrates.
+
+Quantities in rotor coordinates carry `_dq`, stationary ones `_ab`. The state is
+`PlantState(i_dq, theta, w_m, i_xy)`: stator current in rotor coordinates (A), electrical
+rotor angle (rad, unwrapped), electrical speed (rad/s) and, for a dual three-phase
+machine only, the x-y subspace current (A, stationary x-y frame).
+
+Three-phase machine, with $\psi_{dq} = L i_{dq} + \psi_{pm}(\theta)$,
+$L = \mathrm{diag}(L_d, L_q)$:
+
+$$L \frac{d i_{dq}}{dt} = u_{dq} - R_s i_{dq} - \omega_m J \psi_{dq}
+  - \omega_m \frac{\partial \psi_{pm}}{\partial \theta}, \qquad
+  u_{dq} = e^{-\theta J} u_{ab},$$
+
+$$\tau_M = \tfrac32 n_p \left[\psi_{dq} \times i_{dq}
+  + i_{dq}\cdot\frac{\partial \psi_{pm}}{\partial\theta}\right], \qquad
+  \frac{J_M}{n_p}\frac{d\omega_m}{dt} = \tau_M - \frac{B}{n_p}\omega_m - \tau_L, \qquad
+  \frac{d\theta}{dt} = \omega_m.$$
+
+This torque is the one the power balance requires:
+$\tfrac32 u\cdot i = \tfrac32 R_s |i|^2 + \frac{d}{dt}\left(\tfrac34 i^T L i\right)
++ \tau_M \omega_m / n_p$ (`power_balance` returns the terms).
+
+Dual three-phase (VSD, amplitude-invariant): the alpha-beta subspace follows the
+equations above with $\tfrac32$ replaced by 3; PM-flux harmonics of order $6k\pm1$ with
+$k$ odd (5, 7, 17, 19, ...) leave alpha-beta and excite the x-y subspace,
+$L_{xy}\, d i_{xy}/dt = u_{xy} - R_s i_{xy} - \omega_m \partial\psi_{pm,xy}/\partial\theta$,
+where $\psi_{pm,xy}$ is the complex conjugate of the alpha-beta vector the same harmonic
+would have in a three-phase machine (derived from `vsd_matrix`, tested).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from ._frames import jmul, park
+from ._params import DualThreePhaseParams, EMFHarmonics, Mechanics, PMSMParams
+
+
+class PlantState(eqx.Module):
+    """State of the plant (see the module docstring)."""
+
+    i_dq: jnp.ndarray
+    theta: jnp.ndarray
+    w_m: jnp.ndarray
+    i_xy: jnp.ndarray | None = None
+
+
+class PlantInput(eqx.Module):
+    """Inputs held constant over one integration interval.
+
+    - `u_ab`: stator voltage, stationary frame (V, (2,)).
+    - `tau_L`: load torque (N m).
+    - `u_xy`: x-y subspace voltage of a dual three-phase machine (V, (2,)); ignored for a
+      three-phase machine.
+    - `free`: 1 for a free rotor; 0 when a load machine holds the speed constant (the
+      mechanical equation is switched off and `w_m` stays at its initial value).
+    """
+
+    u_ab: jnp.ndarray
+    tau_L: jnp.ndarray
+    u_xy: jnp.ndarray | None = None
+    free: float = 1.0
+
+
+def _xy_order(h: int) -> bool:
+    """True if a PM harmonic of signed order h maps to the x-y subspace of a DTP machine."""
+    return abs(h) % 12 in (5, 7)
+
+
+class PMSM(eqx.Module):
+    """PMSM plant: `vector_field(t, y, args)` with the signature of `diffrax.ODETerm`.
+
+    **Arguments:**
+
+    - `motor`: `PMSMParams` or `DualThreePhaseParams`.
+    - `mechanics`: `Mechanics`.
+    """
+
+    motor: PMSMParams | DualThreePhaseParams
+    mechanics: Mechanics
+
+    @property
+    def dual(self) -> bool:
+        return isinstance(self.motor, DualThreePhaseParams)
+
+    @property
+    def _ab(self) -> PMSMParams:
+        return self.motor.ab if self.dual else self.motor
+
+    @property
+    def k_tau(self):
+        """Torque factor: 1.5 n_p (three-phase) or 3 n_p (dual three-phase)."""
+        return (3.0 if self.dual else 1.5) * self._ab.n_p
+
+    # -- PM flux, split by subspace -----------------------------------------------------
+    def _harmonics(self, xy: bool):
+        harm = self._ab.harmonics
+        if harm is None:
+            return ()
+        keep = [(h, a, ph) for h, a, ph in zip(harm.order, harm.amplitude, harm.phase)
+                if (self.dual and _xy_order(h)) == xy]
+        return tuple(keep)
+
+    def _ab_params(self) -> PMSMParams:
+        """Alpha-beta parameters with only the harmonics that live in alpha-beta."""
+        p = self._ab
+        if not self.dual or p.harmonics is None:
+            return p
+        keep = self._harmonics(xy=False)
+        harm = None if not keep else EMFHarmonics(
+            order=[h for h, _, _ in keep],
+            amplitude=jnp.stack([a for _, a, _ in keep]),
+            phase=jnp.stack([ph for _, _, ph in keep]),
+        )
+        return eqx.tree_at(lambda q: q.harmonics, p, harm, is_leaf=lambda x: x is None)
+
+    def psi_pm_dq(self, theta):
+        """PM flux linkage of the alpha-beta subspace in rotor coordinates (V s)."""
+        return self._ab_params().psi_pm_dq(theta)
+
+    def dpsi_pm_xy_dtheta(self, theta):
+        """d psi_pm,xy / d theta of a dual three-phase machine (V s/rad, stationary x-y)."""
+        p = self._ab
+        d = jnp.zeros(jnp.shape(theta) + (2,), dtype=jnp.result_type(theta, float))
+        for h, a, ph in self._harmonics(xy=True):
+            ang = h * theta + ph
+            amp = p.psi_f * a / abs(h) * h
+            # psi_xy = amp/h * (cos(ang), -sin(ang)) -> derivative w.r.t. theta
+            d = d + amp * jnp.stack([-jnp.sin(ang), -jnp.cos(ang)], axis=-1)
+        return d
+
+    def psi_pm_xy(self, theta):
+        """PM flux linkage in the x-y subspace of a dual three-phase machine (V s)."""
+        p = self._ab
+        psi = jnp.zeros(jnp.shape(theta) + (2,), dtype=jnp.result_type(theta, float))
+        for h, a, ph in self._harmonics(xy=True):
+            ang = h * theta + ph
+            psi = psi + p.psi_f * a / abs(h) * jnp.stack([jnp.cos(ang), -jnp.sin(ang)], -1)
+        return psi
+
+    # -- algebraic outputs ---------------------------------------------------------------
+    def flux_dq(self, y: PlantState):
+        p = self._ab
+        return jnp.stack([p.L_d * y.i_dq[..., 0], p.L_q * y.i_dq[..., 1]], -1) + \
+            self.psi_pm_dq(y.theta)
+
+    def torque(self, y: PlantState):
+        """Electromagnetic torque tau_M (N m)."""
+        psi = self.flux_dq(y)
+        i = y.i_dq
+        tau = psi[..., 0] * i[..., 1] - psi[..., 1] * i[..., 0]
+        ab = self._ab_params()
+        if ab.harmonics is not None:
+            tau = tau + jnp.sum(i * ab.dpsi_pm_dq_dtheta(y.theta), axis=-1)
+        if self.dual and self._harmonics(xy=True):
+            tau = tau + jnp.sum(y.i_xy * self.dpsi_pm_xy_dtheta(y.theta), axis=-1)
+        return self.k_tau * tau
+
+    # -- dynamics ------------------------------------------------------------------------
+    def vector_field(self, t, y: PlantState, args: PlantInput) -> PlantState:
+        """Time derivative of the state (`diffrax.ODETerm` signature)."""
+        del t
+        p = self._ab_params()
+        m = self.mechanics
+        w = y.w_m
+        u_dq = park(args.u_ab, y.theta)
+        psi = self.flux_dq(y)
+        emf = w * jmul(psi)
+        if p.harmonics is not None:
+            emf = emf + w * p.dpsi_pm_dq_dtheta(y.theta)
+        rhs = u_dq - p.R_s * y.i_dq - emf
+        di_dq = jnp.stack([rhs[..., 0] / p.L_d, rhs[..., 1] / p.L_q], -1)
+        tau_M = self.torque(y)
+        dw = args.free * p.n_p * (tau_M - m.B * w / p.n_p - args.tau_L) / m.J
+        if self.dual:
+            u_xy = args.u_xy if args.u_xy is not None else jnp.zeros_like(args.u_ab)
+            di_xy = (u_xy - p.R_s * y.i_xy - w * self.dpsi_pm_xy_dtheta(y.theta)) \
+                / self.motor.L_xy
+        else:
+            di_xy = None
+        return PlantState(i_dq=di_dq, theta=w, w_m=dw, i_xy=di_xy)
+
+    def init(self, theta0=0.0, w_m0=0.0, i_dq0=(0.0, 0.0)) -> PlantState:
+        """Initial state: current `i_dq0` (A), angle `theta0` (rad), speed `w_m0` (rad/s)."""
+        i_dq = jnp.asarray(i_dq0, dtype=float)
+        return PlantState(
+            i_dq=i_dq,
+            theta=jnp.asarray(theta0, dtype=float),
+            w_m=jnp.asarray(w_m0, dtype=float),
+            i_xy=jnp.zeros(2) if self.dual else None,
+        )
+
+    def power_balance(self, y: PlantState, args: PlantInput):
+        """Instantaneous power terms (W): `(p_in, p_cu, dW_mag/dt, p_mech)`.
+
+        `p_in = p_cu + dW_mag/dt + p_mech` holds exactly for the model above.
+        """
+        p = self._ab_params()
+        k = self.k_tau / p.n_p  # 1.5 or 3: power scaling of amplitude-invariant vectors
+        u_dq = park(args.u_ab, y.theta)
+        dy = self.vector_field(0.0, y, args)
+        p_in = k * jnp.sum(u_dq * y.i_dq, -1)
+        p_cu = k * p.R_s * jnp.sum(y.i_dq ** 2, -1)
+        dW = k * (p.L_d * y.i_dq[..., 0] * dy.i_dq[..., 0]
+                  + p.L_q * y.i_dq[..., 1] * dy.i_dq[..., 1])
+        if self.dual:
+            u_xy = args.u_xy if args.u_xy is not None else jnp.zeros_like(args.u_ab)
+            p_in = p_in + k * jnp.sum(u_xy * y.i_xy, -1)
+            p_cu = p_cu + k * p.R_s * jnp.sum(y.i_xy ** 2, -1)
+            dW = dW + k * self.motor.L_xy * jnp.sum(y.i_xy * dy.i_xy, -1)
+        p_mech = self.torque(y) * y.w_m / p.n_p
+        return p_in, p_cu, dW, p_mech
+
+    def i_ab(self, y: PlantState):
+        """Stator current in the stationary frame (A)."""
+        from ._frames import inv_park
+
+        return inv_park(y.i_dq, y.theta)

@@ -1,0 +1,478 @@
+"""Parameters of the drive: machine, mechanics, inverter and per-unit bases.
+
+All quantities are SI (Ohm, H, V s, kg m^2, N m s, V, A, rad/s) unless a name says
+otherwise. Space vectors are amplitude-invariant (vector length = phase peak value), so
+torque is `1.5 n_p (psi x i)` for a three-phase machine. Speeds `w_m` are electrical
+(rad/s), `w_M = w_m / n_p` mechanical.
+
+Fields accept Python floats (weakly typed: they adopt the dtype of the simulation, so
+float32 runs stay float32) or JAX arrays. To sweep a parameter, replace it by a traced
+value inside a vmapped function with `eqx.tree_at`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from ._validate import check_finite, check_positive, check_range, is_concrete
+
+
+class EMFHarmonics(eqx.Module):
+    r"""Spatial harmonics of the permanent-magnet flux linkage (and so of the back-EMF).
+
+    The PM flux in the stationary frame is
+    $\psi_{pm,ab} = \psi_f e^{\theta J}[1,0]^T + \sum_h \psi_f \frac{a_h}{|h|}
+    e^{(h\theta + \phi_h) J}[1,0]^T$, so the back-EMF harmonic of order $h$ has amplitude
+    $a_h$ times the fundamental back-EMF at every speed.
+
+    **Arguments:**
+
+    - `order`: signed harmonic orders (static ints). Positive = rotating with the rotor
+      (positive sequence, e.g. `7`, `13`), negative = against it (e.g. `-5`, `-11`).
+      Order `1`/`0` is not allowed (that is the fundamental / a constant).
+    - `amplitude`: back-EMF amplitude of each harmonic relative to the fundamental (-).
+    - `phase`: phase of each harmonic at `theta = 0` (rad); default zeros.
+    """
+
+    order: tuple[int, ...] = eqx.field(static=True)
+    amplitude: jnp.ndarray
+    phase: jnp.ndarray
+
+    def __init__(self, order, amplitude, phase=None):
+        order = tuple(int(h) for h in np.atleast_1d(order))
+        if any(h in (0, 1) for h in order):
+            raise ValueError(
+                f"`EMFHarmonics(order=...)` must not contain 0 or 1 (the fundamental); "
+                f"got {order}."
+            )
+        self.order = order
+        self.amplitude = jnp.asarray(amplitude, dtype=float).reshape(len(order))
+        self.phase = (
+            jnp.zeros(len(order)) if phase is None
+            else jnp.asarray(phase, dtype=float).reshape(len(order))
+        )
+
+    def __check_init__(self):
+        check_finite("EMFHarmonics", "amplitude", self.amplitude)
+        check_finite("EMFHarmonics", "phase", self.phase, "rad")
+
+
+class PMSMParams(eqx.Module):
+    r"""Electrical parameters of a three-phase PMSM with saliency.
+
+    Flux linkage in rotor coordinates: $\psi_{dq} = \mathrm{diag}(L_d, L_q)\,i_{dq} +
+    \psi_{pm,dq}(\theta)$, with $\psi_{pm,dq} = [\psi_f, 0]$ without harmonics.
+
+    **Arguments:**
+
+    - `R_s`: stator resistance (Ohm), > 0.
+    - `L_d`: d-axis inductance (H), > 0.
+    - `L_q`: q-axis inductance (H), > 0.
+    - `psi_f`: permanent-magnet flux linkage (V s), >= 0 (0 = synchronous reluctance).
+    - `n_p`: number of pole pairs (-), > 0.
+    - `harmonics`: optional `EMFHarmonics` of the PM flux (back-EMF spatial harmonics).
+    """
+
+    R_s: float
+    L_d: float
+    L_q: float
+    psi_f: float
+    n_p: float
+    harmonics: EMFHarmonics | None = None
+
+    def __check_init__(self):
+        owner = "PMSMParams"
+        check_positive(owner, "R_s", self.R_s, "Ohm")
+        check_positive(owner, "L_d", self.L_d, "H")
+        check_positive(owner, "L_q", self.L_q, "H")
+        check_positive(owner, "psi_f", self.psi_f, "V s", allow_zero=True)
+        check_positive(owner, "n_p", self.n_p, "pole pairs")
+
+    @property
+    def L_dq(self):
+        """Inductance matrix diag(L_d, L_q) (H)."""
+        return jnp.diag(jnp.stack([jnp.asarray(self.L_d), jnp.asarray(self.L_q)]))
+
+    def psi_pm_dq(self, theta):
+        """PM flux linkage in rotor coordinates at electrical angle `theta` (rad) -> (V s, 2)."""
+        psi = jnp.stack([self.psi_f + 0.0 * theta, 0.0 * theta], axis=-1)
+        if self.harmonics is None:
+            return psi
+        for h, a, ph in zip(self.harmonics.order, self.harmonics.amplitude,
+                            self.harmonics.phase):
+            ang = (h - 1) * theta + ph
+            amp = self.psi_f * a / abs(h)
+            psi = psi + amp * jnp.stack([jnp.cos(ang), jnp.sin(ang)], axis=-1)
+        return psi
+
+    def dpsi_pm_dq_dtheta(self, theta):
+        """Derivative of `psi_pm_dq` with respect to `theta` (V s / rad, 2)."""
+        d = jnp.zeros(jnp.shape(theta) + (2,), dtype=jnp.result_type(theta, float))
+        if self.harmonics is None:
+            return d
+        for h, a, ph in zip(self.harmonics.order, self.harmonics.amplitude,
+                            self.harmonics.phase):
+            ang = (h - 1) * theta + ph
+            amp = self.psi_f * a / abs(h) * (h - 1)
+            d = d + amp * jnp.stack([-jnp.sin(ang), jnp.cos(ang)], axis=-1)
+        return d
+
+
+class DualThreePhaseParams(eqx.Module):
+    r"""Dual three-phase PMSM (two star-connected sets shifted by `gamma`) in VSD coordinates.
+
+    After the amplitude-invariant vector-space decomposition the $\alpha\beta$ subspace
+    carries the electromechanical energy conversion and behaves like `PMSMParams`
+    (`ab`), while the $xy$ subspace is a passive R-L circuit excited only by the PM-flux
+    harmonics that map into it (orders $6k \pm 1$, $k$ odd: 5th, 7th, 17th, 19th).
+    Torque is $3 n_p (\psi \times i)$ (two sets).
+
+    **Arguments:**
+
+    - `ab`: `PMSMParams` of the $\alpha\beta$ subspace, per three-phase set. Its
+      `harmonics` hold all PM-flux harmonics; the plant routes each to its subspace.
+    - `L_xy`: inductance of the $xy$ subspace (H), usually the leakage, > 0.
+    - `gamma`: angle between the two winding sets (rad), default pi/6.
+    """
+
+    ab: PMSMParams
+    L_xy: float
+    gamma: float = math.pi / 6
+
+    def __check_init__(self):
+        check_positive("DualThreePhaseParams", "L_xy", self.L_xy, "H")
+
+    # Delegate the common parameters so a DTP machine can stand in for a 3-phase one.
+    @property
+    def R_s(self):
+        return self.ab.R_s
+
+    @property
+    def L_d(self):
+        return self.ab.L_d
+
+    @property
+    def L_q(self):
+        return self.ab.L_q
+
+    @property
+    def psi_f(self):
+        return self.ab.psi_f
+
+    @property
+    def n_p(self):
+        return self.ab.n_p
+
+
+class Mechanics(eqx.Module):
+    r"""Rigid rotor: $J \dot w_M = \tau_M - B w_M - \tau_L$.
+
+    **Arguments:**
+
+    - `J`: total moment of inertia (kg m^2), > 0.
+    - `B`: viscous friction coefficient (N m s/rad), >= 0.
+    """
+
+    J: float
+    B: float = 0.0
+
+    def __check_init__(self):
+        check_positive("Mechanics", "J", self.J, "kg m^2")
+        check_positive("Mechanics", "B", self.B, "N m s/rad", allow_zero=True)
+
+
+class Inverter(eqx.Module):
+    """Voltage-source inverter, modelled as an ideal ZOH voltage source with a limit.
+
+    **Arguments:**
+
+    - `u_dc`: DC-link voltage (V), > 0.
+    - `u_max`: largest voltage-vector amplitude (V, peak phase). Default `u_dc / sqrt(3)`:
+      the linear range of space-vector modulation.
+    - `delay`: one-sample computational delay. If `True`, the voltage computed at sample
+      k is applied over [t_{k+1}, t_{k+2}).
+    """
+
+    u_dc: float
+    u_max: float | None = None
+    delay: bool = eqx.field(static=True, default=False)
+
+    def __check_init__(self):
+        check_positive("Inverter", "u_dc", self.u_dc, "V")
+        check_positive("Inverter", "u_max", self.u_max, "V")
+        if self.u_max is not None and is_concrete((self.u_max, self.u_dc)):
+            if np.any(np.asarray(self.u_max) > np.asarray(self.u_dc) * 2 / 3 + 1e-12):
+                raise ValueError(
+                    f"`Inverter(u_max=...)` (V) cannot exceed the six-step limit "
+                    f"2 u_dc / 3 = {2 * float(self.u_dc) / 3:.6g}; got {self.u_max!r}."
+                )
+
+    @property
+    def u_lim(self):
+        """Voltage-vector amplitude limit (V)."""
+        return self.u_dc / math.sqrt(3.0) if self.u_max is None else self.u_max
+
+
+class BaseValues(eqx.Module):
+    """Per-unit base values (peak-value, amplitude-invariant convention).
+
+    **Arguments:**
+
+    - `U_b`: base voltage (V, peak phase).
+    - `I_b`: base current (A, peak).
+    - `w_b`: base electrical angular speed (rad/s).
+    - `n_p`: pole pairs (-), used for the torque base.
+
+    Derived: `psi_b = U_b / w_b` (V s), `Z_b = U_b / I_b` (Ohm), `L_b = Z_b / w_b` (H),
+    `tau_b = 1.5 n_p psi_b I_b` (N m), `t_b = 1 / w_b` (s).
+    """
+
+    U_b: float
+    I_b: float
+    w_b: float
+    n_p: float
+
+    def __check_init__(self):
+        for name, unit in (("U_b", "V"), ("I_b", "A"), ("w_b", "rad/s"), ("n_p", "-")):
+            check_positive("BaseValues", name, getattr(self, name), unit)
+
+    @classmethod
+    def from_rated(cls, U_rated_ll: float, I_rated_rms: float, n_rated_rpm: float,
+                   n_p: float) -> BaseValues:
+        """Bases from rated line-to-line rms voltage (V), rms current (A), speed (rpm)."""
+        check_positive("BaseValues.from_rated", "U_rated_ll", U_rated_ll, "V")
+        check_positive("BaseValues.from_rated", "I_rated_rms", I_rated_rms, "A")
+        check_positive("BaseValues.from_rated", "n_rated_rpm", n_rated_rpm, "rpm")
+        return cls(
+            U_b=math.sqrt(2.0 / 3.0) * U_rated_ll,
+            I_b=math.sqrt(2.0) * I_rated_rms,
+            w_b=n_p * 2.0 * math.pi * n_rated_rpm / 60.0,
+            n_p=n_p,
+        )
+
+    @property
+    def psi_b(self):
+        return self.U_b / self.w_b
+
+    @property
+    def Z_b(self):
+        return self.U_b / self.I_b
+
+    @property
+    def L_b(self):
+        return self.Z_b / self.w_b
+
+    @property
+    def tau_b(self):
+        return 1.5 * self.n_p * self.psi_b * self.I_b
+
+    @property
+    def t_b(self):
+        return 1.0 / self.w_b
+
+
+class Drive(eqx.Module):
+    """Everything physical about one drive: machine, mechanics, inverter and ratings.
+
+    **Arguments:**
+
+    - `motor`: `PMSMParams` (three-phase) or `DualThreePhaseParams`.
+    - `mechanics`: `Mechanics`.
+    - `inverter`: `Inverter`.
+    - `base`: `BaseValues` for per-unit scaling and plots.
+    - `w_rated`: rated electrical speed (rad/s); "speed in p.u." = fraction of this.
+    - `tau_rated`: rated torque (N m); "load in p.u." = fraction of this.
+    - `i_max`: current-vector amplitude limit of the controller (A, peak).
+    - `name`, `notes`: preset name and the assumptions made (static strings).
+    """
+
+    motor: PMSMParams | DualThreePhaseParams
+    mechanics: Mechanics
+    inverter: Inverter
+    base: BaseValues
+    w_rated: float
+    tau_rated: float
+    i_max: float
+    name: str = eqx.field(static=True, default="custom")
+    notes: str = eqx.field(static=True, default="")
+
+    def __check_init__(self):
+        check_positive("Drive", "w_rated", self.w_rated, "rad/s")
+        check_positive("Drive", "tau_rated", self.tau_rated, "N m")
+        check_positive("Drive", "i_max", self.i_max, "A")
+
+    @property
+    def dual(self) -> bool:
+        """True for a dual three-phase machine."""
+        return isinstance(self.motor, DualThreePhaseParams)
+
+    @property
+    def three_phase_motor(self) -> PMSMParams:
+        """The `PMSMParams` that describe the torque-producing (alpha-beta) subspace."""
+        return self.motor.ab if self.dual else self.motor
+
+    @property
+    def k_tau(self):
+        """Torque per unit vector product psi x i: 1.5 n_p (3 n_p for two sets)."""
+        return (3.0 if self.dual else 1.5) * self.motor.n_p
+
+
+def check_angle(owner: str, name: str, value) -> None:
+    check_range(owner, name, value, -4 * math.pi, 4 * math.pi, "rad")
+
+
+# ---------------------------------------------------------------------------------------
+# Presets (CONVENTIONS.md, "Motor presets")
+# ---------------------------------------------------------------------------------------
+
+def _zhang750() -> Drive:
+    n_p, n_rpm = 5, 2400.0
+    return Drive(
+        motor=PMSMParams(R_s=0.78, L_d=2.46e-3, L_q=2.68e-3, psi_f=0.056, n_p=float(n_p)),
+        mechanics=Mechanics(J=1.5e-3, B=0.0),
+        inverter=Inverter(u_dc=311.0),
+        base=BaseValues.from_rated(311.0 / math.sqrt(2.0), 4.8, n_rpm, float(n_p)),
+        w_rated=n_p * 2 * math.pi * n_rpm / 60,
+        tau_rated=2.4,
+        i_max=2.0 * math.sqrt(2.0) * 4.8,
+        name="zhang750",
+        notes=(
+            "zhang2022 Table I (750 W, 2400 rpm, 2.4 N m, 4.8 A rms, 311 V dc; the table's "
+            "second 'L_d' is L_q). Assumed: J = 1.5e-3 kg m^2, B = 0 (not given); rated "
+            "line voltage 311/sqrt(2) = 220 V rms for the voltage base; current limit "
+            "2x rated peak."
+        ),
+    )
+
+
+def _stumper_mt5() -> Drive:
+    n_p, n_rpm = 3, 3000.0
+    I_peak = 6.3
+    return Drive(
+        motor=PMSMParams(R_s=0.86, L_d=4.8e-3, L_q=7.2e-3, psi_f=0.236, n_p=float(n_p)),
+        mechanics=Mechanics(J=2.0e-3, B=0.0),
+        inverter=Inverter(u_dc=400.0 * math.sqrt(2.0)),
+        base=BaseValues.from_rated(400.0, I_peak / math.sqrt(2.0), n_rpm, float(n_p)),
+        w_rated=n_p * 2 * math.pi * n_rpm / 60,
+        tau_rated=8.8,
+        i_max=I_peak,
+        name="stumper_mt5",
+        notes=(
+            "stumper Table I (3 pole pairs, 3000 rpm, 8.8 N m, 6.3 A, L_d 4.8 mH, L_q 7.2 mH, "
+            "R 0.86 Ohm, K 0.236 V s, 400 V). K read as PM flux linkage; 6.3 A read as the "
+            "peak current limit (= I_b); 400 V read as rated line rms voltage (u_dc = 566 V "
+            "assumed). The paper's estimator uses a single L = 7 mH. Assumed: J = 2e-3 kg m^2."
+        ),
+    )
+
+
+def _morawiec_ipm3k5() -> Drive:
+    n_p, n_rpm = 2, 1500.0
+    U_b, I_b, w_b = 285.0, 12.97, 2 * math.pi * 50.0
+    base = BaseValues(U_b=U_b, I_b=I_b, w_b=w_b, n_p=float(n_p))
+    Z_b, L_b, psi_b = U_b / I_b, U_b / I_b / w_b, U_b / w_b
+    return Drive(
+        motor=PMSMParams(R_s=0.035 * Z_b, L_d=0.28 * L_b, L_q=0.82 * L_b,
+                         psi_f=0.89 * psi_b, n_p=float(n_p)),
+        mechanics=Mechanics(J=0.012, B=0.0),
+        inverter=Inverter(u_dc=560.0),
+        base=base,
+        w_rated=w_b,
+        tau_rated=3500.0 / (n_rpm * 2 * math.pi / 60),
+        i_max=7.5 * math.sqrt(2.0),
+        name="morawiec_ipm3k5",
+        notes=(
+            "morawiec2023 Table I in p.u. (R_s 0.035, L_d 0.28, L_q 0.82, psi_f 0.89) with "
+            "U_b = 285 V, I_b = 12.97 A as the table gives, w_b = 2 pi 50 rad/s "
+            "(1500 rpm, 2 pole pairs). 36 slots: add the 18th-order slot harmonic with "
+            "`EMFHarmonics` (amplitude not given). Assumed: J = 0.012 kg m^2, "
+            "u_dc = 560 V, current limit sqrt(2) x 7.5 A."
+        ),
+    )
+
+
+def _li_dtp() -> Drive:
+    n_p, n_rpm = 5, 600.0
+    I_peak = 8.0
+    ab = PMSMParams(R_s=0.5, L_d=6e-3, L_q=10e-3, psi_f=0.2, n_p=float(n_p),
+                    harmonics=EMFHarmonics(order=(-5, 7), amplitude=(0.03, 0.02)))
+    w_rated = n_p * 2 * math.pi * n_rpm / 60
+    return Drive(
+        motor=DualThreePhaseParams(ab=ab, L_xy=1.0e-3, gamma=math.pi / 6),
+        mechanics=Mechanics(J=0.02, B=0.0),
+        inverter=Inverter(u_dc=300.0),
+        base=BaseValues(U_b=300.0 / math.sqrt(3.0), I_b=I_peak, w_b=w_rated, n_p=float(n_p)),
+        w_rated=w_rated,
+        tau_rated=3.0 * n_p * 0.2 * I_peak,
+        i_max=I_peak,
+        name="li_dtp",
+        notes=(
+            "li-fa-leso gives no machine table; everything here is assumed "
+            "(CONVENTIONS.md): dual three-phase IPMSM, 5 pole pairs, 600 rpm = 50 Hz, "
+            "R_s 0.5 Ohm, L_d 6 mH, L_q 10 mH, psi_f 0.2 V s per set, 30 deg shifted sets, "
+            "8 A peak rated current, back-EMF 5th (3 %) and 7th (2 %) harmonics, "
+            "L_xy = 1 mH, J = 0.02 kg m^2, u_dc = 300 V, rated torque 3 n_p psi_f I."
+        ),
+    )
+
+
+_PRESETS = {
+    "zhang750": _zhang750,
+    "stumper_mt5": _stumper_mt5,
+    "morawiec_ipm3k5": _morawiec_ipm3k5,
+    "li_dtp": _li_dtp,
+}
+
+PRESET_NAMES = tuple(_PRESETS)
+
+
+def preset(name: str) -> Drive:
+    """One of the motor presets of CONVENTIONS.md as a `Drive`.
+
+    - `"zhang750"`: zhang2022 Table I, 750 W PMSM.
+    - `"stumper_mt5"`: stumper Table I, MT5 IPMSM.
+    - `"morawiec_ipm3k5"`: morawiec2023 Table I, 3.5 kW IPMSM.
+    - `"li_dtp"`: assumed dual three-phase IPMSM for li-fa-leso.
+
+    `Drive.notes` states every assumption made.
+    """
+    try:
+        return _PRESETS[name]()
+    except KeyError:
+        raise ValueError(
+            f"Unknown motor preset {name!r}; choose one of {', '.join(PRESET_NAMES)}."
+        ) from None
+
+
+def replace_params(drive: Drive, **values) -> Drive:
+    """Return `drive` with motor/mechanics/inverter parameters replaced by name (SI units).
+
+    Names are looked up in `motor` (for a dual three-phase machine: `ab` first, then the
+    machine), `mechanics` and `inverter`; e.g. `replace_params(d, L_q=0.0123, J=2e-3)`.
+    The new values are validated like the constructor does.
+    """
+    for name, value in values.items():
+        targets = []
+        if drive.dual:
+            targets += [lambda d: d.motor.ab, lambda d: d.motor]
+        else:
+            targets += [lambda d: d.motor]
+        targets += [lambda d: d.mechanics, lambda d: d.inverter]
+        for get in targets:
+            obj = get(drive)
+            if name in getattr(type(obj), "__dataclass_fields__", {}):
+                new = type(obj)(**{**{f: getattr(obj, f) for f in
+                                      type(obj).__dataclass_fields__}, name: value})
+                drive = eqx.tree_at(get, drive, new)
+                break
+        else:
+            raise ValueError(
+                f"Unknown parameter {name!r}; settable names are motor fields "
+                f"(R_s, L_d, L_q, psi_f, n_p{', L_xy, gamma' if drive.dual else ''}), "
+                f"mechanics (J, B) and inverter (u_dc, u_max)."
+            )
+    return drive

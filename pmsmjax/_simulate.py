@@ -1,0 +1,341 @@
+"""Closed-loop simulation and open-loop plant runs.
+
+`simulate` runs sensor -> observer -> controller -> inverter -> plant at sampling period
+`T_s` with a `lax.scan` over sampling instants. The inverter voltage is held constant
+(ZOH) in the stationary frame over each period and the plant is integrated inside it with
+a fixed-step diffrax solver. Everything is a pure function of its inputs, so `jax.vmap`
+batches runs over any PyTree leaf (parameters, gains, scenarios) and `jax.grad`
+differentiates through a whole run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+
+from ._control import FOC
+from ._frames import inv_park, park, wrap_angle
+from ._integrate import RK4, check_step, integrate
+from ._motor import PMSM, PlantInput, PlantState
+from ._params import Drive, DualThreePhaseParams, PMSMParams
+from ._scenario import Scenario
+from ._solution import RESULTS, Trajectory
+from ._validate import check_positive, is_concrete
+from .observers import AbstractObserver, Measurement
+
+
+class Sensing(eqx.Module):
+    """Measurement chain of the drive.
+
+    **Arguments:**
+
+    - `noise_std`: standard deviation of white Gaussian noise added to each sampled
+      phase-current component (A). Needs `key` in `simulate` when > 0.
+    - `quantum`: current quantisation step (A, one LSB); 0 = none. (Quantisation is
+      piecewise constant: its derivative is zero.)
+    - `delay`: current-sampling delay in whole samples (static int >= 0).
+    - `encoder_quantum`: encoder angle resolution (rad); 0 = ideal encoder.
+    """
+
+    noise_std: float = 0.0
+    quantum: float = 0.0
+    delay: int = eqx.field(static=True, default=0)
+    encoder_quantum: float = 0.0
+
+    def __check_init__(self):
+        check_positive("Sensing", "noise_std", self.noise_std, "A", allow_zero=True)
+        check_positive("Sensing", "quantum", self.quantum, "A", allow_zero=True)
+        check_positive("Sensing", "encoder_quantum", self.encoder_quantum, "rad",
+                       allow_zero=True)
+        if not isinstance(self.delay, int) or self.delay < 0:
+            raise ValueError(
+                f"`Sensing(delay=...)` must be an integer number of samples >= 0; got "
+                f"{self.delay!r}."
+            )
+
+    def quantise(self, x, q):
+        if isinstance(q, (int, float)) and q == 0:
+            return x
+        return jnp.where(q > 0, jnp.round(x / jnp.where(q > 0, q, 1.0)) * q, x)
+
+
+def scale_motor(motor, scales: dict):
+    """Multiply machine parameters by factors `{name: factor}` (R_s, L_d, L_q, psi_f)."""
+    if not scales:
+        return motor
+    if isinstance(motor, DualThreePhaseParams):
+        return eqx.tree_at(lambda m: m.ab, motor, scale_motor(motor.ab, scales))
+    names = list(scales)
+    return eqx.tree_at(lambda m: [getattr(m, n) for n in names], motor,
+                       [getattr(motor, n) * scales[n] for n in names])
+
+
+def _plant_rate(motor, w_max):
+    """Upper bound of the magnitude of the plant's electrical eigenvalues (1/s)."""
+    p = motor.ab if isinstance(motor, DualThreePhaseParams) else motor
+    L_min = min(float(p.L_d), float(p.L_q))
+    if isinstance(motor, DualThreePhaseParams):
+        L_min = min(L_min, float(motor.L_xy))
+    return math.hypot(float(p.R_s) / L_min, float(w_max))
+
+
+def _finite_bounded(y: PlantState, i_bound, w_bound):
+    leaves = jax.tree_util.tree_leaves(y)
+    fin = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+    return fin & (jnp.sum(y.i_dq ** 2) < i_bound ** 2) & (jnp.abs(y.w_m) < w_bound)
+
+
+def _check_common(drive: Drive, T_s, solver, n_substeps):
+    if not isinstance(drive, Drive):
+        raise ValueError(f"`drive` must be a `pmsmjax.Drive`; got {type(drive).__name__}.")
+    check_positive("simulate", "T_s", T_s, "s")
+    if is_concrete((drive.motor, drive.w_rated)):
+        check_step(T_s, n_substeps, _plant_rate(drive.motor, 2.0 * float(drive.w_rated)),
+                   solver)
+
+
+@eqx.filter_jit
+def simulate(
+    drive: Drive,
+    controller: FOC,
+    observer: AbstractObserver,
+    scenario: Scenario,
+    *,
+    T_s: float = 125e-6,
+    solver=RK4(),
+    n_substeps: int = 1,
+    sensing: Sensing = Sensing(),
+    key=None,
+    theta0=0.0,
+    w_m0=0.0,
+    theta_hat0=None,
+    w_hat0=None,
+    i_dq0=(0.0, 0.0),
+    save_every: int = 1,
+    throw: bool = True,
+) -> Trajectory:
+    """Simulate one closed-loop run of a (sensored or sensorless) drive.
+
+    **Arguments:**
+
+    - `drive`: the plant's `Drive` (machine, mechanics, inverter, ratings).
+    - `controller`: `FOC` (its machine model may differ from the plant).
+    - `observer`: any `AbstractObserver`; `SensoredObserver()` for sensored control.
+    - `scenario`: `Scenario` with the references and disturbances.
+    - `T_s`: sampling period (s).
+    - `solver`: fixed-step diffrax Runge-Kutta solver for the plant (default `RK4()`).
+    - `n_substeps`: solver steps per sampling period.
+    - `sensing`: `Sensing` (current noise, quantisation, sampling delay, encoder).
+    - `key`: `jax.random` key for the current noise (needed if `noise_std > 0`).
+    - `theta0`, `w_m0`: initial rotor angle (rad) and electrical speed (rad/s).
+    - `theta_hat0`, `w_hat0`: initial observer angle/speed (default: the true values);
+      the initial angle error is `theta0 - theta_hat0`.
+    - `i_dq0`: initial current in rotor coordinates (A).
+    - `save_every`: keep every n-th sample in the trajectory (must divide the number of
+      steps); the integrals `ise_*` always use every sample.
+    - `throw`: raise if the run diverged; with `False` the status is returned instead
+      (use this under `vmap` for sweeps).
+
+    **Returns:** a `Trajectory`.
+    """
+    _check_common(drive, T_s, solver, n_substeps)
+    if observer is None or not isinstance(observer, AbstractObserver):
+        raise ValueError(
+            f"`observer` must be an `AbstractObserver` (e.g. `SensoredObserver()`); got "
+            f"{type(observer).__name__}."
+        )
+    if scenario.observer_scale and not isinstance(getattr(observer, "motor", None),
+                                                  PMSMParams):
+        raise ValueError(
+            "`Scenario(observer_scale=...)` needs an observer with a `motor` field "
+            f"(`PMSMParams`); {type(observer).__name__} has none."
+        )
+    N = scenario.n_steps(T_s)
+    if not isinstance(save_every, int) or save_every < 1 or N % save_every:
+        raise ValueError(
+            f"`save_every` must be a positive integer dividing the number of steps {N}; "
+            f"got {save_every!r}."
+        )
+    if key is None and is_concrete(sensing.noise_std) and np.any(
+            np.asarray(sensing.noise_std) > 0):
+        raise ValueError("`Sensing(noise_std > 0)` needs a PRNG `key` in `simulate`.")
+
+    plant0 = PMSM(drive.motor, drive.mechanics)
+    dtype = jnp.result_type(float)
+    t = jnp.arange(N, dtype=dtype) * T_s
+    inputs = scenario.sample(t)
+    if key is None:
+        noise = jnp.zeros((N, 2), dtype)
+    else:
+        noise = sensing.noise_std * jr.normal(key, (N, 2), dtype)
+
+    y0 = plant0.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0)
+    if scenario.w_m_imposed is not None:
+        y0 = eqx.tree_at(lambda y: y.w_m, y0, jnp.asarray(inputs["w_m_imposed"][0], dtype))
+    th_hat0 = y0.theta if theta_hat0 is None else jnp.asarray(theta_hat0, dtype)
+    w_hat0_ = y0.w_m if w_hat0 is None else jnp.asarray(w_hat0, dtype)
+    u_zero = jnp.zeros(2, dtype)
+    carry0 = dict(
+        plant=y0,
+        ctrl=controller.init(),
+        obs=observer.init(theta0=th_hat0, w0=w_hat0_),
+        u_prev=u_zero,     # applied over [t_{k-1}, t_k)
+        u_pending=u_zero,  # computed at k-1, applied over [t_k, t_{k+1}) if delayed
+        i_hist=jnp.zeros((sensing.delay, 2), dtype),
+        ok=jnp.array(True),
+        ise=jnp.zeros(3, dtype),
+    )
+    i_bound = 20.0 * drive.i_max
+    w_bound = 20.0 * drive.w_rated
+    speed_mode = scenario.speed_mode
+    imposed = scenario.w_m_imposed is not None
+
+    def step(carry, x):
+        t_k, inp, n_k = x
+        y = carry["plant"]
+        if imposed:
+            y = eqx.tree_at(lambda s: s.w_m, y, inp["w_m_imposed"])
+        # --- sensing
+        i_ab_true = inv_park(y.i_dq, y.theta)
+        if sensing.delay > 0:
+            i_samp = carry["i_hist"][0]
+            i_hist = jnp.concatenate([carry["i_hist"][1:], i_ab_true[None]], 0)
+        else:
+            i_samp, i_hist = i_ab_true, carry["i_hist"]
+        i_meas = sensing.quantise(i_samp + n_k, sensing.quantum)
+        theta_enc = sensing.quantise(y.theta, sensing.encoder_quantum)
+        meas = Measurement(i_ab=i_meas, u_ab=carry["u_prev"], theta=theta_enc, w_m=y.w_m)
+        # --- observer
+        obs = observer
+        if inp["observer_scale"]:
+            obs = eqx.tree_at(lambda o: o.motor, observer,
+                              scale_motor(observer.motor, inp["observer_scale"]))
+        obs_state, est = obs.step(carry["obs"], meas, T_s)
+        # --- control in the estimated frame
+        i_c = park(i_meas, est.theta_hat)
+        ctrl_state, out = controller.step(
+            carry["ctrl"], i_c, est.w_hat, inp["w_m_ref"], T_s,
+            i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
+            speed_mode=speed_mode,
+        )
+        adv = (0.5 + (1.0 if drive.inverter.delay else 0.0)) * est.w_hat * T_s \
+            if controller.angle_advance else 0.0
+        u_cmd = inv_park(out.u_dq, est.theta_hat + adv)
+        if drive.inverter.delay:
+            u_apply, u_pending = carry["u_pending"], u_cmd
+        else:
+            u_apply, u_pending = u_cmd, carry["u_pending"]
+        # --- plant over [t_k, t_k+1)
+        plant = plant0
+        if inp["plant_scale"]:
+            plant = PMSM(scale_motor(drive.motor, inp["plant_scale"]), drive.mechanics)
+        args = PlantInput(u_ab=u_apply, tau_L=inp["tau_L"],
+                          free=0.0 if imposed else 1.0)
+        y_new = integrate(plant.vector_field, y, args, T_s, solver=solver,
+                          n_substeps=n_substeps)
+        good = carry["ok"] & _finite_bounded(y_new, i_bound, w_bound)
+        y_next = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), y_new, y)
+        theta_err = wrap_angle(y.theta - est.theta_hat)
+        ise = carry["ise"] + T_s * jnp.stack([
+            theta_err ** 2, (inp["w_m_ref"] - y.w_m) ** 2, (y.w_m - est.w_hat) ** 2])
+        new_carry = dict(plant=y_next, ctrl=ctrl_state, obs=obs_state, u_prev=u_apply,
+                         u_pending=u_pending, i_hist=i_hist, ok=good, ise=ise)
+        rec = dict(
+            t=t_k, theta=wrap_angle(y.theta), w_m=y.w_m, theta_hat=est.theta_hat,
+            w_hat=est.w_hat, theta_err=theta_err, i_dq=y.i_dq, i_ab=i_ab_true,
+            i_meas_ab=i_meas, u_ab=u_apply, u_dq=park(u_apply, y.theta),
+            i_ref=out.i_ref, tau_ref=out.tau_ref, tau_M=plant.torque(y),
+            tau_L=inp["tau_L"], w_m_ref=inp["w_m_ref"],
+        )
+        return new_carry, rec
+
+    xs = (t, inputs, noise)
+    if save_every == 1:
+        carry, rec = jax.lax.scan(step, carry0, xs)
+    else:
+        def outer(c, xs_chunk):
+            c, r = jax.lax.scan(step, c, xs_chunk)
+            return c, jax.tree_util.tree_map(lambda a: a[0], r)
+
+        xs_r = jax.tree_util.tree_map(lambda a: a.reshape((N // save_every, save_every)
+                                                         + a.shape[1:]), xs)
+        carry, rec = jax.lax.scan(outer, carry0, xs_r)
+    status = RESULTS.where(carry["ok"], RESULTS.successful, RESULTS.diverged)
+    traj = Trajectory(**rec, ise_theta=carry["ise"][0], ise_w=carry["ise"][1],
+                      ise_w_hat=carry["ise"][2], status=status)
+    if throw:
+        traj = eqx.error_if(
+            traj, ~carry["ok"],
+            "simulate: the run diverged (a state became non-finite or out of bounds); "
+            "pass throw=False to get the status per run instead.")
+    return traj
+
+
+class PlantTrace(eqx.Module):
+    """Output of `run_plant`: the plant's response to a recorded voltage sequence.
+
+    - `t` (s), `i_ab` (A, N x 2) sampled at t_k, `theta` (rad, electrical, unwrapped),
+      `w_m` (rad/s, electrical), `i_dq` (A), `tau_M` (N m), all at t_k.
+    """
+
+    t: jnp.ndarray
+    i_ab: jnp.ndarray
+    theta: jnp.ndarray
+    w_m: jnp.ndarray
+    i_dq: jnp.ndarray
+    tau_M: jnp.ndarray
+
+
+@eqx.filter_jit
+def run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver=RK4(), n_substeps: int = 4,
+              theta0=0.0, w_m0=0.0, i_dq0=(0.0, 0.0), w_m_imposed=None) -> PlantTrace:
+    """Open-loop plant run driven by a recorded voltage sequence (ZOH between samples).
+
+    **Arguments:**
+
+    - `drive`: the `Drive`.
+    - `t`: sampling instants (s), uniform spacing, shape (N,).
+    - `u_ab`: voltage applied over [t_k, t_{k+1}) (V, (N, 2)).
+    - `tau_L`: load torque over [t_k, t_{k+1}) (N m, (N,)); default zero.
+    - `theta0`, `w_m0`, `i_dq0`: initial state (rad, rad/s, A).
+    - `w_m_imposed`: if given ((N,) rad/s), the speed is imposed (dynamometer).
+
+    **Returns:** a `PlantTrace` with the state sampled at every t_k (before u_k acts).
+    """
+    t = jnp.asarray(t)
+    u_ab = jnp.asarray(u_ab)
+    N = t.shape[0]
+    if N < 2:
+        raise ValueError(f"`t` needs at least 2 samples; got {N}.")
+    if u_ab.shape != (N, 2):
+        raise ValueError(f"`u_ab` must have shape (N, 2) = ({N}, 2); got {u_ab.shape}.")
+    T_s = t[1] - t[0]
+    if is_concrete(t):
+        tn = np.asarray(t)
+        dt = np.diff(tn)
+        if np.any(~np.isfinite(tn)) or np.any(np.abs(dt - dt[0]) > 1e-6 * abs(dt[0])) \
+                or dt[0] <= 0:
+            raise ValueError("`t` must be finite, increasing and uniformly spaced.")
+        _check_common(drive, float(dt[0]), solver, n_substeps)
+    tau = jnp.zeros(N) if tau_L is None else jnp.asarray(tau_L)
+    plant = PMSM(drive.motor, drive.mechanics)
+    y0 = plant.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0)
+    imposed = w_m_imposed is not None
+    w_imp = jnp.zeros(N) if w_m_imposed is None else jnp.asarray(w_m_imposed)
+
+    def step(y, x):
+        u, tl, wi = x
+        if imposed:
+            y = eqx.tree_at(lambda s: s.w_m, y, wi)
+        out = (plant.i_ab(y), y.theta, y.w_m, y.i_dq, plant.torque(y))
+        args = PlantInput(u_ab=u, tau_L=tl, free=0.0 if imposed else 1.0)
+        return integrate(plant.vector_field, y, args, T_s, solver=solver,
+                         n_substeps=n_substeps), out
+
+    _, (i_ab, theta, w_m, i_dq, tau_M) = jax.lax.scan(step, y0, (u_ab, tau, w_imp))
+    return PlantTrace(t=t, i_ab=i_ab, theta=theta, w_m=w_m, i_dq=i_dq, tau_M=tau_M)
