@@ -37,6 +37,11 @@ from ._frames import (  # noqa: E402
     wrap_angle as wrap_angle,
 )
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
+from ._io import (  # noqa: E402
+    RecordedData as RecordedData,
+    load_recording as load_recording,
+    save_recording as save_recording,
+)
 from ._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
 from ._params import (  # noqa: E402
     PRESET_NAMES as PRESET_NAMES,

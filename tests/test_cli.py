@@ -1,0 +1,211 @@
+"""The `pmsmjax` command line, run in-process through `main([...])`."""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax.__main__ import COMMANDS, build_parser, main
+
+
+T_END = 0.2  # s: short enough to be quick, long enough to reach speed and draw current
+
+SIMULATE_KEYS = {
+    "motor", "preset_notes", "scenario", "T_s", "steps", "wall_time_s", "compile_time_s",
+    "run_time_s", "final_speed", "speed_error_after_settling", "max_current", "status",
+}
+
+
+@pytest.fixture(scope="module")
+def sim_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("simulate")
+    assert main(["simulate", "--t-end", str(T_END), "--out", str(out)]) == 0
+    return out
+
+
+def test_simulate_writes_files(sim_dir):
+    for name in ("trajectory.npz", "recording.npz", "summary.json", "simulation.png"):
+        assert (sim_dir / name).stat().st_size > 0, name
+    summary = json.loads((sim_dir / "summary.json").read_text())
+    assert SIMULATE_KEYS <= set(summary)
+    assert summary["motor"] == "zhang750"
+    assert summary["preset_notes"] == pj.preset("zhang750").notes
+    assert summary["status"] == "successful"
+    assert summary["T_s"] == 125e-6
+    assert summary["steps"] == round(T_END / 125e-6)
+    assert summary["scenario"]["name"] == "default"
+    assert "load step" in summary["scenario"]["description"]
+    assert summary["max_current"]["A"] > 0
+
+    traj = np.load(sim_dir / "trajectory.npz")
+    fields = {f for f in pj.Trajectory.__dataclass_fields__}
+    assert fields <= set(traj.files)
+    assert traj["t"].shape == (summary["steps"],)
+    assert traj["i_dq"].shape == (summary["steps"], 2)
+    assert int(traj["status"]) == 0
+
+    rec = pj.load_recording(sim_dir / "recording.npz")
+    assert rec.names == ("t", "u_ab", "i_ab", "theta", "w_m", "tau_L")
+    np.testing.assert_array_equal(rec.u_ab, traj["u_ab"])
+    np.testing.assert_array_equal(rec.i_ab, traj["i_meas_ab"])
+    assert summary["final_speed"]["rad_s"] == pytest.approx(float(rec.w_m[-1]))
+
+
+def test_simulate_prints_summary(tmp_path, capsys):
+    assert main(["simulate", "--t-end", "0.05", "--scenario", "ramp", "--no-plot",
+                 "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "compiling..." in out
+    assert "final speed" in out
+    assert str(tmp_path / "summary.json") in out
+    assert not (tmp_path / "simulation.png").exists()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["scenario"]["load_pu"] is None
+
+
+def test_plant_reproduces_simulation(sim_dir, tmp_path):
+    """`plant` on the recording of `simulate` is the same plant driven by the same ZOH
+    voltages from the same initial state, with the same RK4 step (1 substep per T_s): the
+    two runs perform the same floating-point operations up to reordering by the compiler,
+    so they agree to rounding level (~1e-15 relative per step, growing at most linearly
+    over 1600 stable steps). 1e-9 relative leaves a wide margin for that and is still far
+    below any modelling difference (4 substeps instead of 1 already differ by ~1e-6)."""
+    out = tmp_path / "plant"
+    assert main(["plant", "--data", str(sim_dir / "recording.npz"), "--substeps", "1",
+                 "--out", str(out)]) == 0
+    rec = pj.load_recording(sim_dir / "recording.npz")
+    sim = pj.load_recording(out / "plant.npz")
+    assert sim.names == ("t", "u_ab", "i_ab", "theta", "w_m", "tau_L")
+    np.testing.assert_array_equal(sim.t, rec.t)
+    np.testing.assert_array_equal(sim.u_ab, rec.u_ab)
+    np.testing.assert_array_equal(sim.tau_L, rec.tau_L)
+    drive = pj.preset("zhang750")
+    i_scale = np.max(np.abs(rec.i_ab))
+    assert i_scale > 0.1 * drive.base.I_b  # the run did draw current
+    np.testing.assert_allclose(sim.i_ab, rec.i_ab, rtol=0, atol=1e-9 * i_scale)
+    np.testing.assert_allclose(sim.w_m, rec.w_m, rtol=0,
+                               atol=1e-9 * np.max(np.abs(rec.w_m)))
+    np.testing.assert_allclose(np.asarray(pj.wrap_angle(sim.theta - rec.theta)), 0.0,
+                               atol=1e-9)
+    summary = json.loads((out / "summary.json").read_text())
+    cmp = summary["comparison_with_data"]
+    assert set(cmp) == {"i_ab", "theta", "w_m"}
+    assert cmp["i_ab"]["rms_diff"] < 1e-9 * i_scale
+    assert (out / "plant.png").stat().st_size > 0
+
+
+def test_plant_csv_and_substeps(sim_dir, tmp_path, capsys):
+    """CSV output; with 4 RK4 substeps instead of 1 the comparison sees the (small)
+    integration-error difference, so the reported RMS is not trivially zero."""
+    out = tmp_path / "plant_csv"
+    assert main(["plant", "--data", str(sim_dir / "recording.npz"), "--format", "csv",
+                 "--substeps", "2", "--no-plot", "--out", str(out)]) == 0
+    assert "simulated - recorded i_ab: rms" in capsys.readouterr().out
+    sim = pj.load_recording(out / "plant.csv")
+    rec = pj.load_recording(sim_dir / "recording.npz")
+    rms = json.loads((out / "summary.json").read_text())["comparison_with_data"]["i_ab"]
+    assert 1e-12 < rms["rms_diff"] < 1e-3 * rms["rms_recorded"]
+    d = np.sqrt(np.mean(np.sum((sim.i_ab - rec.i_ab) ** 2, axis=-1)))
+    assert d == pytest.approx(rms["rms_diff"], rel=1e-6)
+
+
+def test_plant_minimal_input(tmp_path):
+    """Only t and u_ab: a locked-rotor-like start from rest with zero load, no comparison."""
+    n = 400
+    t = np.arange(n) * 125e-6
+    u_ab = np.tile([5.0, 0.0], (n, 1))  # a constant d-axis voltage at theta = 0
+    path = tmp_path / "in.csv"
+    pj.save_recording(path, pj.RecordedData(t=t, u_ab=u_ab))
+    out = tmp_path / "out"
+    assert main(["plant", "--data", str(path), "--substeps", "1", "--no-plot",
+                 "--out", str(out)]) == 0
+    sim = pj.load_recording(out / "plant.npz")
+    np.testing.assert_array_equal(sim.tau_L, 0.0)
+    # d-axis voltage on a rotor at angle 0: no torque, the rotor stays put and
+    # i_d -> u / R_s (time constant L_d / R_s = 3.2 ms, 50 ms simulated).
+    motor = pj.preset("zhang750").motor
+    assert sim.i_ab[-1, 0] == pytest.approx(5.0 / motor.R_s, rel=1e-4)
+    assert json.loads((out / "summary.json").read_text())["comparison_with_data"] == {}
+
+
+@pytest.mark.parametrize("command", [None, *COMMANDS])
+def test_help(command, capsys):
+    argv = ["--help"] if command is None else [command, "--help"]
+    assert main(argv) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: pmsmjax")
+    if command is not None:
+        assert "--motor" in out and "--set" in out and "--out" in out
+
+
+def test_every_option_has_help():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert set(sub.choices) == set(COMMANDS) >= {"simulate", "plant"}
+    for name, p in sub.choices.items():
+        for action in p._actions:
+            assert action.help, f"{name} {action.option_strings} has no help"
+
+
+def _write_bad_csv(tmp_path):
+    path = tmp_path / "bad.csv"
+    path.write_text("t,i_ab_a,i_ab_b\n0,0,0\n0.000125,0,0\n")
+    return path
+
+
+@pytest.mark.parametrize(
+    "argv, fragment",
+    [
+        (["simulate", "--motor", "nosuchmotor"], "invalid choice: 'nosuchmotor'"),
+        (["simulate", "--set", "J"], "NAME=VALUE"),
+        (["simulate", "--set", "J=heavy"], "not a number"),
+        (["simulate", "--set", "Jx=1e-3"], "Unknown parameter 'Jx'"),
+        (["simulate", "--set", "J=-1"], "`Mechanics(J=...)` (kg m^2) must be finite and > 0"),
+        (["simulate", "--t-end", "-1"], "must be a finite number > 0"),
+        (["simulate", "--scenario", "nope"], "invalid choice"),
+        (["simulate", "--scenario", "ramp", "--load", "0.3"], "--load is not used"),
+        (["simulate", "--T-s", "0.01"], "too long for RK4"),
+        (["plant", "--out", "OUT"], "required: --data"),
+        (["plant", "--data", "DIR/none.npz", "--out", "OUT"], "No such file"),
+        (["plant", "--data", "DIR/data.json", "--out", "OUT"], "unknown file extension"),
+        (["plant", "--data", "BADCSV", "--out", "OUT"], "missing: `u_ab` (V)"),
+        (["frobnicate"], "invalid choice: 'frobnicate'"),
+        ([], "required: COMMAND"),
+    ],
+)
+def test_bad_inputs_exit_2(argv, fragment, tmp_path, capsys):
+    (tmp_path / "data.json").write_text("{}")
+    subs = {"OUT": str(tmp_path / "out"), "BADCSV": str(_write_bad_csv(tmp_path))}
+    argv = [subs.get(a, a.replace("DIR", str(tmp_path))) for a in argv]
+    if argv and argv[0] == "simulate":
+        argv += ["--out", str(tmp_path / "out"), "--no-plot"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err  # one line, no traceback
+    assert "Traceback" not in err
+    assert err.startswith("pmsmjax")
+    assert fragment in err
+
+
+def test_diverged_run_exits_1(tmp_path, monkeypatch, capsys):
+    """A run that diverges still writes its files, reports the status and exits with 1.
+    (The voltage limit keeps the current loop of a sensored drive bounded even with
+    absurd gains, so the divergence is injected into the returned status.)"""
+    import equinox as eqx
+
+    import pmsmjax.__main__ as cli
+
+    real = cli.compile_and_run
+
+    def diverging(fn, *args, **kwargs):
+        out, t_c, t_r = real(fn, *args, **kwargs)
+        return eqx.tree_at(lambda tr: tr.status, out, pj.RESULTS.diverged), t_c, t_r
+
+    monkeypatch.setattr(cli, "compile_and_run", diverging)
+    assert main(["simulate", "--t-end", "0.02", "--no-plot", "--out", str(tmp_path)]) == 1
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["status"] == "diverged"
+    assert "diverged" in summary["status_message"]
+    assert "diverged" in capsys.readouterr().err
