@@ -1,0 +1,80 @@
+"""Independent reference models and small utilities for the tests.
+
+Nothing here calls the library's models: the equations are written out by hand from the
+textbook PMSM model (CONVENTIONS.md) so that they can serve as a reference.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import numpy as np
+
+import pmsmjax as pj
+
+
+def rot(theta):
+    """exp(theta J) as a numpy 2x2 matrix."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s], [s, c]])
+
+
+def motor_numbers(motor):
+    """(R_s, L_d, L_q, psi_f, n_p) of a three-phase `PMSMParams` as Python floats."""
+    return tuple(float(getattr(motor, n)) for n in ("R_s", "L_d", "L_q", "psi_f", "n_p"))
+
+
+def steady_u_dq(motor, i_dq, w_m):
+    """Steady-state voltage u_dq = R i + w J (L i + psi_f) written out per axis (V)."""
+    R, Ld, Lq, psi_f, _ = motor_numbers(motor)
+    i_d, i_q = i_dq
+    return np.array([R * i_d - w_m * Lq * i_q, R * i_q + w_m * (Ld * i_d + psi_f)])
+
+
+def dq_rhs(motor, J, B, x, u_ab, tau_L, free=True):
+    """Right-hand side of the three-phase dq model without harmonics (numpy).
+
+    State x = [i_d, i_q, theta, w_m]; u_ab is the stationary-frame voltage.
+
+        L_d di_d/dt = u_d - R i_d + w L_q i_q
+        L_q di_q/dt = u_q - R i_q - w (L_d i_d + psi_f)
+        dtheta/dt = w
+        (J / n_p) dw/dt = 1.5 n_p (psi_f i_q + (L_d - L_q) i_d i_q) - B w / n_p - tau_L
+    """
+    R, Ld, Lq, psi_f, n_p = motor_numbers(motor)
+    i_d, i_q, th, w = x
+    c, s = np.cos(th), np.sin(th)
+    u_d = c * u_ab[0] + s * u_ab[1]
+    u_q = -s * u_ab[0] + c * u_ab[1]
+    did = (u_d - R * i_d + w * Lq * i_q) / Ld
+    diq = (u_q - R * i_q - w * (Ld * i_d + psi_f)) / Lq
+    tau = 1.5 * n_p * (psi_f * i_q + (Ld - Lq) * i_d * i_q)
+    dw = n_p * (tau - B * w / n_p - tau_L) / J if free else 0.0
+    return np.array([did, diq, w, dw])
+
+
+def with_harmonics(drive, order, amplitude, phase=None):
+    """`drive` with its (alpha-beta) machine given the PM-flux harmonics."""
+    harm = pj.EMFHarmonics(order=order, amplitude=amplitude, phase=phase)
+    if drive.dual:
+        return eqx.tree_at(lambda d: d.motor.ab.harmonics, drive, harm,
+                           is_leaf=lambda x: x is None)
+    return eqx.tree_at(lambda d: d.motor.harmonics, drive, harm,
+                       is_leaf=lambda x: x is None)
+
+
+def simpson(f, h):
+    """Composite Simpson rule of samples `f` (odd count) with spacing `h`."""
+    f = np.asarray(f)
+    n = f.shape[0] - 1
+    assert n % 2 == 0
+    return h / 3.0 * (f[0] + f[-1] + 4.0 * f[1:-1:2].sum(0) + 2.0 * f[2:-1:2].sum(0))
+
+
+def tree_max_abs_diff(a, b):
+    """Largest absolute difference over all array leaves of two PyTrees."""
+    import jax
+
+    la = [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(a, eqx.is_array))]
+    lb = [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(b, eqx.is_array))]
+    assert len(la) == len(lb)
+    return max(float(np.max(np.abs(x - y))) if x.size else 0.0 for x, y in zip(la, lb))
