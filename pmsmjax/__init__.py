@@ -20,6 +20,13 @@ from ._control import (  # noqa: E402
     limit_vector as limit_vector,
     mtpa_i_d as mtpa_i_d,
 )
+from ._experiments import (  # noqa: E402
+    ZHANG_EXPERIMENTS as ZHANG_EXPERIMENTS,
+    ExperimentResult as ExperimentResult,
+    ZhangExperiment as ZhangExperiment,
+    zhang_equilibria as zhang_equilibria,
+    zhang_experiment as zhang_experiment,
+)
 from ._frames import (  # noqa: E402
     J as J,
     angle_error as angle_error,
@@ -55,6 +62,11 @@ from ._params import (  # noqa: E402
     preset as preset,
     replace_params as replace_params,
 )
+from ._replay import (  # noqa: E402
+    replay as replay,
+    replay_stats as replay_stats,
+    settling_time as settling_time,
+)
 from ._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
 from ._simulate import (  # noqa: E402
     PlantTrace as PlantTrace,
@@ -66,7 +78,12 @@ from ._simulate import (  # noqa: E402
 from ._solution import RESULTS as RESULTS, Trajectory as Trajectory  # noqa: E402
 from .observers import (  # noqa: E402
     AbstractObserver as AbstractObserver,
+    AFOObserver as AFOObserver,
+    ESODesign as ESODesign,
+    ESOObserver as ESOObserver,
     Estimate as Estimate,
+    FixedGains as FixedGains,
+    LESOObserver as LESOObserver,
     Measurement as Measurement,
     SensoredObserver as SensoredObserver,
 )

@@ -6,3 +6,26 @@ from ._base import (
     Measurement as Measurement,
     SensoredObserver as SensoredObserver,
 )
+from ._eso import (
+    AbstractGainSchedule as AbstractGainSchedule,
+    AFOObserver as AFOObserver,
+    ESODesign as ESODesign,
+    ESOObserver as ESOObserver,
+    FixedGains as FixedGains,
+    FluxObserverState as FluxObserverState,
+    LESOObserver as LESOObserver,
+)
+from ._eso_design import (
+    ESOGains as ESOGains,
+    error_dynamics as error_dynamics,
+    error_matrix as error_matrix,
+    error_signal as error_signal,
+    eso_gains as eso_gains,
+    fal as fal,
+    gain_G1 as gain_G1,
+    gains_g23 as gains_g23,
+    gains_pi as gains_pi,
+    psi_a as psi_a,
+    sigma1 as sigma1,
+    zhang38 as zhang38,
+)

@@ -48,6 +48,24 @@ import jax.numpy as jnp
 
 from .._frames import J, jmul, rotate
 from .._params import PMSMParams
+from .._validate import check_positive, check_range, is_concrete
+
+
+def check_design(owner: str, *, zeta1=None, w1=None, ratio=None, zeta2=None, w2=None,
+                 a=None, eta=None) -> None:
+    """Raise `ValueError` naming the argument for a bad (concrete) design parameter.
+
+    Damping ratios `zeta1`, `zeta2` (-) and natural frequencies `w1`, `w2` (rad/s) and the
+    ratio `w1 / |w0|` must be finite and > 0; fal's exponent `a` must lie in (0, 1] and its
+    linear-zone half-width `eta` (V s) must be > 0. Traced values are not checked.
+    """
+    check_positive(owner, "zeta1", zeta1)
+    check_positive(owner, "w1", w1, "rad/s")
+    check_positive(owner, "ratio", ratio, "-")
+    check_positive(owner, "zeta2", zeta2)
+    check_positive(owner, "w2", w2, "rad/s")
+    check_range(owner, "a", a, 0.0, 1.0, "-", lo_open=True)
+    check_positive(owner, "eta", eta, "V s")
 
 
 def fal(e, a, eta):
@@ -55,7 +73,9 @@ def fal(e, a, eta):
 
     $\mathrm{fal}(e) = e\,\eta^{a-1}$ for $|e| \le \eta$, $|e|^a \mathrm{sign}(e)$
     otherwise. Smooth at $e = 0$ (linear there), so gradients are finite everywhere.
+    `a` in (0, 1], `eta` > 0 (same unit as `e`).
     """
+    check_design("fal", a=a, eta=eta)
     e = jnp.asarray(e)
     abs_e = jnp.abs(e)
     big = abs_e > eta
@@ -71,7 +91,12 @@ def psi_a(motor: PMSMParams, i_dq):
 
 
 def zhang38(w0, w_rated):
-    """Suggested design (38): `(zeta1, w1)` for speed `w0` (rad/s), rated speed (rad/s)."""
+    """Suggested design (38): `(zeta1, w1)` for speed `w0` (rad/s), rated speed (rad/s).
+
+    `zeta1 = 1.5 + |w0|/w_rated`, `w1 = 1.5 |w0| / zeta1`, so `zeta1 w1 = 1.5 |w0|` and
+    `w1 -> 0` (hence G1 -> 0 in (17)) as `w0 -> 0`.
+    """
+    check_positive("zhang38", "w_rated", w_rated, "rad/s")
     zeta1 = 1.5 + jnp.abs(w0) / w_rated
     return zeta1, 1.5 * jnp.abs(w0) / zeta1
 
@@ -82,14 +107,23 @@ def gain_G1(psi_a0, w0, zeta1, w1, w_min=0.0):
     - `psi_a0`: auxiliary flux (V s, (2,)); `w0`: speed (rad/s, any sign, nonzero unless
       `w1` is proportional to `|w0|`); `zeta1` (-), `w1` (rad/s).
     - `w_min`: the magnitude below which `w0` is clamped in `w1**2 / w0` (rad/s); 0 = none.
+
+    Written as $(2\zeta_1\omega_1\,\psi_{a0}\psi_{a0}^T + c\,J\psi_{a0}\psi_{a0}^T)
+    / \|\psi_{a0}\|^2$, $c = \omega_1^2/\omega_0 - \omega_0$, with no constant arrays,
+    so float32 inputs give float32 gains.
     """
+    check_design("gain_G1", zeta1=zeta1)
+    # w1 = 0 is legitimate here: proportional schedules give w1 -> 0 at standstill.
+    check_positive("gain_G1", "w1", w1, "rad/s", allow_zero=True)
+    check_positive("gain_G1", "w_min", w_min, "rad/s", allow_zero=True)
     w0c = jnp.where(jnp.abs(w0) < w_min, jnp.where(w0 < 0, -w_min, w_min), w0) \
-        if w_min else w0
+        if (not is_concrete(w_min) or w_min) else w0
     # w1^2/w0 - w0, written so that w1 = r |w0| stays finite at w0 = 0 when w_min = 0.
     c = jnp.where(w0c == 0, 0.0, w1 ** 2 / jnp.where(w0c == 0, 1.0, w0c)) - w0
-    M = 2.0 * zeta1 * w1 * jnp.eye(2) + c * jnp.asarray(J)
-    P = jnp.outer(psi_a0, psi_a0) / jnp.sum(psi_a0 ** 2)
-    return M @ P
+    psi_a0 = jnp.asarray(psi_a0)
+    nrm2 = jnp.sum(psi_a0 ** 2)
+    return (2.0 * zeta1 * w1 * jnp.outer(psi_a0, psi_a0)
+            + c * jnp.outer(jmul(psi_a0), psi_a0)) / nrm2
 
 
 def gains_g23(psi_a0, zeta2, w2, n2=0.0, n3=0.0):
@@ -100,12 +134,31 @@ def gains_g23(psi_a0, zeta2, w2, n2=0.0, n3=0.0):
     rad/s^2 per V s) add $n\,\psi_{a0}^T/\|\psi_{a0}\|$, the null space of (19), giving
     any other solution for comparison.
     """
+    check_design("gains_g23", zeta2=zeta2, w2=w2)
+    psi_a0 = jnp.asarray(psi_a0)
     nrm2 = jnp.sum(psi_a0 ** 2)
     row = jnp.stack([psi_a0[1], -psi_a0[0]]) / nrm2  # psi_a0^T J / |psi_a0|^2
     null = psi_a0 / jnp.sqrt(nrm2)
     g2 = 2.0 * zeta2 * w2 * row + n2 * null
     g3 = w2 ** 2 * row + n3 * null
     return g2, g3
+
+
+def sigma1(psi_a0, zeta2, w2):
+    r"""Lower bound (27) of $\|[g_2; g_3]\|_{2,i}$ over all solutions of (19):
+    $\sigma_1 = \|v_2\|/\|v_1\| = \sqrt{4\zeta_2^2\omega_2^2 + \omega_2^4}/\|\psi_{a0}\|$."""
+    return jnp.sqrt(4.0 * zeta2 ** 2 * w2 ** 2 + w2 ** 4) / jnp.sqrt(jnp.sum(
+        jnp.asarray(psi_a0) ** 2))
+
+
+def gains_pi(psi_a0, zeta2, w2):
+    r"""Speed-law gains of the adaptive full-order observer, zhang2022 (53):
+    $k_p = 2\zeta_2\omega_2/\psi_{ad0}$ (rad/s per V s), $k_i = \omega_2^2/\psi_{ad0}$
+    (rad/s^2 per V s). The paper prints $\zeta_2 = 1$. See `AFOObserver` for the sign.
+    """
+    check_design("gains_pi", zeta2=zeta2, w2=w2)
+    psi_ad0 = jnp.asarray(psi_a0)[0]
+    return 2.0 * zeta2 * w2 / psi_ad0, w2 ** 2 / psi_ad0
 
 
 class ESOGains(eqx.Module):
@@ -132,10 +185,12 @@ def error_matrix(w0, psi_a0, gains: ESOGains):
     \tilde\theta, \tilde\omega]$."""
     Jp = jmul(psi_a0)
     G1, g2, g3 = gains.G1, gains.g2, gains.g3
-    top = jnp.concatenate([-(w0 * jnp.asarray(J) + G1), (G1 @ Jp)[:, None],
-                           jnp.zeros((2, 1))], 1)
-    mid = jnp.concatenate([-g2, jnp.stack([g2 @ Jp, jnp.ones(())])])[None]
-    bot = jnp.concatenate([-g3, jnp.stack([g3 @ Jp, jnp.zeros(())])])[None]
+    Jw = w0 * jnp.asarray(J, dtype=jnp.result_type(G1))
+    zero, one = jnp.zeros((), G1.dtype), jnp.ones((), G1.dtype)
+    top = jnp.concatenate([-(Jw + G1), (G1 @ Jp)[:, None],
+                           jnp.zeros((2, 1), G1.dtype)], 1)
+    mid = jnp.concatenate([-g2, jnp.stack([g2 @ Jp, one])])[None]
+    bot = jnp.concatenate([-g3, jnp.stack([g3 @ Jp, zero])])[None]
     return jnp.concatenate([top, mid, bot], 0)
 
 
