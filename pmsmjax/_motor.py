@@ -32,10 +32,33 @@ would have in a three-phase machine (derived from `vsd_matrix`, tested).
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
-from ._frames import jmul, park
+from ._frames import park
 from ._params import DualThreePhaseParams, EMFHarmonics, Mechanics, PMSMParams
+
+
+@jax.custom_jvp
+def cos_sin(theta):
+    """`(cos(theta), sin(theta))`, each evaluated once per element (used on hot paths).
+
+    XLA's CPU fusion counts `sin`/`cos` as cheap and recomputes them inside every fused
+    consumer of their result; in a closed-loop RK4 step that multiplied the number of
+    evaluations by about four. Dividing by a runtime one (`theta - theta + 1`, exactly 1
+    for finite `theta`; NaN otherwise, where the results are NaN anyway) is an identity
+    that XLA counts as expensive, so it computes each value once and reuses it. The JVP
+    is written out so that derivatives reuse the same two values.
+    """
+    one = theta - theta + 1.0
+    return jnp.cos(theta) / one, jnp.sin(theta) / one
+
+
+@cos_sin.defjvp
+def _cos_sin_jvp(primals, tangents):
+    (theta,), (dtheta,) = primals, tangents
+    c, s = cos_sin(theta)
+    return (c, s), (-s * dtheta, c * dtheta)
 
 
 class PlantState(eqx.Module):
@@ -62,6 +85,34 @@ class PlantInput(eqx.Module):
     tau_L: jnp.ndarray
     u_xy: jnp.ndarray | None = None
     free: float = 1.0
+
+
+# Component form: the same Modules with every 2-vector held as a tuple `(x, y)` of its
+# components. `simulate` carries the plant in this form, so that its step is element-wise
+# arithmetic without stacking and slicing, which XLA compiles to fewer and faster loops,
+# forward and reverse (see BENCHMARKS.md).
+
+def _pair(v):
+    return None if v is None else (v[..., 0], v[..., 1])
+
+
+def _stack(v):
+    return None if v is None else jnp.stack(v, -1)
+
+
+def split_state(y: PlantState) -> PlantState:
+    """`y` in component form (2-vectors as `(x, y)` tuples)."""
+    return PlantState(i_dq=_pair(y.i_dq), theta=y.theta, w_m=y.w_m, i_xy=_pair(y.i_xy))
+
+
+def join_state(y: PlantState) -> PlantState:
+    """Inverse of `split_state`."""
+    return PlantState(i_dq=_stack(y.i_dq), theta=y.theta, w_m=y.w_m, i_xy=_stack(y.i_xy))
+
+
+def split_input(u: PlantInput) -> PlantInput:
+    """`u` in component form (2-vectors as `(x, y)` tuples)."""
+    return PlantInput(u_ab=_pair(u.u_ab), tau_L=u.tau_L, u_xy=_pair(u.u_xy), free=u.free)
 
 
 def _xy_order(h: int) -> bool:
@@ -149,35 +200,54 @@ class PMSM(eqx.Module):
     def torque(self, y: PlantState):
         """Electromagnetic torque tau_M (N m)."""
         psi = self.flux_dq(y)
-        i = y.i_dq
-        tau = psi[..., 0] * i[..., 1] - psi[..., 1] * i[..., 0]
-        ab = self._ab_params()
+        return self._torque(split_state(y), psi[..., 0], psi[..., 1], self._ab_params())
+
+    def _torque(self, y: PlantState, psi_d, psi_q, ab: PMSMParams):
+        """`torque` of `y` in component form, from its flux components (V s)."""
+        i_d, i_q = y.i_dq
+        tau = psi_d * i_q - psi_q * i_d
         if ab.harmonics is not None:
-            tau = tau + jnp.sum(i * ab.dpsi_pm_dq_dtheta(y.theta), axis=-1)
+            dpsi = ab.dpsi_pm_dq_dtheta(y.theta)
+            tau = tau + (i_d * dpsi[..., 0] + i_q * dpsi[..., 1])
         if self.dual and self._harmonics(xy=True):
-            tau = tau + jnp.sum(y.i_xy * self.dpsi_pm_xy_dtheta(y.theta), axis=-1)
+            dpsi = self.dpsi_pm_xy_dtheta(y.theta)
+            tau = tau + (y.i_xy[0] * dpsi[..., 0] + y.i_xy[1] * dpsi[..., 1])
         return self.k_tau * tau
 
     # -- dynamics ------------------------------------------------------------------------
     def vector_field(self, t, y: PlantState, args: PlantInput) -> PlantState:
         """Time derivative of the state (`diffrax.ODETerm` signature)."""
+        return join_state(self._rates(t, split_state(y), split_input(args)))
+
+    def _rates(self, t, y: PlantState, args: PlantInput) -> PlantState:
+        """`vector_field` for state and input in component form (see `split_state`).
+
+        Written per component (d, q), so that the closed loop runs on element-wise
+        arithmetic without stacking and slicing 2-vectors.
+        """
         del t
         p = self._ab_params()
         m = self.mechanics
         w = y.w_m
-        u_dq = park(args.u_ab, y.theta)
-        psi = self.flux_dq(y)
-        emf = w * jmul(psi)
+        i_d, i_q = y.i_dq
+        c, s = cos_sin(y.theta)
+        u_a, u_b = args.u_ab
+        u_d, u_q = c * u_a + s * u_b, c * u_b - s * u_a  # park(u_ab, theta)
+        psi_pm = p.psi_pm_dq(y.theta)
+        psi_d = p.L_d * i_d + psi_pm[..., 0]
+        psi_q = p.L_q * i_q + psi_pm[..., 1]
+        emf_d, emf_q = w * -psi_q, w * psi_d  # w J psi
         if p.harmonics is not None:
-            emf = emf + w * p.dpsi_pm_dq_dtheta(y.theta)
-        rhs = u_dq - p.R_s * y.i_dq - emf
-        di_dq = jnp.stack([rhs[..., 0] / p.L_d, rhs[..., 1] / p.L_q], -1)
-        tau_M = self.torque(y)
+            dpsi = p.dpsi_pm_dq_dtheta(y.theta)
+            emf_d, emf_q = emf_d + w * dpsi[..., 0], emf_q + w * dpsi[..., 1]
+        di_dq = ((u_d - p.R_s * i_d - emf_d) / p.L_d, (u_q - p.R_s * i_q - emf_q) / p.L_q)
+        tau_M = self._torque(y, psi_d, psi_q, p)
         dw = args.free * p.n_p * (tau_M - m.B * w / p.n_p - args.tau_L) / m.J
         if self.dual:
-            u_xy = args.u_xy if args.u_xy is not None else jnp.zeros_like(args.u_ab)
-            di_xy = (u_xy - p.R_s * y.i_xy - w * self.dpsi_pm_xy_dtheta(y.theta)) \
-                / self.motor.L_xy
+            u_xy = args.u_xy if args.u_xy is not None else (jnp.zeros_like(u_a),) * 2
+            dpsi = self.dpsi_pm_xy_dtheta(y.theta)
+            di_xy = tuple((u - p.R_s * i - w * dpsi[..., j]) / self.motor.L_xy
+                          for j, (u, i) in enumerate(zip(u_xy, y.i_xy)))
         else:
             di_xy = None
         return PlantState(i_dq=di_dq, theta=w, w_m=dw, i_xy=di_xy)
@@ -215,6 +285,6 @@ class PMSM(eqx.Module):
 
     def i_ab(self, y: PlantState):
         """Stator current in the stationary frame (A)."""
-        from ._frames import inv_park
-
-        return inv_park(y.i_dq, y.theta)
+        c, s = cos_sin(y.theta)
+        i_d, i_q = y.i_dq[..., 0], y.i_dq[..., 1]
+        return jnp.stack([c * i_d - s * i_q, s * i_d + c * i_q], -1)  # inv_park
