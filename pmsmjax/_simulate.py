@@ -10,6 +10,7 @@ differentiates through a whole run.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -17,16 +18,21 @@ import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
+from jax.ad_checkpoint import checkpoint_name
 
 from ._control import FOC
-from ._frames import inv_park, park, wrap_angle
+from ._frames import wrap_angle
 from ._integrate import RK4, check_step, integrate
-from ._motor import PMSM, PlantInput, PlantState
+from ._motor import PMSM, PlantInput, PlantState, cos_sin, join_state, split_state
 from ._params import Drive, DualThreePhaseParams, PMSMParams
 from ._scenario import Scenario
 from ._solution import RESULTS, Trajectory
 from ._validate import check_positive, is_concrete
 from .observers import AbstractObserver, Measurement
+
+
+_OK_NAME = "pmsmjax.simulate.ok"
+_CHECKPOINT_POLICY = jax.checkpoint_policies.save_only_these_names(_OK_NAME)
 
 
 class Sensing(eqx.Module):
@@ -85,9 +91,33 @@ def _plant_rate(motor, w_max):
 
 
 def _finite_bounded(y: PlantState, i_bound, w_bound):
-    leaves = jax.tree_util.tree_leaves(y)
-    fin = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
-    return fin & (jnp.sum(y.i_dq ** 2) < i_bound ** 2) & (jnp.abs(y.w_m) < w_bound)
+    """For `y` in component form: all finite, |i| < i_bound and |w_m| < w_bound."""
+    i_d, i_q = y.i_dq
+    ok = (i_d * i_d + i_q * i_q < i_bound ** 2) & (jnp.abs(y.w_m) < w_bound)
+    for x in jax.tree_util.tree_leaves(y):
+        ok = ok & jnp.isfinite(x)
+    return ok
+
+
+def _run_dtype(*trees):
+    """Floating dtype of a run: the result type of the floating-point leaves of `trees`
+    (Python floats are weak: float32 parameters give a float32 run, see `astype`)."""
+    leaves = [x for x in jax.tree_util.tree_leaves(trees)
+              if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
+    return jnp.result_type(float, *leaves)
+
+
+def _cast_floats(tree, dtype):
+    def cast(x):
+        x = jnp.asarray(x)
+        return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
+
+    return jax.tree_util.tree_map(cast, tree)
+
+
+def _rotate(c, s, x, y):
+    """Components of the vector (x, y) rotated by the angle with cosine c and sine s."""
+    return c * x - s * y, s * x + c * y
 
 
 def _check_common(drive: Drive, T_s, solver, n_substeps):
@@ -99,7 +129,6 @@ def _check_common(drive: Drive, T_s, solver, n_substeps):
                    solver)
 
 
-@eqx.filter_jit
 def simulate(
     drive: Drive,
     controller: FOC,
@@ -141,6 +170,10 @@ def simulate(
     - `throw`: raise if the run diverged; with `False` the status is returned instead
       (use this under `vmap` for sweeps).
 
+    The run's floating-point dtype is that of the `drive` and `controller` parameters
+    (Python floats adapt): cast both with `pmsmjax.astype(..., jnp.float32)` for a
+    single-precision run; inputs, initial values and the observer state follow.
+
     **Returns:** a `Trajectory`.
     """
     _check_common(drive, T_s, solver, n_substeps)
@@ -165,49 +198,92 @@ def simulate(
             np.asarray(sensing.noise_std) > 0):
         raise ValueError("`Sensing(noise_std > 0)` needs a PRNG `key` in `simulate`.")
 
+    return _simulate(
+        drive, controller, observer, scenario, T_s=T_s, solver=solver,
+        n_substeps=n_substeps, sensing=sensing, key=key, theta0=theta0, w_m0=w_m0,
+        theta_hat0=theta_hat0, w_hat0=w_hat0, i_dq0=i_dq0, save_every=save_every,
+        throw=throw)
+
+
+@eqx.filter_jit
+def _simulate(
+    drive: Drive,
+    controller: FOC,
+    observer: AbstractObserver,
+    scenario: Scenario,
+    *,
+    T_s: float = 125e-6,
+    solver=RK4(),
+    n_substeps: int = 1,
+    sensing: Sensing = Sensing(),
+    key=None,
+    theta0=0.0,
+    w_m0=0.0,
+    theta_hat0=None,
+    w_hat0=None,
+    i_dq0=(0.0, 0.0),
+    save_every: int = 1,
+    throw: bool = True,
+) -> Trajectory:
+    # Validated by `simulate` (with concrete values, outside jit).
+    N = scenario.n_steps(T_s)
     plant0 = PMSM(drive.motor, drive.mechanics)
-    dtype = jnp.result_type(float)
+    # The run's floating dtype follows the drive and controller parameters (float32 after
+    # `astype`); inputs and initial states are cast to it, and so is the carried state
+    # after every step, so a float64 leaf elsewhere (e.g. an observer) cannot promote it.
+    dtype = _run_dtype(drive, controller)
     t = jnp.arange(N, dtype=dtype) * T_s
-    inputs = scenario.sample(t)
+    inputs = _cast_floats(scenario.sample(t), dtype)
     if key is None:
-        noise = jnp.zeros((N, 2), dtype)
+        noise = None  # no noise: nothing to add
     else:
         noise = sensing.noise_std * jr.normal(key, (N, 2), dtype)
 
-    y0 = plant0.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0)
+    y0 = _cast_floats(plant0.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0), dtype)
     if scenario.w_m_imposed is not None:
         y0 = eqx.tree_at(lambda y: y.w_m, y0, jnp.asarray(inputs["w_m_imposed"][0], dtype))
     th_hat0 = y0.theta if theta_hat0 is None else jnp.asarray(theta_hat0, dtype)
     w_hat0_ = y0.w_m if w_hat0 is None else jnp.asarray(w_hat0, dtype)
     u_zero = jnp.zeros(2, dtype)
+    zero = jnp.zeros((), dtype)
     carry0 = dict(
-        plant=y0,
-        ctrl=controller.init(),
-        obs=observer.init(theta0=th_hat0, w0=w_hat0_),
+        plant=split_state(y0),  # in component form (2-vectors as tuples)
+        ctrl=_cast_floats(controller.init(), dtype),
+        obs=_cast_floats(observer.init(theta0=th_hat0, w0=w_hat0_), dtype),
         u_prev=u_zero,     # applied over [t_{k-1}, t_k)
         u_pending=u_zero,  # computed at k-1, applied over [t_k, t_{k+1}) if delayed
         i_hist=jnp.zeros((sensing.delay, 2), dtype),
         ok=jnp.array(True),
-        ise=jnp.zeros(3, dtype),
+        ise=(zero, zero, zero),  # integrals of theta_err^2, (w_ref - w)^2, (w - w_hat)^2
     )
+    carry_dtypes = jax.tree_util.tree_map(lambda a: a.dtype, carry0)
     i_bound = 20.0 * drive.i_max
     w_bound = 20.0 * drive.w_rated
     speed_mode = scenario.speed_mode
     imposed = scenario.w_m_imposed is not None
 
+    # The step works on vector components (x, y) where it can, and evaluates each sin/cos
+    # once (`cos_sin`): XLA then compiles it to a few element-wise loops (see BENCHMARKS.md).
     def step(carry, x):
         t_k, inp, n_k = x
         y = carry["plant"]
         if imposed:
             y = eqx.tree_at(lambda s: s.w_m, y, inp["w_m_imposed"])
         # --- sensing
-        i_ab_true = inv_park(y.i_dq, y.theta)
+        c, s = cos_sin(y.theta)
+        i_d, i_q = y.i_dq
+        i_ab_true = jnp.stack(_rotate(c, s, i_d, i_q), -1)  # inv_park(i_dq, theta)
         if sensing.delay > 0:
             i_samp = carry["i_hist"][0]
             i_hist = jnp.concatenate([carry["i_hist"][1:], i_ab_true[None]], 0)
         else:
             i_samp, i_hist = i_ab_true, carry["i_hist"]
-        i_meas = sensing.quantise(i_samp + n_k, sensing.quantum)
+        i_a, i_b = i_samp[..., 0], i_samp[..., 1]
+        if n_k is not None:
+            i_a, i_b = i_a + n_k[..., 0], i_b + n_k[..., 1]
+        i_a = sensing.quantise(i_a, sensing.quantum)
+        i_b = sensing.quantise(i_b, sensing.quantum)
+        i_meas = jnp.stack([i_a, i_b], -1)
         theta_enc = sensing.quantise(y.theta, sensing.encoder_quantum)
         meas = Measurement(i_ab=i_meas, u_ab=carry["u_prev"], theta=theta_enc, w_m=y.w_m)
         # --- observer
@@ -217,7 +293,8 @@ def simulate(
                               scale_motor(observer.motor, inp["observer_scale"]))
         obs_state, est = obs.step(carry["obs"], meas, T_s)
         # --- control in the estimated frame
-        i_c = park(i_meas, est.theta_hat)
+        c_hat, s_hat = cos_sin(est.theta_hat)
+        i_c = jnp.stack(_rotate(c_hat, -s_hat, i_a, i_b), -1)  # park(i_meas, theta_hat)
         ctrl_state, out = controller.step(
             carry["ctrl"], i_c, est.w_hat, inp["w_m_ref"], T_s,
             i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
@@ -225,7 +302,8 @@ def simulate(
         )
         adv = (0.5 + (1.0 if drive.inverter.delay else 0.0)) * est.w_hat * T_s \
             if controller.angle_advance else 0.0
-        u_cmd = inv_park(out.u_dq, est.theta_hat + adv)
+        c_u, s_u = cos_sin(est.theta_hat + adv)
+        u_cmd = jnp.stack(_rotate(c_u, s_u, out.u_dq[..., 0], out.u_dq[..., 1]), -1)
         if drive.inverter.delay:
             u_apply, u_pending = carry["u_pending"], u_cmd
         else:
@@ -234,37 +312,64 @@ def simulate(
         plant = plant0
         if inp["plant_scale"]:
             plant = PMSM(scale_motor(drive.motor, inp["plant_scale"]), drive.mechanics)
-        args = PlantInput(u_ab=u_apply, tau_L=inp["tau_L"],
+        args = PlantInput(u_ab=(u_apply[..., 0], u_apply[..., 1]), tau_L=inp["tau_L"],
                           free=0.0 if imposed else 1.0)
-        y_new = integrate(plant.vector_field, y, args, T_s, solver=solver,
-                          n_substeps=n_substeps)
-        good = carry["ok"] & _finite_bounded(y_new, i_bound, w_bound)
+        y_new = integrate(plant._rates, y, args, T_s, solver=solver, n_substeps=n_substeps)
+        good = checkpoint_name(carry["ok"] & _finite_bounded(y_new, i_bound, w_bound),
+                               _OK_NAME)
         y_next = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), y_new, y)
         theta_err = wrap_angle(y.theta - est.theta_hat)
-        ise = carry["ise"] + T_s * jnp.stack([
-            theta_err ** 2, (inp["w_m_ref"] - y.w_m) ** 2, (y.w_m - est.w_hat) ** 2])
+        ise = tuple(a + T_s * b for a, b in zip(carry["ise"], (
+            theta_err ** 2, (inp["w_m_ref"] - y.w_m) ** 2, (y.w_m - est.w_hat) ** 2)))
         new_carry = dict(plant=y_next, ctrl=ctrl_state, obs=obs_state, u_prev=u_apply,
                          u_pending=u_pending, i_hist=i_hist, ok=good, ise=ise)
-        rec = dict(
-            t=t_k, theta=wrap_angle(y.theta), w_m=y.w_m, theta_hat=est.theta_hat,
-            w_hat=est.w_hat, theta_err=theta_err, i_dq=y.i_dq, i_ab=i_ab_true,
-            i_meas_ab=i_meas, u_ab=u_apply, u_dq=park(u_apply, y.theta),
-            i_ref=out.i_ref, tau_ref=out.tau_ref, tau_M=plant.torque(y),
-            tau_L=inp["tau_L"], w_m_ref=inp["w_m_ref"],
-        )
-        return new_carry, rec
+        new_carry = jax.tree_util.tree_map(lambda a, d: jnp.asarray(a, d), new_carry,
+                                           carry_dtypes)
+
+        def record():
+            u_a, u_b = u_apply[..., 0], u_apply[..., 1]
+            rec = dict(
+                t=t_k, theta=wrap_angle(y.theta), w_m=y.w_m, theta_hat=est.theta_hat,
+                w_hat=est.w_hat, theta_err=theta_err, i_dq=jnp.stack(y.i_dq, -1),
+                i_ab=i_ab_true,
+                i_meas_ab=i_meas, u_ab=u_apply,
+                u_dq=jnp.stack(_rotate(c, -s, u_a, u_b), -1),  # park(u_apply, theta)
+                i_ref=out.i_ref, tau_ref=out.tau_ref, tau_M=plant.torque(join_state(y)),
+                tau_L=inp["tau_L"], w_m_ref=inp["w_m_ref"],
+            )
+            return _cast_floats(rec, dtype)
+
+        return new_carry, record
+
+    # Reverse mode: each step is recomputed in the backward pass from the carry, keeping
+    # only the per-step divergence flag; cheaper than storing the intermediate values
+    # of every step (and far less memory).
+    @functools.partial(jax.checkpoint, prevent_cse=False, policy=_CHECKPOINT_POLICY)
+    def step_recorded(carry, x):
+        new_carry, record = step(carry, x)
+        return new_carry, record()
+
+    @functools.partial(jax.checkpoint, prevent_cse=False, policy=_CHECKPOINT_POLICY)
+    def step_unrecorded(carry, x):
+        return step(carry, x)[0], None
 
     xs = (t, inputs, noise)
     if save_every == 1:
-        carry, rec = jax.lax.scan(step, carry0, xs)
+        carry, rec = jax.lax.scan(step_recorded, carry0, xs)
     else:
-        def outer(c, xs_chunk):
-            c, r = jax.lax.scan(step, c, xs_chunk)
-            return c, jax.tree_util.tree_map(lambda a: a[0], r)
+        # Record the first sample of each chunk of `save_every` steps; the other steps
+        # record nothing, so memory does not grow with `save_every`. (Inputs are indexed
+        # in place, not re-sliced per chunk, which would copy them.)
+        def x_at(k):
+            return jax.tree_util.tree_map(lambda a: a[k], xs)
 
-        xs_r = jax.tree_util.tree_map(lambda a: a.reshape((N // save_every, save_every)
-                                                         + a.shape[1:]), xs)
-        carry, rec = jax.lax.scan(outer, carry0, xs_r)
+        def chunk(c, k0):
+            c, r = step_recorded(c, x_at(k0))
+            c, _ = jax.lax.scan(lambda c, k: step_unrecorded(c, x_at(k)), c,
+                                k0 + jnp.arange(1, save_every))
+            return c, r
+
+        carry, rec = jax.lax.scan(chunk, carry0, jnp.arange(0, N, save_every))
     status = RESULTS.where(carry["ok"], RESULTS.successful, RESULTS.diverged)
     traj = Trajectory(**rec, ise_theta=carry["ise"][0], ise_w=carry["ise"][1],
                       ise_w_hat=carry["ise"][2], status=status)
@@ -291,7 +396,6 @@ class PlantTrace(eqx.Module):
     tau_M: jnp.ndarray
 
 
-@eqx.filter_jit
 def run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver=RK4(), n_substeps: int = 4,
               theta0=0.0, w_m0=0.0, i_dq0=(0.0, 0.0), w_m_imposed=None) -> PlantTrace:
     """Open-loop plant run driven by a recorded voltage sequence (ZOH between samples).
@@ -314,14 +418,25 @@ def run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver=RK4(), n_substeps: in
         raise ValueError(f"`t` needs at least 2 samples; got {N}.")
     if u_ab.shape != (N, 2):
         raise ValueError(f"`u_ab` must have shape (N, 2) = ({N}, 2); got {u_ab.shape}.")
-    T_s = t[1] - t[0]
     if is_concrete(t):
-        tn = np.asarray(t)
+        tn = np.asarray(t, dtype=float)
         dt = np.diff(tn)
-        if np.any(~np.isfinite(tn)) or np.any(np.abs(dt - dt[0]) > 1e-6 * abs(dt[0])) \
-                or dt[0] <= 0:
-            raise ValueError("`t` must be finite, increasing and uniformly spaced.")
+        if not np.all(np.isfinite(tn)):
+            raise ValueError("`t` (s) must be finite; it contains NaN or inf.")
+        if dt[0] <= 0 or np.any(np.abs(dt - dt[0]) > 1e-6 * abs(dt[0])):
+            raise ValueError(
+                "`t` (s) must be increasing and uniformly spaced (relative tolerance 1e-6); "
+                f"spacings range from {dt.min():.6g} to {dt.max():.6g} s.")
         _check_common(drive, float(dt[0]), solver, n_substeps)
+    return _run_plant(drive, t, u_ab, tau_L, solver=solver, n_substeps=n_substeps,
+                      theta0=theta0, w_m0=w_m0, i_dq0=i_dq0, w_m_imposed=w_m_imposed)
+
+
+@eqx.filter_jit
+def _run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver, n_substeps, theta0, w_m0,
+               i_dq0, w_m_imposed) -> PlantTrace:
+    N = t.shape[0]
+    T_s = t[1] - t[0]
     tau = jnp.zeros(N) if tau_L is None else jnp.asarray(tau_L)
     plant = PMSM(drive.motor, drive.mechanics)
     y0 = plant.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0)

@@ -235,14 +235,6 @@ def _t_non_uniform():
     return t
 
 
-RUN_PLANT_BUG = (
-    "run_plant is wrapped in @eqx.filter_jit, so `t` is always a tracer inside and the "
-    "`if is_concrete(t):` block (time-axis checks and the solver-stability check "
-    "_check_common) never runs (pmsmjax/_simulate.py, run_plant)."
-)
-
-
-@pytest.mark.xfail(strict=True, reason=RUN_PLANT_BUG)
 @pytest.mark.parametrize("case", ["non_uniform", "decreasing", "nan"])
 def test_run_plant_time_axis(case):
     t = {"non_uniform": _t_non_uniform(), "decreasing": T_RP[::-1],
@@ -251,7 +243,6 @@ def test_run_plant_time_axis(case):
         pj.run_plant(DRIVE, t, U_RP)
 
 
-@pytest.mark.xfail(strict=True, reason=RUN_PLANT_BUG)
 def test_run_plant_T_s_too_long():
     with _raises("`T_s=0.005` s is too long"):
         pj.run_plant(DRIVE, T_RP * 50, U_RP, n_substeps=1)

@@ -368,12 +368,6 @@ def test_float32_close_to_float64(speed_run):
                                atol=1e-3 * float(DRIVE.i_max))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="simulate() fixes its working dtype with jnp.result_type(float), which is "
-    "float64 once pmsmjax has switched x64 on, so float32 inputs give a float64 run "
-    "(pmsmjax/_simulate.py, `dtype = jnp.result_type(float)`).",
-)
 def test_float32_inputs_give_float32_run(speed_run):
     """With x64 on (pmsmjax's default), float32-cast drive/controller/inputs should run in
     float32, as the package docstring says ("pass float32 arrays (or cast a PyTree with
