@@ -5,8 +5,23 @@ cast a PyTree with `astype`) for bulk sweeps in single precision.
 """
 
 import importlib.metadata
+import os
 
-import jax
+
+# XLA's CPU backend compiles a `lax.scan` whose body is larger than a small byte
+# threshold into a loop of separate kernels; raising the threshold compiles the whole
+# closed-loop step into one kernel: about 9x faster single runs and 1.2-1.7x faster
+# batches here (BENCHMARKS.md). XLA reads the flag when the backend starts, so it only
+# takes effect if pmsmjax is imported before JAX's first computation. Set
+# PMSMJAX_KEEP_XLA_FLAGS=1, or any `--xla_backend_extra_options` yourself, to opt out.
+if not os.environ.get("PMSMJAX_KEEP_XLA_FLAGS") and \
+        "xla_backend_extra_options" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "")
+        + " --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000"
+    ).strip()
+
+import jax  # noqa: E402
 
 
 jax.config.update("jax_enable_x64", True)
