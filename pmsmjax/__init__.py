@@ -26,7 +26,7 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from . import observers as observers  # noqa: E402
+from . import analysis as analysis, observers as observers  # noqa: E402
 from ._control import (  # noqa: E402
     FOC as FOC,
     CurrentController as CurrentController,

@@ -1,5 +1,38 @@
-"""Stability and design analysis of observers and drives, and a runner for large sweeps."""
+"""Stability and design analysis of the observers: linearisation, equilibria,
+feasibility maps, Lyapunov (slowly-varying) certificates, and a chunked, sharded,
+resumable runner for large sweeps."""
 
+from ._equilibria import (
+    Equilibria as Equilibria,
+    eso_equilibria as eso_equilibria,
+    quartic_coefficients as quartic_coefficients,
+    quartic_equilibria as quartic_equilibria,
+    quartic_t_coefficients as quartic_t_coefficients,
+    trig_poly as trig_poly,
+)
+from ._feasibility import (
+    DesignClass as DesignClass,
+    FeasibilityMap as FeasibilityMap,
+    classify_designs as classify_designs,
+    feasibility_map as feasibility_map,
+)
+from ._linearize import (
+    charpoly as charpoly,
+    eso_linearization as eso_linearization,
+    eso_rhs as eso_rhs,
+    is_hurwitz as is_hurwitz,
+    linearize as linearize,
+    max_real_eig as max_real_eig,
+    routh_hurwitz as routh_hurwitz,
+)
+from ._lyapunov import (
+    LyapunovCertificate as LyapunovCertificate,
+    RampRun as RampRun,
+    fastest_converging_ramp as fastest_converging_ramp,
+    lyapunov_solve as lyapunov_solve,
+    simulate_ramp as simulate_ramp,
+    slowly_varying_certificate as slowly_varying_certificate,
+)
 from ._sweep import (
     ChunkInfo as ChunkInfo,
     SweepGrid as SweepGrid,

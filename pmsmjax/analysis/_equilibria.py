@@ -1,0 +1,551 @@
+r"""Equilibria of the zhang2022 ESO/LESO error dynamics (11) at constant speed.
+
+Two routes, which agree where both apply (tests):
+
+1. **General route** (`eso_equilibria`): every equilibrium of the full nonlinear
+   right-hand side, with parameter mismatch and with linear or fal feedback.
+2. **Quartic route** (`quartic_equilibria`): the paper's closed form (34)-(36), matched
+   parameters and linear feedback only.
+
+**Reduction used by the general route.** Write $f = \eta^{1-a}\mathrm{fal}(e)$ for the
+feedback ($f = e$ when $a = 1$). At an equilibrium $\dot{\tilde\omega} = 0$ gives
+$g_3 f = 0$, so $f = s\,u$ for a scalar $s$ and the unit vector $u = J g_3^T/\|g_3\|$
+($u \parallel \psi_{a0}$ for the gains (25)); $\dot{\tilde\theta} = 0$ gives
+$\tilde\omega = g_2 f$, so the frame speed is exactly $\omega_0$ (in both frame
+conventions when $g_2 \parallel g_3$; always in the observer's), and the flux equation
+becomes $\omega_0 J\tilde\psi + s\,G_1 u + \Delta R\, i_0 = 0$, i.e.
+$\tilde\psi = J(s\,G_1 u + \Delta R\, i_0)/\omega_0$ ($\Delta R = R_s - \hat R_s$).
+With $e = e_0(\tilde\theta) + \tilde\psi$ ($e_0$ = `error_signal(0, theta, ...)`, which
+contains the inductance and flux mismatch) and $e = \mathrm{fal}^{-1}(s\,u\,\eta^{a-1})
+=: E(s)$ this leaves two equations in $(\tilde\theta, s)$:
+
+$$b(\tilde\theta) := e_0(\tilde\theta) + J\Delta R\, i_0/\omega_0
+  = E(s) - s\,J G_1 u/\omega_0 =: c(s).$$
+
+Component along $u$: $\varphi(s) := u\cdot c(s) = u\cdot b(\tilde\theta)$. Since fal is
+odd and increasing with slope $\le\eta^{a-1}$, $u\cdot E'(s) \ge 1$, and with the gains
+(17) $u\cdot JG_1u = -(\omega_1^2/\omega_0 - \omega_0)$, so
+$\varphi'(s) \ge \kappa := 1 - u\cdot JG_1 u/\omega_0 = \omega_1^2/\omega_0^2 > 0$:
+$\varphi$ is strictly increasing, $s(\tilde\theta)$ is unique and lies in
+$[0, u\cdot b/\kappa]$ (closed form $s = u\cdot b/\kappa$ for linear feedback). The
+equilibria are then exactly the zeros on $(-\pi, \pi]$ of the scalar function
+
+$$r(\tilde\theta) = Ju\cdot\big(b(\tilde\theta) - c(s(\tilde\theta))\big).$$
+
+For linear feedback $r$ is a trigonometric polynomial of degree 2 in $\tilde\theta$
+(with or without mismatch), so it has at most 4 zeros unless it vanishes identically.
+With matched parameters it equals, up to a constant factor,
+$Ju\cdot e_0 + (2\zeta_1\omega_0/\omega_1)\,u\cdot e_0$: the left side of (34).
+
+The zeros are bracketed by sign changes of $r$ on a periodic grid offset by half a step
+(so $\tilde\theta = 0, \pi$ are never grid points), and each bracket is refined with
+`optimistix.Bisection` (plus one Newton step), vmapped over brackets with a fixed number
+of slots and a validity mask. Two zeros closer than a grid step leave no sign change of
+$r$ but a sign change of $r'$ (`jax.grad`) in their cell: such a cell is refined to the
+extremum $r'(\tilde\theta_c) = 0$ (plain bisection on $r'$); if $r(\tilde\theta_c)$ has
+the opposite sign both halves are bracketed, and if it is zero (to tolerance) the double
+zero is reported as a `tangent` equilibrium (a saddle-node: its Jacobian is singular, so
+it is never classified stable). Tangencies are the boundary between 1 and 3 nonzero
+equilibria, a measure-zero set of designs. Not resolved: more than two zeros, or two
+extrema, inside one grid cell (a cusp; refine `n_grid`).
+
+**Quartic route.** (34)-(35) with $G_1 = [g_1, g_2]^T[1, -\beta]$, $\beta =
+-\psi_{aq0}/\psi_{ad0}$ ($g_1$, $g_2$ are the entries of $G_1$'s first column here, not
+the speed gains) and $\hat\omega = \omega_0$. Our derivation from (31), (33) gives
+$A\Delta_d + B\Delta_q = 0$ with $A = \omega_0\beta + (1+\beta^2)g_1$,
+$B = \omega_0 + (1+\beta^2)g_2$ and $\Delta = -e_0$, whose Fourier coefficients are
+exactly the printed $p_1 \dots p_5$: (35) is correct as printed (checked numerically
+against the general route in the tests). With (36),
+$(1+t^2)^2 \cdot (34)$ is the quartic $c_4t^4 + c_3t^3 + c_2t^2 + c_1t + c_0$ with
+$c_4 = p_1 - p_3 + p_5$, $c_3 = 2p_4 - 4p_2$, $c_2 = 2p_5 - 6p_1$, $c_1 = 4p_2 + 2p_4$,
+$c_0 = p_1 + p_3 + p_5 = 0$. So $t = 0$ is always a root and the nonzero equilibria are
+the real roots of the **cubic** $c_4t^3 + c_3t^2 + c_2t + c_1$: 1 or 3 of them, which is
+the paper's "either 1 or 3" (counted with multiplicity; a root at $t = \infty$, i.e.
+$\tilde\theta = \pi$, when $c_4 = -2p_3 = 0$). We solve it as the binary cubic form in
+$(\cos x, \sin x)$, $x = \tilde\theta/2$, in closed form, so the root at infinity needs
+no special case, and polish each root with Newton steps on the form.
+
+**Stability** of each equilibrium from the Jacobian (37) (`jax.jacfwd` of the error
+dynamics, in the frame convention `frame`), by the exact Routh-Hurwitz test on its
+characteristic polynomial (`routh_hurwitz`), after the similarity and time scaling
+$\mathrm{diag}(1/|\psi_{a0}|, 1/|\psi_{a0}|, 1, 1/|\omega_0|)$, $1/|\omega_0|$ (which
+change no sign of a real part and keep the entries O(1)).
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+from .._frames import jmul, wrap_angle
+from .._params import PMSMParams
+from ..observers._eso_design import ESOGains, error_signal, psi_a
+from ._linearize import charpoly, check_frame, eso_rhs, routh_hurwitz
+
+
+class Equilibria(eqx.Module):
+    """All equilibria of the ESO error dynamics at one operating point and design.
+
+    Arrays have a trailing axis of `max_roots` slots (plus any batch axes in front);
+    slots with `valid = False` hold NaN. Valid equilibria come first, sorted by angle.
+
+    - `theta`: angle error of each equilibrium, wrapped to (-pi, pi] (rad).
+    - `x`: the full state `[psi_err_d, psi_err_q, theta_err, w_err]` (V s, V s, rad,
+      rad/s), shape `(..., max_roots, 4)`.
+    - `valid`: slot holds an equilibrium.
+    - `stable`: its Jacobian (37) is Hurwitz (Routh-Hurwitz).
+    - `tangent`: a double zero of the reduced function (saddle-node; never stable).
+    - `residual`: max |f(x)| after the scaling of the module docstring (dimensionless;
+      ~1e-12 or less in float64).
+    - `principal`: index of the equilibrium closest to `theta = 0` (the designed one;
+      exactly 0 with matched parameters).
+    - `n`: number of equilibria; `n_nonzero = n - 1` (all but the principal one). With
+      parameter mismatch `n = 0` happens (e.g. a large resistance error at low speed):
+      there is no equilibrium and the angle error drifts for ever.
+    - `status`: 0 ok, -1 degenerate or failed (w0 = 0, w1 = 0, psi_a0 = 0, the
+      reduction's kappa <= 0 for non-designed gains, non-finite values, more zeros than
+      slots, or a refinement that did not converge).
+    """
+
+    theta: jnp.ndarray
+    x: jnp.ndarray
+    valid: jnp.ndarray
+    stable: jnp.ndarray
+    tangent: jnp.ndarray
+    residual: jnp.ndarray
+    principal: jnp.ndarray
+    n: jnp.ndarray
+    status: jnp.ndarray
+
+    @property
+    def n_nonzero(self):
+        return jnp.maximum(self.n - 1, 0)
+
+    @property
+    def nonprincipal(self):
+        """Mask of valid equilibria other than the principal one."""
+        k = jnp.arange(self.valid.shape[-1])
+        return self.valid & (k != self.principal[..., None])
+
+
+def as_arrays(tree, dtype):
+    """Every float/int leaf (Python or NumPy) of `tree` as a JAX array of `dtype`, so that
+    jitted functions trace them instead of baking them in (no recompile per value)."""
+    def conv(v):
+        if isinstance(v, bool):
+            return v
+        if isinstance(v, float | int | np.ndarray | np.generic | jax.Array):
+            return jnp.asarray(v, dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) \
+                or isinstance(v, int | float) else jnp.asarray(v)
+        return v
+    return jax.tree_util.tree_map(conv, tree)
+
+
+def _tol(dtype):
+    return float(jnp.finfo(dtype).eps) ** 0.75
+
+
+def _fal_inv(y, a, eta):
+    """Inverse of fal (element-wise): y eta^(1-a) for |y| <= eta^a, sign(y)|y|^(1/a)."""
+    big = jnp.abs(y) > eta ** a
+    safe = jnp.where(big, jnp.abs(y), 1.0)
+    return jnp.where(big, jnp.sign(y) * safe ** (1.0 / a), y * eta ** (1.0 - a))
+
+
+class _Reduction(eqx.Module):
+    """The pieces of the reduction r(theta) (see the module docstring)."""
+
+    w0: jnp.ndarray
+    i0: jnp.ndarray
+    gains: ESOGains
+    motor: PMSMParams
+    motor_hat: PMSMParams
+    a: jnp.ndarray
+    eta: jnp.ndarray
+    linear: bool = eqx.field(static=True)
+    u: jnp.ndarray
+    JG1u: jnp.ndarray
+    kappa: jnp.ndarray
+    scale: jnp.ndarray  # flux scale |psi_a0| of the observer (V s)
+
+    def b(self, theta):
+        e0 = error_signal(jnp.zeros(2, self.u.dtype), theta, self.i0, self.motor,
+                          self.motor_hat)
+        dR = self.motor.R_s - self.motor_hat.R_s
+        return e0 + jmul(dR * self.i0) / self.w0
+
+    def c(self, s):
+        E = s * self.u if self.linear else _fal_inv(
+            s * self.u * self.eta ** (self.a - 1.0), self.a, self.eta)
+        return E - s * self.JG1u / self.w0
+
+    def s_of(self, ub):
+        """Unique s with u.c(s) = ub (monotone; closed form for linear feedback)."""
+        if self.linear:
+            return ub / self.kappa
+        phi = lambda s: jnp.dot(self.u, self.c(s)) - ub  # noqa: E731
+        lo = jnp.minimum(0.0, ub / self.kappa)
+        hi = jnp.maximum(0.0, ub / self.kappa)
+
+        # Safeguarded Newton: a Newton step is taken only if it stays inside the bracket
+        # and the last one at least halved |phi|; otherwise bisect. Converges to
+        # rounding level in well under 60 iterations (at worst bisection speed).
+        def body(_, carry):
+            s, lo, hi, prev = carry
+            f, df = jax.jvp(phi, (s,), (jnp.ones_like(s),))
+            lo = jnp.where(f < 0, s, lo)
+            hi = jnp.where(f < 0, hi, s)
+            sn = s - f / jnp.where(df > 0, df, 1.0)
+            newton = (sn > lo) & (sn < hi) & (df > 0) & (jnp.abs(f) <= 0.5 * prev)
+            return jnp.where(newton, sn, 0.5 * (lo + hi)), lo, hi, jnp.abs(f)
+
+        carry = (0.5 * (lo + hi), lo, hi, jnp.asarray(jnp.inf, lo.dtype))
+        s, lo, hi, _ = jax.lax.fori_loop(0, 60, body, carry)
+        return s
+
+    def r(self, theta):
+        """Reduced scalar function, divided by the flux scale (dimensionless)."""
+        b = self.b(theta)
+        s = self.s_of(jnp.dot(self.u, b))
+        return jnp.dot(jmul(self.u), b - self.c(s)) / self.scale
+
+    def state(self, theta):
+        """Full equilibrium state x = [psi_err, theta, w_err] for a zero of r."""
+        b = self.b(theta)
+        s = self.s_of(jnp.dot(self.u, b))
+        dR = self.motor.R_s - self.motor_hat.R_s
+        psi = jmul(s * (self.gains.G1 @ self.u) + dR * self.i0) / self.w0
+        w_err = jnp.dot(self.gains.g2, s * self.u)
+        return jnp.concatenate([psi, jnp.stack([theta, w_err])])
+
+
+def _make_reduction(w0, i0, gains, motor, motor_hat, a, eta, linear):
+    g3 = gains.g3
+    ng3 = jnp.sqrt(jnp.sum(g3 ** 2))
+    u = jmul(g3) / jnp.where(ng3 > 0, ng3, 1.0)
+    JG1u = jmul(gains.G1 @ u)
+    w0s = jnp.where(w0 == 0, 1.0, w0)
+    kappa = 1.0 - jnp.dot(u, JG1u) / w0s
+    scale = jnp.sqrt(jnp.sum(psi_a(motor_hat, i0) ** 2))
+    red = _Reduction(w0=w0s, i0=i0, gains=gains, motor=motor, motor_hat=motor_hat,
+                     a=jnp.asarray(a, u.dtype), eta=jnp.asarray(eta, u.dtype),
+                     linear=linear, u=u, JG1u=JG1u, kappa=jnp.where(kappa > 0, kappa, 1.0),
+                     scale=jnp.where(scale > 0, scale, 1.0))
+    ok = (w0 != 0) & (ng3 > 0) & (kappa > 0) & (scale > 0)
+    return red, ok
+
+
+def _bisect(fn, lo, hi, valid, tol, max_steps=200):
+    """Vmapped optimistix bisection on brackets [lo, hi] of a scalar function fn(theta).
+
+    The function is normalised so that it is <= 0 at `lo` (flip=False); invalid slots
+    get a dummy linear function. Returns (root, converged).
+    """
+    def g(y, args):
+        lo_, hi_, sgn, ok = args
+        return jnp.where(ok, sgn * fn(y), y - 0.5 * (lo_ + hi_))
+
+    def one(lo_, hi_, ok):
+        f_lo = fn(lo_)
+        sgn = jnp.where(f_lo > 0, -1.0, 1.0).astype(lo_.dtype)
+        sol = optx.root_find(g, optx.Bisection(rtol=0.0, atol=tol, flip=False),
+                             0.5 * (lo_ + hi_), args=(lo_, hi_, sgn, ok),
+                             options=dict(lower=lo_, upper=hi_), max_steps=max_steps,
+                             throw=False)
+        y = sol.value
+        # one Newton step polishes the bisection tolerance to rounding level
+        fy, dfy = jax.jvp(fn, (y,), (jnp.ones_like(y),))
+        yn = y - fy / jnp.where(dfy != 0, dfy, 1.0)
+        y = jnp.where((dfy != 0) & (yn >= lo_) & (yn <= hi_) & ok, yn, y)
+        # Converged: optimistix's test (bracket and |f| below atol), or a bracket that has
+        # collapsed to rounding level while |f| stays above atol (a steep zero, e.g. with
+        # fal feedback, where |f| at the last representable angle can exceed atol).
+        width = jnp.abs(sol.state.upper - sol.state.lower)
+        collapsed = width <= 64 * jnp.finfo(y.dtype).eps * (1.0 + jnp.abs(y))
+        return y, (sol.result == optx.RESULTS.successful) | collapsed
+
+    return jax.vmap(one)(lo, hi, valid)
+
+
+def _plain_bisect(fn, lo, hi, n_iter=60):
+    """Fixed-iteration vectorised bisection (for the rare critical-point brackets, where
+    the compile time of a second optimistix solve is not worth it). Any sign of fn(lo)."""
+    s_lo = jax.vmap(fn)(lo) >= 0
+
+    def body(_, c):
+        a, b = c
+        m = 0.5 * (a + b)
+        same = (jax.vmap(fn)(m) >= 0) == s_lo
+        return jnp.where(same, m, a), jnp.where(same, b, m)
+
+    a, b = jax.lax.fori_loop(0, n_iter, body, (lo, hi))
+    return 0.5 * (a + b)
+
+
+def _wrapdist(a, b):
+    return jnp.abs(wrap_angle(a - b))
+
+
+def _finish(red: _Reduction, theta, valid, tangent, frame, a, eta, ok):
+    """From candidate angles to an `Equilibria`: states, residuals, stability, sorting."""
+    K = theta.shape[0]
+    theta = wrap_angle(jnp.where(valid, theta, 0.0))
+    # drop duplicates (a zero exactly on a grid point can be bracketed twice)
+    close = _wrapdist(theta[:, None], theta[None, :]) < 1e-7
+    earlier = jnp.tril(jnp.ones((K, K), bool), -1)
+    dup = jnp.any(close & earlier & valid[None, :], axis=1)
+    valid = valid & ~dup
+    x = jax.vmap(red.state)(theta)
+    w0 = red.w0
+    d = jnp.stack([1 / red.scale, 1 / red.scale, jnp.ones_like(red.scale),
+                   1 / jnp.abs(w0)])
+    mh = red.motor_hat
+
+    def rhs(xx):
+        return eso_rhs(xx, w0, red.i0, red.gains, red.motor, mh, a, eta, frame)
+
+    f = jax.vmap(rhs)(x)
+    residual = jnp.max(jnp.abs(f * d / jnp.abs(w0)), axis=-1)
+    A = jax.vmap(jax.jacfwd(rhs))(x)
+    A = A * d[:, None] / d[None, :] / jnp.abs(w0)
+    stable = routh_hurwitz(charpoly(A)) & ~tangent
+    finite = jnp.all(jnp.isfinite(x), -1) & jnp.isfinite(residual)
+    bad = valid & ~finite
+    valid = valid & finite
+    order = jnp.argsort(jnp.where(valid, theta, jnp.inf))
+    theta, x, valid, stable, tangent, residual = (
+        v[order] for v in (theta, x, valid, stable, tangent, residual))
+    n = jnp.sum(valid)
+    principal = jnp.argmin(jnp.where(valid, jnp.abs(theta), jnp.inf))
+    nan = jnp.nan
+    status = jnp.where(ok & ~jnp.any(bad), 0, -1).astype(jnp.int32)
+    return Equilibria(
+        theta=jnp.where(valid, theta, nan), x=jnp.where(valid[:, None], x, nan),
+        valid=valid, stable=stable & valid, tangent=tangent & valid,
+        residual=jnp.where(valid, residual, nan), principal=principal.astype(jnp.int32),
+        n=n.astype(jnp.int32), status=status)
+
+
+def eso_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams,
+                   motor_hat: PMSMParams | None = None, *, a=1.0, eta=1.0,
+                   frame: str = "observer", n_grid: int = 256, max_roots: int = 8,
+                   n_crit: int = 8) -> Equilibria:
+    r"""Every equilibrium of the ESO error dynamics (11) at constant speed (general route).
+
+    **Arguments:**
+
+    - `w0`: electrical speed (rad/s), nonzero.
+    - `i0`: controlled current in the estimator frame (A, `(2,)`).
+    - `gains`: the observer's `ESOGains` (computed from the observer's model).
+    - `motor`: plant parameters; `motor_hat`: observer's model (default `motor`).
+    - `a`, `eta`: fal exponent in (0, 1] and linear-zone half-width (V s); `a = 1` is
+      the linear feedback (LESO), any `eta`.
+    - `frame`: `"observer"` or `"paper"` (see `eso_rhs`); only stability depends on it.
+    - `n_grid`: bracketing grid on (-pi, pi] (static). `max_roots`: output slots
+      (static; 4 suffice for linear feedback). `n_crit`: slots for close-pair detection.
+
+    Pure and vmappable (all shapes static); failures are reported in `status`, never
+    raised. See the module docstring for the method.
+    """
+    check_frame("eso_equilibria", frame)
+    if not isinstance(n_grid, int) or n_grid < 16:
+        raise ValueError(f"`eso_equilibria(n_grid=...)` must be an int >= 16; got {n_grid!r}.")
+    if not isinstance(max_roots, int) or max_roots < 2:
+        raise ValueError(
+            f"`eso_equilibria(max_roots=...)` must be an int >= 2; got {max_roots!r}.")
+    if not isinstance(n_crit, int) or n_crit < 1:
+        raise ValueError(f"`eso_equilibria(n_crit=...)` must be an int >= 1; got {n_crit!r}.")
+    motor_hat = motor if motor_hat is None else motor_hat
+    linear = isinstance(a, int | float) and float(a) == 1.0
+    dtype = jnp.result_type(w0, gains.G1, float)
+    w0, i0, gains, motor, motor_hat, a_, eta = as_arrays(
+        (w0, i0, gains, motor, motor_hat, a, eta), dtype)
+    return _eso_equilibria(w0, i0, gains, motor, motor_hat, 1.0 if linear else a_, eta,
+                           frame, n_grid, max_roots, n_crit)
+
+
+@eqx.filter_jit
+def _eso_equilibria(w0, i0, gains, motor, motor_hat, a, eta, frame, n_grid, max_roots,
+                    n_crit):
+    linear = isinstance(a, float)
+    dtype = w0.dtype
+    red, ok = _make_reduction(w0, i0, gains, motor, motor_hat, a, eta, linear)
+    tol = _tol(dtype)
+
+    N = n_grid
+    h = 2 * math.pi / N
+    grid = -math.pi + h * (jnp.arange(N, dtype=dtype) + 0.5)
+    rv = jax.vmap(red.r)(grid)
+    ok = ok & jnp.all(jnp.isfinite(rv))
+    rmax = jnp.max(jnp.abs(rv))
+    rmax = jnp.where(rmax > 0, rmax, 1.0)
+    rn = lambda t: red.r(t) / rmax
+    rv = rv / rmax
+    nxt = jnp.roll(rv, -1)
+    # sign-change brackets [grid_k, grid_k + h] (periodic)
+    sc = (rv >= 0) != (nxt >= 0)
+    (idx,) = jnp.nonzero(sc, size=max_roots, fill_value=0)
+    n_sc = jnp.sum(sc)
+    ok = ok & (n_sc <= max_roots)
+    slot = jnp.arange(max_roots) < n_sc
+    lo = grid[idx]
+
+    # close pairs: a cell without a sign change of r but with one of r' holds an
+    # extremum of r; if r changes sign there, the cell holds two zeros.
+    drn = jax.grad(rn)
+    dv = jax.vmap(drn)(grid)
+    ext = ~sc & ((dv >= 0) != (jnp.roll(dv, -1) >= 0))
+    (cidx,) = jnp.nonzero(ext, size=n_crit, fill_value=0)
+    cslot = jnp.arange(n_crit) < jnp.sum(ext)
+    ok = ok & (jnp.sum(ext) <= n_crit)
+    clo = grid[cidx]
+    chi = clo + h
+    thc = _plain_bisect(drn, clo, chi)
+    rc = jax.vmap(rn)(thc)
+    tangent_c = cslot & (jnp.abs(rc) < 1e2 * tol)
+    split = cslot & ~tangent_c & ((rc >= 0) != (rv[cidx] >= 0))
+
+    # one vmapped bisection over every bracket: sign changes, then both halves of splits
+    blo = jnp.concatenate([lo, clo, thc])
+    bhi = jnp.concatenate([lo + h, thc, chi])
+    bvalid = jnp.concatenate([slot, split, split])
+    th_b, conv = _bisect(rn, blo, bhi, bvalid, tol)
+    ok = ok & jnp.all(conv | ~bvalid)
+
+    theta = jnp.concatenate([th_b, thc])
+    valid = jnp.concatenate([bvalid, tangent_c])
+    tangent = jnp.concatenate([jnp.zeros(max_roots + 2 * n_crit, bool), tangent_c])
+    ok = ok & (jnp.sum(valid) <= max_roots)
+    # compact to max_roots slots
+    order = jnp.argsort(~valid, stable=True)[:max_roots]
+    eq = _finish(red, theta[order], valid[order], tangent[order], frame, a, eta, ok)
+    return eq
+
+
+# ---------------------------------------------------------------------------------------
+# Quartic route (34)-(36)
+# ---------------------------------------------------------------------------------------
+
+def quartic_coefficients(w0, i0, gains: ESOGains, motor: PMSMParams):
+    r"""$p_1 \dots p_5$ of (35) exactly as printed (matched parameters, linear feedback).
+
+    $\beta = -\psi_{aq0}/\psi_{ad0}$; $g_1$, $g_2$ are the entries of the first column of
+    $G_1 = [g_1, g_2]^T[1, -\beta]$; $\hat\omega = \omega_0$ (the frame speed at an
+    equilibrium); $i_d$, $i_q$ the current in the estimator frame; $\Delta L =
+    (L_d - L_q)/2$. Returns `(5,)` (V; only their ratios matter).
+    Singular when $\psi_{ad0} = 0$ (beta), which the general route is not.
+    """
+    pa = psi_a(motor, i0)
+    beta = -pa[1] / pa[0]
+    g1, g2 = gains.G1[0, 0], gains.G1[1, 0]
+    i_d, i_q = i0[0], i0[1]
+    dL = 0.5 * (motor.L_d - motor.L_q)
+    b2 = beta ** 2 + 1.0
+    p1 = dL * ((beta * i_d - i_q) * w0 + b2 * (g1 * i_d - g2 * i_q))
+    p2 = dL * ((beta * i_q + i_d) * w0 + b2 * (g2 * i_d + g1 * i_q))
+    p3 = motor.psi_f * (beta * w0 + b2 * g1)
+    p4 = motor.psi_f * (w0 + b2 * g2)
+    p5 = -p1 - p3
+    return jnp.stack([p1, p2, p3, p4, p5])
+
+
+def quartic_t_coefficients(p):
+    r"""Quartic in $t = \tan(\tilde\theta/2)$ from (34) and (36): `[c4, c3, c2, c1, c0]`
+    of $(1+t^2)^2\,(34)$ (highest power first, as `numpy.roots` expects)."""
+    p1, p2, p3, p4, p5 = (p[..., k] for k in range(5))
+    return jnp.stack([p1 - p3 + p5, 2 * p4 - 4 * p2, 2 * p5 - 6 * p1, 4 * p2 + 2 * p4,
+                      p1 + p3 + p5], -1)
+
+
+def trig_poly(p, theta):
+    """Left side of (34): p1 cos 2th + p2 sin 2th + p3 cos th + p4 sin th + p5."""
+    return (p[..., 0] * jnp.cos(2 * theta) + p[..., 1] * jnp.sin(2 * theta)
+            + p[..., 2] * jnp.cos(theta) + p[..., 3] * jnp.sin(theta) + p[..., 4])
+
+
+def _monic_cubic_real_roots(B, C, D):
+    """Real roots of t^3 + B t^2 + C t + D (closed form). Returns (roots (..., 3), valid)."""
+    p = C - B * B / 3.0
+    q = 2.0 * B ** 3 / 27.0 - B * C / 3.0 + D
+    disc = (0.5 * q) ** 2 + (p / 3.0) ** 3
+    three = disc < 0
+    # three real roots (p < 0 there): trigonometric form
+    pn = jnp.where(three, p, -1.0)
+    m = 2.0 * jnp.sqrt(-pn / 3.0)
+    arg = jnp.clip(3.0 * q / (pn * m), -1.0, 1.0)
+    phi = jnp.arccos(arg) / 3.0
+    k = jnp.arange(3, dtype=B.dtype)
+    y3 = m[..., None] * jnp.cos(phi[..., None] - 2.0 * math.pi * k / 3.0)
+    # one real root: Cardano with the cancellation-free choice of cube root
+    sq = jnp.sqrt(jnp.where(three, 0.0, disc))
+    A = -jnp.sign(q) * jnp.cbrt(0.5 * jnp.abs(q) + sq)
+    A = jnp.where(q == 0, jnp.cbrt(sq), A)
+    y1 = jnp.where(A != 0, A - p / (3.0 * jnp.where(A != 0, A, 1.0)), 0.0)
+    y = jnp.where(three[..., None], y3,
+                  jnp.stack([y1, jnp.zeros_like(y1), jnp.zeros_like(y1)], -1))
+    valid = jnp.where(three[..., None], True, k == 0)
+    return y - B[..., None] / 3.0, valid
+
+
+def _binary_cubic_angles(a0, a1, a2, a3, n_newton=3):
+    r"""Zeros $x \in (-\pi/2, \pi/2]$ of $Q(x) = a_0c^3 + a_1c^2s + a_2cs^2 + a_3s^3$,
+    $c = \cos x$, $s = \sin x$ (1 or 3 of them; closed form, then Newton on Q).
+
+    Solves in $\tan x$ when $|a_3| \ge |a_0|$, else in $\cot x$, so roots near
+    $x = \pm\pi/2$ need no special case. Returns (x (..., 3), valid (..., 3), ok) with
+    `ok = False` when $a_0 = a_3 = 0$ (degenerate form).
+    """
+    use_tan = jnp.abs(a3) >= jnp.abs(a0)
+    lead = jnp.where(use_tan, a3, a0)
+    ok = lead != 0
+    lead = jnp.where(ok, lead, 1.0)
+    B = jnp.where(use_tan, a2, a1) / lead
+    C = jnp.where(use_tan, a1, a2) / lead
+    D = jnp.where(use_tan, a0, a3) / lead
+    y, valid = _monic_cubic_real_roots(B, C, D)
+    x_tan = jnp.arctan(y)
+    x_cot = jnp.arctan2(jnp.ones_like(y), y)
+    x_cot = jnp.where(x_cot > 0.5 * math.pi, x_cot - math.pi, x_cot)
+    x = jnp.where(use_tan[..., None], x_tan, x_cot)
+    A0, A1, A2, A3 = (v[..., None] for v in (a0, a1, a2, a3))
+    for _ in range(n_newton):
+        c, s = jnp.cos(x), jnp.sin(x)
+        Q = A0 * c ** 3 + A1 * c * c * s + A2 * c * s * s + A3 * s ** 3
+        dQ = (-3 * A0 * c * c * s + A1 * (c ** 3 - 2 * c * s * s)
+              + A2 * (2 * c * c * s - s ** 3) + 3 * A3 * s * s * c)
+        step = jnp.where(dQ != 0, Q / jnp.where(dQ != 0, dQ, 1.0), 0.0)
+        x = x - jnp.clip(step, -0.1, 0.1)
+    return x, valid, ok
+
+
+def quartic_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams, *,
+                       frame: str = "observer") -> Equilibria:
+    r"""Equilibria from the paper's quartic (34)-(36), matched parameters, linear feedback.
+
+    $p$ from (35) as printed (`quartic_coefficients`); the root $t = 0$ of the quartic is
+    divided out and the cubic is solved in closed form (see the module docstring).
+    The full states, residuals and stability are computed exactly as in
+    `eso_equilibria`. Returns an `Equilibria` with 4 slots (0 and up to 3 nonzero).
+    """
+    check_frame("quartic_equilibria", frame)
+    dtype = jnp.result_type(w0, gains.G1, float)
+    return _quartic_equilibria(*as_arrays((w0, i0, gains, motor), dtype), frame)
+
+
+@eqx.filter_jit
+def _quartic_equilibria(w0, i0, gains, motor, frame):
+    dtype = w0.dtype
+    p = quartic_coefficients(w0, i0, gains, motor)
+    c4, c3, c2, c1, _ = (quartic_t_coefficients(p)[k] for k in range(5))
+    # c4 t^3 + c3 t^2 + c2 t + c1 = 0, t = s/c: a binary cubic with a3 = c4, ..., a0 = c1
+    x, valid, ok_form = _binary_cubic_angles(c1, c2, c3, c4)
+    theta = jnp.concatenate([jnp.zeros(1, dtype), 2.0 * x])
+    valid = jnp.concatenate([jnp.ones(1, bool), valid])
+    red, ok = _make_reduction(w0, i0, gains, motor, motor, 1.0, 1.0, True)
+    ok = ok & ok_form & jnp.all(jnp.isfinite(p))
+    return _finish(red, theta, valid, jnp.zeros(4, bool), frame, 1.0, 1.0, ok)

@@ -1,0 +1,503 @@
+r"""Slowly-varying-speed certificate of zhang2022 §V / Appendix A, computed numerically.
+
+The error dynamics with a time-varying speed, (40), $\dot z = g(z, \omega(t))$, is
+exponentially stable at $z = 0$ if (Khalil's Theorem 9.3, quoted as (41)-(45)) a
+Lyapunov function $V = z^TP(\omega)z$ with (48) $PA + A^TP = -I$ satisfies (43a)-(43d)
+with constants $c_1 \dots c_5$ on a ball $\|z\| < r$ and $|\dot\omega| \le \varepsilon <
+c_3/c_5$ (52); then every solution with $\|z(0)\| < r\sqrt{c_1/c_2}$ converges.
+
+This module computes every ingredient for a design, over a dense grid of the operating
+range $\Omega = [\omega_{lo}, \omega_{hi}]$, two ways:
+
+- **paper** constants (51)/(55)-(64): $\rho = \max\|A\|_2$; $\gamma$, $k$ with
+  $\|e^{tA}\| \le k e^{-\gamma t}$; $c_1 = 1/(2\rho)$, $c_2 = k^2/(2\gamma)$,
+  $c_4 = k^2/\gamma$, $c_5 = k^4 b/(2\gamma^2)$ with $b = \max\|\partial A/\partial\omega\|_2$
+  computed (the paper's (49) sets $\|\partial A/\partial\omega_0\| = 1$, which is not true
+  in general: its value depends on units and on the gain schedule; `c5_paper` keeps b = 1);
+- **sharp** constants from $P$ itself: $c_1 = \min\lambda_{min}(P)$,
+  $c_2 = \max\lambda_{max}(P)$, $c_4 = 2c_2$, $c_5 = \max\|P'(\omega)\|_2$ with $P'$ by
+  `jax.jacfwd` through the Lyapunov solve.
+
+$c_3$ and the radius $r$ come from (59): $\dot V \le -\|z\|^2 + 2c_2k_1\|z\|^3$, where
+$k_1 = \max \|g(z,\omega) - A z\|/\|z\|^2$ over $\|z\| \le r$ and $\omega \in \Omega$ (54)
+is estimated by sampling the ball (random directions and radii, every speed of a subgrid)
+and refining the best samples by gradient ascent; so $c_3 = 1 - 2c_2k_1r$. For a target
+$c_3$ (default 1/2) the largest sampled $r$ is used. The certified rate is
+$\varepsilon = c_3/c_5$; $1/c_5$ is its supremum (as $r \to 0$).
+
+Choices and their effect: $\gamma = \alpha\sigma$ with $\sigma = \min_\omega
+(-\max\mathrm{Re}\,\lambda(A))$; $k(\gamma) = \max_\omega \sup_t \|e^{tA}\|e^{\gamma t}$
+is evaluated on a geometric time grid with local refinement (a grid sup is a lower bound
+of the true sup, to about 1e-6 relative after refinement). $k$ grows without bound as
+$\gamma \to \sigma$ when $A$ has a Jordan block (the critically damped $\zeta_2 = 1$
+design has one), and $c_5 \propto k^4/\gamma^2$, so `alpha` is chosen from a grid to
+maximise the paper's bound (when the slowest eigenvalue is simple, as for the (38)
+design, $k$ stays bounded as $\alpha \to 1$ and the best $\alpha$ is the largest).
+
+**State scaling.** Norms of $z = [\tilde\psi, \tilde\theta, \tilde\omega]$ mix units, so
+every constant and the bound depend on the scaling; `scale="pu"` (default) uses
+$z = [\tilde\psi/\psi_b, \tilde\psi/\psi_b, \tilde\theta, \tilde\omega/\omega_b]$ (time
+stays in seconds, $\omega$ in rad/s, so $\varepsilon$ is in rad/s^2); `"si"` uses SI.
+
+**Which dynamics.** (40) is (11) with $\omega_0$ replaced by $\omega(t)$ and the gains
+scheduled at $\omega(t)$. The true error dynamics of the observer also contain
+$+\dot\omega$ in $\dot{\tilde\omega}$ (the speed is the extended state, (6)'s $h_\delta$)
+and schedule the gains at $\hat\omega$: `simulate_ramp(model="observer")`. That forcing
+is not covered by (40): a ramp leaves a constant angle error of about
+$\dot\omega/\omega_2^2$, so "convergence" there means back to zero after the ramp.
+"""
+
+from __future__ import annotations
+
+import math
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import optimistix as optx
+
+from .._frames import wrap_angle
+from .._params import Drive
+from ..observers._eso import AbstractGainSchedule
+from ._linearize import check_frame, eso_rhs
+
+
+SCALES = ("pu", "si")
+MODELS = ("paper", "observer")
+
+
+def lyapunov_solve(A, Q=None):
+    r"""Solve $PA + A^TP = -Q$ ($Q = I$ by default) for a Hurwitz `A` (`(n, n)`).
+
+    Kronecker form $(I\otimes A^T + A^T\otimes I)\,\mathrm{vec}(P) = -\mathrm{vec}(Q)$,
+    an $n^2 \times n^2$ dense solve (16x16 here): exact to rounding, differentiable and
+    vmappable. The result is symmetrised.
+    """
+    A = jnp.asarray(A)
+    n = A.shape[-1]
+    Q = jnp.eye(n, dtype=A.dtype) if Q is None else jnp.asarray(Q, A.dtype)
+    eye = jnp.eye(n, dtype=A.dtype)
+    K = jnp.kron(eye, A.T) + jnp.kron(A.T, eye)
+    P = jnp.linalg.solve(K, -Q.reshape(-1)).reshape(n, n)
+    return 0.5 * (P + P.T)
+
+
+def _expm(M):
+    # jax's default max_squarings=16 returns NaN once ||M||_1 > 2^16 * 5.4, which the
+    # long time horizons of `_k_of_gamma` reach; 64 squarings cover any finite norm here.
+    return jax.scipy.linalg.expm(M, max_squarings=64)
+
+
+def _norm2(M):
+    return jnp.sqrt(jnp.max(jnp.linalg.eigvalsh(M.T @ M), -1))
+
+
+class LyapunovCertificate(eqx.Module):
+    """Constants of the slowly-varying certificate for one design (see module docstring).
+
+    Speeds in rad/s, time in s, state in the chosen scaling. `eps*` are admissible speed
+    rates |dw/dt| (rad/s^2).
+
+    - `speeds`: the grid of the operating range. `sigma`: min decay rate (1/s);
+      `rho` = max ||A||; `b` = max ||dA/dw||; `alpha`, `gamma` (1/s), `k`.
+    - paper constants `c1, c2, c3, c4, c5` (with the true `b`), `c5_paper` (b = 1);
+      sharp constants `c1_sharp, c2_sharp, c3_sharp, c4_sharp, c5_sharp`.
+    - `k1`: the estimate of (54) on the ball of radius `r` (paper) / `r_sharp`.
+    - `eps`: c3/c5 (paper constants, true b); `eps_paper`: c3/c5_paper (b = 1);
+      `eps_sharp`: c3_sharp/c5_sharp; `eps_sup`, `eps_sup_sharp`: 1/c5, 1/c5_sharp.
+    - `r_init`, `r_init_sharp`: certified initial ball r sqrt(c1/c2).
+    - `lyap_residual`: max ||PA + A^T P + I|| over the grid; `min_eig_P`.
+    - `status`: 0 ok, -1 if A is not uniformly Hurwitz on the range or no r was found.
+    """
+
+    speeds: jnp.ndarray
+    sigma: jnp.ndarray
+    rho: jnp.ndarray
+    b: jnp.ndarray
+    alpha: jnp.ndarray
+    gamma: jnp.ndarray
+    k: jnp.ndarray
+    c1: jnp.ndarray
+    c2: jnp.ndarray
+    c3: jnp.ndarray
+    c4: jnp.ndarray
+    c5: jnp.ndarray
+    c5_paper: jnp.ndarray
+    c1_sharp: jnp.ndarray
+    c2_sharp: jnp.ndarray
+    c3_sharp: jnp.ndarray
+    c4_sharp: jnp.ndarray
+    c5_sharp: jnp.ndarray
+    k1: jnp.ndarray
+    r: jnp.ndarray
+    k1_sharp: jnp.ndarray
+    r_sharp: jnp.ndarray
+    eps: jnp.ndarray
+    eps_paper: jnp.ndarray
+    eps_sharp: jnp.ndarray
+    eps_sup: jnp.ndarray
+    eps_sup_sharp: jnp.ndarray
+    r_init: jnp.ndarray
+    r_init_sharp: jnp.ndarray
+    lyap_residual: jnp.ndarray
+    min_eig_P: jnp.ndarray
+    status: jnp.ndarray
+
+
+class _ScaledDynamics(eqx.Module):
+    """g(z, w) = D f(D^-1 z, w) with the gains of `design` at speed w."""
+
+    drive: Drive
+    design: AbstractGainSchedule
+    i0: jnp.ndarray
+    d: jnp.ndarray
+    a: float
+    eta: float
+    frame: str = eqx.field(static=True)
+
+    def gains(self, w):
+        return self.design(self.drive.three_phase_motor, w, self.i0)
+
+    def g(self, z, w):
+        m = self.drive.three_phase_motor
+        x = z / self.d
+        return self.d * eso_rhs(x, w, self.i0, self.gains(w), m, None, self.a, self.eta,
+                                self.frame)
+
+    def A(self, w):
+        return jax.jacfwd(self.g)(jnp.zeros_like(self.d), w)
+
+
+def _state_scale(drive, scale, dtype):
+    if scale == "pu":
+        psi_b, w_b = drive.base.psi_b, drive.base.w_b
+        return jnp.asarray([1 / psi_b, 1 / psi_b, 1.0, 1 / w_b], dtype)
+    return jnp.ones(4, dtype)
+
+
+def _check(owner, drive, design, speed_range, scale, frame, c3):
+    if not isinstance(drive, Drive):
+        raise ValueError(f"`{owner}(drive=...)` must be a `Drive`; got {type(drive).__name__}.")
+    if not isinstance(design, AbstractGainSchedule):
+        raise ValueError(f"`{owner}(design=...)` must be an `observers.ESODesign` (or another "
+                         f"gain schedule); got {type(design).__name__}.")
+    lo, hi = (float(v) for v in speed_range)
+    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
+        raise ValueError(
+            f"`{owner}(speed_range=...)` (p.u.) must be (lo, hi) with 0 < lo < hi: at w = 0 "
+            f"the flux gains of (17)/(38) vanish and A is not Hurwitz; got {speed_range!r}.")
+    if scale not in SCALES:
+        raise ValueError(f"`{owner}(scale=...)` must be one of {SCALES}; got {scale!r}.")
+    check_frame(owner, frame)
+    if not 0 < c3 < 1:
+        raise ValueError(f"`{owner}(c3=...)` must lie in (0, 1); got {c3!r}.")
+    return lo, hi
+
+
+def _k_of_gamma(A_all, sigma, rho, alphas, n_time):
+    """k(gamma) = max over speeds of sup_t ||exp(t (A + gamma I))|| (= ||e^{tA}|| e^{gamma t}),
+    gamma = alpha sigma, on a geometric time grid up to 60/(sigma - gamma), refined by
+    golden-section search around the grid maximum. A maximum at the end of the grid
+    (not reached) gives k = inf."""
+    gam = alphas * sigma
+    eye = jnp.eye(A_all.shape[-1], dtype=A_all.dtype)
+
+    def per_speed(A):
+        def per_gamma(g):
+            B = A + g * eye
+            T = 60.0 / (sigma - g)
+            t = jnp.concatenate([jnp.zeros(1, A.dtype),
+                                 jnp.geomspace(1e-3 / rho, 1.0, n_time - 1) * T])
+            h = lambda s: _norm2(_expm(s * B))  # noqa: E731
+            f = jax.vmap(h)(t)
+            j = jnp.argmax(f)
+            lo = t[jnp.maximum(j - 1, 0)]
+            hi = t[jnp.minimum(j + 1, t.shape[0] - 1)]
+            gr = (math.sqrt(5.0) - 1.0) / 2.0
+
+            def body(_, c):
+                a, b_ = c
+                x1, x2 = b_ - gr * (b_ - a), a + gr * (b_ - a)
+                left = h(x1) >= h(x2)
+                return jnp.where(left, a, x1), jnp.where(left, x2, b_)
+
+            a, b_ = jax.lax.fori_loop(0, 40, body, (lo, hi))
+            kk = jnp.maximum(f[j], h(0.5 * (a + b_)))
+            return jnp.where(j == t.shape[0] - 1, jnp.inf, kk)
+
+        return jax.vmap(per_gamma)(gam)
+
+    k_all = jax.lax.map(per_speed, A_all)
+    return jnp.max(k_all, 0), gam
+
+
+def _k1_estimate(dyn: _ScaledDynamics, speeds, radii, key, n_dirs, n_refine):
+    """k1(r) = max ||g(z,w) - A(w) z|| / ||z||^2 over 0 < ||z|| <= r, for each r in `radii`.
+
+    For each radius: `n_dirs` random points of the ball (uniform directions, radii
+    r U^(1/4), half of them on the sphere) at every speed of `speeds`, then
+    gradient-ascent refinement (optimistix BFGS) of the best sample inside the ball.
+    A sampled maximum is a lower bound of the true one; the refinement makes it tight in
+    the cases we checked (the maximum sits on the sphere ||z|| = r).
+    """
+    kd, kr = jr.split(key)
+    v = jr.normal(kd, (n_dirs, 4), dtype=radii.dtype)
+    v = v / jnp.linalg.norm(v, axis=-1, keepdims=True)
+    frac = jr.uniform(kr, (n_dirs,), dtype=radii.dtype) ** 0.25
+    frac = jnp.where(jnp.arange(n_dirs) % 2 == 0, 1.0, frac)
+    As = jax.vmap(dyn.A)(speeds)
+
+    def ratio(zz, w, A):
+        n2 = jnp.sum(zz ** 2)
+        return jnp.linalg.norm(dyn.g(zz, w) - A @ zz) / jnp.where(n2 > 0, n2, 1.0)
+
+    def k1_at(r):
+        z = v * (r * frac)[:, None]
+        R = jax.vmap(lambda w, A: jax.vmap(lambda zz: ratio(zz, w, A))(z))(speeds, As)
+        R = jnp.where(jnp.isfinite(R), R, -jnp.inf)
+        iw, iz = jnp.unravel_index(jnp.argmax(R), R.shape)
+        best = R[iw, iz]
+        w, A = speeds[iw], As[iw]
+        # refine with z = r y / sqrt(1 + |y|^2), which keeps z inside the open ball
+        f = jnp.minimum(frac[iz], 0.999)
+        y0 = v[iz] * f / jnp.sqrt(1.0 - f ** 2)
+
+        def loss(y, _):
+            zz = r * y / jnp.sqrt(1.0 + jnp.sum(y ** 2))
+            return -ratio(zz, w, A)
+
+        sol = optx.minimise(loss, optx.BFGS(rtol=1e-6, atol=1e-9), y0, max_steps=n_refine,
+                            throw=False)
+        refined = -loss(sol.value, None)
+        return jnp.maximum(best, jnp.where(jnp.isfinite(refined), refined, best))
+
+    return jax.lax.map(k1_at, radii)
+
+
+@eqx.filter_jit
+def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n_dirs,
+                 n_refine, n_k1_speeds):
+    A = jax.vmap(dyn.A)(speeds)
+    dA = jax.vmap(jax.jacfwd(dyn.A))(speeds)
+    eig = jnp.linalg.eigvals(A)
+    sigma = jnp.min(-jnp.max(jnp.real(eig), -1))
+    hurwitz = sigma > 0
+    sig = jnp.where(hurwitz, sigma, 1.0)
+    rho = jnp.max(jax.vmap(_norm2)(A))
+    b = jnp.max(jax.vmap(_norm2)(dA))
+    P = jax.vmap(lyapunov_solve)(A)
+    res = jnp.max(jnp.abs(jnp.einsum("nij,njk->nik", P, A)
+                          + jnp.einsum("nji,njk->nik", A, P) + jnp.eye(4)))
+    lam = jnp.linalg.eigvalsh(P)
+    dP = jax.vmap(jax.jacfwd(lambda w: lyapunov_solve(dyn.A(w))))(speeds)
+    c1s, c2s = jnp.min(lam[:, 0]), jnp.max(lam[:, -1])
+    c5s = jnp.max(jax.vmap(lambda M: jnp.max(jnp.abs(jnp.linalg.eigvalsh(M))))(dP))
+
+    kk, gam = _k_of_gamma(A, sig, rho, alphas, n_time)
+    c5_all = kk ** 4 * b / (2 * gam ** 2)
+    j = jnp.argmin(jnp.where(jnp.isfinite(c5_all), c5_all, jnp.inf))
+    k, gamma, alpha = kk[j], gam[j], alphas[j]
+    c1 = 1.0 / (2.0 * rho)
+    c2 = k ** 2 / (2.0 * gamma)
+    c4 = k ** 2 / gamma
+    c5 = c5_all[j]
+    c5p = k ** 4 / (2 * gamma ** 2)
+
+    sub = speeds[jnp.linspace(0, speeds.shape[0] - 1, n_k1_speeds).astype(jnp.int32)]
+    k1r = _k1_estimate(dyn, sub, radii, key, n_dirs, n_refine)
+
+    def pick(c2_):
+        ok = 2.0 * c2_ * k1r * radii <= 1.0 - c3
+        idx = jnp.max(jnp.where(ok, jnp.arange(radii.shape[0]), -1))
+        return jnp.where(idx >= 0, radii[jnp.maximum(idx, 0)], jnp.nan), \
+            k1r[jnp.maximum(idx, 0)], idx >= 0
+
+    r, k1, okr = pick(c2)
+    rs, k1s, okrs = pick(c2s)
+    status = jnp.where(hurwitz & okr & okrs & jnp.isfinite(c5), 0, -1).astype(jnp.int32)
+    return LyapunovCertificate(
+        speeds=speeds, sigma=sigma, rho=rho, b=b, alpha=alpha, gamma=gamma, k=k,
+        c1=c1, c2=c2, c3=jnp.asarray(c3), c4=c4, c5=c5, c5_paper=c5p,
+        c1_sharp=c1s, c2_sharp=c2s, c3_sharp=jnp.asarray(c3), c4_sharp=2 * c2s,
+        c5_sharp=c5s, k1=k1, r=r, k1_sharp=k1s, r_sharp=rs,
+        eps=c3 / c5, eps_paper=c3 / c5p, eps_sharp=c3 / c5s, eps_sup=1 / c5,
+        eps_sup_sharp=1 / c5s, r_init=r * jnp.sqrt(c1 / c2),
+        r_init_sharp=rs * jnp.sqrt(c1s / c2s), lyap_residual=res, min_eig_P=jnp.min(lam),
+        status=status)
+
+
+def slowly_varying_certificate(drive: Drive, design: AbstractGainSchedule,
+                               speed_range=(0.1, 1.0), *, i_dq=(0.0, 0.0),
+                               frame: str = "observer", a=1.0, eta=1.0, scale: str = "pu",
+                               c3: float = 0.5, n_speed: int = 101,
+                               alphas=(0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.999),
+                               n_time: int = 200,
+                               radii=None, n_dirs: int = 1024, n_refine: int = 50,
+                               n_k1_speeds: int = 11, key=None) -> LyapunovCertificate:
+    r"""The certificate of §V for `design` over `speed_range` (see the module docstring).
+
+    **Arguments:**
+
+    - `drive`: the `Drive` (matched observer model); `design`: an `observers.ESODesign`
+      (e.g. `ESODesign.zhang38(drive.w_rated)`).
+    - `speed_range`: `(lo, hi)` in p.u. of `drive.w_rated`, `0 < lo < hi` (the paper's
+      $\Omega = (0, \omega_{max}]$ cannot be used: the flux poles of (38) tend to 0 with
+      the speed, so no uniform $\sigma$ exists).
+    - `i_dq`: controlled current in the estimator frame (p.u. of `drive.base.I_b`).
+    - `frame`, `a`, `eta`: error dynamics used for $k_1$ (`eso_rhs`).
+    - `scale`: `"pu"` or `"si"` state scaling. `c3`: target in (0, 1).
+    - `n_speed`, `alphas`, `n_time`, `radii`, `n_dirs`, `n_refine`, `n_k1_speeds`, `key`:
+      resolution of the numerical estimates (defaults are accurate to a few per cent).
+
+    Returns a `LyapunovCertificate`; `eps` (rad/s^2) is the certified rate.
+    """
+    lo, hi = _check("slowly_varying_certificate", drive, design, speed_range, scale, frame,
+                    c3)
+    dtype = jnp.float64
+    i0 = jnp.asarray(i_dq, dtype) * drive.base.I_b
+    dyn = _ScaledDynamics(drive=drive, design=design, i0=i0,
+                          d=_state_scale(drive, scale, dtype), a=a, eta=eta, frame=frame)
+    speeds = jnp.linspace(lo, hi, n_speed, dtype=dtype) * drive.w_rated
+    radii = jnp.geomspace(1e-8, 10.0, 128, dtype=dtype) if radii is None else jnp.asarray(
+        radii, dtype)
+    key = jr.PRNGKey(0) if key is None else key
+    return _certificate(dyn, speeds, jnp.asarray(alphas, dtype), radii, c3, key, n_time,
+                        n_dirs, n_refine, n_k1_speeds)
+
+
+# ---------------------------------------------------------------------------------------
+# Validation by simulation
+# ---------------------------------------------------------------------------------------
+
+class RampRun(eqx.Module):
+    """A simulated speed ramp of the error dynamics.
+
+    - `t` (s), `x` (`(n, 4)`, SI state), `w` (rad/s): saved trajectory.
+    - `theta_err_max`: largest |theta_err| over the run (rad, not wrapped).
+    - `final_norm`: ||z|| at the end (scaled state, angle wrapped).
+    - `converged`: at the end the wrapped angle error is below `tol_deg` and the flux
+      and speed errors below 1e-3 (scaled), i.e. the error is back at an equivalent of
+      the origin (modulo 2 pi). `slipped`: the angle error went round by at least one
+      turn on the way (the position estimate is still right modulo 2 pi).
+    - `status`: 0, or -1 if the solver failed.
+    """
+
+    t: jnp.ndarray
+    x: jnp.ndarray
+    w: jnp.ndarray
+    theta_err_max: jnp.ndarray
+    final_norm: jnp.ndarray
+    converged: jnp.ndarray
+    slipped: jnp.ndarray
+    status: jnp.ndarray
+
+
+def _ramp_speed(t, w_start, w_end, rate):
+    dur = jnp.abs(w_end - w_start) / rate
+    s = jnp.clip(t / jnp.where(dur > 0, dur, 1.0), 0.0, 1.0)  # w_end = w_start: constant
+    w = w_start + (w_end - w_start) * s
+    wdot = jnp.where((t >= 0) & (t < dur), jnp.sign(w_end - w_start) * rate, 0.0)
+    return w, wdot
+
+
+@eqx.filter_jit
+def _simulate_ramp(dyn: _ScaledDynamics, x0, w_start, w_end, rate, t_hold, model, n_save,
+                   tol, max_steps):
+    m = dyn.drive.three_phase_motor
+    dur = jnp.abs(w_end - w_start) / rate
+    t1 = dur + t_hold
+
+    def rhs(t, x, args):
+        w, wdot = _ramp_speed(t, w_start, w_end, rate)
+        if model == "observer":
+            g = dyn.gains(w - x[3])  # the observer schedules its gains at w_hat
+            f = eso_rhs(x, w, dyn.i0, g, m, None, dyn.a, dyn.eta, dyn.frame)
+            return f.at[3].add(wdot)
+        return eso_rhs(x, w, dyn.i0, dyn.gains(w), m, None, dyn.a, dyn.eta, dyn.frame)
+
+    ts = jnp.linspace(0.0, t1, n_save)
+    ctrl = dfx.ClipStepSizeController(dfx.PIDController(rtol=1e-7, atol=1e-9),
+                                      jump_ts=jnp.reshape(dur, (1,)))
+    sol = dfx.diffeqsolve(dfx.ODETerm(rhs), dfx.Tsit5(), 0.0, t1, None, x0,
+                          saveat=dfx.SaveAt(ts=ts), stepsize_controller=ctrl,
+                          max_steps=max_steps, throw=False)
+    x = sol.ys
+    w = jax.vmap(lambda t: _ramp_speed(t, w_start, w_end, rate)[0])(ts)
+    th_max = jnp.max(jnp.abs(x[:, 2]))
+    zf = (x[-1] * dyn.d).at[2].set(wrap_angle(x[-1, 2]))
+    final = jnp.linalg.norm(zf)
+    ok = (sol.result == dfx.RESULTS.successful) & jnp.all(jnp.isfinite(x))
+    conv = ok & (jnp.abs(zf[2]) < tol) & (jnp.linalg.norm(zf[jnp.array([0, 1, 3])]) < 1e-3)
+    return RampRun(t=ts, x=x, w=w, theta_err_max=th_max, final_norm=final, converged=conv,
+                   slipped=jnp.abs(x[-1, 2]) > math.pi,
+                   status=jnp.where(ok, 0, -1).astype(jnp.int32))
+
+
+def simulate_ramp(drive: Drive, design: AbstractGainSchedule, speeds=(0.2, 1.0), rate=1.0,
+                  *, x0=None, theta0_deg=10.0, i_dq=(0.0, 0.0), model: str = "paper",
+                  frame: str = "observer", a=1.0, eta=1.0, t_hold=None, n_save=2001,
+                  tol_deg=0.05, max_steps=2_000_000, scale="pu") -> RampRun:
+    r"""Simulate the error dynamics while the speed ramps from `speeds[0]` to `speeds[1]`
+    (p.u.) at `rate` (rad/s^2), then holds for `t_hold` (s; default 20/sigma of the end
+    speed, i.e. ample settling time). Equal speeds give a constant-speed run.
+
+    `model="paper"`: (40), gains scheduled at the true speed, no acceleration forcing;
+    `model="observer"`: the observer's true error dynamics, gains scheduled at
+    $\hat\omega$ and $+\dot\omega$ in $\dot{\tilde\omega}$. `x0` (SI) or `theta0_deg`:
+    the initial error. Convergence: see `RampRun` (modulo 2 pi; cycle slips are
+    reported in `slipped`).
+    """
+    if model not in MODELS:
+        raise ValueError(f"`simulate_ramp(model=...)` must be one of {MODELS}; got {model!r}.")
+    check_frame("simulate_ramp", frame)
+    if not (np.isfinite(rate) and rate > 0):
+        raise ValueError(f"`simulate_ramp(rate=...)` (rad/s^2) must be finite and > 0; "
+                         f"got {rate!r}.")
+    dtype = jnp.float64
+    i0 = jnp.asarray(i_dq, dtype) * drive.base.I_b
+    dyn = _ScaledDynamics(drive=drive, design=design, i0=i0,
+                          d=_state_scale(drive, scale, dtype), a=a, eta=eta, frame=frame)
+    w_start, w_end = (float(s) * float(drive.w_rated) for s in speeds)
+    if t_hold is None:
+        A = dyn.A(jnp.asarray(w_end, dtype))
+        sig = float(-jnp.max(jnp.real(jnp.linalg.eigvals(A))))
+        t_hold = 20.0 / max(sig, 1e-3)
+    x0 = jnp.array([0.0, 0.0, math.radians(theta0_deg), 0.0], dtype) if x0 is None else \
+        jnp.asarray(x0, dtype)
+    return _simulate_ramp(dyn, x0, jnp.asarray(w_start, dtype), jnp.asarray(w_end, dtype),
+                          jnp.asarray(rate, dtype), jnp.asarray(t_hold, dtype), model,
+                          n_save, math.radians(tol_deg), max_steps)
+
+
+def fastest_converging_ramp(drive: Drive, design: AbstractGainSchedule, speeds=(0.2, 1.0),
+                            *, rate_lo=1.0, rate_hi=1e9, n_bisect=24, **kw):
+    """Largest ramp rate (rad/s^2) in [rate_lo, rate_hi] for which `simulate_ramp`
+    converges, by bisection in log(rate) (assumes convergence is monotone in the rate,
+    which it is in every case we checked; the runs at both ends are returned too).
+
+    Returns `(rate, runs)` where `runs` is a list of `(rate, RampRun)`; `rate` is
+    `rate_hi` if even that converges (a speed step then converges too) and NaN if
+    `rate_lo` does not.
+    """
+    runs = []
+
+    def ok(rate):
+        run = simulate_ramp(drive, design, speeds, rate, **kw)
+        runs.append((rate, run))
+        return bool(run.converged)
+
+    if not ok(rate_lo):
+        return float("nan"), runs
+    if ok(rate_hi):
+        return float(rate_hi), runs
+    lo, hi = math.log(rate_lo), math.log(rate_hi)
+    for _ in range(n_bisect):
+        mid = 0.5 * (lo + hi)
+        if ok(math.exp(mid)):
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(lo), runs

@@ -1,0 +1,106 @@
+"""Plots for `pmsmjax.analysis` (matplotlib only).
+
+Never imported by `pmsmjax` or `pmsmjax.analysis`; import it explicitly:
+`from pmsmjax.plotting_analysis import plot_feasibility`.
+"""
+
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
+
+
+_SPEED_COLOURS = ("tab:red", "gold", "tab:green", "tab:purple", "tab:orange", "tab:cyan")
+
+
+def plot_feasibility(result, *, load: int = 0, speeds=None, ax=None, show_degenerate=True):
+    """Feasibility map in the style of zhang2022 Fig. 1.
+
+    For every speed of `result` (a `FeasibilityMap`), or the indices in `speeds`, the
+    infeasible designs (a stable nonzero equilibrium) are shaded in the speed's colour
+    and the boundary of the feasible region is drawn; the design (38) at that speed is
+    marked with a star (in these coordinates it is the single point
+    `zeta1 = 1.5 + w0/w_r`, `w1/w0 = 1.5/zeta1`). Designs with `status = -1` (e.g.
+    `w1 = 0`) are hatched grey, `status = 2` (no equilibrium) dotted.
+
+    **Arguments:** `result`; `load`: index into `result.i_dq`; `speeds`: speed indices
+    (default all); `ax`: axes to draw into. Returns the axes.
+    """
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.0, 4.5))
+    z = np.asarray(result.zeta1)
+    r = np.asarray(result.ratio)
+    st = np.asarray(result.status)[:, load]
+    idx = range(st.shape[0]) if speeds is None else speeds
+    Z, R = np.meshgrid(z, r, indexing="ij")
+    handles = []
+    z38, r38 = result.schedule38()
+    for n, i in enumerate(idx):
+        col = _SPEED_COLOURS[n % len(_SPEED_COLOURS)]
+        inf = (st[i] == 1).astype(float)
+        frac = inf.mean()
+        if frac > 0:
+            ax.contourf(Z, R, inf, levels=[0.5, 1.5], colors=[col], alpha=0.25)
+            ax.contour(Z, R, inf, levels=[0.5], colors=[col], linewidths=1.8)
+        label = (f"w0 = {result.speeds[i]:g} p.u.: infeasible {frac:.1%}"
+                 + ("" if frac > 0 else " (all feasible)"))
+        handles.append(Patch(facecolor=col, alpha=0.4, edgecolor=col, label=label))
+        ax.plot(z38[i], r38[i], marker="*", ms=13, color=col, mec="k", zorder=5)
+    if show_degenerate:
+        deg = np.any(st[list(idx)] == -1, axis=0).astype(float)
+        if deg.any():
+            ax.contourf(Z, R, deg, levels=[0.5, 1.5], colors="none", hatches=["////"])
+            handles.append(Patch(facecolor="none", hatch="////", edgecolor="grey",
+                                 label="degenerate (e.g. w1 = 0)"))
+        none = np.any(st[list(idx)] == 2, axis=0).astype(float)
+        if none.any():
+            ax.contourf(Z, R, none, levels=[0.5, 1.5], colors="none", hatches=[".."])
+            handles.append(Patch(facecolor="none", hatch="..", edgecolor="grey",
+                                 label="no equilibrium"))
+    handles.append(Line2D([], [], marker="*", ms=12, ls="", color="w", mec="k",
+                          label="design (38)"))
+    cur = result.i_dq[load]
+    ax.set_title(f"Feasible designs, i_dq = ({cur[0]:g}, {cur[1]:g}) p.u. "
+                 f"[{result.method}, frame {result.frame}]", fontsize=10)
+    ax.set_xlabel("damping ratio zeta1")
+    ax.set_ylabel("w1 / w0")
+    ax.set_xlim(z[0], z[-1])
+    ax.set_ylim(r[0], r[-1])
+    ax.legend(handles=handles, fontsize=8, loc="upper right")
+    return ax
+
+
+def plot_static_error(result, *, speed: int = 0, load: int = 0, ax=None):
+    """Static position error (deg) of the infeasible designs at one speed and load, as a
+    colour map over (zeta1, w1/w0); feasible designs are left blank."""
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.0, 4.5))
+    th = np.asarray(result.stable_theta_deg)[speed, load]
+    m = ax.pcolormesh(result.zeta1, result.ratio, th.T, shading="nearest", cmap="twilight",
+                      vmin=-180, vmax=180)
+    plt.colorbar(m, ax=ax, label="static error (deg)")
+    ax.set_xlabel("damping ratio zeta1")
+    ax.set_ylabel("w1 / w0")
+    ax.set_title(f"Stable nonzero equilibrium, w0 = {result.speeds[speed]:g} p.u.",
+                 fontsize=10)
+    return ax
+
+
+def plot_ramp_runs(runs, *, ax=None, label_fmt="{:.3g} rad/s^2"):
+    """Angle error (deg) of `simulate_ramp` runs, given as `[(rate, RampRun), ...]`
+    (as returned by `fastest_converging_ramp`), against time normalised by the run
+    length. Converged runs solid, failed ones dashed."""
+    if ax is None:
+        _, ax = plt.subplots(figsize=(6.0, 4.0))
+    for rate, run in sorted(runs, key=lambda p: p[0]):
+        t = np.asarray(run.t)
+        th = np.degrees(np.asarray(run.x)[:, 2])
+        ok = bool(run.converged)
+        ax.plot(t / t[-1], th, ls="-" if ok else "--", lw=1.2,
+                label=label_fmt.format(rate) + ("" if ok else " (fails)"))
+    ax.set_xlabel("t / t_end")
+    ax.set_ylabel("angle error (deg)")
+    ax.legend(fontsize=7, ncol=2)
+    return ax

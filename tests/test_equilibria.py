@@ -1,0 +1,243 @@
+"""Equilibria of the zhang2022 ESO error dynamics: quartic route (34)-(36) vs the general
+route, residuals, stability by Routh-Hurwitz vs eigenvalues."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax import analysis
+from pmsmjax.observers import error_matrix, eso_gains, psi_a
+
+
+DRIVE = pj.preset("zhang750")
+M = DRIVE.motor
+W2 = 2 * math.pi * 50
+# A strongly salient machine (L_q / L_d = 4.9) where three nonzero equilibria and stable
+# ones exist; Table I alone has a single, always unstable, nonzero equilibrium.
+SALIENT = pj.PMSMParams(R_s=0.78, L_d=1.0e-3, L_q=4.9e-3, psi_f=0.056, n_p=5.0)
+
+
+def _arr(motor):
+    """Parameters as arrays, so that jitted functions do not recompile per machine."""
+    return jax.tree_util.tree_map(jnp.asarray, motor)
+
+
+def _random_designs(n, seed):
+    rng = np.random.default_rng(seed)
+    w0 = rng.choice([-1.0, 1.0], n) * rng.uniform(0.02, 1.5, n) * DRIVE.w_rated
+    i0 = rng.uniform(-2.0, 2.0, (n, 2)) * DRIVE.base.I_b
+    z1 = rng.uniform(0.05, 5.0, n)
+    ratio = rng.uniform(0.05, 2.0, n)
+    return w0, i0, z1, ratio
+
+
+def _gains(motor, w0, i0, z1, ratio, zeta2=1.0, w2=W2):
+    return eso_gains(psi_a(motor, i0), w0, z1, ratio * jnp.abs(w0), zeta2, w2)
+
+
+@eqx.filter_jit
+def _both(motor, w0, i0, z1, ratio, frame):
+    def one(w0, i0, z1, ratio):
+        g = _gains(motor, w0, i0, z1, ratio)
+        return (analysis.quartic_equilibria(w0, i0, g, motor, frame=frame),
+                analysis.eso_equilibria(w0, i0, g, motor, frame=frame, n_grid=128))
+    return jax.vmap(one)(w0, i0, z1, ratio)
+
+
+@pytest.mark.parametrize("motor", [M, SALIENT], ids=["tableI", "salient"])
+def test_quartic_and_general_route_agree(motor):
+    w0, i0, z1, ratio = _random_designs(200, seed=1)
+    q, g = _both(_arr(motor), w0, i0, z1, ratio, "observer")
+    assert np.all(np.asarray(q.status) == 0) and np.all(np.asarray(g.status) == 0)
+    np.testing.assert_array_equal(np.asarray(q.n), np.asarray(g.n))
+    tq = np.sort(np.nan_to_num(np.asarray(q.theta), nan=99.0), -1)
+    tg = np.sort(np.nan_to_num(np.asarray(g.theta), nan=99.0), -1)[:, :4]
+    np.testing.assert_allclose(tq, tg, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(q.stable), np.asarray(g.stable)[:, :4])
+    # the paper's "either 1 or 3" nonzero equilibria (the cubic after t = 0 is divided out)
+    assert set(np.unique(np.asarray(q.n_nonzero))) <= {1, 3}
+    if motor is SALIENT:  # the test must exercise both cases and stable nonzero ones
+        assert set(np.unique(np.asarray(q.n_nonzero))) == {1, 3}
+        assert np.any(np.asarray(q.nonprincipal & q.stable))
+
+
+def test_printed_coefficients_vanish_at_the_general_roots():
+    """(35) as printed: the left side of (34) is zero at every equilibrium found by the
+    general route (so the printed p's are right up to a common factor)."""
+    w0, i0, z1, ratio = _random_designs(50, seed=2)
+    sal = _arr(SALIENT)
+    run = jax.jit(lambda w0, i0, g: analysis.eso_equilibria(w0, i0, g, sal, n_grid=128))
+    for k in range(50):
+        g = _gains(SALIENT, w0[k], i0[k], z1[k], ratio[k])
+        eq = run(w0[k], i0[k], g)
+        p = analysis.quartic_coefficients(jnp.asarray(w0[k]), jnp.asarray(i0[k]), g, SALIENT)
+        th = np.asarray(eq.theta)[np.asarray(eq.valid)]
+        val = np.asarray(analysis.trig_poly(p, th))
+        assert np.all(np.abs(val) < 1e-11 * np.max(np.abs(np.asarray(p))))
+        # p5 = -p1 - p3, so t = 0 (theta = 0) is a root
+        assert abs(float(p[4] + p[0] + p[2])) < 1e-14 * float(jnp.max(jnp.abs(p)))
+        c = np.asarray(analysis.quartic_t_coefficients(p))
+        t = np.tan(th[np.abs(th) > 1e-9] / 2)
+        assert np.all(np.abs(np.polyval(c, t)) < 1e-9 * np.max(np.abs(c)) * (1 + t ** 4))
+
+
+def _fal_mismatch_cases():
+    mh1 = pj.PMSMParams(R_s=0.6, L_d=2.0e-3, L_q=3.2e-3, psi_f=0.05, n_p=5.0)
+    mh2 = pj.PMSMParams(R_s=0.9, L_d=1.2e-3, L_q=2.0e-3, psi_f=0.06, n_p=5.0)
+    return [
+        dict(motor=M, motor_hat=None, a=0.5, eta=0.05 * 0.056),
+        dict(motor=M, motor_hat=mh1, a=1.0, eta=1.0),
+        dict(motor=SALIENT, motor_hat=mh2, a=1.0, eta=1.0),
+        dict(motor=SALIENT, motor_hat=mh2, a=0.6, eta=0.003),
+        dict(motor=SALIENT, motor_hat=None, a=0.3, eta=0.01),
+    ]
+
+
+@eqx.filter_jit
+def _equilibria_jac_rhs(motor, mh, a, eta, w0, i0, z1, ratio):
+    """One compiled function for every case: machines and fal parameters are traced (the
+    fal path with a = 1 is the linear feedback), so the cases share one compilation."""
+    def one(w0, i0, z1, ratio):
+        g = _gains(mh, w0, i0, z1, ratio)
+        eq = analysis.eso_equilibria(w0, i0, g, motor, mh, a=a, eta=eta, n_grid=128)
+        x = jnp.nan_to_num(eq.x)
+        A = jax.vmap(lambda x: analysis.eso_linearization(w0, i0, g, motor, mh, x=x, a=a,
+                                                          eta=eta))(x)
+        f = jax.vmap(lambda x: analysis.eso_rhs(x, w0, i0, g, motor, mh, a, eta))(x)
+        return eq, A, f
+    return jax.vmap(one)(w0, i0, z1, ratio)
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_every_equilibrium_is_an_equilibrium_and_stability_matches_eigvals(case):
+    c = _fal_mismatch_cases()[case]
+    motor, mh, a, eta = c["motor"], c["motor_hat"], c["a"], c["eta"]
+    n = 30
+    w0, i0, z1, ratio = _random_designs(n, seed=10 + case)
+    eq, A, f = _equilibria_jac_rhs(_arr(motor), _arr(motor if mh is None else mh),
+                                   jnp.asarray(a), jnp.asarray(eta), w0, i0, z1, ratio)
+    valid = np.asarray(eq.valid)
+    assert np.all(np.asarray(eq.status) == 0)
+    if mh is None:
+        assert np.all(np.asarray(eq.n) >= 1)  # the origin
+    else:  # with mismatch some operating points have no equilibrium at all
+        assert np.mean(np.asarray(eq.n) >= 1) > 0.5
+    assert np.nanmax(np.asarray(eq.residual)) < 1e-10
+    # raw residual in SI, relative to the size of the terms
+    scale = np.abs(np.asarray(w0))[:, None, None] * np.array(
+        [0.056, 0.056, 1.0, DRIVE.w_rated])
+    assert np.all((np.abs(np.asarray(f)) / scale)[valid] < 1e-9)
+    ev = np.max(np.linalg.eigvals(np.asarray(A)).real, -1)
+    marg = np.abs(ev) < 1e-9 * np.abs(np.asarray(w0))[:, None]
+    check = valid & ~marg
+    np.testing.assert_array_equal(np.asarray(eq.stable)[check], ev[check] < 0)
+    assert np.any(np.asarray(eq.stable)[check]) and not np.all(np.asarray(eq.stable)[check])
+    if mh is None:  # matched: the designed equilibrium is exactly the origin
+        th0 = np.asarray(eq.theta)[np.arange(n), np.asarray(eq.principal)]
+        np.testing.assert_allclose(th0, 0.0, atol=1e-10)
+
+
+def test_close_pair_detected_on_a_coarse_grid():
+    """Near the 1 <-> 3 transition two nonzero equilibria are closer than a grid step;
+    the extremum splitting still finds them (n_grid = 16 is very coarse)."""
+    w0 = 0.5 * DRIVE.w_rated
+    i0 = jnp.array([0.0, 2.0]) * DRIVE.base.I_b
+    z1s, ratios = np.linspace(0.05, 5.0, 40), np.linspace(0.05, 2.0, 40)
+    n = np.asarray(analysis.classify_designs(SALIENT, w0, i0, z1s[:, None], ratios).n_nonzero)
+    iz, ir = np.argwhere((n[:, :-1] == 1) & (n[:, 1:] == 3))[0]
+    z1, lo, hi = z1s[iz], ratios[ir], ratios[ir + 1]
+    n_of = lambda r: int(analysis.classify_designs(SALIENT, w0, i0, z1, r).n_nonzero)  # noqa
+    for _ in range(24):  # pair separation ~ sqrt(hi - lo): small, but not rounding level
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if n_of(mid) == 1 else (lo, mid)
+    g = _gains(SALIENT, w0, i0, z1, hi)
+    ref = analysis.quartic_equilibria(w0, i0, g, SALIENT)
+    assert int(ref.n) == 4
+    th = np.sort(np.asarray(ref.theta)[np.asarray(ref.valid)])
+    assert 1e-6 < np.min(np.diff(th)) < 2 * math.pi / 16  # a pair inside one grid step
+    eq = analysis.eso_equilibria(w0, i0, g, SALIENT, n_grid=16)
+    assert int(eq.status) == 0
+    got = np.sort(np.asarray(eq.theta)[np.asarray(eq.valid)])
+    assert len(got) == 4
+    np.testing.assert_allclose(got, th, atol=1e-6)
+
+
+def test_linearization_at_origin_is_the_matrix_15():
+    for a, eta in [(1.0, 1.0), (0.5, 0.003)]:
+        w0 = 0.3 * DRIVE.w_rated
+        i0 = jnp.array([-0.3, 0.8]) * DRIVE.base.I_b
+        g = _gains(M, w0, i0, 1.7, 0.9)
+        A = analysis.eso_linearization(w0, i0, g, M, a=a, eta=eta)
+        np.testing.assert_allclose(A, error_matrix(w0, psi_a(M, i0), g), rtol=1e-12,
+                                   atol=1e-9)
+
+
+def test_linearize_vmaps_over_operating_points_and_designs():
+    speeds = jnp.linspace(0.1, 1.0, 5) * DRIVE.w_rated
+    z1 = jnp.array([0.5, 1.0, 2.0])
+    i0 = jnp.array([0.0, 1.0]) * DRIVE.base.I_b
+
+    def A(w0, z):
+        g = _gains(M, w0, i0, z, 0.8)
+        return analysis.linearize(analysis.eso_rhs, jnp.zeros(4), w0, i0, g, M)
+
+    As = jax.vmap(lambda w: jax.vmap(lambda z: A(w, z))(z1))(speeds)
+    assert As.shape == (5, 3, 4, 4)
+    # designed poles: flux s^2 + 2 z1 w1 s + w1^2, speed s^2 + 2 w2 s + w2^2
+    c = np.asarray(analysis.charpoly(As))
+    w1 = 0.8 * np.asarray(speeds)[:, None]
+    flux = np.stack([np.ones_like(w1 * z1), 2 * np.asarray(z1) * w1, w1 ** 2 + 0 * z1], -1)
+    speed = np.array([1.0, 2 * W2, W2 ** 2])
+    expect = np.stack([np.polymul(f, speed) for f in flux.reshape(-1, 3)]).reshape(c.shape)
+    np.testing.assert_allclose(c, expect, rtol=1e-9)
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5])
+def test_routh_hurwitz_matches_eigenvalues(n, getkey):
+    A = jax.random.normal(getkey(), (4000, n, n)) - 0.6 * jnp.eye(n)
+    c = analysis.charpoly(A)
+    np.testing.assert_allclose(c, np.stack([np.poly(a) for a in np.asarray(A)]), rtol=1e-9,
+                               atol=1e-9)
+    rh = np.asarray(analysis.is_hurwitz(A))
+    ev = np.asarray(analysis.max_real_eig(A))
+    far = np.abs(ev) > 1e-8
+    np.testing.assert_array_equal(rh[far], ev[far] < 0)
+    assert 0.05 < rh.mean() < 0.95  # both outcomes are exercised
+
+
+def test_equilibria_do_not_depend_on_the_speed_gains():
+    w0 = 0.5 * DRIVE.w_rated
+    i0 = jnp.array([0.0, 2.0]) * DRIVE.base.I_b
+    th = []
+    for zeta2, w2 in [(1.0, W2), (0.5, 50.0), (3.0, 3000.0)]:
+        g = _gains(SALIENT, w0, i0, 0.4, 1.3, zeta2, w2)
+        th.append(np.asarray(analysis.quartic_equilibria(w0, i0, g, SALIENT).theta))
+    np.testing.assert_allclose(th[0], th[1], atol=1e-12)
+    np.testing.assert_allclose(th[0], th[2], atol=1e-12)
+
+
+def test_degenerate_points_report_status_not_errors():
+    i0 = jnp.zeros(2)
+    g = _gains(M, 100.0, i0, 1.0, 1.0)
+    eq = analysis.eso_equilibria(0.0, i0, g, M)  # w0 = 0
+    assert int(eq.status) == -1
+    g0 = _gains(M, 100.0, i0, 1.0, 0.0)  # w1 = 0: det(w0 J + G1) = 0
+    assert int(analysis.eso_equilibria(100.0, i0, g0, M).status) == -1
+    gn = _gains(M, 100.0, i0, 1.0, 1.0)
+    gn = eqx.tree_at(lambda g: g.G1, gn, gn.G1 * jnp.nan)
+    assert int(analysis.eso_equilibria(100.0, i0, gn, M).status) == -1
+
+
+def test_bad_arguments_raise():
+    g = _gains(M, 100.0, jnp.zeros(2), 1.0, 1.0)
+    with pytest.raises(ValueError, match="n_grid"):
+        analysis.eso_equilibria(100.0, jnp.zeros(2), g, M, n_grid=4)
+    with pytest.raises(ValueError, match="frame"):
+        analysis.eso_equilibria(100.0, jnp.zeros(2), g, M, frame="estimator")
+    with pytest.raises(ValueError, match="frame"):
+        analysis.eso_rhs(jnp.zeros(4), 100.0, jnp.zeros(2), g, M, frame="x")
