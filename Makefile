@@ -22,7 +22,7 @@ install: $(VENV)/.installed
 install-tests: $(VENV)/.installed-tests
 
 run: $(VENV)/.installed
-	$(VENV)/bin/pmsmjax simulate --out $(OUT)
+	$(VENV)/bin/python -m tuning --out $(OUT)
 
 test: $(VENV)/.installed-tests
 	$(PY) -m pytest -n 2 -q

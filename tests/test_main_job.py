@@ -1,43 +1,71 @@
-"""The main job (`make run` = `pmsmjax simulate --out results`) on its built-in default."""
+"""The main job: `make run` = `python -m tuning --out results` (gain tuning under inductance
+mismatch), here in its `--quick` mode, as a user runs it (a subprocess).
+
+The `pmsmjax simulate` default run that used to be the main job is tested in
+`test_cli.py::test_simulate_default_run`.
+"""
 
 import json
+import pathlib
+import subprocess
+import sys
 
 import numpy as np
-import pytest
 
-import pmsmjax as pj
-from pmsmjax.__main__ import main
+import tuning as tg
 
 
-def test_main_job_default(tmp_path, capsys):
+ROOT = pathlib.Path(__file__).parents[1]
+
+
+def test_makefile_runs_the_tuner():
+    make = (ROOT / "Makefile").read_text()
+    run = make[make.index("\nrun:"):].split("\n\n")[0]
+    assert "-m tuning --out $(OUT)" in run
+
+
+def test_main_job_quick(tmp_path):
     out = tmp_path / "results"
-    assert main(["simulate", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
-    assert "status: successful" in printed
+    proc = subprocess.run(
+        [sys.executable, "-m", "tuning", "--quick", "--no-progress", "--out", str(out)],
+        capture_output=True, text=True, timeout=1200, cwd=ROOT)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "Traceback" not in proc.stderr
+    printed = proc.stdout
+    assert "tuned beats (38)/(25)" in printed
+    assert str(out / "summary.json") in printed
 
-    for name in ("trajectory.npz", "recording.npz", "summary.json", "simulation.png"):
+    for name in ("summary.json", "tuned_schedule.eqx", "loss_curve.png", "heatmaps.png",
+                 "time_trace.png"):
         assert (out / name).stat().st_size > 0, name
-    summary = json.loads((out / "summary.json").read_text())
-    # The built-in default: zhang750, sensored FOC, 1.5 s at T_s = 125 us.
-    assert summary["motor"] == "zhang750"
-    assert summary["observer"] == "sensored"
-    assert summary["T_s"] == 125e-6
-    assert summary["steps"] == 12000
-    assert summary["scenario"]["name"] == "default"
-    assert summary["scenario"]["speed_pu"] == 0.5 and summary["scenario"]["load_pu"] == 0.5
-    assert summary["controller"]["current_bandwidth_rad_s"] == pytest.approx(2 * np.pi * 500)
-    assert summary["controller"]["speed_bandwidth_rad_s"] == pytest.approx(2 * np.pi * 5)
-    assert summary["status"] == "successful"
-    # The speed loop ends at its set-point, the settled error is small and the current
-    # stays within the drive's limit.
-    assert summary["final_speed"]["pu"] == pytest.approx(0.5, abs=5e-3)
-    se = summary["speed_error_after_settling"]
-    assert se["samples"] > 1000
-    assert se["max_abs_pu"] < 0.02
-    assert 0 < summary["max_current"]["A"] < pj.preset("zhang750").i_max
-    print(f"main job: compile {summary['compile_time_s']:.2f} s, run "
-          f"{summary['run_time_s']:.3f} s, wall {summary['wall_time_s']:.2f} s")
-
-    rec = pj.load_recording(out / "recording.npz")
-    assert rec.n == 12000
-    assert np.max(rec.tau_L) == pytest.approx(0.5 * pj.preset("zhang750").tau_rated)
+    s = json.loads((out / "summary.json").read_text())
+    assert set(tg.REQUIRED_KEYS) <= set(s)
+    cfg = tg.TuningConfig.quick()
+    assert s["config"]["n_mismatch"] == cfg.n_mismatch and s["motor"] == "zhang750"
+    # the tuned design beats the paper's (38)/(25) on the robust objective, on the
+    # training grid and on the held-out mismatch, and is feasible on every scenario
+    assert s["objective"] == "robust"
+    assert s["tuned_loss"] < s["baseline_loss"]
+    assert s["heldout_tuned_loss"] < s["heldout_baseline_loss"]
+    assert s["improvement_pct"]["heldout"] > 0
+    assert s["feasible"] is True
+    assert all(s["feasible_per_scenario"]["train"]) and all(s["feasible_per_scenario"]["heldout"])
+    n_train = cfg.n_mismatch ** 2 * len(cfg.speeds_pu) * len(cfg.loads_pu)
+    assert len(s["scenarios"]["train"]) == n_train
+    row = s["scenarios"]["heldout"][0]
+    assert {"k_d", "k_q", "speed_pu", "load_pu", "zhang38", "tuned"} <= set(row)
+    assert {"loss", "pos_rms_deg", "settle_ms", "noise_rad_s", "feasible"} <= set(row["tuned"])
+    assert len(s["loss_history"]) == s["histories"]["tuned"]["n_simulations"][-1] // n_train
+    assert np.all(np.isfinite(s["loss_history"]))
+    assert s["wall_time_s"] > 0
+    nodes = s["tuned_design"]["nodes"]
+    assert nodes["s_pu"] == list(cfg.nodes_pu)
+    assert all(v > 0 for q in ("zeta1", "ratio", "zeta2", "w2") for v in nodes[q])
+    # the gradient-free baseline had the same number of simulations
+    h = s["histories"]
+    assert h["random_search"]["n_simulations"][-1] == h["tuned"]["n_simulations"][-1]
+    # the saved schedule reloads
+    back = tg.load_schedule(out)
+    assert np.allclose(tg.schedule_table(back)["w2"], nodes["w2"], rtol=0, atol=0)
+    print(f"main job (--quick): wall {s['wall_time_s']:.1f} s, tuned {s['tuned_loss']:.3f} "
+          f"vs (38) {s['baseline_loss']:.3f}")

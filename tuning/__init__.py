@@ -1,0 +1,64 @@
+"""Gradient-based tuning of sensorless-observer gains under inductance mismatch.
+
+`python -m tuning` runs the whole job (see `tuning.__main__`); the pieces are public:
+`TuningConfig` and the scenario grids (`tuning.scenarios`), the tunable `GainSchedule`
+(unconstrained <-> physical, `filter_spec`), the objective (`tuning.objectives`), the
+optimisers (`tuning.optimise`) and `run_tuning` / `write_report`.
+"""
+
+from ._parametrise import (
+    TUNABLE as TUNABLE,
+    Bounds as Bounds,
+    GainSchedule as GainSchedule,
+    filter_spec as filter_spec,
+    schedule_table as schedule_table,
+    zhang38_schedule as zhang38_schedule,
+)
+from ._pipeline import (
+    DESIGNS as DESIGNS,
+    TuningReport as TuningReport,
+    run_tuning as run_tuning,
+    targets_reached as targets_reached,
+    time_traces as time_traces,
+)
+from ._report import (
+    REQUIRED_KEYS as REQUIRED_KEYS,
+    config_from_summary as config_from_summary,
+    load_schedule as load_schedule,
+    plot_report as plot_report,
+    report_figures as report_figures,
+    summary as summary,
+    write_report as write_report,
+)
+from .objectives import (
+    EquilibriumSet as EquilibriumSet,
+    Metrics as Metrics,
+    aggregate as aggregate,
+    equilibria as equilibria,
+    evaluate as evaluate,
+    feasibility as feasibility,
+    loss as loss,
+    residuals as residuals,
+    scenario_losses as scenario_losses,
+    stability_penalty as stability_penalty,
+    trajectory_metrics as trajectory_metrics,
+)
+from .optimise import (
+    TuningResult as TuningResult,
+    adam as adam,
+    bfgs as bfgs,
+    levenberg_marquardt as levenberg_marquardt,
+    local_search as local_search,
+    optimise as optimise,
+    random_search as random_search,
+)
+from .scenarios import (
+    ScenarioSet as ScenarioSet,
+    TuningConfig as TuningConfig,
+    heldout_scenarios as heldout_scenarios,
+    make_observer as make_observer,
+    make_scenarios as make_scenarios,
+    observer_motor as observer_motor,
+    simulate_scenarios as simulate_scenarios,
+    training_scenarios as training_scenarios,
+)

@@ -1,0 +1,282 @@
+"""Output of a tuning run: `summary.json`, the tuned schedule (equinox serialisation) and
+plots (loss curves, error-versus-mismatch heat maps before/after, a time trace)."""
+
+from __future__ import annotations
+
+import json
+import math
+import pathlib
+
+import equinox as eqx
+import numpy as np
+
+from ._parametrise import TUNABLE, Bounds, GainSchedule, schedule_table
+from ._pipeline import DESCRIPTIONS, TuningReport, targets_reached
+from .scenarios import TuningConfig
+
+
+SCHEDULE_FILE = "tuned_schedule.eqx"
+SUMMARY_FILE = "summary.json"
+PLOTS = ("loss_curve.png", "heatmaps.png", "time_trace.png")
+
+#: Keys every summary.json has (tests check them).
+REQUIRED_KEYS = ("baseline_loss", "tuned_loss", "heldout_baseline_loss",
+                 "heldout_tuned_loss", "feasible", "loss_history", "wall_time_s",
+                 "scenarios", "tuned_design")
+
+
+def _clean(x):
+    """JSON-safe: numpy -> Python, NaN/inf -> None."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, np.generic):
+        return _clean(x.item())
+    if hasattr(x, "shape") and hasattr(x, "dtype"):  # jax array
+        return _clean(np.asarray(x))
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _scenario_rows(report: TuningReport, split: str) -> list:
+    scen = report.train if split == "train" else report.heldout
+    rows = []
+    for j, row in enumerate(scen.table()):
+        for name in report.designs:
+            m = report.metrics[name][split]
+            f = report.feasibility[name][split]
+            row[name] = dict(
+                loss=float(m.loss[j]), pos_rms_deg=float(m.pos_rms_deg[j]),
+                theta_ss_deg=float(m.theta_ss_deg[j]),
+                settle_ms=1e3 * float(m.settle_s[j]), noise_rad_s=float(m.noise_rad_s[j]),
+                w_bias_rad_s=float(m.w_bias_rad_s[j]),
+                stab_penalty=float(m.stab_penalty[j]), ok=bool(m.ok[j]),
+                feasible=bool(f["feasible"][j]), analysis_status=int(f["status"][j]),
+                principal_stable=bool(f["principal_stable"][j]),
+                n_nonzero_equilibria=int(f["n_nonzero"][j]),
+                static_error_theory_deg=float(f["principal_theta_deg"][j]),
+                stable_other_theta_deg=float(f["stable_other_theta_deg"][j]),
+                max_real_eig=float(f["max_real_eig"][j]))
+        rows.append(row)
+    return rows
+
+
+def summary(report: TuningReport) -> dict:
+    """The content of summary.json (plain Python types)."""
+    cfg = report.config
+    L = report.losses
+    res = report.results["tuned"]
+    feas_all = report.all_feasible("tuned")
+    speeds = sorted(set(cfg.speeds_pu) | set(cfg.nodes_pu))
+    out = dict(
+        motor=cfg.motor, observer=cfg.observer, optimiser=cfg.optimiser,
+        objective=cfg.objective,
+        baseline_loss=L["zhang38"]["train"], tuned_loss=L["tuned"]["train"],
+        heldout_baseline_loss=L["zhang38"]["heldout"],
+        heldout_tuned_loss=L["tuned"]["heldout"],
+        improvement_pct=dict(train=report.improvement_pct("train"),
+                             heldout=report.improvement_pct("heldout")),
+        beats_baseline=dict(train=L["tuned"]["train"] < L["zhang38"]["train"],
+                            heldout=L["tuned"]["heldout"] < L["zhang38"]["heldout"]),
+        feasible=feas_all,
+        feasible_per_scenario=dict(
+            train=report.feasibility["tuned"]["train"]["feasible"],
+            heldout=report.feasibility["tuned"]["heldout"]["feasible"]),
+        baseline_feasible=report.all_feasible("zhang38"),
+        loss_history=res.stats["loss"], best_loss_history=res.stats["best"],
+        n_simulations_history=res.stats["n_simulations"],
+        optimiser_wall_time_history_s=res.stats["wall_time_s"],
+        optimiser_result=res.result,
+        wall_time_s=report.wall_time_s, timings_s=report.timings,
+        compile_time_s={k: r.stats["compile_time_s"] for k, r in report.results.items()},
+        designs={k: dict(description=DESCRIPTIONS[k], train_loss=L[k]["train"],
+                         heldout_loss=L[k]["heldout"],
+                         feasible=report.all_feasible(k))
+                 for k in report.designs},
+        tuned_design=dict(nodes=schedule_table(report.tuned),
+                          at_speeds=schedule_table(report.tuned, speeds),
+                          tuned_quantities=list(cfg.tuned),
+                          units=dict(zeta1="-", ratio="w1/|w0|", zeta2="-", w2="rad/s",
+                                     nu2="x min-norm |g2|", nu3="x min-norm |g3|",
+                                     w1_rad_s="rad/s")),
+        scenarios=dict(train=_scenario_rows(report, "train"),
+                       heldout=_scenario_rows(report, "heldout")),
+        benchmark=targets_reached(report.results, L["zhang38"]["train"]),
+        histories={k: dict(loss=r.stats["loss"], best=r.stats["best"],
+                           n_simulations=r.stats["n_simulations"],
+                           wall_time_s=r.stats["wall_time_s"],
+                           wall_time_warm_s=r.stats["wall_time_warm_s"], result=r.result)
+                   for k, r in report.results.items()},
+        config=cfg.to_dict(),
+        files=dict(schedule=SCHEDULE_FILE, plots=list(PLOTS)),
+        notes=[
+            "Losses are the configured objective (robust = smooth maximum over scenarios, "
+            "log-mean-exp at `temperature`) of the per-scenario loss w_pos*RMS angle "
+            "error after t_transient (deg) + w_settle*settling surrogate/settle_unit + "
+            "w_noise*speed-estimate noise std/noise_unit + w_stab*stability penalty.",
+            "feasible: for every training and held-out scenario, the exact analysis "
+            "(pmsmjax.analysis.eso_equilibria at the scenario's operating point with the "
+            "mismatched observer model) finds the designed equilibrium stable (Hurwitz) "
+            "and no other stable equilibrium.",
+            "The held-out grid uses inductance factors not in the training grid and other "
+            "noise keys; it is not used during tuning.",
+        ],
+    )
+    return _clean(out)
+
+
+def write_report(report: TuningReport, out, *, plot: bool = True) -> dict:
+    """Write summary.json, the tuned schedule and (if `plot`) the plots into `out`."""
+    out = pathlib.Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    eqx.tree_serialise_leaves(out / SCHEDULE_FILE, report.tuned)
+    s = summary(report)
+    (out / SUMMARY_FILE).write_text(json.dumps(s, indent=1, allow_nan=False))
+    if plot:
+        plot_report(report, out)
+    return s
+
+
+def config_from_summary(summary_or_dir) -> TuningConfig:
+    """The `TuningConfig` stored in a summary.json (a dict, a file or its folder)."""
+    s = summary_or_dir
+    if not isinstance(s, dict):
+        p = pathlib.Path(s)
+        p = p / SUMMARY_FILE if p.is_dir() else p
+        s = json.loads(p.read_text())
+    c = dict(s["config"])
+    c["bounds"] = Bounds(**{n: tuple(c["bounds"][n]) for n in TUNABLE})
+    for k, v in c.items():
+        if isinstance(v, list):
+            c[k] = tuple(v)
+    return TuningConfig(**c)
+
+
+def load_schedule(out) -> GainSchedule:
+    """The tuned `GainSchedule` saved in the output folder `out` (bit-identical)."""
+    out = pathlib.Path(out)
+    like = config_from_summary(out).initial_schedule()
+    return eqx.tree_deserialise_leaves(out / SCHEDULE_FILE, like)
+
+
+# ---------------------------------------------------------------------------------------
+# Plots
+# ---------------------------------------------------------------------------------------
+
+_LABELS = {"zhang38": "(38)/(25)", "tuned": "tuned", "min_norm_25": "tuned, min-norm (25)",
+           "random_search": "random search", "local_search": "(1+1) local search"}
+_COLORS = {"tuned": "C0", "min_norm_25": "C2", "random_search": "C1", "local_search": "C4"}
+
+
+def report_figures(report: TuningReport) -> dict:
+    """The report's matplotlib figures `{file name: Figure}`: the loss curves, the
+    error-versus-mismatch heat maps before/after and the time trace."""
+    import matplotlib.pyplot as plt
+
+    return {name: fn(report, plt) for name, fn in (
+        ("loss_curve.png", _plot_loss), ("heatmaps.png", _plot_heatmaps),
+        ("time_trace.png", _plot_trace))}
+
+
+def plot_report(report: TuningReport, out) -> None:
+    """Save `report_figures` into the folder `out` (and close them)."""
+    import matplotlib.pyplot as plt
+
+    out = pathlib.Path(out)
+    for name, fig in report_figures(report).items():
+        fig.savefig(out / name, dpi=110)
+        plt.close(fig)
+
+
+def _plot_loss(report, plt):
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    base = report.losses["zhang38"]["train"]
+    for name, r in report.results.items():
+        s = r.stats
+        kw = dict(label=_LABELS[name], color=_COLORS[name])
+        if name in ("tuned", "min_norm_25"):
+            axes[0].plot(np.arange(1, s["steps"] + 1), s["loss"], alpha=0.35, lw=1,
+                         color=_COLORS[name])
+        axes[0].plot(np.arange(1, s["steps"] + 1), s["best"], **kw)
+        axes[1].plot(s["wall_time_warm_s"], s["best"], **kw)
+    for ax in axes:
+        ax.axhline(base, color="k", ls="--", lw=1, label="(38)/(25)")
+        ax.set_ylabel(f"{report.config.objective} loss (best so far)")
+        ax.grid(alpha=0.3)
+    axes[0].set_xlabel(f"evaluation (x {report.train.n} simulations)")
+    axes[1].set_xlabel("wall time without compilation (s)")
+    axes[0].legend()
+    fig.suptitle(f"Gain tuning, {report.config.motor}, {report.config.observer.upper()}: "
+                 f"training objective")
+    fig.tight_layout()
+    return fig
+
+
+def _grid(report, split, name, field):
+    scen = report.train if split == "train" else report.heldout
+    kd, kq = np.asarray(scen.k_d), np.asarray(scen.k_q)
+    vals = np.asarray(getattr(report.metrics[name][split], field))
+    ud, uq = np.unique(kd), np.unique(kq)
+    grid = np.full((uq.size, ud.size), -np.inf)
+    for a, b, v in zip(kd, kq, vals):  # worst case over the operating points
+        i, j = np.searchsorted(uq, b), np.searchsorted(ud, a)
+        grid[i, j] = max(grid[i, j], v)
+    return ud, uq, grid
+
+
+def _plot_heatmaps(report, plt):
+    cols = [("train", "loss", "training: scenario loss"),
+            ("heldout", "loss", "held-out: scenario loss"),
+            ("heldout", "pos_rms_deg", "held-out: RMS angle error (deg)")]
+    names = ("zhang38", "tuned")
+    fig, axes = plt.subplots(2, 3, figsize=(13, 7.5))
+    for c, (split, field, title) in enumerate(cols):
+        grids = [_grid(report, split, n, field) for n in names]
+        vmax = max(np.max(g[2]) for g in grids)
+        vmin = min(np.min(g[2]) for g in grids)
+        for r, (n, (ud, uq, g)) in enumerate(zip(names, grids)):
+            ax = axes[r, c]
+            im = ax.imshow(g, origin="lower", cmap="viridis", vmin=vmin, vmax=vmax,
+                           aspect="auto")
+            ax.set_xticks(range(ud.size), [f"{v:.3g}" for v in ud])
+            ax.set_yticks(range(uq.size), [f"{v:.3g}" for v in uq])
+            for i in range(uq.size):
+                for j in range(ud.size):
+                    ax.text(j, i, f"{g[i, j]:.2f}", ha="center", va="center", fontsize=7,
+                            color="w" if g[i, j] < 0.5 * (vmin + vmax) else "k")
+            ax.set_xlabel("$\\hat L_d / L_d$")
+            ax.set_ylabel("$\\hat L_q / L_q$")
+            ax.set_title(f"{_LABELS[n]}: {title}", fontsize=9)
+            fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.suptitle("Worst case over the operating points (speeds x loads) per inductance "
+                 "mismatch")
+    fig.tight_layout()
+    return fig
+
+
+def _plot_trace(report, plt):
+    tr = report.traces
+    sc = tr["scenario"]
+    fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
+    t = 1e3 * np.asarray(tr["t"])
+    for name, color in (("zhang38", "C3"), ("tuned", "C0")):
+        if name not in tr:
+            continue
+        axes[0].plot(t, tr[name]["theta_err_deg"], color=color, lw=1, label=_LABELS[name])
+        axes[1].plot(t, tr[name]["w_err"], color=color, lw=0.8, label=_LABELS[name])
+    axes[0].set_ylabel("angle error $\\theta - \\hat\\theta$ (deg)")
+    axes[1].set_ylabel("speed error $\\omega - \\hat\\omega$ (rad/s)")
+    axes[1].set_xlabel("t (ms)")
+    for ax in axes:
+        ax.axvline(1e3 * report.config.t_transient, color="k", ls=":", lw=1)
+        ax.grid(alpha=0.3)
+        ax.legend()
+    axes[0].set_title(
+        f"Hardest training scenario for (38): L_d x {sc['k_d']:.3g}, L_q x {sc['k_q']:.3g}, "
+        f"{sc['speed_pu']:.3g} p.u. speed, {sc['load_pu']:.3g} p.u. load", fontsize=10)
+    fig.tight_layout()
+    return fig
