@@ -664,6 +664,8 @@ def _zhang_observer(name):
 
 OBSERVERS.update({name: _zhang_observer(name) for name in ("eso", "leso", "afo")})
 
+from . import _cli_analysis  # noqa: E402,F401  (registers feasibility, equilibria, certify)
+
 
 # ---------------------------------------------------------------------------------------
 # main
