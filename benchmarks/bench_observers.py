@@ -212,9 +212,7 @@ def main():
         print(f"\n--- XLA {label}: XLA_FLAGS={flags!r}", flush=True)
         env = dict(os.environ)
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + flags).strip()
-        # pmsmjax adds the small-loop flag on import unless told not to: the "default"
-        # pass must opt out to measure XLA's own defaults.
-        env["PMSMJAX_KEEP_XLA_FLAGS"] = "1"
+        env.pop("PMSMJAX_XLA_SMALL_LOOPS", None)  # the flag only via XLA_FLAGS above
         with tempfile.NamedTemporaryFile(suffix=".json", delete=False) as f:
             tmp = f.name
         cmd = [sys.executable, __file__, "--worker", tmp] + (["--quick"] if args.quick else [])

@@ -8,13 +8,13 @@ import importlib.metadata
 import os
 
 
-# XLA's CPU backend compiles a `lax.scan` whose body is larger than a small byte
-# threshold into a loop of separate kernels; raising the threshold compiles the whole
-# closed-loop step into one kernel: about 9x faster single runs and 1.2-1.7x faster
-# batches here (BENCHMARKS.md). XLA reads the flag when the backend starts, so it only
-# takes effect if pmsmjax is imported before JAX's first computation. Set
-# PMSMJAX_KEEP_XLA_FLAGS=1, or any `--xla_backend_extra_options` yourself, to opt out.
-if not os.environ.get("PMSMJAX_KEEP_XLA_FLAGS") and \
+# Opt-in speed-up (BENCHMARKS.md): XLA's CPU backend splits a `lax.scan` whose body is
+# above a small byte threshold into separate kernels; raising the threshold compiles the
+# whole closed-loop step into one kernel (about 9x faster single runs here). It is opt-in
+# (PMSMJAX_XLA_SMALL_LOOPS=1) because an intermittent hang of a jitted computation was
+# seen with it on a heavily loaded 2-core machine and its cause is not yet understood.
+# XLA reads the flag when the backend starts: set the variable before importing pmsmjax.
+if os.environ.get("PMSMJAX_XLA_SMALL_LOOPS") == "1" and \
         "xla_backend_extra_options" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "")
