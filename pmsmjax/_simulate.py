@@ -176,6 +176,7 @@ def simulate(
 
     **Returns:** a `Trajectory`.
     """
+    arguments = dict(locals())  # first statement: exactly the call's arguments
     _check_common(drive, T_s, solver, n_substeps)
     if observer is None or not isinstance(observer, AbstractObserver):
         raise ValueError(
@@ -198,33 +199,16 @@ def simulate(
             np.asarray(sensing.noise_std) > 0):
         raise ValueError("`Sensing(noise_std > 0)` needs a PRNG `key` in `simulate`.")
 
-    return _simulate(
-        drive, controller, observer, scenario, T_s=T_s, solver=solver,
-        n_substeps=n_substeps, sensing=sensing, key=key, theta0=theta0, w_m0=w_m0,
-        theta_hat0=theta_hat0, w_hat0=w_hat0, i_dq0=i_dq0, save_every=save_every,
-        throw=throw)
+    return _simulate(arguments)
 
 
 @eqx.filter_jit
-def _simulate(
-    drive: Drive,
-    controller: FOC,
-    observer: AbstractObserver,
-    scenario: Scenario,
-    *,
-    T_s: float = 125e-6,
-    solver=RK4(),
-    n_substeps: int = 1,
-    sensing: Sensing = Sensing(),
-    key=None,
-    theta0=0.0,
-    w_m0=0.0,
-    theta_hat0=None,
-    w_hat0=None,
-    i_dq0=(0.0, 0.0),
-    save_every: int = 1,
-    throw: bool = True,
-) -> Trajectory:
+def _simulate(arguments: dict) -> Trajectory:
+    """The jitted body of `simulate`, called with its (validated) arguments by name."""
+    names = ("drive controller observer scenario T_s solver n_substeps sensing key theta0 "
+             "w_m0 theta_hat0 w_hat0 i_dq0 save_every throw").split()
+    (drive, controller, observer, scenario, T_s, solver, n_substeps, sensing, key, theta0,
+     w_m0, theta_hat0, w_hat0, i_dq0, save_every, throw) = (arguments[k] for k in names)
     # Validated by `simulate` (with concrete values, outside jit).
     N = scenario.n_steps(T_s)
     plant0 = PMSM(drive.motor, drive.mechanics)

@@ -290,6 +290,16 @@ class _AbstractFluxObserver(AbstractObserver):
     motor: eqx.AbstractVar[PMSMParams]
     design: eqx.AbstractVar[AbstractGainSchedule]
 
+    @classmethod
+    def from_drive(cls, drive: Drive, w2=2 * math.pi * 50.0, zeta2=1.0, *, motor=None,
+                   **kwargs):
+        """The paper's design (38)/(25) (for the AFO: G1 from (38), speed law (53)) with
+        bandwidth `w2` (rad/s) for `drive`; `motor` overrides the observer's machine model
+        (default the drive's), `kwargs` go to the constructor (e.g. `a`, `eta`)."""
+        motor = drive.three_phase_motor if motor is None else motor
+        return cls(motor, ESODesign.zhang38(drive.w_rated, w2, zeta2), **kwargs)
+
+
     def init(self, theta0=0.0, w0=0.0) -> FluxObserverState:
         theta0 = jnp.asarray(theta0)
         w0 = jnp.asarray(w0)
@@ -394,12 +404,6 @@ class ESOObserver(_AbstractESO):
     def __check_init__(self):
         check_design("ESOObserver", a=self.a, eta=self.eta)
 
-    @classmethod
-    def from_drive(cls, drive: Drive, w2=2 * math.pi * 50.0, zeta2=1.0, *, a=0.5,
-                   eta=None, motor=None) -> ESOObserver:
-        """The paper's design (38)/(25) with bandwidth `w2` (rad/s) for `drive`."""
-        motor = drive.three_phase_motor if motor is None else motor
-        return cls(motor, ESODesign.zhang38(drive.w_rated, w2, zeta2), a=a, eta=eta)
 
     def feedback(self, e):
         r"""$f(e) = \eta^{1-a}\mathrm{fal}(e)$ (V s)."""
@@ -424,12 +428,6 @@ class LESOObserver(_AbstractESO):
         self.motor = motor
         self.design = design
 
-    @classmethod
-    def from_drive(cls, drive: Drive, w2=2 * math.pi * 50.0, zeta2=1.0, *, motor=None
-                   ) -> LESOObserver:
-        """The paper's design (38)/(25) with bandwidth `w2` (rad/s) for `drive`."""
-        motor = drive.three_phase_motor if motor is None else motor
-        return cls(motor, ESODesign.zhang38(drive.w_rated, w2, zeta2))
 
     def feedback(self, e):
         return e
@@ -476,12 +474,6 @@ class AFOObserver(_AbstractFluxObserver):
         self.motor = motor
         self.design = design
 
-    @classmethod
-    def from_drive(cls, drive: Drive, w2=2 * math.pi * 50.0, zeta2=1.0, *, motor=None
-                   ) -> AFOObserver:
-        """G1 from (38), speed law (53) with bandwidth `w2` (rad/s), for `drive`."""
-        motor = drive.three_phase_motor if motor is None else motor
-        return cls(motor, ESODesign.zhang38(drive.w_rated, w2, zeta2))
 
     def _pi_output(self, psi_ab, theta, x_I, i_ab):
         e, i_dq = _error(self.motor, psi_ab, theta, i_ab)
