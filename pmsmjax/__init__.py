@@ -79,6 +79,7 @@ from ._params import (  # noqa: E402
 )
 from ._replay import (  # noqa: E402
     replay as replay,
+    replay_estimates as replay_estimates,
     replay_stats as replay_stats,
     settling_time as settling_time,
 )

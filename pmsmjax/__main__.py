@@ -405,7 +405,8 @@ def simulate_command(args: argparse.Namespace) -> int:
 
     ok = bool(traj.ok)
     arrays = {f.name: np.asarray(getattr(traj, f.name)) for f in dataclasses.fields(traj)
-              if f.name != "status"}
+              if f.name not in ("status", "extras")}
+    arrays.update({k: np.asarray(v) for k, v in traj.extras.items()})
     files = {
         "trajectory": os.path.join(out, "trajectory.npz"),
         "recording": os.path.join(out, "recording.npz"),

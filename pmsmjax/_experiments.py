@@ -265,7 +265,7 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
     sensing = Sensing(noise_std=noise_std)
     key = jr.PRNGKey(seed) if noise_std > 0 else None
     bw = 2 * math.pi * float(bandwidth_hz)
-    eso = ESOObserver.from_drive(drive, bw) if observer is None else observer
+    eso = ESOObserver.from_drive(drive, w2=bw) if observer is None else observer
     common = dict(controller=foc, T_s=T_s, sensing=sensing, key=key)
 
     def closed(title, scenario, w_op, t_settle, obs=eso, **init):
@@ -306,8 +306,8 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
                       w_m0=w_op)
     if name in ("fig7", "fig8"):
         w_afo = 2 * math.pi * (250.0 if name == "fig7" else 150.0)
-        obs = {"eso": ESOObserver.from_drive(drive, 2 * math.pi * 250.0),
-               "afo": AFOObserver.from_drive(drive, w_afo)}
+        obs = {"eso": ESOObserver.from_drive(drive, w2=2 * math.pi * 250.0),
+               "afo": AFOObserver.from_drive(drive, w2=w_afo)}
         title = ("Noise at equal bandwidth: ESO 250 Hz vs AFO 250 Hz, sensing mode, "
                  "0.25 p.u." if name == "fig7" else
                  "Speed of response: ESO 250 Hz vs AFO 150 Hz, sensing mode, 0.25 p.u.")
@@ -322,10 +322,10 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
                       theta_hat0=math.radians(14.53))
     if name == "fig10":
         half = _scaled(m, L_d=0.5, L_q=0.5)
-        obs = {"eso": ESOObserver.from_drive(drive, bw),
-               "eso_half_L": ESOObserver.from_drive(drive, bw, motor=half),
-               "afo": AFOObserver.from_drive(drive, bw),
-               "afo_half_L": AFOObserver.from_drive(drive, bw, motor=half)}
+        obs = {"eso": ESOObserver.from_drive(drive, w2=bw),
+               "eso_half_L": ESOObserver.from_drive(drive, w2=bw, motor=half),
+               "afo": AFOObserver.from_drive(drive, w2=bw),
+               "afo_half_L": AFOObserver.from_drive(drive, w2=bw, motor=half)}
         return sensing_mode("Inductance at half its nominal value, sensing mode, 0.1 p.u., "
                             f"load {load_pu:g} p.u.", 0.1 * wr, 0.6, obs, t_settle=0.3,
                             load=load_pu * tr)

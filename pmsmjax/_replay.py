@@ -57,16 +57,18 @@ def _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales):
             obs = eqx.tree_at(lambda o: o.motor, observer, scale_motor(observer.motor, sc))
         meas = Measurement(i_ab=i_k, u_ab=u_k, theta=nan, w_m=nan)
         state, est = obs.step(state, meas, T_s)
-        return state, (est.theta_hat, est.w_hat)
+        return state, est
 
     del n
-    _, (theta_hat, w_hat) = jax.lax.scan(step, state0, (i_ab, u_prev, scales))
-    return theta_hat, w_hat
+    _, est = jax.lax.scan(step, state0, (i_ab, u_prev, scales))
+    return est
 
 
 def replay(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *, t=None,
            T_s=None, theta0=0.0, w0=0.0, observer_scale=None):
-    """Run `observer` over recorded voltages and currents.
+    """Run `observer` over recorded voltages and currents; returns
+    `(theta_hat, w_hat)`. `replay_estimates` (same arguments) returns the whole
+    `Estimate` sequence, including the observer's `extras`.
 
     **Arguments:**
 
@@ -88,6 +90,16 @@ def replay(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *, t=Non
     **Returns:** `(theta_hat, w_hat)`, each (N,): the estimated electrical angle at t_k
     (rad, wrapped to (-pi, pi]) and speed (rad/s).
     """
+    est = replay_estimates(observer, data, u_ab, i_ab, t=t, T_s=T_s, theta0=theta0, w0=w0,
+                           observer_scale=observer_scale)
+    return est.theta_hat, est.w_hat
+
+
+def replay_estimates(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *,
+                     t=None, T_s=None, theta0=0.0, w0=0.0, observer_scale=None):
+    """`replay`, returning the `Estimate` at every sample: `theta_hat` (N,), `w_hat`
+    (N,) and every observer-specific estimate in `extras` (leading axis N; names and
+    units in the observer class's `extras`)."""
     if not isinstance(observer, AbstractObserver):
         raise ValueError(
             f"`replay(observer=...)` must be an `AbstractObserver`; got "
@@ -117,8 +129,6 @@ def replay(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *, t=Non
         raise ValueError(f"`replay(T_s=...)` (s) must be > 0; got {float(T_s)!r}.")
     scales = {}
     if observer_scale:
-        if not hasattr(observer, "motor"):
-            raise ValueError("`observer_scale` needs an observer with a `motor` field.")
         scales = {k: jnp.broadcast_to(jnp.asarray(v), (n,)) for k, v in
                   observer_scale.items()}
     dtype = jnp.result_type(i_ab.dtype, u_ab.dtype)

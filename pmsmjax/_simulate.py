@@ -183,11 +183,10 @@ def simulate(
             f"`observer` must be an `AbstractObserver` (e.g. `SensoredObserver()`); got "
             f"{type(observer).__name__}."
         )
-    if scenario.observer_scale and not isinstance(getattr(observer, "motor", None),
-                                                  PMSMParams):
+    if scenario.observer_scale and not isinstance(observer.motor, PMSMParams):
         raise ValueError(
-            "`Scenario(observer_scale=...)` needs an observer with a `motor` field "
-            f"(`PMSMParams`); {type(observer).__name__} has none."
+            "`Scenario(observer_scale=...)` needs an observer with a machine model "
+            f"(`PMSMParams`); {type(observer).__name__}.motor is {observer.motor!r}."
         )
     N = scenario.n_steps(T_s)
     if not isinstance(save_every, int) or save_every < 1 or N % save_every:
@@ -319,7 +318,7 @@ def _simulate(arguments: dict) -> Trajectory:
                 i_meas_ab=i_meas, u_ab=u_apply,
                 u_dq=jnp.stack(_rotate(c, -s, u_a, u_b), -1),  # park(u_apply, theta)
                 i_ref=out.i_ref, tau_ref=out.tau_ref, tau_M=plant.torque(join_state(y)),
-                tau_L=inp["tau_L"], w_m_ref=inp["w_m_ref"],
+                tau_L=inp["tau_L"], w_m_ref=inp["w_m_ref"], extras=est.extras,
             )
             return _cast_floats(rec, dtype)
 

@@ -36,6 +36,8 @@ class Trajectory(eqx.Module):
     - `ise_theta`: integral of theta_err^2 over the whole run (rad^2 s).
     - `ise_w`: integral of (w_m_ref - w_m)^2 (rad^2/s); `ise_w_hat`: of (w_m - w_hat)^2.
     - `status`: `RESULTS` code of the run (0 = successful).
+    - `extras`: the observer's own estimates by name (`Estimate.extras`, units in the
+      observer class's `extras`), e.g. `psi_ab_hat` (V s) for the zhang2022 observers.
     """
 
     t: jnp.ndarray
@@ -58,6 +60,7 @@ class Trajectory(eqx.Module):
     ise_w: jnp.ndarray
     ise_w_hat: jnp.ndarray
     status: RESULTS
+    extras: dict = eqx.field(default_factory=dict)
 
     @property
     def ok(self):

@@ -20,7 +20,7 @@ THETA_HAT0 = -math.radians(20.0)
 
 def _observers(drive):
     return {"eso": pj.ESOObserver.from_drive(drive), "leso": pj.LESOObserver.from_drive(drive),
-            "afo": pj.AFOObserver.from_drive(drive, 2 * math.pi * 80)}
+            "afo": pj.AFOObserver.from_drive(drive, w2=2 * math.pi * 80)}
 
 
 def _run(observer, drive=DRIVE, observer_scale=None):

@@ -385,7 +385,7 @@ def test_float32_inputs_give_float32_run(speed_run):
 # Divergence
 # --------------------------------------------------------------------------------------
 
-class GarbageObserver(pj.AbstractObserver):
+class GarbageObserver(pj.SensoredObserver):
     """Sensored observer that returns NaN where `bad` > 0 (a broken estimator).
 
     Absurd controller gains cannot make the plant diverge: the voltage limit bounds the

@@ -107,9 +107,12 @@ class Equilibria(eqx.Module):
     - `n`: number of equilibria; `n_nonzero = n - 1` (all but the principal one). With
       parameter mismatch `n = 0` happens (e.g. a large resistance error at low speed):
       there is no equilibrium and the angle error drifts for ever.
-    - `status`: 0 ok, -1 degenerate or failed (w0 = 0, w1 = 0, psi_a0 = 0, the
-      reduction's kappa <= 0 for non-designed gains, non-finite values, more zeros than
-      slots, or a refinement that did not converge).
+    - `status`: 0 ok, 2 no equilibrium at all (possible with observer-model mismatch),
+      -1 degenerate or failed (w0 = 0, w1 = 0, psi_a0 = 0, the reduction's kappa <= 0
+      for non-designed gains, non-finite values, more zeros than slots, or a refinement
+      that did not converge).
+    - `jacobian`: the Jacobian of the error dynamics at each equilibrium (SI units, time
+      in s), `(..., max_roots, n, n)`; NaN in invalid slots.
     """
 
     theta: jnp.ndarray
@@ -121,6 +124,7 @@ class Equilibria(eqx.Module):
     principal: jnp.ndarray
     n: jnp.ndarray
     status: jnp.ndarray
+    jacobian: jnp.ndarray
 
     @property
     def n_nonzero(self):
@@ -311,24 +315,25 @@ def _finish(red: _Reduction, theta, valid, tangent, frame, a, eta, ok):
 
     f = jax.vmap(rhs)(x)
     residual = jnp.max(jnp.abs(f * d / jnp.abs(w0)), axis=-1)
-    A = jax.vmap(jax.jacfwd(rhs))(x)
-    A = A * d[:, None] / d[None, :] / jnp.abs(w0)
+    A_si = jax.vmap(jax.jacfwd(rhs))(x)
+    A = A_si * d[:, None] / d[None, :] / jnp.abs(w0)
     stable = routh_hurwitz(charpoly(A)) & ~tangent
     finite = jnp.all(jnp.isfinite(x), -1) & jnp.isfinite(residual)
     bad = valid & ~finite
     valid = valid & finite
     order = jnp.argsort(jnp.where(valid, theta, jnp.inf))
-    theta, x, valid, stable, tangent, residual = (
-        v[order] for v in (theta, x, valid, stable, tangent, residual))
+    theta, x, valid, stable, tangent, residual, A_si = (
+        v[order] for v in (theta, x, valid, stable, tangent, residual, A_si))
     n = jnp.sum(valid)
     principal = jnp.argmin(jnp.where(valid, jnp.abs(theta), jnp.inf))
     nan = jnp.nan
-    status = jnp.where(ok & ~jnp.any(bad), 0, -1).astype(jnp.int32)
+    status = jnp.where(ok & ~jnp.any(bad), jnp.where(n == 0, 2, 0), -1).astype(jnp.int32)
     return Equilibria(
         theta=jnp.where(valid, theta, nan), x=jnp.where(valid[:, None], x, nan),
         valid=valid, stable=stable & valid, tangent=tangent & valid,
         residual=jnp.where(valid, residual, nan), principal=principal.astype(jnp.int32),
-        n=n.astype(jnp.int32), status=status)
+        n=n.astype(jnp.int32), status=status,
+        jacobian=jnp.where(valid[:, None, None], A_si, nan))
 
 
 def eso_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams,

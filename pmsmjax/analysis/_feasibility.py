@@ -307,8 +307,8 @@ def _general_classify(w0, i0, zeta1, ratio, zeta2, w2, motor, motor_hat, a, eta,
                         n_grid=n_grid, max_roots=max_roots)
     other = eq.nonprincipal
     stable = eq.stable & other
-    deg = (eq.status != 0) | ~(ratio > 0)
-    none = ~deg & (eq.n == 0)
+    deg = (eq.status == -1) | ~(ratio > 0)
+    none = ~deg & (eq.status == 2)
     inf = jnp.any(stable)
     key = jnp.where(stable, jnp.abs(eq.theta), jnp.inf)
     st = eq.theta[jnp.argmin(key)]

@@ -1,9 +1,13 @@
-"""Position and speed observers. All share `AbstractObserver`'s `init`/`step` interface."""
+"""Position and speed observers. All implement the `AbstractObserver` contract; the
+registry (`make_observer`, `observer_names`) is the one place a name becomes one."""
 
 from ._base import (
     AbstractObserver as AbstractObserver,
+    ErrorCoordinates as ErrorCoordinates,
     Estimate as Estimate,
     Measurement as Measurement,
+    OperatingPoint as OperatingPoint,
+    PlantPoint as PlantPoint,
     SensoredObserver as SensoredObserver,
 )
 from ._eso import (
@@ -29,3 +33,14 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
+from ._registry import (
+    make_observer as make_observer,
+    observer_class as observer_class,
+    observer_names as observer_names,
+    register_observer as register_observer,
+)
+
+
+register_observer("eso", ESOObserver)
+register_observer("leso", LESOObserver)
+register_observer("afo", AFOObserver)

@@ -1,21 +1,46 @@
-"""The observer interface shared by every position/speed estimator.
+r"""The observer contract: what every position/speed estimator provides to the library.
 
-Timing (the same for the closed loop and for offline replay): at sampling instant t_k
-an observer receives a `Measurement` with the currents sampled at t_k and the stator
-voltage that was applied over the previous period [t_{k-1}, t_k) (zero at k = 0). It
-returns the `Estimate` valid at t_k and its state for the next instant. Everything it
-needs from the past (e.g. i_{k-1} for an integration rule) lives in its state, so the
-step is a pure function of `(state, measurement, T_s)`.
+**Timing** (the same for the closed loop and for offline replay): at sampling instant
+$t_k$ an observer receives a `Measurement` with the currents sampled at $t_k$ and the
+stator voltage that was applied over the previous period $[t_{k-1}, t_k)$ (zero at
+$k = 0$). It returns the `Estimate` valid at $t_k$ and its state for the next instant.
+Everything it needs from the past (e.g. $i_{k-1}$ for an integration rule) lives in its
+state, so the step is a pure function of `(state, measurement, T_s)`.
+
+**Analysis** (what `pmsmjax.analysis` is generic over). Each observer states once
+
+- its own machine model, the field `motor` (`PMSMParams`): observer-model mismatch in any
+  parameter ($R_s$, $L_d$, $L_q$, $\psi_f$) is replacing it (`with_motor`);
+- its continuous-time *error dynamics* $\dot x = f(x; \mathrm{op}, \mathrm{plant})$ at an
+  `OperatingPoint` (constant electrical speed $\omega_0$ and constant current $i_0$ held
+  by the current controller in the observer's estimated frame), in coordinates in which
+  that operating point is an equilibrium: `error_rhs`. The coordinates are named in
+  `coordinates` (`ErrorCoordinates`: names, units, which one is the angle error
+  $\tilde\theta = \theta - \hat\theta$, true minus estimate); `error_scale` gives the
+  size of each coordinate at the operating point (so that $x/\text{scale}$ is O(1));
+- the two maps between its discrete state and those coordinates at a true plant state
+  (`error_state`, `observer_state`), through which the library checks that the
+  continuous model is the observer that runs (`pmsmjax.analysis.discrete_error_map`:
+  the Jacobian of one real `step` is $I + T_sA + O(T_s^2)$);
+- its design: `design_parameters()` (name -> value, SI), `with_design(**values)`, the
+  units in `design_units`, and `from_drive(drive, **design)`, the papers' default design
+  for any drive (used by the registry, `make_observer`);
+- the names and units of its observer-specific outputs, `extras` (e.g. an estimated
+  flux or back-EMF), which it returns in `Estimate.extras` and which `simulate` and
+  `replay` carry through under the same names.
 """
 
 from __future__ import annotations
 
 import abc
+import dataclasses
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
 
 from .._frames import wrap_angle
+from .._params import PMSMParams
 
 
 class Measurement(eqx.Module):
@@ -39,39 +64,154 @@ class Estimate(eqx.Module):
 
     - `theta_hat`: estimated electrical rotor angle, wrapped to (-pi, pi] (rad).
     - `w_hat`: estimated electrical speed (rad/s).
+    - `extras`: observer-specific estimates by name (the observer class lists them, with
+      their units, in its `extras` class attribute), e.g. `psi_ab_hat` (V s, the
+      zhang2022 observers' stator flux). Empty for observers without any.
     """
 
     theta_hat: jnp.ndarray
     w_hat: jnp.ndarray
+    extras: dict = eqx.field(default_factory=dict)
+
+
+class OperatingPoint(eqx.Module):
+    """A constant-speed, constant-current operating point of the plant.
+
+    - `w_m`: electrical rotor speed (rad/s), constant.
+    - `i_dq`: the current held by the current controller in the observer's estimated
+      frame (A, `(2,)`): in rotor coordinates the current is $e^{-\\tilde\\theta J} i_{dq}$.
+    """
+
+    w_m: jnp.ndarray
+    i_dq: jnp.ndarray
+
+    def __init__(self, w_m, i_dq=(0.0, 0.0)):
+        self.w_m = jnp.asarray(w_m)
+        self.i_dq = jnp.asarray(i_dq, dtype=jnp.result_type(self.w_m, float))
+
+
+class PlantPoint(eqx.Module):
+    """The true plant at one sampling instant (for `error_state` / `observer_state`).
+
+    - `theta`: electrical rotor angle (rad); `w_m`: electrical speed (rad/s);
+    - `i_ab`: stator current, stationary frame (A, `(2,)`).
+    """
+
+    theta: jnp.ndarray
+    w_m: jnp.ndarray
+    i_ab: jnp.ndarray
+
+
+@dataclasses.dataclass(frozen=True)
+class ErrorCoordinates:
+    """Names and units of an observer's error coordinates (static metadata).
+
+    - `names`: one name per coordinate, e.g. `("psi_d", "psi_q", "theta", "w")`.
+    - `units`: their SI units, e.g. `("V s", "V s", "rad", "rad/s")`.
+    - `angle`: index of the angle error $\\tilde\\theta$ (rad, true minus estimate).
+    - `doc`: what each coordinate is (one line each).
+    """
+
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    angle: int
+    doc: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        if len(self.names) != len(self.units) or not 0 <= self.angle < len(self.names):
+            raise ValueError("`ErrorCoordinates`: `names` and `units` must have the same "
+                             "length and `angle` must index one of them.")
+        if self.units[self.angle] != "rad":
+            raise ValueError("`ErrorCoordinates`: the angle coordinate must be in rad.")
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
 
 
 class AbstractObserver(eqx.Module):
-    """Base class of all observers: pure `init` and `step`.
+    """Base class of every observer (see the module docstring for the contract).
 
-    Subclasses implement
-
-    - `init(theta0=0.0, w0=0.0) -> state`: the state at k = 0, with the initial angle
-      estimate `theta0` (rad) and speed estimate `w0` (rad/s).
-    - `step(state, meas, T_s) -> (state, Estimate)`: see the module docstring for timing.
-
-    Observers that model the machine keep their own `PMSMParams` in a field `motor`, so
-    that observer parameters can differ from the plant's (mismatch studies).
+    Subclasses implement `init`, `step`, `from_drive`, `design_parameters`,
+    `with_design`, `error_rhs`, `error_scale`, `error_state` and `observer_state`, and
+    declare the class attributes `coordinates`, `design_units` and `extras`.
     """
 
+    motor: eqx.AbstractVar[PMSMParams]
+    #: Error coordinates of `error_rhs` (names, units, angle index).
+    coordinates: ClassVar[ErrorCoordinates]
+    #: Design parameters: name -> unit and meaning.
+    design_units: ClassVar[dict[str, str]] = {}
+    #: Observer-specific outputs in `Estimate.extras`: name -> unit and meaning.
+    extras: ClassVar[dict[str, str]] = {}
+
+    # --- running ------------------------------------------------------------------
     @abc.abstractmethod
     def init(self, theta0=0.0, w0=0.0):
-        ...
+        """The state at k = 0, with initial angle estimate `theta0` (rad) and speed
+        estimate `w0` (rad/s)."""
 
     @abc.abstractmethod
     def step(self, state, meas: Measurement, T_s) -> tuple[object, Estimate]:
-        ...
+        """`(state at t_{k-1}, measurement at t_k, T_s (s)) -> (state at t_k, Estimate)`."""
+
+    # --- design ---------------------------------------------------------------------
+    @classmethod
+    @abc.abstractmethod
+    def from_drive(cls, drive, *, motor: PMSMParams | None = None, **design):
+        """The paper's default design for `drive` (any preset); `motor` replaces the
+        observer's machine model (default: the drive's), `design` overrides design
+        parameters by name (see `design_units`)."""
+
+    @abc.abstractmethod
+    def design_parameters(self) -> dict:
+        """The current design as `{name: value}` (SI units as in `design_units`)."""
+
+    @abc.abstractmethod
+    def with_design(self, **values):
+        """A copy with the named design parameters replaced (values may be traced, so
+        that `vmap` over a grid of designs works)."""
+
+    def with_motor(self, motor: PMSMParams):
+        """A copy whose machine model is `motor` (observer-model mismatch)."""
+        if not isinstance(motor, PMSMParams):
+            raise ValueError(f"`with_motor(motor=...)` must be a `PMSMParams`; got "
+                             f"{type(motor).__name__}.")
+        return eqx.tree_at(lambda o: o.motor, self, motor)
+
+    # --- analysis -----------------------------------------------------------------
+    @abc.abstractmethod
+    def error_rhs(self, x, op: OperatingPoint, plant: PMSMParams):
+        """$dx/dt$ of the error dynamics at operating point `op` for the true machine
+        `plant` (the observer's own model is `self.motor`); `x` in `coordinates`."""
+
+    @abc.abstractmethod
+    def error_scale(self, op: OperatingPoint, plant: PMSMParams):
+        """Positive size of each error coordinate at `op` (same units), `(n,)`."""
+
+    @abc.abstractmethod
+    def error_state(self, state, truth: PlantPoint, plant: PMSMParams):
+        """Error coordinates of the observer `state` (at t_k, after its step) against
+        the true plant state `truth` at t_k."""
+
+    @abc.abstractmethod
+    def observer_state(self, x, truth: PlantPoint, plant: PMSMParams):
+        """The observer state at t_k (as after a step) whose error coordinates against
+        `truth` are `x`: the inverse of `error_state`."""
 
 
 class SensoredObserver(AbstractObserver):
     """Passes the encoder angle and speed through (sensored control).
 
-    The state is empty; `init`'s arguments are ignored.
+    The state is empty; `init`'s arguments are ignored. It has no estimation-error
+    dynamics, so the analysis functions do not apply to it (they raise `ValueError`).
+
+    **Arguments:** `motor`: the drive's machine model (only carried along; default None
+    stands for "not needed").
     """
+
+    motor: PMSMParams | None = None
+    coordinates: ClassVar[ErrorCoordinates] = ErrorCoordinates(("theta",), ("rad",), 0)
 
     def init(self, theta0=0.0, w0=0.0):
         del theta0, w0
@@ -80,3 +220,24 @@ class SensoredObserver(AbstractObserver):
     def step(self, state, meas: Measurement, T_s):
         del T_s
         return state, Estimate(theta_hat=wrap_angle(meas.theta), w_hat=meas.w_m)
+
+    @classmethod
+    def from_drive(cls, drive, *, motor=None, **design):
+        if design:
+            raise ValueError(f"`SensoredObserver` has no design parameters; got "
+                             f"{', '.join(sorted(design))}.")
+        return cls(drive.three_phase_motor if motor is None else motor)
+
+    def design_parameters(self) -> dict:
+        return {}
+
+    def with_design(self, **values):
+        if values:
+            raise ValueError("`SensoredObserver` has no design parameters.")
+        return self
+
+    def _no_analysis(self, *args):
+        raise ValueError("The sensored observer reads the encoder: it has no estimation-"
+                         "error dynamics to analyse. Choose a sensorless observer.")
+
+    error_rhs = error_scale = error_state = observer_state = _no_analysis

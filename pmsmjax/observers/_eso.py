@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import abc
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -58,10 +59,18 @@ import jax.numpy as jnp
 from .._frames import park, rotate, wrap_angle
 from .._params import Drive, PMSMParams
 from .._validate import check_positive
-from ._base import AbstractObserver, Estimate, Measurement
+from ._base import (
+    AbstractObserver,
+    ErrorCoordinates,
+    Estimate,
+    Measurement,
+    OperatingPoint,
+    PlantPoint,
+)
 from ._eso_design import (
     ESOGains,
     check_design,
+    error_dynamics,
     eso_gains,
     fal,
     gains_pi,
@@ -286,19 +295,173 @@ def _flux_init(motor, theta, i_ab):
     return rotate(_model_flux(motor, park(i_ab, theta)), theta)
 
 
+_COORDS = ErrorCoordinates(
+    names=("psi_d", "psi_q", "theta", "w"), units=("V s", "V s", "rad", "rad/s"), angle=2,
+    doc=("stator-flux error, estimator frame d axis (true minus estimate)",
+         "stator-flux error, estimator frame q axis",
+         "angle error theta - theta_hat",
+         "speed error: true speed minus the speed state (ESO/LESO: the extended state "
+         "w_hat; AFO: the integral part of the PI law zhang2022 (53))"))
+
+#: Design parameters of the zhang2022 observers (`ESODesign` fields, fal's `a`, `eta`).
+_DESIGN_UNITS = {
+    "w2": "rad/s, speed/angle natural frequency zhang2022 (25)",
+    "zeta2": "-, speed/angle damping zhang2022 (25)",
+    "w_rated": "rad/s, rated electrical speed of the schedule zhang2022 (38)",
+    "zeta1": "-, flux damping zhang2022 (17) (fixed_ratio / fixed_w1 schedules)",
+    "ratio": "-, w1/|w0| (fixed_ratio schedule, the axes of zhang2022 Fig. 1)",
+    "w1": "rad/s, flux natural frequency (fixed_w1 schedule)",
+    "w_min": "rad/s, speed clamp of w1^2/w0 in zhang2022 (17) (fixed_w1 schedule)",
+    "n2": "rad/s per V s, null-space component of g2 beyond zhang2022 (25)",
+    "n3": "rad/s^2 per V s, null-space component of g3 beyond zhang2022 (25)",
+}
+_FAL_UNITS = {"a": "-, fal exponent in (0, 1], zhang2022 (9)",
+              "eta": "V s, half-width of fal's linear zone, zhang2022 (9)"}
+_SCHEDULE_PARAMS = {"zhang38": ("w_rated",), "fixed_ratio": ("zeta1", "ratio"),
+                    "fixed_w1": ("zeta1", "w1", "w_min")}
+
+
+def _schedule_for(values: dict, current: str) -> str:
+    """The flux schedule implied by the names being set: `w1` -> fixed_w1, `zeta1` or
+    `ratio` -> fixed_ratio (unless the schedule already is fixed_w1), else unchanged."""
+    if "w1" in values or "w_min" in values:
+        return "fixed_w1"
+    if "ratio" in values:
+        return "fixed_ratio"
+    if "zeta1" in values and current == "zhang38":
+        return "fixed_ratio"
+    if "w_rated" in values:
+        return "zhang38"
+    return current
+
+
+def _true_flux_ab(plant: PMSMParams, truth: PlantPoint):
+    """Stator flux of the true machine at `truth` (V s, stationary frame; fundamental
+    PM flux, as in the error dynamics zhang2022 (11))."""
+    i_dq = park(truth.i_ab, truth.theta)
+    return rotate(_model_flux(plant, i_dq), truth.theta)
+
+
 class _AbstractFluxObserver(AbstractObserver):
     motor: eqx.AbstractVar[PMSMParams]
     design: eqx.AbstractVar[AbstractGainSchedule]
 
-    @classmethod
-    def from_drive(cls, drive: Drive, w2=2 * math.pi * 50.0, zeta2=1.0, *, motor=None,
-                   **kwargs):
-        """The paper's design (38)/(25) (for the AFO: G1 from (38), speed law (53)) with
-        bandwidth `w2` (rad/s) for `drive`; `motor` overrides the observer's machine model
-        (default the drive's), `kwargs` go to the constructor (e.g. `a`, `eta`)."""
-        motor = drive.three_phase_motor if motor is None else motor
-        return cls(motor, ESODesign.zhang38(drive.w_rated, w2, zeta2), **kwargs)
+    coordinates: ClassVar[ErrorCoordinates] = _COORDS
+    design_units: ClassVar[dict[str, str]] = _DESIGN_UNITS
+    extras: ClassVar[dict[str, str]] = {
+        "psi_ab_hat": "V s, estimated stator flux, stationary frame (2,)"}
 
+    # --- design -----------------------------------------------------------------------
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None,
+                   fixed_at: float | None = None, **design):
+        """zhang2022's design for `drive`: flux gains (38)/(17), speed/angle gains (25)
+        with `w2` = 2 pi 50 rad/s and `zeta2` = 1 (for the AFO: G1 from (38), speed law
+        (53)); ESO: fal `a` = 0.5, `eta` = 0.05 psi_f.
+
+        - `motor`: the observer's machine model (default the drive's).
+        - `design`: design parameters by name (`design_units`); `zeta1` with `ratio`
+          selects the fixed-ratio schedule, `zeta1`, `w1`, `w_min` the fixed-w1 one.
+        - `fixed_at`: freeze every gain at this speed (p.u. of `drive.w_rated`) and zero
+          current (`FixedGains`, zhang2022 Fig. 11).
+        """
+        motor = drive.three_phase_motor if motor is None else motor
+        obs = cls(motor, ESODesign.zhang38(drive.w_rated))
+        obs = obs.with_design(**design) if design else obs
+        if fixed_at is not None:
+            check_positive(cls.__name__ + ".from_drive", "fixed_at", fixed_at, "p.u.")
+            fixed = FixedGains.at(obs.design, motor, float(fixed_at) * float(drive.w_rated))
+            obs = eqx.tree_at(lambda o: o.design, obs, fixed)
+        return obs
+
+    def design_parameters(self) -> dict:
+        out = {}
+        d = self.design
+        if isinstance(d, ESODesign):
+            out = {"w2": d.w2, "zeta2": d.zeta2, "n2": d.n2, "n3": d.n3}
+            out.update({k: getattr(d, k) for k in _SCHEDULE_PARAMS[d.schedule]})
+        return {**out, **self._fal_parameters()}
+
+    def _fal_parameters(self) -> dict:
+        return {}
+
+    def with_design(self, **values):
+        owner = f"{type(self).__name__}.with_design"
+        bad = sorted(set(values) - set(self.design_units))
+        if bad:
+            raise ValueError(
+                f"`{owner}`: unknown design parameter(s) {', '.join(bad)}; "
+                f"{type(self).__name__} has {', '.join(self.design_units)}.")
+        fal_values = {k: values.pop(k) for k in list(values) if k in _FAL_UNITS}
+        obs = self
+        if values:
+            d = self.design
+            if not isinstance(d, ESODesign):
+                raise ValueError(f"`{owner}`: the gains are frozen (`FixedGains`); build "
+                                 f"the observer from an `ESODesign` to change "
+                                 f"{', '.join(sorted(values))}.")
+            schedule = _schedule_for(values, d.schedule)
+            merged = {k: getattr(d, k) for k in ("w_rated", "zeta1", "ratio", "w1", "w_min",
+                                                 "n2", "n3")}
+            merged.update(values)
+            w2 = merged.pop("w2", d.w2)
+            zeta2 = merged.pop("zeta2", d.zeta2)
+            if schedule == "zhang38":
+                merged.update(zeta1=None, ratio=None, w1=None)
+            missing = [k for k in _SCHEDULE_PARAMS[schedule] if merged.get(k) is None]
+            if missing:
+                raise ValueError(
+                    f"`{owner}`: the {schedule} flux schedule needs "
+                    f"{', '.join(missing)} as well.")
+            obs = eqx.tree_at(lambda o: o.design, obs,
+                              ESODesign(w2, zeta2, schedule, **merged))
+        if fal_values:
+            obs = obs._with_fal(**fal_values)
+        return obs
+
+    def _with_fal(self, **values):
+        raise ValueError(f"`{type(self).__name__}.with_design`: only the ESO has fal "
+                         f"parameters ({', '.join(values)}).")
+
+    # --- analysis ---------------------------------------------------------------------
+    def linear_gains(self, w0, i_dq) -> ESOGains:
+        """The gains of zhang2022 (15) at speed `w0` (rad/s) and current `i_dq` (A,
+        estimator frame), from the observer's own model."""
+        return self.design(self.motor, w0, i_dq)
+
+    def feedback_parameters(self):
+        """`(a, eta)` of the feedback f(e) = eta^(1-a) fal(e): `(1, 1)` = linear."""
+        return 1.0, 1.0
+
+    def error_rhs(self, x, op: OperatingPoint, plant: PMSMParams):
+        """The error dynamics zhang2022 (11) in the observer's frame convention
+        (`error_dynamics`), with the gains evaluated at the operating point as in
+        (15)/(37) (the running observer schedules them at its own estimate; the two differ
+        by terms proportional to f(e) dG/dw, zero at the designed equilibrium with a
+        matched model)."""
+        a, eta = self.feedback_parameters()
+        gains = self.linear_gains(op.w_m, op.i_dq)
+        return error_dynamics(x, op.w_m, op.i_dq, gains, plant, self.motor, a, eta)
+
+    def error_scale(self, op: OperatingPoint, plant: PMSMParams):
+        del plant
+        pn = jnp.sqrt(jnp.sum(psi_a(self.motor, op.i_dq) ** 2))
+        pn = jnp.where(pn > 0, pn, 1.0)
+        aw = jnp.abs(op.w_m)
+        return jnp.stack([pn, pn, jnp.ones_like(pn), jnp.where(aw > 0, aw, 1.0)])
+
+    def error_state(self, state: FluxObserverState, truth: PlantPoint, plant: PMSMParams):
+        psi_err = park(_true_flux_ab(plant, truth) - state.psi_ab, state.theta)
+        return jnp.concatenate([psi_err, jnp.stack([wrap_angle(truth.theta - state.theta),
+                                                    truth.w_m - state.w])])
+
+    def observer_state(self, x, truth: PlantPoint, plant: PMSMParams) -> FluxObserverState:
+        x = jnp.asarray(x)
+        theta = wrap_angle(truth.theta - x[2])
+        psi = _true_flux_ab(plant, truth) - rotate(x[:2], theta)
+        return FluxObserverState(psi_ab=psi, theta=theta, w=truth.w_m - x[3],
+                                 i_prev=jnp.asarray(truth.i_ab, psi.dtype),
+                                 started=jnp.asarray(True))
 
     def init(self, theta0=0.0, w0=0.0) -> FluxObserverState:
         theta0 = jnp.asarray(theta0)
@@ -327,7 +490,8 @@ class _AbstractFluxObserver(AbstractObserver):
         i_k = jnp.asarray(meas.i_ab).astype(state.i_prev.dtype)
         new = FluxObserverState(psi_ab=psi.astype(state.psi_ab.dtype), theta=theta, w=w,
                                 i_prev=i_k, started=jnp.ones_like(state.started))
-        return new, Estimate(theta_hat=theta, w_hat=self._w_hat(psi, theta, w, i_k))
+        return new, Estimate(theta_hat=theta, w_hat=self._w_hat(psi, theta, w, i_k),
+                             extras={"psi_ab_hat": new.psi_ab})
 
     def _flux_update(self, state, meas, T_s, G1_f, w_f):
         m = self.motor
@@ -401,8 +565,20 @@ class ESOObserver(_AbstractESO):
         self.a = a
         self.eta = 0.05 * motor.psi_f if eta is None else eta
 
+    design_units: ClassVar[dict[str, str]] = {**_DESIGN_UNITS, **_FAL_UNITS}
+
     def __check_init__(self):
         check_design("ESOObserver", a=self.a, eta=self.eta)
+
+    def _fal_parameters(self) -> dict:
+        return {"a": self.a, "eta": self.eta}
+
+    def _with_fal(self, **values):
+        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
+                           list(values.values()))
+
+    def feedback_parameters(self):
+        return self.a, self.eta
 
 
     def feedback(self, e):
@@ -474,6 +650,14 @@ class AFOObserver(_AbstractFluxObserver):
         self.motor = motor
         self.design = design
 
+
+    def linear_gains(self, w0, i_dq) -> ESOGains:
+        """The AFO in the notation of zhang2022 (15): G1 from the design, and the PI law
+        (53) as $g_2 = [0, -k_p]$, $g_3 = [0, -k_i]$ (see the class docstring)."""
+        k_p, k_i = self.design.pi(self.motor, w0, i_dq)
+        z = jnp.zeros_like(k_p)
+        return ESOGains(G1=self.design(self.motor, w0, i_dq).G1, g2=jnp.stack([z, -k_p]),
+                        g3=jnp.stack([z, -k_i]))
 
     def _pi_output(self, psi_ab, theta, x_I, i_ab):
         e, i_dq = _error(self.motor, psi_ab, theta, i_ab)

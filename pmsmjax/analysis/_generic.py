@@ -1,0 +1,529 @@
+r"""Analysis generic over the observer contract (`pmsmjax.observers.AbstractObserver`).
+
+Every function here takes an observer (its own machine model `observer.motor`, its design)
+and the true machine `plant` (`PMSMParams`); observer-model mismatch in any parameter is
+`observer.with_motor(...)`. The error dynamics are the observer's `error_rhs` at an
+`OperatingPoint` (constant speed $\omega_0$, current $i_0$ in the estimated frame).
+
+**Scaling.** All tests and tolerances work on the scaled system
+$F(z) = f(Dz)/(D\,\Omega)$ with $D = $ `observer.error_scale(op, plant)` and the rate
+$\Omega = |\omega_0|$ (1 rad/s at standstill): a positive similarity and time scaling,
+which changes no sign of a real part and keeps the entries O(1).
+
+**Equilibria (generic route).** With $a$ the angle coordinate and $y$ the other $n-1$
+coordinates, for a fixed angle error $\tilde\theta$ the other coordinates are found by
+Gauss-Newton on the weighted least-squares problem
+$\min_y \|W F(\tilde\theta, y)\|^2$ ($W$ = 1, except `angle_weight` on the angle row, so
+that the solution follows the branch where the estimated frame turns at the true speed;
+for observers whose other equations are affine in $y$ there, one step is exact). The
+residual that is left is measured with a sign,
+
+$$r(\tilde\theta) = \frac{\det[\,J_y \mid WF\,]}{\sqrt{\det J_y^TJ_y}},\qquad
+J_y = \partial(WF)/\partial y,$$
+
+which is $\pm\|WF\|$ at a least-squares solution (the residual is orthogonal to the
+columns of $J_y$) and continuous in $\tilde\theta$ while $J_y$ keeps full rank: its zeros
+are exactly the equilibria. Zeros are bracketed by sign changes on a periodic grid offset
+by half a step (so $\tilde\theta = 0, \pi$ are never grid points), refined by the Illinois
+method, and polished by Newton steps on the full square system $F(z) = 0$; a slot counts
+only if the polished residual is below tolerance. Two zeros inside one grid cell leave no
+sign change but a local minimum of $|r|$ close to 0: such cells are searched by Newton
+steps from both cell ends (`n_crit` slots). All shapes are static, so the route jits
+and vmaps over operating points, designs and mismatches; failures are reported in
+`status` (0 ok, 2 no equilibrium, -1 degenerate), never raised.
+
+**Stability** of each equilibrium: the exact Routh-Hurwitz test on the characteristic
+polynomial (Faddeev-LeVerrier) of the scaled Jacobian (`jax.jacfwd` of `error_rhs`); a
+(numerically) singular Jacobian is a tangent (saddle-node) equilibrium, never stable.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._frames import rotate, wrap_angle
+from .._params import PMSMParams
+from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
+from ._equilibria import Equilibria, as_arrays
+from ._linearize import charpoly, routh_hurwitz
+
+
+#: `Equilibria.status` / `DesignClass.status` codes.
+STATUS_OK, STATUS_NONE, STATUS_DEGENERATE = 0, 2, -1
+
+
+def check_observer(owner: str, observer) -> None:
+    if not isinstance(observer, AbstractObserver):
+        raise ValueError(f"`{owner}(observer=...)` must be an `AbstractObserver` (e.g. "
+                         f"`pj.observers.make_observer('eso', drive)`); got "
+                         f"{type(observer).__name__}.")
+
+
+def check_plant(owner: str, plant) -> None:
+    if not isinstance(plant, PMSMParams):
+        raise ValueError(f"`{owner}(plant=...)` must be the true machine's `PMSMParams` "
+                         f"(e.g. `drive.three_phase_motor`); got {type(plant).__name__}.")
+
+
+def _op(w_m, i_dq, dtype):
+    return OperatingPoint(jnp.asarray(w_m, dtype), jnp.asarray(i_dq, dtype))
+
+
+# ---------------------------------------------------------------------------------------
+# Small dense linear algebra, unrolled at trace time (element-wise over any batch, so it
+# fuses under vmap instead of calling LAPACK per point)
+# ---------------------------------------------------------------------------------------
+
+def _chol_solve(H, g):
+    """Solve H x = g for a small symmetric positive definite H (static size)."""
+    m = H.shape[-1]
+    L = [[None] * m for _ in range(m)]
+    for j in range(m):
+        s = H[..., j, j] - sum(L[j][k] ** 2 for k in range(j))
+        d = jnp.sqrt(jnp.maximum(s, 1e-300))
+        L[j][j] = d
+        for i in range(j + 1, m):
+            L[i][j] = (H[..., i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / d
+    y = []
+    for i in range(m):
+        y.append((g[..., i] - sum(L[i][k] * y[k] for k in range(i))) / L[i][i])
+    x = [None] * m
+    for i in reversed(range(m)):
+        x[i] = (y[i] - sum(L[k][i] * x[k] for k in range(i + 1, m))) / L[i][i]
+    logdet = 2.0 * sum(jnp.log(L[j][j]) for j in range(m))
+    return jnp.stack(x, -1), logdet
+
+
+def _det(M):
+    """Determinant of a small square matrix by elimination with partial pivoting."""
+    m = M.shape[-1]
+    rows = [M[..., i, :] for i in range(m)]
+    det = jnp.ones(M.shape[:-2], M.dtype)
+    for k in range(m):
+        col = jnp.stack([jnp.abs(r[..., k]) for r in rows[k:]], -1)
+        p = jnp.argmax(col, -1)
+        # swap row k with row k + p (one-hot selects)
+        pivot_row = sum(jnp.where((p == j)[..., None], rows[k + j], 0.0)
+                        for j in range(m - k))
+        new_rows = list(rows)
+        for j in range(1, m - k):
+            new_rows[k + j] = jnp.where((p == j)[..., None], rows[k], rows[k + j])
+        rows = new_rows
+        rows[k] = pivot_row
+        det = det * jnp.where(p == 0, 1.0, -1.0) * pivot_row[..., k]
+        piv = jnp.where(pivot_row[..., k] != 0, pivot_row[..., k], 1.0)
+        for i in range(k + 1, m):
+            rows[i] = rows[i] - (rows[i][..., k] / piv)[..., None] * pivot_row
+    return det
+
+
+# ---------------------------------------------------------------------------------------
+# The scaled system
+# ---------------------------------------------------------------------------------------
+
+class _Scaled(eqx.Module):
+    observer: AbstractObserver
+    plant: PMSMParams
+    op: OperatingPoint
+    scale: jnp.ndarray
+    rate: jnp.ndarray
+    weight: jnp.ndarray
+    angle: int = eqx.field(static=True)
+
+    def F(self, z):
+        return self.observer.error_rhs(z * self.scale, self.op, self.plant) / (
+            self.scale * self.rate)
+
+    def insert(self, theta, y):
+        a = self.angle
+        return jnp.concatenate([y[:a], theta[None], y[a:]])
+
+    def drop(self, z):
+        a = self.angle
+        return jnp.concatenate([z[:a], z[a + 1:]])
+
+    def Fw(self, theta, y):
+        return self.F(self.insert(theta, y)) * self.weight
+
+    def solve_y(self, theta, y, n_iter):
+        """Gauss-Newton for the other coordinates at a fixed angle error."""
+        m = y.shape[0]
+        eye = jnp.eye(m, dtype=y.dtype)
+
+        def body(y, _):
+            Fv, Jy = self._FJ(theta, y)
+            H = Jy.T @ Jy
+            H = H + (1e-13 * jnp.trace(H) + 1e-300) * eye
+            dy, _ = _chol_solve(H, Jy.T @ Fv)
+            return y - dy, None
+
+        y, _ = jax.lax.scan(body, y, None, length=n_iter)
+        return y
+
+    def _FJ(self, theta, y):
+        f = lambda v: self.Fw(theta, v)  # noqa: E731
+        Fv, jvp = jax.linearize(f, y)
+        Jy = jax.vmap(jvp, out_axes=1)(jnp.eye(y.shape[0], dtype=y.dtype))
+        return Fv, Jy
+
+    def r(self, theta, y):
+        """Signed least-squares residual at `theta` for the other coordinates `y`."""
+        Fv, Jy = self._FJ(theta, y)
+        H = Jy.T @ Jy
+        _, logdet = _chol_solve(H + 1e-300 * jnp.eye(H.shape[0], dtype=H.dtype),
+                                jnp.zeros(H.shape[0], H.dtype))
+        return _det(jnp.concatenate([Jy, Fv[:, None]], 1)) * jnp.exp(-0.5 * logdet)
+
+    def newton(self, z, n_iter):
+        """Newton steps on the full square system F(z) = 0 (normal equations)."""
+        n = z.shape[0]
+        eye = jnp.eye(n, dtype=z.dtype)
+
+        def body(z, _):
+            Fv, jvp = jax.linearize(self.F, z)
+            Jz = jax.vmap(jvp, out_axes=1)(eye)
+            H = Jz.T @ Jz
+            dz, _ = _chol_solve(H + (1e-14 * jnp.trace(H) + 1e-300) * eye, Jz.T @ Fv)
+            return z - dz, None
+
+        z, _ = jax.lax.scan(body, z, None, length=n_iter)
+        return z
+
+
+def _make_scaled(observer, plant, op, angle_weight):
+    dtype = op.w_m.dtype
+    scale = jnp.asarray(observer.error_scale(op, plant), dtype)
+    aw = jnp.abs(op.w_m)
+    rate = jnp.where(aw > 0, aw, jnp.ones_like(aw))
+    n = observer.coordinates.n
+    a = observer.coordinates.angle
+    weight = jnp.ones(n, dtype).at[a].set(angle_weight)
+    return _Scaled(observer, plant, op, scale, rate, weight, a)
+
+
+# ---------------------------------------------------------------------------------------
+# Linearisation and stability
+# ---------------------------------------------------------------------------------------
+
+def linearization(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
+                  x=None):
+    """Jacobian $\\partial f/\\partial x$ of `observer.error_rhs` at state `x` (default:
+    the origin, the designed equilibrium), operating point `w_m` (rad/s, electrical),
+    `i_dq` (A, estimated frame), true machine `plant`. SI units, time in s; `(n, n)`.
+    Pure: vmap it over operating points or designs."""
+    check_observer("linearization", observer)
+    check_plant("linearization", plant)
+    dtype = jnp.result_type(w_m, float)
+    op = _op(w_m, i_dq, dtype)
+    n = observer.coordinates.n
+    x = jnp.zeros(n, dtype) if x is None else jnp.asarray(x, dtype)
+    return jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x)
+
+
+class Stability(eqx.Module):
+    """Stability of a linearisation `A` (any batch shape).
+
+    - `hurwitz`: every eigenvalue in the open left half plane (exact Routh-Hurwitz on the
+      characteristic polynomial).
+    - `charpoly`: `[1, c1, ..., cn]` of det(sI - A).
+    - `eigenvalues`: complex, `(..., n)` (eigenvalue solver, for reporting).
+    - `max_real`: largest real part (1/s).
+    """
+
+    hurwitz: jnp.ndarray
+    charpoly: jnp.ndarray
+    eigenvalues: jnp.ndarray
+    max_real: jnp.ndarray
+
+
+def stability(A) -> Stability:
+    """Routh-Hurwitz and eigenvalues of the square matrix (matrices) `A`."""
+    A = jnp.asarray(A)
+    c = charpoly(A)
+    ev = jnp.linalg.eigvals(A)
+    return Stability(hurwitz=routh_hurwitz(c), charpoly=c, eigenvalues=ev,
+                     max_real=jnp.max(jnp.real(ev), -1))
+
+
+# ---------------------------------------------------------------------------------------
+# Equilibria
+# ---------------------------------------------------------------------------------------
+
+def _continuation(sys: _Scaled, grid, y0, n_iter):
+    """The other coordinates along the angle grid, continued outwards from the two grid
+    points next to 0 (where the designed equilibrium is), each warm-started from its
+    neighbour, so that they follow one branch of least-squares solutions."""
+    N = grid.shape[0]
+    mid = N // 2
+
+    def run(thetas):
+        y_start = sys.solve_y(thetas[0], y0, 2 * n_iter)
+
+        def body(y, t):
+            y = sys.solve_y(t, y, n_iter)
+            return y, y
+
+        _, ys = jax.lax.scan(body, y_start, thetas)
+        return ys
+
+    up = run(grid[mid:])
+    down = run(grid[:mid][::-1])[::-1]
+    return jnp.concatenate([down, up], 0)
+
+
+def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0), *,
+               n_grid: int = 64, max_roots: int = 6, n_crit: int = 2, n_golden: int = 16,
+               angle_weight: float = 1000.0, n_gauss_newton: int = 3, n_refine: int = 10,
+               n_newton: int = 8, tol: float | None = None) -> Equilibria:
+    r"""Every equilibrium of `observer`'s error dynamics at one operating point.
+
+    **Arguments:**
+
+    - `observer`: any `AbstractObserver` (its `motor` is its model: mismatch).
+    - `plant`: the true machine (`PMSMParams`, SI).
+    - `w_m`: electrical speed (rad/s); `i_dq`: current in the estimated frame (A, `(2,)`).
+    - `n_grid`: bracketing grid on (-pi, pi]; `max_roots`: output slots; `n_crit`:
+      slots for close pairs (all static).
+    - `angle_weight`, `n_gauss_newton`, `n_refine`, `n_newton`: the inner solve, the
+      Illinois refinement and the final Newton polish (module docstring).
+    - `tol`: accepted scaled residual (default eps^0.6: about 4e-10 in float64).
+
+    Returns an `Equilibria` (angles in (-pi, pi], states in the observer's
+    `coordinates`, SI). Pure and vmappable: wrap it in `jax.vmap` over any leaf.
+    """
+    check_observer("equilibria", observer)
+    check_plant("equilibria", plant)
+    for name, v, lo in (("n_grid", n_grid, 8), ("max_roots", max_roots, 1),
+                        ("n_crit", n_crit, 0)):
+        if not isinstance(v, int) or v < lo:
+            raise ValueError(f"`equilibria({name}=...)` must be an int >= {lo}; got {v!r}.")
+    dtype = jnp.result_type(w_m, float)
+    observer, plant = as_arrays(observer, dtype), as_arrays(plant, dtype)
+    op = _op(w_m, i_dq, dtype)
+    tol = float(jnp.finfo(dtype).eps) ** 0.6 if tol is None else float(tol)
+    return _equilibria(observer, plant, op, dict(
+        n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
+        angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
+        n_newton=n_newton, tol=tol))
+
+
+@eqx.filter_jit
+def _equilibria(observer, plant, op, options):
+    return equilibria_traced(observer, plant, op, **options)
+
+
+def equilibria_traced(observer, plant, op: OperatingPoint, *, n_grid=64, max_roots=6,
+                      n_crit=2, n_golden=16, angle_weight=1000.0, n_gauss_newton=3, n_refine=10,
+                      n_newton=8, tol=1e-9) -> Equilibria:
+    """`equilibria` without argument checks or jit, for use inside a jitted/vmapped
+    function (e.g. a feasibility map or a tuning penalty)."""
+    sys = _make_scaled(observer, plant, op, angle_weight)
+    dtype = op.w_m.dtype
+    n = observer.coordinates.n
+    m = n - 1
+    y0 = jnp.zeros(m, dtype)
+    h = 2 * math.pi / n_grid
+    grid = -math.pi + h * (jnp.arange(n_grid, dtype=dtype) + 0.5)
+    ys = _continuation(sys, grid, y0, n_gauss_newton)
+    rv = jax.vmap(sys.r)(grid, ys)
+    finite = jnp.all(jnp.isfinite(rv))
+    rv = jnp.where(jnp.isfinite(rv), rv, 0.0)
+    rnext, ynext = jnp.roll(rv, -1), jnp.roll(ys, -1, axis=0)
+    sc = (rv >= 0) != (rnext >= 0)
+    (idx,) = jnp.nonzero(sc, size=max_roots, fill_value=0)
+    n_sc = jnp.sum(sc)
+    slot = jnp.arange(max_roots) < n_sc
+
+    # Illinois refinement of a bracket, warm-starting the inner solve from its ends.
+    def refine(a, b, fa, fb, ya, yb):
+        def body(c, _):
+            a, b, fa, fb, ya, yb, side = c
+            den = fa - fb  # regula falsi: c = a + fa / (fa - fb) (b - a)
+            t = jnp.where(den != 0, fa / jnp.where(den != 0, den, 1.0), 0.5)
+            t = jnp.clip(t, 0.02, 0.98)
+            c_ = a + t * (b - a)
+            yc = sys.solve_y(c_, ya + t * (yb - ya), 2)
+            fc = sys.r(c_, yc)
+            left = (fc >= 0) == (fa >= 0)  # the root is in [c, b]
+            # Illinois: halve the value kept at the end that survives twice
+            fb = jnp.where(left & (side == 1), 0.5 * fb, fb)
+            fa = jnp.where(~left & (side == -1), 0.5 * fa, fa)
+            return (jnp.where(left, c_, a), jnp.where(left, b, c_),
+                    jnp.where(left, fc, fa), jnp.where(left, fb, fc),
+                    jnp.where(left, yc, ya), jnp.where(left, yb, yc),
+                    jnp.where(left, 1, -1)), None
+
+        c0 = (a, b, fa, fb, ya, yb, jnp.asarray(0))
+        (a, b, fa, fb, ya, yb, _), _ = jax.lax.scan(body, c0, None, length=n_refine)
+        t = jnp.where(jnp.abs(fa) < jnp.abs(fb), 0.0, 1.0)
+        return a + t * (b - a), ya + t * (yb - ya)
+
+    lo, hi = grid[idx], grid[idx] + h
+    blo, bhi, flo, fhi, ylo, yhi = (lo, hi, rv[idx], rnext[idx], ys[idx], ynext[idx])
+    bvalid = slot
+
+    if n_crit:
+        # Close pairs: a local minimum of |r| without a sign change on either side may
+        # hide two zeros in one cell. Find the extremum of r between the neighbouring
+        # grid points (golden section); if r changes sign there, bracket both halves.
+        ar = jnp.abs(rv)
+        rmax = jnp.maximum(jnp.max(ar), jnp.finfo(dtype).tiny)
+        prev_sc = jnp.roll(sc, 1)
+        locmin = (ar <= jnp.roll(ar, 1)) & (ar <= jnp.roll(ar, -1)) & ~sc & ~prev_sc \
+            & (ar < 0.05 * rmax)
+        (cidx,) = jnp.nonzero(locmin, size=n_crit, fill_value=0)
+        cslot = jnp.arange(n_crit) < jnp.sum(locmin)
+        g = (math.sqrt(5.0) - 1.0) / 2.0
+
+        def extremum(k):
+            sgn = jnp.where(rv[k] >= 0, 1.0, -1.0)
+            yk = ys[k]
+            f = lambda t: sgn * sys.r(t, sys.solve_y(t, yk, 2))  # noqa: E731
+
+            # golden section, one new evaluation per iteration
+            def body(c, _):
+                a, b, x1, x2, f1, f2 = c
+                left = f1 < f2  # the minimum is in [a, x2]
+                a2, b2 = jnp.where(left, a, x1), jnp.where(left, x2, b)
+                xn = jnp.where(left, b2 - g * (b2 - a2), a2 + g * (b2 - a2))
+                fn = f(xn)
+                x1n = jnp.where(left, xn, x2)
+                x2n = jnp.where(left, x1, xn)
+                f1n = jnp.where(left, fn, f2)
+                f2n = jnp.where(left, f1, fn)
+                return (a2, b2, x1n, x2n, f1n, f2n), None
+
+            a, b = grid[k] - h, grid[k] + h
+            x1, x2 = b - g * (b - a), a + g * (b - a)
+            c0 = (a, b, x1, x2, f(x1), f(x2))
+            (a, b, *_), _ = jax.lax.scan(body, c0, None, length=n_golden)
+            tc = 0.5 * (a + b)
+            yc = sys.solve_y(tc, yk, 3)
+            return tc, yc, sys.r(tc, yc)
+
+        tc, yc, rc = jax.vmap(extremum)(cidx)
+        split = cslot & ((rc >= 0) != (rv[cidx] >= 0))
+        km, kp = (cidx - 1) % n_grid, (cidx + 1) % n_grid
+        blo = jnp.concatenate([blo, grid[cidx] - h, tc])
+        bhi = jnp.concatenate([bhi, tc, grid[cidx] + h])
+        flo = jnp.concatenate([flo, rv[km], rc])
+        fhi = jnp.concatenate([fhi, rc, rv[kp]])
+        ylo = jnp.concatenate([ylo, ys[km], yc])
+        yhi = jnp.concatenate([yhi, yc, ys[kp]])
+        bvalid = jnp.concatenate([bvalid, split, split])
+
+    th_all, y_all = jax.vmap(refine)(blo, bhi, flo, fhi, ylo, yhi)
+    cand = bvalid
+    z = jax.vmap(sys.insert)(th_all, y_all)
+    z = jax.vmap(lambda v: sys.newton(v, n_newton))(z)
+    z = z.at[:, sys.angle].set(wrap_angle(z[:, sys.angle]))
+    res = jnp.max(jnp.abs(jax.vmap(sys.F)(z)), -1)
+    conv = jnp.isfinite(res) & (res < tol)
+    valid = cand & conv
+    failed = jnp.any(cand & ~conv)  # a bracket whose zero does not polish
+    # duplicates (two starts converging to one equilibrium)
+    K = z.shape[0]
+    theta = z[:, sys.angle]
+    close = (jnp.abs(wrap_angle(theta[:, None] - theta[None, :])) < 1e-6) & \
+        (jnp.max(jnp.abs(z[:, None, :] - z[None, :, :]), -1) < 1e-5)
+    earlier = jnp.tril(jnp.ones((K, K), bool), -1)
+    dup = jnp.any(close & earlier & valid[None, :], axis=1)
+    valid = valid & ~dup
+    too_many = (n_sc > max_roots) | (jnp.sum(valid) > max_roots)
+    order = jnp.argsort(jnp.where(valid, theta, jnp.inf))[:max_roots]
+    z, valid = z[order], valid[order]
+    res = res[order]
+    theta = z[:, sys.angle]
+
+    A = jax.vmap(jax.jacfwd(sys.F))(z)
+    c = charpoly(A)
+    tangent = valid & (jnp.abs(c[:, -1]) < 1e3 * tol)
+    stable = valid & routh_hurwitz(c) & ~tangent
+    x = z * sys.scale
+    A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
+    nval = jnp.sum(valid)
+    principal = jnp.argmin(jnp.where(valid, jnp.abs(theta), jnp.inf))
+    degenerate = ~finite | too_many | failed | ~jnp.all(jnp.isfinite(sys.scale)) | \
+        ~(sys.rate > 0)
+    status = jnp.where(degenerate, STATUS_DEGENERATE,
+                       jnp.where(nval == 0, STATUS_NONE, STATUS_OK)).astype(jnp.int32)
+    nan = jnp.nan
+    return Equilibria(
+        theta=jnp.where(valid, theta, nan), x=jnp.where(valid[:, None], x, nan),
+        valid=valid, stable=stable, tangent=tangent,
+        residual=jnp.where(valid, res, nan), principal=principal.astype(jnp.int32),
+        n=nval.astype(jnp.int32), status=status,
+        jacobian=jnp.where(valid[:, None, None], A_si, nan))
+
+
+# ---------------------------------------------------------------------------------------
+# The discrete observer in error coordinates (consistency with the continuous model)
+# ---------------------------------------------------------------------------------------
+
+def _true_flux_ab(plant: PMSMParams, theta, i_ab):
+    i_dq = rotate(i_ab, -theta)
+    psi = jnp.stack([plant.L_d * i_dq[0] + plant.psi_f, plant.L_q * i_dq[1]])
+    return rotate(psi, theta)
+
+
+def discrete_error_map(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, T_s, *,
+                       theta_k=0.0, n_fixed_point: int = 3):
+    r"""One real `observer.step` as a map of error coordinates $x_k \mapsto x_{k+1}$.
+
+    The plant turns at constant electrical speed `w_m` (rad/s); ideal current control
+    holds the current at `i_dq` (A) in the observer's estimated frame, so the sampled
+    current at $t_{k+1}$ is $e^{\hat\theta_{k+1}J} i_{dq}$ (a fixed point with the
+    observer's own estimate, solved by `n_fixed_point` iterations); the voltage held over
+    $[t_k, t_{k+1})$ is the one that moves the true flux between the two samples with a
+    trapezoidal resistive drop. At $t_k$ the rotor is at `theta_k` (rad).
+
+    Returns `fn(x_k) -> x_{k+1}` (pure; `jax.jacfwd(fn)(x)` is the Jacobian of the
+    discrete observer, which agrees with $I + T_s A$ of `linearization` to $O(T_s^2)$).
+    """
+    check_observer("discrete_error_map", observer)
+    check_plant("discrete_error_map", plant)
+    a = observer.coordinates.angle
+    i0 = jnp.asarray(i_dq, float)
+
+    def fn(x):
+        x = jnp.asarray(x)
+        dtype = x.dtype
+        th0 = jnp.asarray(theta_k, dtype)
+        th1 = th0 + w_m * T_s
+        w = jnp.asarray(w_m, dtype)
+        i_k = rotate(i0, th0 - x[a]).astype(dtype)
+        truth0 = PlantPoint(theta=th0, w_m=w, i_ab=i_k)
+        state = observer.observer_state(x, truth0, plant)
+        psi0 = _true_flux_ab(plant, th0, i_k)
+        i_next = rotate(i0, th1 - x[a])
+        nan = jnp.full((), jnp.nan, dtype)
+        for _ in range(n_fixed_point):
+            u = (_true_flux_ab(plant, th1, i_next) - psi0) / T_s \
+                + 0.5 * plant.R_s * (i_k + i_next)
+            new, est = observer.step(state, Measurement(i_ab=i_next, u_ab=u, theta=nan,
+                                                        w_m=nan), T_s)
+            i_next = rotate(i0, est.theta_hat)
+        return observer.error_state(new, PlantPoint(theta=th1, w_m=w, i_ab=i_next), plant)
+
+    return fn
+
+
+def discrete_error_run(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, T_s,
+                       x0, n_steps: int):
+    """Iterate `discrete_error_map` `n_steps` times from `x0` (the discrete observer in a
+    closed loop with ideal current control at constant speed). Returns the error
+    coordinates `(n_steps + 1, n)` at t_0 ... t_N (SI units)."""
+    x0 = jnp.asarray(x0, float)
+
+    def body(carry, k):
+        x = carry
+        fn = discrete_error_map(observer, plant, w_m, i_dq, T_s, theta_k=k * w_m * T_s)
+        x1 = fn(x)
+        return x1, x1
+
+    _, xs = jax.lax.scan(body, x0, jnp.arange(n_steps, dtype=x0.dtype))
+    return jnp.concatenate([x0[None], xs], 0)

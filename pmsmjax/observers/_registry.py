@@ -1,0 +1,59 @@
+"""One registry of observers by name, used by `simulate`'s callers, `replay`, the analysis
+commands and the tuner.
+
+Every registered class implements the whole `AbstractObserver` contract, including
+`from_drive(drive, *, motor=None, **design)`, the paper's default design for any motor
+preset. `make_observer(name, drive, ...)` is the one place a name becomes an observer.
+"""
+
+from __future__ import annotations
+
+from .._params import Drive, PMSMParams
+from ._base import AbstractObserver
+
+
+_REGISTRY: dict[str, type[AbstractObserver]] = {}
+
+
+def register_observer(name: str, cls: type[AbstractObserver] | None = None):
+    """Register `cls` under `name` (lower case); usable as a decorator
+    `@register_observer("name")`. Re-registering a name replaces it."""
+    def deco(c):
+        if not (isinstance(c, type) and issubclass(c, AbstractObserver)):
+            raise ValueError(f"`register_observer({name!r}, ...)` needs an "
+                             f"`AbstractObserver` subclass; got {c!r}.")
+        _REGISTRY[name.lower()] = c
+        return c
+    return deco if cls is None else deco(cls)
+
+
+def observer_names() -> tuple[str, ...]:
+    """Names of the registered observers, in registration order."""
+    return tuple(_REGISTRY)
+
+
+def observer_class(name: str) -> type[AbstractObserver]:
+    """The class registered as `name` (`ValueError` listing the names otherwise)."""
+    key = str(name).lower()
+    if key not in _REGISTRY:
+        raise ValueError(f"Unknown observer {name!r}; choose one of "
+                         f"{', '.join(_REGISTRY)}.")
+    return _REGISTRY[key]
+
+
+def make_observer(name: str, drive: Drive, *, motor: PMSMParams | None = None,
+                  **design) -> AbstractObserver:
+    """The observer registered as `name` with its default design for `drive`.
+
+    **Arguments:**
+
+    - `name`: a registered name (`observer_names()`), e.g. `"eso"`, `"leso"`, `"afo"`.
+    - `drive`: the `Drive` whose machine the observer models.
+    - `motor`: the observer's machine model, replacing the drive's (observer-model
+      mismatch); SI `PMSMParams`.
+    - `design`: design parameters by name (the class's `design_units`), e.g. `w2=300.0`.
+    """
+    if not isinstance(drive, Drive):
+        raise ValueError(f"`make_observer(drive=...)` must be a `Drive` (e.g. "
+                         f"`pj.preset('zhang750')`); got {type(drive).__name__}.")
+    return observer_class(name).from_drive(drive, motor=motor, **design)
