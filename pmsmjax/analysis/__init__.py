@@ -1,6 +1,7 @@
-"""Stability and design analysis of the observers: linearisation, equilibria,
-feasibility maps, Lyapunov (slowly-varying) certificates, and a chunked, sharded,
-resumable runner for large sweeps."""
+"""Stability and design analysis of any observer (generic over the observer contract):
+linearisation, equilibria, feasibility maps over any two design parameters, Lyapunov
+(slowly-varying) certificates, and a chunked, sharded, resumable runner for large sweeps.
+zhang2022's closed forms (the quartic (34)-(36)) are fast paths next to the generic route."""
 
 from ._equilibria import (
     Equilibria as Equilibria,
@@ -13,8 +14,22 @@ from ._equilibria import (
 from ._feasibility import (
     DesignClass as DesignClass,
     FeasibilityMap as FeasibilityMap,
+    classify as classify,
     classify_designs as classify_designs,
+    design_map as design_map,
     feasibility_map as feasibility_map,
+)
+from ._generic import (
+    STATUS_DEGENERATE as STATUS_DEGENERATE,
+    STATUS_NONE as STATUS_NONE,
+    STATUS_OK as STATUS_OK,
+    Stability as Stability,
+    discrete_error_map as discrete_error_map,
+    discrete_error_run as discrete_error_run,
+    equilibria as equilibria,
+    equilibria_traced as equilibria_traced,
+    linearization as linearization,
+    stability as stability,
 )
 from ._linearize import (
     charpoly as charpoly,

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._params import Drive, PMSMParams
-from ..observers._eso_design import eso_gains, psi_a
+from ..observers._eso_design import eso_gains, psi_a, zhang38
 from ._equilibria import as_arrays, eso_equilibria
 from ._linearize import check_frame
 
@@ -107,10 +107,6 @@ def _add(a, b):
     return a + b
 
 
-def _neg(a):
-    return -a if not isinstance(a, float) else -a
-
-
 def _det(A, rows, cols):
     """Laplace expansion along the first row (trace-time recursion; sparse-aware)."""
     if len(rows) == 1:
@@ -122,7 +118,7 @@ def _det(A, rows, cols):
             continue
         minor = _det(A, rows[1:], cols[:k] + cols[k + 1:])
         term = _mul(a, minor)
-        out = _add(out, term if k % 2 == 0 else _neg(term))
+        out = _add(out, term if k % 2 == 0 else -term)
     return out
 
 
@@ -131,13 +127,13 @@ def _charpoly4(A):
     idx = range(4)
     c1 = 0.0
     for i in idx:
-        c1 = _add(c1, _neg(A[i][i]))
+        c1 = _add(c1, -A[i][i])
     c2 = c3 = 0.0
     for i in idx:
         for j in range(i + 1, 4):
             c2 = _add(c2, _det(A, (i, j), (i, j)))
             for k in range(j + 1, 4):
-                c3 = _add(c3, _neg(_det(A, (i, j, k), (i, j, k))))
+                c3 = _add(c3, -_det(A, (i, j, k), (i, j, k)))
     c4 = _det(A, (0, 1, 2, 3), (0, 1, 2, 3))
     return c1, c2, c3, c4
 
@@ -299,21 +295,20 @@ _closed_form_jit = jax.jit(_closed_form_classify, static_argnames=("frame", "n_n
 # General route per design
 # ---------------------------------------------------------------------------------------
 
-def _general_classify(w0, i0, zeta1, ratio, zeta2, w2, motor, motor_hat, a, eta, frame,
-                      n_grid, max_roots):
-    mh = motor if motor_hat is None else motor_hat
-    g = eso_gains(psi_a(mh, i0), w0, zeta1, ratio * jnp.abs(w0), zeta2, w2)
-    eq = eso_equilibria(w0, i0, g, motor, motor_hat, a=a, eta=eta, frame=frame,
-                        n_grid=n_grid, max_roots=max_roots)
+def _class_from_equilibria(eq, degenerate=False) -> DesignClass:
+    """Feasibility of one operating point from its equilibria (any observer): status 0
+    if no equilibrium other than the principal one is stable, 1 if one is, 2 if there
+    is no equilibrium at all, -1 if the analysis is degenerate."""
     other = eq.nonprincipal
     stable = eq.stable & other
-    deg = (eq.status == -1) | ~(ratio > 0)
+    deg = (eq.status == -1) | degenerate
     none = ~deg & (eq.status == 2)
     inf = jnp.any(stable)
     key = jnp.where(stable, jnp.abs(eq.theta), jnp.inf)
     st = eq.theta[jnp.argmin(key)]
+    K = eq.valid.shape[-1]
     # move the non-principal equilibria to the front
-    order = jnp.argsort(~other, stable=True)[: max_roots - 1]
+    order = jnp.argsort(~other, stable=True)[: K - 1]
     theta = jnp.where(other, eq.theta, jnp.nan)[order]
     return DesignClass(
         status=jnp.where(deg, -1, jnp.where(none, 2, jnp.where(inf, 1, 0))).astype(jnp.int32),
@@ -323,6 +318,15 @@ def _general_classify(w0, i0, zeta1, ratio, zeta2, w2, motor, motor_hat, a, eta,
         stable=stable[order] & ~deg,
         principal_stable=eq.stable[eq.principal] & ~deg,
         principal_theta=jnp.where(deg | none, jnp.nan, eq.theta[eq.principal]))
+
+
+def _general_classify(w0, i0, zeta1, ratio, zeta2, w2, motor, motor_hat, a, eta, frame,
+                      n_grid, max_roots):
+    mh = motor if motor_hat is None else motor_hat
+    g = eso_gains(psi_a(mh, i0), w0, zeta1, ratio * jnp.abs(w0), zeta2, w2)
+    eq = eso_equilibria(w0, i0, g, motor, motor_hat, a=a, eta=eta, frame=frame,
+                        n_grid=n_grid, max_roots=max_roots)
+    return _class_from_equilibria(eq, ~(ratio > 0))
 
 
 @eqx.filter_jit
@@ -388,14 +392,16 @@ def classify_designs(motor: PMSMParams, w0, i_dq, zeta1, ratio, *, zeta2=1.0,
       float64; float32 works for the closed form).
 
     Returns a `DesignClass` with the broadcast batch shape. Concrete inputs are checked
-    (empty, NaN, w0 = 0 raise `ValueError`); under `jit`/`vmap` bad points get status -1.
+    (empty or NaN raise `ValueError`); `w0 = 0` (the gains (17) contain w1^2/w0 and the
+    error dynamics have a continuum of equilibria at standstill) and, under
+    `jit`/`vmap`, other bad points get status -1.
     """
     check_frame("classify_designs", frame)
     method = _resolve_method("classify_designs", method, motor_hat, a)
     for name, v in (("w0", w0), ("i_dq", i_dq), ("zeta1", zeta1), ("ratio", ratio),
                     ("zeta2", zeta2), ("w2", w2)):
         if not isinstance(v, jax.core.Tracer):
-            _check_array("classify_designs", name, v, nonzero=(name == "w0"),
+            _check_array("classify_designs", name, v,
                          nonneg=name in ("zeta1", "ratio", "zeta2", "w2"))
     dtype = jnp.float64 if dtype is None else dtype
     i_dq = jnp.asarray(i_dq, dtype)
@@ -422,10 +428,11 @@ def classify_designs(motor: PMSMParams, w0, i_dq, zeta1, ratio, *, zeta2=1.0,
 
 
 class FeasibilityMap(eqx.Module):
-    """A feasibility map over (speed, load, zeta1, ratio) (Fig. 1).
+    """A feasibility map over (speed, load, x, y), x and y two named design parameters of
+    the observer (zhang2022 Fig. 1: x = zeta1, y = ratio).
 
-    Arrays have shape `(n_speed, n_load, n_zeta1, n_ratio)` (`theta_deg`, `stable` one
-    more axis for the equilibria). Angles in degrees.
+    Arrays have shape `(n_speed, n_load, n_x, n_y)` (`theta_deg`, `stable` one more axis
+    for the equilibria). Angles in degrees.
 
     - `status`, `n_nonzero`, `principal_stable`: as in `DesignClass`;
       `principal_theta_deg`: the designed equilibrium's angle (deg; nonzero only with
@@ -433,8 +440,10 @@ class FeasibilityMap(eqx.Module):
     - `stable_theta_deg`: static position error of infeasible designs (deg), else NaN.
     - `theta_deg`, `stable`: every non-designed equilibrium and its stability.
     - `speeds`: speeds (p.u. of `w_rated`); `i_dq`: currents `(n_load, 2)` (p.u. of
-      `I_b`); `zeta1`, `ratio`: the design axes (ratio = w1/|w0|).
-    - `w_rated` (rad/s), `I_b` (A): the bases used. `method`, `frame`: how it was made.
+      `I_b`); `x`, `y`: the design axes (SI values of the parameters named `x_name`,
+      `y_name`); `zeta1`, `ratio` are the same arrays when the axes are zhang2022's.
+    - `w_rated` (rad/s), `I_b` (A): the bases used. `method`, `frame`: how it was made;
+      `observer`: the registry class name of the observer.
     """
 
     status: jnp.ndarray
@@ -446,18 +455,40 @@ class FeasibilityMap(eqx.Module):
     principal_theta_deg: jnp.ndarray
     speeds: np.ndarray
     i_dq: np.ndarray
-    zeta1: np.ndarray
-    ratio: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
     w_rated: float
     I_b: float
     method: str = eqx.field(static=True)
     frame: str = eqx.field(static=True)
+    x_name: str = eqx.field(static=True, default="zeta1")
+    y_name: str = eqx.field(static=True, default="ratio")
+    observer: str = eqx.field(static=True, default="LESOObserver")
+
+    def _axis(self, name):
+        if self.x_name == name:
+            return self.x
+        if self.y_name == name:
+            return self.y
+        raise AttributeError(f"this map's axes are {self.x_name!r} and {self.y_name!r}, "
+                             f"not {name!r}")
+
+    @property
+    def zeta1(self):
+        return self._axis("zeta1")
+
+    @property
+    def ratio(self):
+        return self._axis("ratio")
 
     def schedule38(self):
-        """The design (38) at each speed as `(zeta1, ratio)` arrays of shape (n_speed,):
-        zeta1 = 1.5 + |w0|/w_r, ratio = w1/|w0| = 1.5/zeta1 (a single point per speed)."""
-        z = 1.5 + np.abs(self.speeds)
-        return z, 1.5 / z
+        """The design zhang2022 (38) (`pmsmjax.observers.zhang38`) at each speed as
+        `(zeta1, ratio)` arrays of shape (n_speed,): zeta1 (-) and ratio = w1/|w0| (-), a
+        single point per speed (at zero speed the limit w0 -> 0)."""
+        w0 = np.asarray(self.speeds, dtype=float) * float(self.w_rated)  # rad/s
+        w0 = np.where(w0 == 0, np.finfo(float).tiny, w0)  # w1/|w0| -> its limit at 0
+        zeta1, w1 = zhang38(w0, float(self.w_rated))
+        return np.asarray(zeta1), np.asarray(w1) / np.abs(w0)
 
     def fraction(self, status: int = 0):
         """Fraction of designs with the given status, per (speed, load)."""
@@ -535,7 +566,162 @@ def feasibility_map(drive: Drive, speeds, zeta1, ratio, *, i_dq=(0.0, 0.0),
         theta_deg=bc(jnp.degrees(res.theta)), stable=bc(res.stable),
         principal_stable=bc(res.principal_stable),
         principal_theta_deg=bc(jnp.degrees(res.principal_theta)), speeds=sp, i_dq=cur,
-        zeta1=z, ratio=r,
+        x=z, y=r,
         w_rated=w_r, I_b=I_b, method=_resolve_method("feasibility_map", method, motor_hat, a),
         frame=frame)
 
+
+
+# ---------------------------------------------------------------------------------------
+# Any observer: classification and maps over two named design parameters
+# ---------------------------------------------------------------------------------------
+
+CLASSIFY_METHODS = ("auto", "closed_form", "generic")
+
+
+def _resolve_classify(owner, observer, plant, method, w_m, i_dq):
+    if method not in CLASSIFY_METHODS:
+        raise ValueError(f"`{owner}(method=...)` must be one of "
+                         f"{', '.join(map(repr, CLASSIFY_METHODS))}; got {method!r}.")
+    fast = plant is None and observer.fast_classify(w_m, i_dq) is not None
+    if method == "closed_form" and not fast:
+        raise ValueError(
+            f"`{owner}(method='closed_form')`: {type(observer).__name__} with this design "
+            f"has no closed-form classification" + (" with observer-model mismatch"
+                                                     if plant is not None else "")
+            + "; use method='generic'.")
+    return "closed_form" if (fast and method != "generic") else "generic"
+
+
+def classify(observer, plant=None, w_m=None, i_dq=(0.0, 0.0), *, method: str = "auto",
+             **options) -> DesignClass:
+    """Feasibility of `observer` at one operating point (any observer, vmappable).
+
+    **Arguments:**
+
+    - `observer`: any `AbstractObserver`; its `motor` is its model.
+    - `plant`: the true machine (`PMSMParams`); None = the observer's own model (matched,
+      which allows a closed form where the family has one).
+    - `w_m`: electrical speed (rad/s); `i_dq`: current in the estimated frame (A).
+    - `method`: `"auto"` (the closed form when it applies, else generic),
+      `"closed_form"` or `"generic"` (`equilibria`).
+    - `options`: passed to `equilibria` (grid, slots, tolerances).
+
+    Returns a `DesignClass` (status 0 feasible, 1 infeasible, 2 no equilibrium, -1
+    degenerate; never raises for a bad point).
+    """
+    from ._generic import check_observer, equilibria_traced, _op
+
+    check_observer("classify", observer)
+    if w_m is None:
+        raise ValueError("`classify(w_m=...)` (rad/s) is required.")
+    dtype = jnp.result_type(w_m, float)
+    op = _op(w_m, i_dq, dtype)
+    if _resolve_classify("classify", observer, plant, method, op.w_m, op.i_dq) == \
+            "closed_form":
+        return observer.fast_classify(op.w_m, op.i_dq)
+    plant = observer.motor if plant is None else plant
+    return _class_from_equilibria(equilibria_traced(observer, plant, op, **options))
+
+
+def design_map(observer, drive: Drive, speeds, x, y, *, i_dq=(0.0, 0.0), plant=None,
+               method: str = "auto", dtype=None, **options) -> FeasibilityMap:
+    """Feasibility map of `observer` over two named design parameters (any observer).
+
+    **Arguments:**
+
+    - `observer`: any `AbstractObserver` (e.g. `observers.make_observer("leso", drive)`);
+      its `motor` is its model (observer-model mismatch: `observer.with_motor(...)`).
+    - `drive`: the `Drive`: its machine is the plant unless `plant` is given, and its
+      `w_rated`, `base.I_b` are the per-unit bases.
+    - `speeds`: electrical speeds in p.u. of `drive.w_rated`, 1-D.
+    - `x`, `y`: `(name, values)` pairs: a design parameter of the observer (its
+      `design_units`) and its 1-D values (SI units as there).
+    - `i_dq`: current(s) in the estimated frame, p.u. of `drive.base.I_b`: `(2,)` or
+      `(n_load, 2)`.
+    - `plant`: the true machine; None = the drive's.
+    - `method`: `"auto"` uses the family's closed form when the observer's model equals
+      the plant's (compared by value) and one exists (zhang2022 (34)-(36) for the ESO/LESO), else
+      `"generic"`; `"closed_form"` / `"generic"` force one.
+    - `dtype`: computation dtype (default float64). `options`: passed to `equilibria`.
+
+    One jitted, vmapped call over the whole grid. Returns a `FeasibilityMap`.
+    """
+    from ._generic import check_observer
+
+    check_observer("design_map", observer)
+    if not isinstance(drive, Drive):
+        raise ValueError(f"`design_map(drive=...)` must be a `Drive`; got "
+                         f"{type(drive).__name__}.")
+    axes = []
+    for arg, pair in (("x", x), ("y", y)):
+        if not (isinstance(pair, tuple | list) and len(pair) == 2
+                and isinstance(pair[0], str)):
+            raise ValueError(f"`design_map({arg}=...)` must be a (name, values) pair; got "
+                             f"{pair!r}.")
+        name, vals = pair
+        if name not in observer.design_units:
+            raise ValueError(
+                f"`design_map({arg}=...)`: {type(observer).__name__} has no design "
+                f"parameter {name!r}; it has {', '.join(observer.design_units)}.")
+        v = _check_array("design_map", arg, vals)
+        if v.ndim != 1:
+            raise ValueError(f"`design_map({arg}=...)` values must be 1-D; got shape "
+                             f"{v.shape}.")
+        axes.append((name, v))
+    (xn, xv), (yn, yv) = axes
+    if xn == yn:
+        raise ValueError(f"`design_map`: x and y must be different parameters; both are "
+                         f"{xn!r}.")
+    sp = _check_array("design_map", "speeds", speeds, unit="p.u.")
+    cur = _check_array("design_map", "i_dq", i_dq, unit="p.u.")
+    if sp.ndim != 1:
+        raise ValueError(f"`design_map(speeds=...)` must be 1-D; got shape {sp.shape}.")
+    if not (cur.shape[-1:] == (2,) and cur.ndim <= 2):
+        raise ValueError("`design_map(i_dq=...)` must have shape (2,) or (n_load, 2) "
+                         "(i_d, i_q in p.u.).")
+    cur = cur.reshape(-1, 2)
+    dtype = jnp.float64 if dtype is None else dtype
+    w_r, I_b = float(drive.w_rated), float(drive.base.I_b)
+    plant_ = drive.three_phase_motor if plant is None else plant
+    # the closed form needs the observer's model to be the plant's
+    matched = bool(eqx.tree_equal(as_arrays(plant_, dtype), as_arrays(observer.motor, dtype)))
+    # probe the design's structure with the largest values (a zero, allowed on an axis,
+    # is refused by some design constructors outside a trace)
+    probe = observer.with_design(**{xn: float(np.max(xv)), yn: float(np.max(yv))})
+    resolved = _resolve_classify("design_map", probe, None if matched else plant_, method,
+                                 jnp.asarray(sp[0] * w_r, dtype),
+                                 jnp.asarray(cur[0] * I_b, dtype))
+    grid = np.stack(np.meshgrid(sp * w_r, np.arange(len(cur)), xv, yv, indexing="ij"),
+                    -1).reshape(-1, 4)
+    i_all = (cur * I_b)[grid[:, 1].astype(int)]
+    # (the closed form decides on the design's structure, e.g. n2 = n3 = 0, so the
+    # observer's Python-number leaves stay concrete there)
+    obs_in = observer if resolved == "closed_form" else as_arrays(observer, dtype)
+    res = _design_map_batch(obs_in, as_arrays(plant_, dtype),
+                            jnp.asarray(grid[:, 0], dtype), jnp.asarray(i_all, dtype),
+                            jnp.asarray(grid[:, 2], dtype), jnp.asarray(grid[:, 3], dtype),
+                            xn, yn, resolved, options)
+    shape = (len(sp), len(cur), len(xv), len(yv))
+    res = jax.tree_util.tree_map(lambda v: v.reshape(shape + v.shape[1:]), res)
+    return FeasibilityMap(
+        status=res.status, n_nonzero=res.n_nonzero,
+        stable_theta_deg=jnp.degrees(res.stable_theta), theta_deg=jnp.degrees(res.theta),
+        stable=res.stable, principal_stable=res.principal_stable,
+        principal_theta_deg=jnp.degrees(res.principal_theta), speeds=sp, i_dq=cur,
+        x=xv, y=yv, w_rated=w_r, I_b=I_b, method=resolved, frame="observer",
+        x_name=xn, y_name=yn, observer=type(observer).__name__)
+
+
+@eqx.filter_jit
+def _design_map_batch(observer, plant, w0, i0, xv, yv, xn, yn, method, options):
+    from ._generic import OperatingPoint, equilibria_traced
+
+    def one(w, i, a, b):
+        obs = observer.with_design(**{xn: a, yn: b})
+        if method == "closed_form":
+            return obs.fast_classify(w, i)
+        eq = equilibria_traced(obs, plant, OperatingPoint(w, i), **options)
+        return _class_from_equilibria(eq)
+
+    return jax.vmap(one)(w0, i0, xv, yv)

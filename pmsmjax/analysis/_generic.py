@@ -125,6 +125,9 @@ def _det(M):
 # The scaled system
 # ---------------------------------------------------------------------------------------
 
+_STEPS = (1.0,)
+
+
 class _Scaled(eqx.Module):
     observer: AbstractObserver
     plant: PMSMParams
@@ -150,16 +153,46 @@ class _Scaled(eqx.Module):
         return self.F(self.insert(theta, y)) * self.weight
 
     def solve_y(self, theta, y, n_iter):
-        """Gauss-Newton for the other coordinates at a fixed angle error."""
+        """Gauss-Newton for the other coordinates at a fixed angle error, with the angle
+        row as an equality constraint (null-space method): each step solves
+        min ||F_o + J_o d|| subject to F_a + J_a d = 0, so that the solution follows the
+        branch on which the estimated frame turns at the true speed."""
         m = y.shape[0]
+        a = self.angle
         eye = jnp.eye(m, dtype=y.dtype)
+        e0 = eye[0]
 
         def body(y, _):
             Fv, Jy = self._FJ(theta, y)
+            Fa, Ja = Fv[a], Jy[a]
+            Fo = jnp.concatenate([Fv[:a], Fv[a + 1:]])
+            Jo = jnp.concatenate([Jy[:a], Jy[a + 1:]], 0)
+            nrm = jnp.sqrt(jnp.sum(Ja ** 2))
+            ok = nrm > 1e-12 * (1.0 + jnp.max(jnp.abs(Jo)))
+            nrm_s = jnp.where(ok, nrm, 1.0)
+            # Householder reflector mapping Ja to a multiple of e0: its other columns
+            # span the null space of Ja
+            sg = jnp.where(Ja[0] >= 0, 1.0, -1.0)
+            v = Ja / nrm_s + sg * e0
+            Hh = eye - 2.0 * jnp.outer(v, v) / jnp.sum(v * v)
+            N = Hh[:, 1:]
+            dp = jnp.where(ok, -Fa * Ja / nrm_s ** 2, jnp.zeros_like(Ja))
+            B = Jo @ N
+            G = B.T @ B
+            t, _ = _chol_solve(G + (1e-13 * jnp.trace(G) + 1e-300) * jnp.eye(m - 1, dtype=y.dtype),
+                               -B.T @ (Fo + Jo @ dp))
+            d_con = dp + N @ t
+            # without a usable constraint: plain Gauss-Newton on every row
             H = Jy.T @ Jy
-            H = H + (1e-13 * jnp.trace(H) + 1e-300) * eye
-            dy, _ = _chol_solve(H, Jy.T @ Fv)
-            return y - dy, None
+            d_gn, _ = _chol_solve(H + (1e-13 * jnp.trace(H) + 1e-300) * eye, -Jy.T @ Fv)
+            d = jnp.where(ok, d_con, d_gn)
+            # damped: the best of a few step lengths on the weighted residual (steep
+            # nonlinear feedback such as fal makes full steps overshoot)
+            steps = jnp.asarray(_STEPS, y.dtype)
+            cand = y[None, :] + steps[:, None] * d[None, :]
+            merit = jax.vmap(lambda v: jnp.sum(self.Fw(theta, v) ** 2))(cand)
+            merit = jnp.where(jnp.isfinite(merit), merit, jnp.inf)
+            return cand[jnp.argmin(merit)], None
 
         y, _ = jax.lax.scan(body, y, None, length=n_iter)
         return y
@@ -276,7 +309,7 @@ def _continuation(sys: _Scaled, grid, y0, n_iter):
 
 
 def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0), *,
-               n_grid: int = 64, max_roots: int = 6, n_crit: int = 2, n_golden: int = 16,
+               method: str = "auto", n_grid: int = 64, max_roots: int = 6, n_crit: int = 2, n_golden: int = 16,
                angle_weight: float = 1000.0, n_gauss_newton: int = 3, n_refine: int = 10,
                n_newton: int = 8, tol: float | None = None) -> Equilibria:
     r"""Every equilibrium of `observer`'s error dynamics at one operating point.
@@ -291,6 +324,9 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     - `angle_weight`, `n_gauss_newton`, `n_refine`, `n_newton`: the inner solve, the
       Illinois refinement and the final Newton polish (module docstring).
     - `tol`: accepted scaled residual (default eps^0.6: about 4e-10 in float64).
+    - `method`: `"auto"` uses the family's own route where it declares one
+      (`observer.fast_equilibria`: zhang2022's reduction for fal feedback), else the
+      generic route; `"generic"` forces the generic route.
 
     Returns an `Equilibria` (angles in (-pi, pi], states in the observer's
     `coordinates`, SI). Pure and vmappable: wrap it in `jax.vmap` over any leaf.
@@ -301,12 +337,19 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
                         ("n_crit", n_crit, 0)):
         if not isinstance(v, int) or v < lo:
             raise ValueError(f"`equilibria({name}=...)` must be an int >= {lo}; got {v!r}.")
+    if method not in ("auto", "generic"):
+        raise ValueError(f"`equilibria(method=...)` must be 'auto' or 'generic'; got "
+                         f"{method!r}.")
     dtype = jnp.result_type(w_m, float)
     observer, plant = as_arrays(observer, dtype), as_arrays(plant, dtype)
     op = _op(w_m, i_dq, dtype)
+    if method == "auto":
+        fast = observer.fast_equilibria(plant, op)
+        if fast is not None:
+            return fast
     tol = float(jnp.finfo(dtype).eps) ** 0.6 if tol is None else float(tol)
     return _equilibria(observer, plant, op, dict(
-        n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
+        method="generic", n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
         angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
         n_newton=n_newton, tol=tol))
 
@@ -316,11 +359,15 @@ def _equilibria(observer, plant, op, options):
     return equilibria_traced(observer, plant, op, **options)
 
 
-def equilibria_traced(observer, plant, op: OperatingPoint, *, n_grid=64, max_roots=6,
-                      n_crit=2, n_golden=16, angle_weight=1000.0, n_gauss_newton=3, n_refine=10,
-                      n_newton=8, tol=1e-9) -> Equilibria:
+def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_grid=64,
+                      max_roots=6, n_crit=2, n_golden=16, angle_weight=1000.0,
+                      n_gauss_newton=3, n_refine=10, n_newton=8, tol=1e-9) -> Equilibria:
     """`equilibria` without argument checks or jit, for use inside a jitted/vmapped
     function (e.g. a feasibility map or a tuning penalty)."""
+    if method == "auto":
+        fast = observer.fast_equilibria(plant, op)
+        if fast is not None:
+            return fast
     sys = _make_scaled(observer, plant, op, angle_weight)
     dtype = op.w_m.dtype
     n = observer.coordinates.n
@@ -330,10 +377,23 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, n_grid=64, max_roo
     grid = -math.pi + h * (jnp.arange(n_grid, dtype=dtype) + 0.5)
     ys = _continuation(sys, grid, y0, n_gauss_newton)
     rv = jax.vmap(sys.r)(grid, ys)
-    finite = jnp.all(jnp.isfinite(rv))
+    # Grid points where the inner solve did not settle (the angle row is not satisfied,
+    # e.g. oscillating Gauss-Newton steps across a kink of a piecewise-smooth feedback
+    # such as fal) are skipped: brackets join the nearest settled points on each side.
+    Fa = jax.vmap(lambda t, y: sys.F(sys.insert(t, y))[sys.angle])(grid, ys)
+    settled = jnp.isfinite(rv) & (jnp.abs(Fa) < 1e-6)
+    finite = jnp.sum(settled) >= n_grid // 2
     rv = jnp.where(jnp.isfinite(rv), rv, 0.0)
-    rnext, ynext = jnp.roll(rv, -1), jnp.roll(ys, -1, axis=0)
-    sc = (rv >= 0) != (rnext >= 0)
+    k = jnp.arange(n_grid)
+    last_any = jnp.max(jnp.where(settled, k, -n_grid - 1))
+    prev = jax.lax.cummax(jnp.where(settled, k, -n_grid - 1))
+    prev = jnp.where(prev >= 0, prev, last_any - n_grid)  # wrap round to the end
+    # bracket (prev(j), j + 1) for every settled grid point j + 1
+    nxt = (k + 1) % n_grid
+    lo_i = prev % n_grid
+    lo_t = grid[lo_i] - jnp.where(prev < 0, 2 * math.pi, 0.0)
+    hi_t = grid[nxt] + jnp.where(k == n_grid - 1, 2 * math.pi, 0.0)
+    sc = settled[nxt] & ((rv[lo_i] >= 0) != (rv[nxt] >= 0)) & (prev > -n_grid - 1)
     (idx,) = jnp.nonzero(sc, size=max_roots, fill_value=0)
     n_sc = jnp.sum(sc)
     slot = jnp.arange(max_roots) < n_sc
@@ -362,8 +422,8 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, n_grid=64, max_roo
         t = jnp.where(jnp.abs(fa) < jnp.abs(fb), 0.0, 1.0)
         return a + t * (b - a), ya + t * (yb - ya)
 
-    lo, hi = grid[idx], grid[idx] + h
-    blo, bhi, flo, fhi, ylo, yhi = (lo, hi, rv[idx], rnext[idx], ys[idx], ynext[idx])
+    blo, bhi, flo, fhi = lo_t[idx], hi_t[idx], rv[lo_i[idx]], rv[nxt[idx]]
+    ylo, yhi = ys[lo_i[idx]], ys[nxt[idx]]
     bvalid = slot
 
     if n_crit:
@@ -374,7 +434,7 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, n_grid=64, max_roo
         rmax = jnp.maximum(jnp.max(ar), jnp.finfo(dtype).tiny)
         prev_sc = jnp.roll(sc, 1)
         locmin = (ar <= jnp.roll(ar, 1)) & (ar <= jnp.roll(ar, -1)) & ~sc & ~prev_sc \
-            & (ar < 0.05 * rmax)
+            & (ar < 0.05 * rmax) & settled & jnp.roll(settled, 1) & jnp.roll(settled, -1)
         (cidx,) = jnp.nonzero(locmin, size=n_crit, fill_value=0)
         cslot = jnp.arange(n_crit) < jnp.sum(locmin)
         g = (math.sqrt(5.0) - 1.0) / 2.0

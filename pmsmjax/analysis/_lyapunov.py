@@ -60,8 +60,15 @@ import numpy as np
 import optimistix as optx
 
 from .._frames import wrap_angle
-from .._params import Drive
-from ..observers._eso import AbstractGainSchedule
+from .._params import Drive, PMSMParams
+from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers._eso import (
+    AbstractGainSchedule,
+    ESOObserver,
+    LESOObserver,
+    _AbstractFluxObserver,
+)
+from ._equilibria import as_arrays
 from ._linearize import check_frame, eso_rhs
 
 
@@ -148,50 +155,88 @@ class LyapunovCertificate(eqx.Module):
 
 
 class _ScaledDynamics(eqx.Module):
-    """g(z, w) = D f(D^-1 z, w) with the gains of `design` at speed w."""
+    """g(z, w) = D f(D^-1 z, w): the error dynamics of `observer` (its own model,
+    `plant` the true machine) at speed w and current `i0` (estimated frame), scaled."""
 
-    drive: Drive
-    design: AbstractGainSchedule
+    observer: AbstractObserver
+    plant: PMSMParams
     i0: jnp.ndarray
     d: jnp.ndarray
-    a: float
-    eta: float
     frame: str = eqx.field(static=True)
+    matched: bool = eqx.field(static=True, default=True)
 
-    def gains(self, w):
-        return self.design(self.drive.three_phase_motor, w, self.i0)
+    def rhs(self, x, w):
+        if self.frame == "paper":  # zhang2022 (11) with its rotation term as printed
+            a, eta = self.observer.feedback_parameters()
+            return eso_rhs(x, w, self.i0, self.observer.linear_gains(w, self.i0),
+                           self.plant, self.observer.motor, a, eta, "paper")
+        return self.observer.error_rhs(x, OperatingPoint(w, self.i0), self.plant)
+
+    def x_eq(self, w):
+        """The equilibrium the certificate is about at speed w: the origin with a matched
+        model; with observer-model mismatch the principal (static-error) equilibrium,
+        found by Newton steps from the origin (differentiable in w)."""
+        x = jnp.zeros_like(self.d)
+        if self.matched:
+            return x
+        for _ in range(8):
+            f, J = self.rhs(x, w), jax.jacfwd(self.rhs)(x, w)
+            x = x - jnp.linalg.solve(J, f)
+        return x
 
     def g(self, z, w):
-        m = self.drive.three_phase_motor
-        x = z / self.d
-        return self.d * eso_rhs(x, w, self.i0, self.gains(w), m, None, self.a, self.eta,
-                                self.frame)
+        xe = self.x_eq(w)
+        return self.d * self.rhs(xe + z / self.d, w)
 
     def A(self, w):
         return jax.jacfwd(self.g)(jnp.zeros_like(self.d), w)
 
 
-def _state_scale(drive, scale, dtype):
+#: per-unit base of each SI unit that error coordinates use (`scale="pu"`).
+def _unit_base(drive: Drive, unit: str) -> float:
+    b = drive.base
+    return {"V s": b.psi_b, "rad/s": b.w_b, "A": b.I_b, "V": b.U_b, "rad": 1.0,
+            "H": b.L_b}.get(unit, 1.0)
+
+
+def _state_scale(drive, observer, scale, dtype):
+    units = observer.coordinates.units
     if scale == "pu":
-        psi_b, w_b = drive.base.psi_b, drive.base.w_b
-        return jnp.asarray([1 / psi_b, 1 / psi_b, 1.0, 1 / w_b], dtype)
-    return jnp.ones(4, dtype)
+        return jnp.asarray([1.0 / _unit_base(drive, u) for u in units], dtype)
+    return jnp.ones(len(units), dtype)
+
+
+def _as_observer(owner, drive, design, a, eta):
+    """An observer from `design`: an `AbstractObserver` as it is, or a zhang2022 gain
+    schedule as the ESO (fal `a`, `eta`) or, for `a = 1`, the LESO on the drive's model."""
+    if isinstance(design, AbstractObserver):
+        return design
+    if not isinstance(design, AbstractGainSchedule):
+        raise ValueError(f"`{owner}(design=...)` must be an observer (`AbstractObserver`, "
+                         f"e.g. `observers.make_observer('leso', drive)`) or a zhang2022 "
+                         f"gain schedule (`observers.ESODesign`); got "
+                         f"{type(design).__name__}.")
+    m = drive.three_phase_motor
+    if isinstance(a, int | float) and float(a) == 1.0:
+        return LESOObserver(m, design)
+    return ESOObserver(m, design, a=a, eta=eta)
 
 
 def _check(owner, drive, design, speed_range, scale, frame, c3):
     if not isinstance(drive, Drive):
         raise ValueError(f"`{owner}(drive=...)` must be a `Drive`; got {type(drive).__name__}.")
-    if not isinstance(design, AbstractGainSchedule):
-        raise ValueError(f"`{owner}(design=...)` must be an `observers.ESODesign` (or another "
-                         f"gain schedule); got {type(design).__name__}.")
     lo, hi = (float(v) for v in speed_range)
     if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo < hi):
         raise ValueError(
             f"`{owner}(speed_range=...)` (p.u.) must be (lo, hi) with 0 < lo < hi: at w = 0 "
-            f"the flux gains of (17)/(38) vanish and A is not Hurwitz; got {speed_range!r}.")
+            f"the flux gains of zhang2022 (17)/(38) vanish and A is not Hurwitz; got "
+            f"{speed_range!r}.")
     if scale not in SCALES:
         raise ValueError(f"`{owner}(scale=...)` must be one of {SCALES}; got {scale!r}.")
     check_frame(owner, frame)
+    if frame == "paper" and not isinstance(design, _AbstractFluxObserver):
+        raise ValueError(f"`{owner}(frame='paper')` is the zhang2022 ESO/LESO/AFO's printed "
+                         f"error dynamics (11); {type(design).__name__} has its own.")
     if not 0 < c3 < 1:
         raise ValueError(f"`{owner}(c3=...)` must lie in (0, 1); got {c3!r}.")
     return lo, hi
@@ -280,8 +325,12 @@ def _k1_estimate(dyn: _ScaledDynamics, speeds, radii, key, n_dirs, n_refine):
 @eqx.filter_jit
 def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n_dirs,
                  n_refine, n_k1_speeds):
+    n = dyn.d.shape[0]
     A = jax.vmap(dyn.A)(speeds)
     dA = jax.vmap(jax.jacfwd(dyn.A))(speeds)
+    # the frozen equilibria must exist (with mismatch they are static-error equilibria)
+    g0 = jax.vmap(lambda w: dyn.g(jnp.zeros_like(dyn.d), w))(speeds)
+    at_eq = jnp.max(jnp.abs(g0) / jnp.maximum(jnp.max(jax.vmap(_norm2)(A)), 1.0)) < 1e-8
     eig = jnp.linalg.eigvals(A)
     sigma = jnp.min(-jnp.max(jnp.real(eig), -1))
     hurwitz = sigma > 0
@@ -290,7 +339,7 @@ def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n
     b = jnp.max(jax.vmap(_norm2)(dA))
     P = jax.vmap(lyapunov_solve)(A)
     res = jnp.max(jnp.abs(jnp.einsum("nij,njk->nik", P, A)
-                          + jnp.einsum("nji,njk->nik", A, P) + jnp.eye(4)))
+                          + jnp.einsum("nji,njk->nik", A, P) + jnp.eye(n)))
     lam = jnp.linalg.eigvalsh(P)
     dP = jax.vmap(jax.jacfwd(lambda w: lyapunov_solve(dyn.A(w))))(speeds)
     c1s, c2s = jnp.min(lam[:, 0]), jnp.max(lam[:, -1])
@@ -317,7 +366,8 @@ def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n
 
     r, k1, okr = pick(c2)
     rs, k1s, okrs = pick(c2s)
-    status = jnp.where(hurwitz & okr & okrs & jnp.isfinite(c5), 0, -1).astype(jnp.int32)
+    status = jnp.where(hurwitz & okr & okrs & jnp.isfinite(c5) & at_eq, 0, -1
+                       ).astype(jnp.int32)
     return LyapunovCertificate(
         speeds=speeds, sigma=sigma, rho=rho, b=b, alpha=alpha, gamma=gamma, k=k,
         c1=c1, c2=c2, c3=jnp.asarray(c3), c4=c4, c5=c5, c5_paper=c5p,
@@ -329,8 +379,8 @@ def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n
         status=status)
 
 
-def slowly_varying_certificate(drive: Drive, design: AbstractGainSchedule,
-                               speed_range=(0.1, 1.0), *, i_dq=(0.0, 0.0),
+def slowly_varying_certificate(drive: Drive, design, speed_range=(0.1, 1.0), *,
+                               i_dq=(0.0, 0.0), plant: PMSMParams | None = None,
                                frame: str = "observer", a=1.0, eta=1.0, scale: str = "pu",
                                c3: float = 0.5, n_speed: int = 101,
                                alphas=(0.5, 0.8, 0.9, 0.95, 0.98, 0.99, 0.999),
@@ -341,25 +391,44 @@ def slowly_varying_certificate(drive: Drive, design: AbstractGainSchedule,
 
     **Arguments:**
 
-    - `drive`: the `Drive` (matched observer model); `design`: an `observers.ESODesign`
-      (e.g. `ESODesign.zhang38(drive.w_rated)`).
+    - `drive`: the `Drive`; its machine is the plant unless `plant` is given.
+    - `design`: any observer (`AbstractObserver`, e.g.
+      `observers.make_observer("leso", drive)`; its `motor` is its model, so a model
+      different from the plant is observer-model mismatch: then the origin must still be
+      an equilibrium for the certificate to mean anything, which holds for
+      resistance-only mismatch at zero current, and `status` reports -1 otherwise), or
+      a zhang2022 gain schedule (`observers.ESODesign`, e.g.
+      `ESODesign.zhang38(drive.w_rated)`): the LESO (`a = 1`) or ESO on the drive's model.
+      With observer-model mismatch the certificate is about the principal equilibrium
+      $x^*(\omega)$ (the static error the mismatch causes), in $z = x - x^*(\omega)$:
+      it certifies that the frozen-speed family is uniformly exponentially stable and
+      that the error tracks $x^*(\omega(t))$ for slowly varying speed; the motion of
+      $x^*$ itself adds the forcing $-\partial x^*/\partial\omega\,\dot\omega$, which
+      leaves an error of order $\dot\omega$ (Khalil, Sec. 9.6), not covered by (52).
+      `status` is -1 when no such equilibrium is found.
+    - `plant`: the true machine (`PMSMParams`); default the drive's.
     - `speed_range`: `(lo, hi)` in p.u. of `drive.w_rated`, `0 < lo < hi` (the paper's
       $\Omega = (0, \omega_{max}]$ cannot be used: the flux poles of (38) tend to 0 with
       the speed, so no uniform $\sigma$ exists).
     - `i_dq`: controlled current in the estimator frame (p.u. of `drive.base.I_b`).
-    - `frame`, `a`, `eta`: error dynamics used for $k_1$ (`eso_rhs`).
+    - `frame`, `a`, `eta`: for a gain schedule: the error dynamics used for $k_1$
+      (`eso_rhs`; `frame="paper"` only for the zhang2022 observers).
     - `scale`: `"pu"` or `"si"` state scaling. `c3`: target in (0, 1).
     - `n_speed`, `alphas`, `n_time`, `radii`, `n_dirs`, `n_refine`, `n_k1_speeds`, `key`:
       resolution of the numerical estimates (defaults are accurate to a few per cent).
 
     Returns a `LyapunovCertificate`; `eps` (rad/s^2) is the certified rate.
     """
-    lo, hi = _check("slowly_varying_certificate", drive, design, speed_range, scale, frame,
-                    c3)
+    owner = "slowly_varying_certificate"
+    observer = _as_observer(owner, drive, design, a, eta)
+    lo, hi = _check(owner, drive, observer, speed_range, scale, frame, c3)
     dtype = jnp.float64
     i0 = jnp.asarray(i_dq, dtype) * drive.base.I_b
-    dyn = _ScaledDynamics(drive=drive, design=design, i0=i0,
-                          d=_state_scale(drive, scale, dtype), a=a, eta=eta, frame=frame)
+    plant = drive.three_phase_motor if plant is None else plant
+    matched = bool(eqx.tree_equal(as_arrays(plant, dtype), as_arrays(observer.motor, dtype)))
+    dyn = _ScaledDynamics(observer=observer, plant=plant, i0=i0,
+                          d=_state_scale(drive, observer, scale, dtype), frame=frame,
+                          matched=matched)
     speeds = jnp.linspace(lo, hi, n_speed, dtype=dtype) * drive.w_rated
     radii = jnp.geomspace(1e-8, 10.0, 128, dtype=dtype) if radii is None else jnp.asarray(
         radii, dtype)
@@ -406,17 +475,19 @@ def _ramp_speed(t, w_start, w_end, rate):
 @eqx.filter_jit
 def _simulate_ramp(dyn: _ScaledDynamics, x0, w_start, w_end, rate, t_hold, model, n_save,
                    tol, max_steps):
-    m = dyn.drive.three_phase_motor
+    obs = dyn.observer
+    a, eta = obs.feedback_parameters()
     dur = jnp.abs(w_end - w_start) / rate
     t1 = dur + t_hold
 
     def rhs(t, x, args):
         w, wdot = _ramp_speed(t, w_start, w_end, rate)
         if model == "observer":
-            g = dyn.gains(w - x[3])  # the observer schedules its gains at w_hat
-            f = eso_rhs(x, w, dyn.i0, g, m, None, dyn.a, dyn.eta, dyn.frame)
+            g = obs.linear_gains(w - x[3], dyn.i0)  # the observer schedules at w_hat
+            f = eso_rhs(x, w, dyn.i0, g, dyn.plant, obs.motor, a, eta, dyn.frame)
             return f.at[3].add(wdot)
-        return eso_rhs(x, w, dyn.i0, dyn.gains(w), m, None, dyn.a, dyn.eta, dyn.frame)
+        return eso_rhs(x, w, dyn.i0, obs.linear_gains(w, dyn.i0), dyn.plant, obs.motor, a,
+                       eta, dyn.frame)
 
     ts = jnp.linspace(0.0, t1, n_save)
     ctrl = dfx.ClipStepSizeController(dfx.PIDController(rtol=1e-7, atol=1e-9),
@@ -436,7 +507,7 @@ def _simulate_ramp(dyn: _ScaledDynamics, x0, w_start, w_end, rate, t_hold, model
                    status=jnp.where(ok, 0, -1).astype(jnp.int32))
 
 
-def simulate_ramp(drive: Drive, design: AbstractGainSchedule, speeds=(0.2, 1.0), rate=1.0,
+def simulate_ramp(drive: Drive, design, speeds=(0.2, 1.0), rate=1.0,
                   *, x0=None, theta0_deg=10.0, i_dq=(0.0, 0.0), model: str = "paper",
                   frame: str = "observer", a=1.0, eta=1.0, t_hold=None, n_save=2001,
                   tol_deg=0.05, max_steps=2_000_000, scale="pu") -> RampRun:
@@ -458,8 +529,12 @@ def simulate_ramp(drive: Drive, design: AbstractGainSchedule, speeds=(0.2, 1.0),
                          f"got {rate!r}.")
     dtype = jnp.float64
     i0 = jnp.asarray(i_dq, dtype) * drive.base.I_b
-    dyn = _ScaledDynamics(drive=drive, design=design, i0=i0,
-                          d=_state_scale(drive, scale, dtype), a=a, eta=eta, frame=frame)
+    observer = _as_observer("simulate_ramp", drive, design, a, eta)
+    if not isinstance(observer, _AbstractFluxObserver):
+        raise ValueError("`simulate_ramp` simulates the zhang2022 ESO/LESO error dynamics "
+                         f"(11)/(40); got {type(observer).__name__}.")
+    dyn = _ScaledDynamics(observer=observer, plant=drive.three_phase_motor, i0=i0,
+                          d=_state_scale(drive, observer, scale, dtype), frame=frame)
     w_start, w_end = (float(s) * float(drive.w_rated) for s in speeds)
     if t_hold is None:
         A = dyn.A(jnp.asarray(w_end, dtype))
@@ -472,7 +547,7 @@ def simulate_ramp(drive: Drive, design: AbstractGainSchedule, speeds=(0.2, 1.0),
                           n_save, math.radians(tol_deg), max_steps)
 
 
-def fastest_converging_ramp(drive: Drive, design: AbstractGainSchedule, speeds=(0.2, 1.0),
+def fastest_converging_ramp(drive: Drive, design, speeds=(0.2, 1.0),
                             *, rate_lo=1.0, rate_hi=1e9, n_bisect=24, **kw):
     """Largest ramp rate (rad/s^2) in [rate_lo, rate_hi] for which `simulate_ramp`
     converges, by bisection in log(rate) (assumes convergence is monotone in the rate,

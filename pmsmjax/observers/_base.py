@@ -144,6 +144,13 @@ class AbstractObserver(eqx.Module):
     design_units: ClassVar[dict[str, str]] = {}
     #: Observer-specific outputs in `Estimate.extras`: name -> unit and meaning.
     extras: ClassVar[dict[str, str]] = {}
+    #: Tunable design (the `tuning` package): design parameter -> default `(lo, hi)`
+    #: bounds as factors on its value in `from_drive`'s design (0 < lo < 1 < hi; the
+    #: value must be > 0). Empty: the observer declares no tunable design.
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {}
+    #: Design parameters that may vary with the observer's own speed estimate (a gain
+    #: schedule in its `design` field, zhang2022 Sec. III). Empty: constants only.
+    speed_scheduled: ClassVar[tuple[str, ...]] = ()
 
     # --- running ------------------------------------------------------------------
     @abc.abstractmethod
@@ -198,6 +205,20 @@ class AbstractObserver(eqx.Module):
     def observer_state(self, x, truth: PlantPoint, plant: PMSMParams):
         """The observer state at t_k (as after a step) whose error coordinates against
         `truth` are `x`: the inverse of `error_state`."""
+
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint):
+        """The equilibria by a family-specific route (`analysis.Equilibria`), where the
+        family has one that is preferable to the generic route, else None (the
+        default). `analysis.equilibria(method="auto")` uses it."""
+        del plant, op
+        return None
+
+    def fast_classify(self, w_m, i_dq):
+        """A closed-form classification of the equilibria with a matched model
+        (`analysis.DesignClass`), where the family has one, else None (the default). It
+        must agree with the generic route; `analysis.classify` uses it when allowed."""
+        del w_m, i_dq
+        return None
 
 
 class SensoredObserver(AbstractObserver):

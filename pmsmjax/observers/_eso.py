@@ -58,7 +58,7 @@ import jax.numpy as jnp
 
 from .._frames import park, rotate, wrap_angle
 from .._params import Drive, PMSMParams
-from .._validate import check_positive
+from .._validate import check_positive, is_concrete
 from ._base import (
     AbstractObserver,
     ErrorCoordinates,
@@ -350,6 +350,11 @@ class _AbstractFluxObserver(AbstractObserver):
     design_units: ClassVar[dict[str, str]] = _DESIGN_UNITS
     extras: ClassVar[dict[str, str]] = {
         "psi_ab_hat": "V s, estimated stator flux, stationary frame (2,)"}
+    # tunable design: factors 1/5..5 keep w2 T_s <= 0.2 at 8 kHz (zhang750)
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "w2": (0.2, 5.0), "zeta2": (0.2, 5.0)}
+    speed_scheduled: ClassVar[tuple[str, ...]] = ("zeta1", "ratio", "zeta2", "w2", "n2",
+                                                  "n3")
 
     # --- design -----------------------------------------------------------------------
     @classmethod
@@ -524,6 +529,38 @@ class _AbstractESO(_AbstractFluxObserver):
         del psi_ab, theta, i_ab
         return w
 
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint):
+        """With fal feedback (a < 1), zhang2022's own reduction (`analysis.eso_equilibria`,
+        which inverts fal in closed form): the generic route's Gauss-Newton steps can
+        oscillate across fal's kinks (its slope jumps at |e| = eta) and then report a
+        degenerate point. None for linear feedback (the generic route is used)."""
+        a, eta = self.feedback_parameters()
+        if isinstance(a, int | float) and float(a) == 1.0:
+            return None
+        from ..analysis._equilibria import eso_equilibria
+
+        return eso_equilibria(op.w_m, op.i_dq, self.linear_gains(op.w_m, op.i_dq), plant,
+                              self.motor, a=a, eta=eta)
+
+    def fast_classify(self, w_m, i_dq):
+        """zhang2022's quartic (34)-(36) in closed form (`analysis.classify_designs`), for
+        linear feedback and a pole-placement design with the minimum-norm gains (25)
+        (`ESODesign` with the zhang38 or fixed_ratio schedule, n2 = n3 = 0); else None."""
+        a, _ = self.feedback_parameters()
+        d = self.design
+        if not (isinstance(a, int | float) and float(a) == 1.0 and isinstance(d, ESODesign)
+                and d.schedule != "fixed_w1" and is_concrete((d.n2, d.n3))
+                and float(d.n2) == 0.0 and float(d.n3) == 0.0):
+            return None
+        from ..analysis._feasibility import _closed_form_classify
+
+        zeta1, w1 = d.zeta1_w1(w_m)
+        aw = jnp.abs(w_m)
+        ratio = w1 / jnp.where(aw > 0, aw, 1.0)
+        m = self.motor
+        return _closed_form_classify(w_m, i_dq[..., 0], i_dq[..., 1], zeta1, ratio, d.zeta2,
+                                     d.w2, m.L_d, m.L_q, m.psi_f)
+
 
 class ESOObserver(_AbstractESO):
     r"""Nonlinear extended-state flux observer, zhang2022 (10a)-(10e) with fal (9).
@@ -644,6 +681,8 @@ class AFOObserver(_AbstractFluxObserver):
 
     motor: PMSMParams
     design: AbstractGainSchedule
+    # the PI law (53) has no null-space components n2, n3
+    speed_scheduled: ClassVar[tuple[str, ...]] = ("zeta1", "ratio", "zeta2", "w2")
 
     def __init__(self, motor: PMSMParams, design: AbstractGainSchedule):
         _check_observer_args("AFOObserver", motor, design)

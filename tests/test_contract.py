@@ -1,0 +1,329 @@
+"""The observer contract, for every registered observer: the continuous error dynamics
+are the observer that runs (discrete Jacobian = I + T_s A + O(T_s^2); a closed-loop run
+from a perturbed state follows the continuous dynamics), the state maps invert each other,
+designs round-trip, extras reach `simulate` and `replay`, and the generic analysis agrees
+with zhang2022's closed forms."""
+
+import math
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax import analysis
+from pmsmjax.observers import (
+    OperatingPoint,
+    PlantPoint,
+    make_observer,
+    observer_class,
+    observer_names,
+)
+
+
+DRIVE = pj.preset("zhang750")
+# a salient variant, so that every term of the error dynamics matters
+SALIENT = pj.replace_params(DRIVE, L_d=1.0e-3, L_q=5.0e-3)
+NAMES = observer_names()
+OP = (0.5, (0.15, 0.6))  # speed (p.u.), current (p.u.)
+
+
+def _op(drive, op=OP):
+    w, (i_d, i_q) = op
+    return w * drive.w_rated, jnp.array([i_d, i_q]) * drive.base.I_b
+
+
+def test_registry_lists_the_zhang2022_observers_and_rejects_unknown_names():
+    assert {"eso", "leso", "afo"} <= set(NAMES)
+    with pytest.raises(ValueError, match="Unknown observer 'kalman'.*eso"):
+        make_observer("kalman", DRIVE)
+    with pytest.raises(ValueError, match="must be a `Drive`"):
+        make_observer("eso", DRIVE.motor)
+
+
+@pytest.mark.parametrize("preset", pj.PRESET_NAMES)
+@pytest.mark.parametrize("name", NAMES)
+def test_every_observer_has_a_default_design_on_every_preset(name, preset):
+    drive = pj.preset(preset)
+    obs = make_observer(name, drive)
+    assert isinstance(obs, observer_class(name))
+    params = obs.design_parameters()
+    assert params and set(params) <= set(obs.design_units)
+    # the design round-trips through with_design
+    again = obs.with_design(**params)
+    assert again.design_parameters().keys() == params.keys()
+    for k, v in params.items():
+        assert float(again.design_parameters()[k]) == pytest.approx(float(v))
+    # its error dynamics are finite and the designed equilibrium is the origin
+    w, i = _op(drive)
+    plant = drive.three_phase_motor
+    f0 = obs.error_rhs(jnp.zeros(obs.coordinates.n), OperatingPoint(w, i), plant)
+    scale = obs.error_scale(OperatingPoint(w, i), plant)
+    assert np.all(np.isfinite(np.asarray(f0)))
+    np.testing.assert_allclose(np.asarray(f0 / scale), 0.0, atol=1e-9 * float(w))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_with_design_rejects_unknown_parameters(name):
+    obs = make_observer(name, DRIVE)
+    with pytest.raises(ValueError, match="unknown design parameter.*bogus"):
+        obs.with_design(bogus=1.0)
+    with pytest.raises(ValueError, match="unknown design parameter"):
+        make_observer(name, DRIVE, bogus=1.0)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_state_maps_invert_each_other(name):
+    obs = make_observer(name, SALIENT)
+    plant = SALIENT.three_phase_motor
+    truth = PlantPoint(theta=jnp.asarray(0.7), w_m=jnp.asarray(300.0),
+                       i_ab=jnp.array([1.2, -0.4]))
+    x = jnp.array([0.004, -0.002, 0.3, 25.0])[: obs.coordinates.n]
+    back = obs.error_state(obs.observer_state(x, truth, plant), truth, plant)
+    np.testing.assert_allclose(np.asarray(back), np.asarray(x), rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_discrete_step_jacobian_is_identity_plus_Ts_A(name):
+    """The Jacobian of one real `step` in error coordinates equals I + T_s A with the
+    remainder O(T_s^2): halving T_s quarters it (and it is far below T_s A)."""
+    obs = make_observer(name, SALIENT)
+    plant = SALIENT.three_phase_motor
+    w, i = _op(SALIENT)
+    n = obs.coordinates.n
+    A = analysis.linearization(obs, plant, w, i)
+    D = obs.error_scale(OperatingPoint(w, i), plant)
+    scaled = lambda M: M / D[:, None] * D[None, :]  # noqa: E731
+    rem = []
+    for T_s in (1e-4, 5e-5, 2.5e-5):
+        fn = analysis.discrete_error_map(obs, plant, w, i, T_s, theta_k=0.3)
+        np.testing.assert_allclose(np.asarray(fn(jnp.zeros(n)) / D), 0.0, atol=1e-12)
+        Jd = jax.jacfwd(fn)(jnp.zeros(n))
+        r = float(jnp.max(jnp.abs(scaled(Jd - jnp.eye(n) - T_s * A))))
+        assert r < 0.1 * float(jnp.max(jnp.abs(scaled(T_s * A))))
+        rem.append(r)
+    for a, b in zip(rem, rem[1:]):
+        assert 3.5 < a / b < 4.5, rem
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_closed_loop_run_follows_the_continuous_error_dynamics(name):
+    """From a perturbed state (angle error 4 deg, speed error 2 %), the discrete observer in
+    a loop with ideal current control tracks the continuous error dynamics (diffrax)."""
+    obs = make_observer(name, SALIENT)
+    plant = SALIENT.three_phase_motor
+    w, i = _op(SALIENT)
+    n = obs.coordinates.n
+    a = obs.coordinates.angle
+    x0 = jnp.zeros(n).at[a].set(math.radians(4.0))
+    x0 = x0.at[obs.coordinates.names.index("w")].set(0.02 * w) \
+        if "w" in obs.coordinates.names else x0
+    T_s, N = 2e-5, 1500
+    xs = analysis.discrete_error_run(obs, plant, w, i, T_s, x0, N)
+    op = OperatingPoint(w, i)
+    ts = jnp.arange(N + 1) * T_s
+    sol = dfx.diffeqsolve(dfx.ODETerm(lambda t, x, args: obs.error_rhs(x, op, plant)),
+                          dfx.Tsit5(), 0.0, float(ts[-1]), T_s, x0,
+                          saveat=dfx.SaveAt(ts=ts),
+                          stepsize_controller=dfx.PIDController(rtol=1e-9, atol=1e-12))
+    D = obs.error_scale(op, plant)
+    dev = jnp.max(jnp.abs((xs - sol.ys) / D))
+    size = jnp.max(jnp.abs(sol.ys / D))
+    assert float(dev) < 0.03 * float(size), (float(dev), float(size))
+    # and the error decays (the designed equilibrium is stable)
+    assert abs(float(xs[-1, a])) < 0.05 * math.radians(4.0)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_extras_reach_simulate_and_replay(name):
+    obs = make_observer(name, DRIVE)
+    foc = pj.FOC.from_drive(DRIVE)
+    sc = pj.Scenario(t_end=0.01, w_m_imposed=pj.Profile.constant(0.3 * DRIVE.w_rated),
+                     i_d_ref=pj.Profile.constant(0.0), i_q_ref=pj.Profile.constant(1.0))
+    traj = pj.simulate(DRIVE, foc, obs, sc, T_s=1e-4, w_m0=0.3 * DRIVE.w_rated)
+    assert set(traj.extras) == set(type(obs).extras)
+    est = pj.replay_estimates(obs, traj, theta0=0.0, w0=0.3 * DRIVE.w_rated)
+    for k in type(obs).extras:
+        assert traj.extras[k].shape[0] == traj.t.shape[0]
+        np.testing.assert_allclose(np.asarray(est.extras[k]), np.asarray(traj.extras[k]),
+                                   rtol=1e-10, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------
+# Generic analysis vs zhang2022's closed forms
+# ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", ["leso", "afo"])
+def test_generic_linearisation_has_the_designed_characteristic_polynomial(name):
+    """zhang2022 (16)/(18) for the LESO, (53) for the AFO: the poles of the generic
+    linearisation at the origin are the designed ones."""
+    obs = make_observer(name, SALIENT, w2=2 * math.pi * 70.0, zeta2=0.8)
+    plant = SALIENT.three_phase_motor
+    w, i = _op(SALIENT)
+    A = analysis.linearization(obs, plant, w, i)
+    zeta1, w1 = pj.observers.zhang38(w, SALIENT.w_rated)
+    want = np.polymul([1.0, 2 * float(zeta1) * float(w1), float(w1) ** 2],
+                      [1.0, 2 * 0.8 * obs.design.w2, obs.design.w2 ** 2])
+    got = np.asarray(analysis.charpoly(A))
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    st = analysis.stability(A)
+    assert bool(st.hurwitz) and float(st.max_real) < 0
+
+
+def _random_designs(n, seed, drive):
+    rng = np.random.default_rng(seed)
+    w0 = rng.choice([-1.0, 1.0], n) * rng.uniform(0.03, 1.3, n) * drive.w_rated
+    i0 = rng.uniform(-2.0, 2.0, (n, 2)) * drive.base.I_b
+    return w0, i0, rng.uniform(0.05, 5.0, n), rng.uniform(0.03, 2.0, n)
+
+
+@pytest.fixture(scope="module")
+def generic_classifier():
+    @jax.jit
+    def run(motor, motor_hat, w0, i0, z1, r):
+        def one(w, i, a, b):
+            obs = pj.LESOObserver(motor_hat, pj.ESODesign.fixed_ratio(a, b))
+            return analysis.classify(obs, motor, w, i, method="generic")
+        return jax.vmap(one)(w0, i0, z1, r)
+    return run
+
+
+@pytest.mark.parametrize("drive", [DRIVE, pj.replace_params(DRIVE, L_d=1e-3, L_q=12e-3)],
+                         ids=["table1", "salient"])
+def test_generic_route_agrees_with_the_quartic_on_10000_designs(drive, generic_classifier):
+    """zhang2022 (34)-(36) in closed form (the fast path) against the generic route, on
+    10,000 random designs and operating points (both signs of speed, any current)."""
+    m = drive.three_phase_motor
+    w0, i0, z1, r = _random_designs(10_000, seed=7, drive=drive)
+    cf = analysis.classify_designs(m, w0, i0, z1, r)
+    ge = generic_classifier(m, m, jnp.asarray(w0), jnp.asarray(i0), jnp.asarray(z1),
+                            jnp.asarray(r))
+    st_cf, st_ge = np.asarray(cf.status), np.asarray(ge.status)
+    ok = (st_cf >= 0) & (st_ge >= 0)
+    assert ok.mean() > 0.999, np.unique(st_ge, return_counts=True)
+    np.testing.assert_array_equal(st_cf[ok], st_ge[ok])
+    np.testing.assert_array_equal(np.asarray(cf.n_nonzero)[ok], np.asarray(ge.n_nonzero)[ok])
+    a = np.sort(np.nan_to_num(np.asarray(cf.theta)[ok], nan=9.0), -1)[:, :3]
+    b = np.sort(np.nan_to_num(np.asarray(ge.theta)[ok], nan=9.0), -1)[:, :3]
+    np.testing.assert_allclose(a, b, atol=1e-7)
+    if drive is not DRIVE:
+        assert np.sum(st_cf == 1) > 100  # the salient machine has infeasible designs
+
+
+def test_generic_route_agrees_with_the_eso_reduction_under_mismatch_and_fal():
+    """With observer-model mismatch (all four parameters) and fal feedback the closed form
+    does not apply; the zhang2022-specific reduction (`eso_equilibria`) and the generic
+    route must find the same equilibria and stability."""
+    n = 1500
+    rng = np.random.default_rng(11)
+    drive = pj.replace_params(DRIVE, L_d=1.5e-3, L_q=4e-3)
+    m = drive.three_phase_motor
+    w0, i0, _, _ = _random_designs(n, seed=5, drive=drive)
+    fac = rng.uniform(0.6, 1.5, (n, 4))
+    a = np.where(rng.uniform(size=n) < 0.5, 1.0, 0.6)
+
+    @jax.jit
+    def both(w, i, f, a_):
+        mh = pj.PMSMParams(R_s=m.R_s * f[0], L_d=m.L_d * f[1], L_q=m.L_q * f[2],
+                           psi_f=m.psi_f * f[3], n_p=m.n_p)
+        obs = pj.ESOObserver(mh, pj.ESODesign.zhang38(drive.w_rated), a=a_,
+                             eta=0.05 * m.psi_f)
+        ge = analysis.equilibria_traced(obs, m, OperatingPoint(w, i), method="generic")
+        eso = analysis.eso_equilibria(w, i, obs.linear_gains(w, i), m, mh, a=a_,
+                                      eta=0.05 * m.psi_f)
+        return ge, eso
+
+    ge, eso = jax.vmap(both)(jnp.asarray(w0), jnp.asarray(i0), jnp.asarray(fac),
+                             jnp.asarray(a))
+    ok = (np.asarray(ge.status) >= 0) & (np.asarray(eso.status) >= 0)
+    lin = a == 1.0
+    # linear feedback: the generic route always resolves; fal's kinks (slope jumps at
+    # |e| = eta) can stall its inner Gauss-Newton steps, which it reports as degenerate
+    # (that is why `equilibria(method="auto")` takes zhang2022's reduction for fal)
+    assert ok[lin].mean() > 0.999 and ok[~lin].mean() > 0.9
+    assert np.all(np.asarray(eso.status) >= 0)
+    same = np.asarray(ge.status) == np.asarray(eso.status)
+    same &= np.asarray(ge.n) == np.asarray(eso.n)
+    assert np.all(same[ok & lin])
+    assert same[ok & ~lin].mean() > 0.99  # fal: a close pair may hide in a stalled cell
+    K = 4
+    sel = ok & same
+    for f in ("theta", "stable"):
+        x = np.nan_to_num(np.asarray(getattr(ge, f))[sel][:, :K].astype(float), nan=9.0)
+        y = np.nan_to_num(np.asarray(getattr(eso, f))[sel][:, :K].astype(float), nan=9.0)
+        np.testing.assert_allclose(x, y, atol=1e-7)
+    assert np.sum(np.asarray(eso.status) == 2) > 0  # "no equilibrium" occurs
+
+
+def test_auto_method_takes_the_eso_reduction_for_fal():
+    m = SALIENT.three_phase_motor
+    obs = make_observer("eso", SALIENT)
+    w, i = _op(SALIENT)
+    auto = analysis.equilibria(obs, m, w, i)
+    ref = analysis.eso_equilibria(w, i, obs.linear_gains(w, i), m, m, a=obs.a, eta=obs.eta)
+    np.testing.assert_array_equal(np.asarray(auto.theta), np.asarray(ref.theta))
+    gen = analysis.equilibria(obs, m, w, i, method="generic")
+    v = np.asarray(gen.valid)
+    np.testing.assert_allclose(np.asarray(gen.theta)[v],
+                               np.asarray(ref.theta)[np.asarray(ref.valid)], atol=1e-8)
+
+
+def test_fig9_equilibrium_by_the_generic_route():
+    """zhang2022 Fig. 9's design on Table I: the nonzero equilibrium at
+    2 atan(w1 / (2 zeta1 w0)) = 53.13 deg at no load, unstable."""
+    m = DRIVE.three_phase_motor
+    obs = pj.LESOObserver(m, pj.ESODesign.fixed_ratio(0.5, 0.5))
+    eq = analysis.equilibria(obs, m, 0.2 * DRIVE.w_rated, (0.0, 0.0))
+    th = np.degrees(np.asarray(eq.theta)[np.asarray(eq.valid)])
+    assert int(eq.status) == 0 and len(th) == 2
+    np.testing.assert_allclose(th[1], math.degrees(2 * math.atan(0.5 / (2 * 0.5))), atol=1e-8)
+    assert not bool(np.asarray(eq.stable)[np.asarray(eq.valid)][1])
+
+
+def test_statuses_under_vmap_never_nan_or_raise():
+    """Standstill is degenerate for zhang2022's design, a large resistance error at low
+    speed leaves no equilibrium; both are statuses, under vmap, with no NaN elsewhere."""
+    m = DRIVE.three_phase_motor
+    obs = make_observer("leso", DRIVE)
+    mh = pj.PMSMParams(R_s=3.0 * m.R_s, L_d=m.L_d, L_q=m.L_q, psi_f=m.psi_f, n_p=m.n_p)
+
+    def one(w, k):
+        o = obs.with_motor(jax.tree_util.tree_map(lambda a, b: a + k * (b - a), m, mh))
+        return analysis.classify(o, m, w, jnp.array([0.0, 2.0 * DRIVE.base.I_b]))
+
+    w = jnp.array([0.0, 0.5, 0.01, 0.5]) * DRIVE.w_rated
+    k = jnp.array([0.0, 0.0, 1.0, 0.025])
+    c = jax.jit(jax.vmap(one))(w, k)
+    st = np.asarray(c.status)
+    assert st[0] == -1 and st[1] == 0 and st[2] == 2 and st[3] == 0, st
+    assert np.isfinite(np.asarray(c.principal_theta)[3])
+    assert abs(float(c.principal_theta[3])) > 1e-3  # the resistance error shifts it
+    assert np.all(np.isnan(np.asarray(c.principal_theta)[:1]))
+
+
+def test_design_map_over_any_two_parameters_matches_the_closed_form():
+    drive = pj.replace_params(DRIVE, L_d=1e-3, L_q=12e-3)
+    obs = make_observer("leso", drive)
+    z, r = np.linspace(0.3, 3.0, 4), np.linspace(0.3, 2.0, 3)
+    kw = dict(i_dq=(0.0, 2.0))
+    fast = analysis.design_map(obs, drive, [0.2], ("zeta1", z), ("ratio", r), **kw)
+    gen = analysis.design_map(obs, drive, [0.2], ("zeta1", z), ("ratio", r),
+                              method="generic", **kw)
+    old = analysis.feasibility_map(drive, [0.2], z, r, **kw)
+    assert fast.method == "closed_form" and gen.method == "generic"
+    np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(gen.status))
+    np.testing.assert_array_equal(np.asarray(old.status), np.asarray(gen.status))
+    assert np.any(np.asarray(gen.status) == 1) and np.any(np.asarray(gen.status) == 0)
+    # axes that are not zhang2022's: bandwidth x damping of the speed loop, with mismatch
+    mism = obs.with_motor(pj.replace_params(drive, L_q=9e-3).three_phase_motor)
+    other = analysis.design_map(mism, drive, [0.3], ("w2", [150.0, 300.0]),
+                                ("zeta2", [0.7, 1.5]), **kw)
+    assert other.method == "generic" and other.x_name == "w2"
+    assert np.all(np.isin(np.asarray(other.status), [0, 1, 2]))
+    with pytest.raises(ValueError, match="no design parameter 'k1'.*w2"):
+        analysis.design_map(obs, drive, [0.2], ("k1", z), ("ratio", r))
+    with pytest.raises(ValueError, match="closed-form"):
+        analysis.design_map(mism, drive, [0.2], ("zeta1", z), ("ratio", r),
+                            plant=drive.three_phase_motor, method="closed_form")
