@@ -1,6 +1,6 @@
 """Recorded drive data: the file format read and written by `pmsmjax plant` and `replay`.
 
-One format for data from a simulation, another tool or a real drive (CONVENTIONS.md,
+One format for data from a simulation, another tool or a real drive (docs/conventions.md,
 "Recorded drive data"), stored either as NPZ (one named array each) or as CSV (one row per
 sample, a header row with the names, 2-vectors split into `_a`/`_b` columns such as
 `u_ab_a`, `u_ab_b`):

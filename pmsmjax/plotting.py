@@ -8,7 +8,7 @@ bare `fig` as the last expression of a cell display it.
 
 Per-unit scaling: speeds are fractions of the rated speed `drive.w_rated`, torques of the
 rated torque `drive.tau_rated`, currents of `drive.base.I_b` and voltages of
-`drive.base.U_b` (CONVENTIONS.md, "Per unit"). Angles are in degrees, time in s.
+`drive.base.U_b` (docs/conventions.md, "Per unit"). Angles are in degrees, time in s.
 """
 
 from __future__ import annotations

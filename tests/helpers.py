@@ -1,7 +1,7 @@
 """Independent reference models and small utilities for the tests.
 
 Nothing here calls the library's models: the equations are written out by hand from the
-textbook PMSM model (CONVENTIONS.md) so that they can serve as a reference.
+textbook PMSM model (docs/conventions.md) so that they can serve as a reference.
 """
 
 from __future__ import annotations

@@ -327,3 +327,34 @@ def test_design_map_over_any_two_parameters_matches_the_closed_form():
     with pytest.raises(ValueError, match="closed-form"):
         analysis.design_map(mism, drive, [0.2], ("zeta1", z), ("ratio", r),
                             plant=drive.three_phase_motor, method="closed_form")
+
+
+def test_non_minimum_norm_gains_the_eso_reduction_declines_are_solved_generically():
+    """zhang2022's reduction (`eso_equilibria`) needs kappa = 1 - u.JG1u/w0 > 0 (its
+    scalar equation is then monotone); null-space components of (19) with zeta1 > 1 can
+    make kappa <= 0, and it reports status -1 rather than guess. The generic route has no
+    such condition: its equilibria are checked here against scipy's `fsolve` started
+    from a dense grid of angles (an independent multi-start reference)."""
+    from scipy.optimize import fsolve
+
+    m = pj.replace_params(DRIVE, L_d=1.5e-3, L_q=4e-3).three_phase_motor
+    design = pj.ESODesign.fixed_ratio(3.4265431030687195, 1.513093809771197,
+                                      n2=2617.49948792537, n3=2610434.542726609)
+    obs = pj.LESOObserver(m, design)
+    w, i = 0.834268198709379 * DRIVE.w_rated, jnp.array([0.0, -13.50209198])
+    assert int(analysis.eso_equilibria(w, i, obs.linear_gains(w, i), m).status) == -1
+    eq = analysis.equilibria(obs, m, w, i)
+    assert int(eq.status) == 0
+    found = np.sort(np.asarray(eq.theta)[np.asarray(eq.valid)])
+    op = OperatingPoint(w, i)
+    D = np.asarray(obs.error_scale(op, m))
+    f = jax.jit(lambda z: obs.error_rhs(z * D, op, m) / D / w)
+    roots = []
+    for th in np.linspace(-np.pi, np.pi, 73)[:-1]:
+        z, info, ier, _ = fsolve(lambda z: np.asarray(f(jnp.asarray(z))),
+                                 np.array([0.0, 0.0, th, 0.0]), full_output=True)
+        if ier == 1 and np.max(np.abs(info["fvec"])) < 1e-10:
+            t = (z[2] + np.pi) % (2 * np.pi) - np.pi
+            if not any(abs(t - r) < 1e-6 for r in roots):
+                roots.append(t)
+    np.testing.assert_allclose(found, np.sort(roots), atol=1e-8)

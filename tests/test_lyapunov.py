@@ -94,9 +94,9 @@ def test_k1_bounds_the_remainder(cert):
     """||g(z) - A z|| <= k1 ||z||^2 on random points of the ball of radius r."""
     from pmsmjax.analysis._lyapunov import _ScaledDynamics, _state_scale
 
-    dyn = _ScaledDynamics(drive=DRIVE, design=DESIGN, i0=jnp.zeros(2),
-                          d=_state_scale(DRIVE, "pu", jnp.float64), a=1.0, eta=1.0,
-                          frame="observer")
+    obs = pj.LESOObserver(DRIVE.three_phase_motor, DESIGN)
+    dyn = _ScaledDynamics(observer=obs, plant=DRIVE.three_phase_motor, i0=jnp.zeros(2),
+                          d=_state_scale(DRIVE, obs, "pu", jnp.float64), frame="observer")
     r, k1 = float(cert.r), float(cert.k1)
     z = np.random.default_rng(0).normal(size=(2000, 4))
     z = z / np.linalg.norm(z, axis=1, keepdims=True) * r * np.random.default_rng(1).uniform(

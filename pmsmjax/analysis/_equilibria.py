@@ -356,6 +356,16 @@ def eso_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams,
 
     Pure and vmappable (all shapes static); failures are reported in `status`, never
     raised. See the module docstring for the method.
+
+    !!! note
+        The reduction needs $\kappa = 1 - u\cdot JG_1u/\omega_0 > 0$, which makes its
+        scalar equation in $s$ monotone. The minimum-norm gains zhang2022 (25) give
+        $\kappa = \omega_1^2/\omega_0^2 > 0$; null-space components of (19)
+        (`ESODesign(n2=..., n3=...)`) rotate $u$ away from $\psi_{a0}$ and can make
+        $\kappa \le 0$ (mostly with $\zeta_1 > 1$): then $s(\tilde\theta)$ need not
+        be unique and this route reports status -1 instead of guessing. The generic
+        route (`analysis.equilibria`) has no such condition and handles those gains
+        (tested against a multi-start `scipy.optimize.fsolve`).
     """
     check_frame("eso_equilibria", frame)
     if not isinstance(n_grid, int) or n_grid < 16:
