@@ -26,7 +26,7 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-from . import analysis as analysis, observers as observers  # noqa: E402
+from . import analysis as analysis, observers as observers, papers as papers  # noqa: E402
 from ._control import (  # noqa: E402
     FOC as FOC,
     CurrentController as CurrentController,
@@ -34,13 +34,6 @@ from ._control import (  # noqa: E402
     SpeedController as SpeedController,
     limit_vector as limit_vector,
     mtpa_i_d as mtpa_i_d,
-)
-from ._experiments import (  # noqa: E402
-    ZHANG_EXPERIMENTS as ZHANG_EXPERIMENTS,
-    ExperimentResult as ExperimentResult,
-    ZhangExperiment as ZhangExperiment,
-    zhang_equilibria as zhang_equilibria,
-    zhang_experiment as zhang_experiment,
 )
 from ._frames import (  # noqa: E402
     J as J,
@@ -64,6 +57,13 @@ from ._io import (  # noqa: E402
     load_recording as load_recording,
     save_recording as save_recording,
 )
+from ._metrics import (  # noqa: E402
+    error_stats as error_stats,
+    replay_stats as replay_stats,
+    settled_mask as settled_mask,
+    settling_time as settling_time,
+    trajectory_metrics as trajectory_metrics,
+)
 from ._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
 from ._params import (  # noqa: E402
     PRESET_NAMES as PRESET_NAMES,
@@ -77,12 +77,7 @@ from ._params import (  # noqa: E402
     preset as preset,
     replace_params as replace_params,
 )
-from ._replay import (  # noqa: E402
-    replay as replay,
-    replay_estimates as replay_estimates,
-    replay_stats as replay_stats,
-    settling_time as settling_time,
-)
+from ._replay import replay as replay, replay_estimates as replay_estimates  # noqa: E402
 from ._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
 from ._simulate import (  # noqa: E402
     PlantTrace as PlantTrace,

@@ -182,15 +182,6 @@ class PMSM(eqx.Module):
             d = d + amp * jnp.stack([-jnp.sin(ang), -jnp.cos(ang)], axis=-1)
         return d
 
-    def psi_pm_xy(self, theta):
-        """PM flux linkage in the x-y subspace of a dual three-phase machine (V s)."""
-        p = self._ab
-        psi = jnp.zeros(jnp.shape(theta) + (2,), dtype=jnp.result_type(theta, float))
-        for h, a, ph in self._harmonics(xy=True):
-            ang = h * theta + ph
-            psi = psi + p.psi_f * a / abs(h) * jnp.stack([jnp.cos(ang), -jnp.sin(ang)], -1)
-        return psi
-
     # -- algebraic outputs ---------------------------------------------------------------
     def flux_dq(self, y: PlantState):
         p = self._ab

@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._validate import check_finite, check_positive, check_range, is_concrete
+from ._validate import check_finite, check_positive, is_concrete
 
 
 class EMFHarmonics(eqx.Module):
@@ -321,12 +321,8 @@ class Drive(eqx.Module):
         return (3.0 if self.dual else 1.5) * self.motor.n_p
 
 
-def check_angle(owner: str, name: str, value) -> None:
-    check_range(owner, name, value, -4 * math.pi, 4 * math.pi, "rad")
-
-
 # ---------------------------------------------------------------------------------------
-# Presets (CONVENTIONS.md, "Motor presets")
+# Presets
 # ---------------------------------------------------------------------------------------
 
 def _zhang750() -> Drive:
@@ -411,8 +407,8 @@ def _li_dtp() -> Drive:
         i_max=I_peak,
         name="li_dtp",
         notes=(
-            "li-fa-leso gives no machine table; everything here is assumed "
-            "(CONVENTIONS.md): dual three-phase IPMSM, 5 pole pairs, 600 rpm = 50 Hz, "
+            "li-fa-leso gives no machine table; everything here is assumed: "
+            "dual three-phase IPMSM, 5 pole pairs, 600 rpm = 50 Hz, "
             "R_s 0.5 Ohm, L_d 6 mH, L_q 10 mH, psi_f 0.2 V s per set, 30 deg shifted sets, "
             "8 A peak rated current, back-EMF 5th (3 %) and 7th (2 %) harmonics, "
             "L_xy = 1 mH, J = 0.02 kg m^2, u_dc = 300 V, rated torque 3 n_p psi_f I."
@@ -431,7 +427,7 @@ PRESET_NAMES = tuple(_PRESETS)
 
 
 def preset(name: str) -> Drive:
-    """One of the motor presets of CONVENTIONS.md as a `Drive`.
+    """One of the motor presets (`PRESET_NAMES`) as a `Drive`.
 
     - `"zhang750"`: zhang2022 Table I, 750 W PMSM.
     - `"stumper_mt5"`: stumper Table I, MT5 IPMSM.

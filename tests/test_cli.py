@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from pmsmjax.__main__ import COMMANDS, build_parser, main
+from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
+from pmsmjax.observers import make_observer
 
 
 T_END = 0.2  # s: short enough to be quick, long enough to reach speed and draw current
+DRIVE = pj.preset("zhang750")
 
 SIMULATE_KEYS = {
     "motor", "preset_notes", "scenario", "T_s", "steps", "wall_time_s", "compile_time_s",
@@ -40,8 +42,8 @@ def test_simulate_writes_files(sim_dir):
     assert summary["max_current"]["A"] > 0
 
     traj = np.load(sim_dir / "trajectory.npz")
-    fields = {f for f in pj.Trajectory.__dataclass_fields__}
-    assert fields <= set(traj.files)
+    fields = {f for f in pj.Trajectory.__dataclass_fields__} - {"extras"}
+    assert fields <= set(traj.files)  # extras: under their own names (none when sensored)
     assert traj["t"].shape == (summary["steps"],)
     assert traj["i_dq"].shape == (summary["steps"], 2)
     assert int(traj["status"]) == 0
@@ -63,6 +65,83 @@ def test_simulate_prints_summary(tmp_path, capsys):
     assert not (tmp_path / "simulation.png").exists()
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["scenario"]["load_pu"] is None
+
+
+def test_replay_writes_every_estimate(sim_dir, tmp_path, capsys):
+    """`replay --observer eso`: replay.npz holds the inputs, theta_hat, w_hat and every
+    extra of the Estimate (the zhang2022 observers' psi_ab_hat), the numbers of
+    `pj.replay_estimates` with the registry's observer."""
+    out = tmp_path / "replay"
+    assert main(["replay", "--observer", "eso", "--data", str(sim_dir / "recording.npz"),
+                 "--t-settle", "0.1", "--out", str(out)]) == 0
+    assert "angle error after 0.1 s" in capsys.readouterr().out
+    for name in ("replay.npz", "stats.json", "replay.png"):
+        assert (out / name).stat().st_size > 0, name
+    rec = pj.load_recording(sim_dir / "recording.npz")
+    est = pj.replay_estimates(make_observer("eso", DRIVE), rec)
+    with np.load(out / "replay.npz", allow_pickle=False) as f:
+        data = {k: f[k] for k in f.files}
+    assert set(data) == {"t", "u_ab", "i_ab", "theta", "w_m", "tau_L", "theta_hat", "w_hat",
+                         "psi_ab_hat"}
+    assert data["psi_ab_hat"].shape == (rec.n, 2)
+    np.testing.assert_array_equal(data["psi_ab_hat"], np.asarray(est.extras["psi_ab_hat"]))
+    np.testing.assert_array_equal(data["theta_hat"], np.asarray(est.theta_hat))
+    np.testing.assert_array_equal(data["u_ab"], rec.u_ab)
+    # still a recording: load_recording reads it (and ignores the extras)
+    assert pj.load_recording(out / "replay.npz").names[-2:] == ("theta_hat", "w_hat")
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["observer"] == "eso" and stats["t_settle"] == 0.1
+    assert stats["arrays"]["psi_ab_hat"].startswith("V s")
+    assert stats["observer_details"]["design"]["w2"] == pytest.approx(2 * np.pi * 50)
+
+
+def test_replay_observer_model_and_gains(sim_dir, tmp_path):
+    """--observer-set changes the observer's machine model (not the plant's), --gain a
+    design parameter; the shorthand --bandwidth HZ is --gain w2=2 pi HZ."""
+    out = tmp_path / "leso"
+    assert main(["replay", "--observer", "leso", "--observer-set", "L_q=3e-3",
+                 "--observer-set", "R_s=0.9", "--gain", "zeta2=0.8", "--bandwidth", "80",
+                 "--data", str(sim_dir / "recording.npz"), "--no-plot", "--out",
+                 str(out)]) == 0
+    assert not (out / "replay.png").exists()
+    motor = pj.replace_params(DRIVE, L_q=3e-3, R_s=0.9).motor
+    obs = make_observer("leso", DRIVE, motor=motor, zeta2=0.8, w2=2 * np.pi * 80)
+    est = pj.replay_estimates(obs, pj.load_recording(sim_dir / "recording.npz"))
+    with np.load(out / "replay.npz", allow_pickle=False) as f:
+        np.testing.assert_array_equal(f["theta_hat"], np.asarray(est.theta_hat))
+        np.testing.assert_array_equal(f["psi_ab_hat"], np.asarray(est.extras["psi_ab_hat"]))
+    stats = json.loads((out / "stats.json").read_text())
+    model = stats["observer_details"]["model"]
+    assert model["L_q"] == 3e-3 and model["R_s"] == 0.9 and model["L_d_ratio"] == 1.0
+    assert stats["observer_details"]["mismatch"]
+    assert stats["observer_details"]["design"]["given"] == {"w2": pytest.approx(
+        2 * np.pi * 80), "zeta2": 0.8}
+
+
+def test_simulate_with_a_sensorless_observer(tmp_path, capsys):
+    """`simulate --observer NAME` runs any observer of the registry in the loop; its
+    extras go into trajectory.npz under their names."""
+    assert main(["simulate", "--observer", "eso", "--gain", "w2=400", "--scenario",
+                 "load-step", "--t-end", "0.05", "--no-plot", "--out", str(tmp_path)]) == 0
+    assert "observer eso, w2 = 400" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["observer"] == "eso" and summary["status"] == "successful"
+    assert summary["observer_details"]["design"]["w2"] == 400
+    traj = np.load(tmp_path / "trajectory.npz")
+    assert traj["psi_ab_hat"].shape == (summary["steps"], 2)
+
+
+def test_python_m_pmsmjax():
+    """`python -m pmsmjax` (the shim `pmsmjax/__main__.py`) runs the same command line."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "pmsmjax", "--version"], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0 and res.stdout.startswith("pmsmjax "), res
+    res = subprocess.run([sys.executable, "-m", "pmsmjax", "equilibria", "--gain", "x=1"],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "no design parameter 'x'" in res.stderr, res
 
 
 def test_plant_reproduces_simulation(sim_dir, tmp_path):
@@ -171,6 +250,23 @@ def _write_bad_csv(tmp_path):
         (["plant", "--data", "DIR/none.npz", "--out", "OUT"], "No such file"),
         (["plant", "--data", "DIR/data.json", "--out", "OUT"], "unknown file extension"),
         (["plant", "--data", "BADCSV", "--out", "OUT"], "missing: `u_ab` (V)"),
+        (["simulate", "--observer", "kalman"],
+         "argument --observer: invalid choice: 'kalman' (choose from 'sensored', 'eso'"),
+        (["simulate", "--gain", "w2=300"],
+         "--gain w2=300: the sensored observer has no design parameter 'w2'; allowed: none"),
+        (["simulate", "--observer", "leso", "--gain", "eta=0.01"],
+         "--gain eta=0.01: the leso observer has no design parameter 'eta'; allowed: w2,"),
+        (["simulate", "--observer", "eso", "--observer-set", "J=1"],
+         "--observer-set J=1: unknown parameter 'J' of the observer's machine model; "
+         "allowed: R_s (Ohm), L_d (H), L_q (H), psi_f (V s)"),
+        (["simulate", "--observer", "eso", "--observer-set", "psi_f=-0.1"],
+         "--observer-set psi_f=-0.1: `PMSMParams(psi_f=...)` (V s) must be finite and >= 0"),
+        (["replay", "--data", "DIR/none.npz", "--out", "OUT", "--observer", "afo", "--gain",
+          "ratio=0.5"], "the fixed_ratio flux schedule needs zeta1 as well"),
+        (["replay", "--data", "DIR/none.npz", "--out", "OUT", "--zeta1", "1"],
+         "--zeta1 1: give --zeta1 with --ratio"),
+        (["replay", "--data", "DIR/none.npz", "--out", "OUT", "--schedule", "zhang38",
+          "--ratio", "1"], "--ratio: not used by --schedule zhang38"),
         (["frobnicate"], "invalid choice: 'frobnicate'"),
         ([], "required: COMMAND"),
     ],
@@ -195,7 +291,7 @@ def test_diverged_run_exits_1(tmp_path, monkeypatch, capsys):
     absurd gains, so the divergence is injected into the returned status.)"""
     import equinox as eqx
 
-    import pmsmjax.__main__ as cli
+    import pmsmjax.cli._simulate as cli
 
     real = cli.compile_and_run
 

@@ -1,5 +1,9 @@
 """`pmsmjax feasibility`, `pmsmjax equilibria`, `pmsmjax certify`, run in-process through
-`main([...])` and compared with the `pmsmjax.analysis` functions they wrap."""
+`main([...])` and compared with the `pmsmjax.analysis` functions they wrap.
+
+The generic equilibria route compiles once per observer structure and process (about 10-30
+s here), so the equilibria tests share one: the LESO with the fixed-ratio flux design
+(`--zeta1 --ratio`); mismatch only changes leaves, not the structure."""
 
 import json
 import math
@@ -9,7 +13,8 @@ import pytest
 
 import pmsmjax as pj
 from pmsmjax import analysis
-from pmsmjax.__main__ import main
+from pmsmjax.cli import main
+from pmsmjax.observers import make_observer
 
 
 DRIVE = pj.preset("zhang750")
@@ -18,9 +23,10 @@ DRIVE = pj.preset("zhang750")
 SALIENT = ["--set", "L_d=1e-3", "--set", "L_q=4.9e-3"]
 SALIENT_DRIVE = pj.replace_params(DRIVE, L_d=1e-3, L_q=4.9e-3)
 FEASIBILITY_KEYS = {"zeta1", "ratio", "status", "n_nonzero", "stable_theta_deg", "speed",
-                    "no_equilibrium", "principal_stable", "principal_theta_deg", "i_dq",
-                    "zeta2", "w2", "mismatch_L_d", "mismatch_L_q", "w_rated", "I_b", "motor",
-                    "method"}
+                    "principal_stable", "principal_theta_deg", "i_dq", "zeta2", "w2",
+                    "mismatch_R_s", "mismatch_L_d", "mismatch_L_q", "mismatch_psi_f",
+                    "w_rated", "I_b", "motor", "method", "x", "y", "x_name", "y_name",
+                    "observer", "observer_class", "design", "observer_model", "status_codes"}
 
 
 def _strict_json(text):
@@ -42,10 +48,13 @@ def test_help(command, capsys):
     assert main([command, "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
     for option in ("--motor", "--set", "--i-d", "--i-q", "--zeta2", "--w2", "--mismatch-L-d",
-                   "--mismatch-L-q", "--zeta1", "--ratio"):
+                   "--mismatch-L-q", "--mismatch-R-s", "--mismatch-psi-f", "--zeta1", "--ratio",
+                   "--observer", "--observer-set", "--gain"):
         assert option in text, option
     assert "--speed-range" in text if command == "certify" else "--speed" in text
     assert "rad/s" in text and "p.u." in text and "Drive.base.I_b" in text
+    assert "one of eso, leso, afo" in text  # the registry's names
+    assert ("--x NAME=LO:HI:N" in text) == (command == "feasibility")
 
 
 def test_feasibility_file_matches_the_api(tmp_path, capsys):
@@ -64,7 +73,10 @@ def test_feasibility_file_matches_the_api(tmp_path, capsys):
         assert data[key].shape == (9, 11), key  # (N2, N1): ratio x zeta1
     assert data["speed"].shape == () and float(data["speed"]) == 0.5
     st = data["status"]
-    assert set(np.unique(st)) <= {-1, 0, 1}
+    assert set(np.unique(st)) <= {-1, 0, 1, 2}
+    assert str(data["x_name"]) == "zeta1" and str(data["y_name"]) == "ratio"
+    np.testing.assert_array_equal(data["x"], z)
+    assert str(data["observer"]) == "leso" and str(data["method"]) == "closed_form"
     assert np.all(st[0] == -1)  # ratio 0: degenerate
     assert np.any(st == 1) and np.any(st == 0)  # the salient machine has both
     assert np.all(np.isfinite(data["stable_theta_deg"]) == (st == 1))  # NaN if none
@@ -82,8 +94,8 @@ def test_feasibility_file_matches_the_api(tmp_path, capsys):
                                np.degrees(np.asarray(c.stable_theta)), rtol=1e-13)
 
     counts = {s: int(np.sum(st == s)) for s in (0, 1, -1)}
-    assert (f"speed 0.5 p.u.: feasible {counts[0]}, infeasible {counts[1]}, degenerate "
-            f"{counts[-1]}") in printed
+    assert (f"speed 0.5 p.u.: feasible {counts[0]}, infeasible {counts[1]}, no equilibrium "
+            f"0, degenerate {counts[-1]}") in printed
     assert str(out / "feasibility.npz") in printed and str(out / "feasibility.png") in printed
 
 
@@ -95,7 +107,7 @@ def test_feasibility_several_speeds_and_standstill(tmp_path):
     with np.load(tmp_path / "feasibility.npz", allow_pickle=False) as f:
         data = {k: f[k] for k in f.files}
     np.testing.assert_array_equal(data["speed"], [0.2, 1.0, 0.0])
-    for key in ("status", "n_nonzero", "stable_theta_deg", "no_equilibrium"):
+    for key in ("status", "n_nonzero", "stable_theta_deg", "principal_stable"):
         assert data[key].shape == (3, 3, 4), key  # (speed, N2, N1)
     fm = analysis.feasibility_map(SALIENT_DRIVE, [0.2, 1.0], np.linspace(0.5, 2, 4),
                                   np.linspace(0.5, 2, 3), i_dq=(0.0, 2.0))
@@ -112,16 +124,20 @@ def test_feasibility_with_inductance_mismatch(tmp_path, capsys):
                  "--no-plot", "--out", str(tmp_path)]) == 0
     assert "(general)" in capsys.readouterr().out
     with np.load(tmp_path / "feasibility.npz", allow_pickle=False) as f:
-        st, none = f["status"], f["no_equilibrium"]
+        st = f["status"]
         assert float(f["mismatch_L_d"]) == 0.7 and str(f["method"]) == "general"
+        assert float(f["mismatch_R_s"]) == 1.0
     m = DRIVE.motor
     m_hat = pj.PMSMParams(R_s=m.R_s, L_d=0.7 * m.L_d, L_q=1.5 * m.L_q, psi_f=m.psi_f,
                           n_p=m.n_p)
     fm = analysis.feasibility_map(DRIVE, [0.05], [0.5, 2.0], [0.5, 1.0], i_dq=(0.0, 1.0),
                                   motor_hat=m_hat)
     api = np.asarray(fm.status)[0, 0].T
-    np.testing.assert_array_equal(none, api == 2)  # "no equilibrium" is reported as -1
-    np.testing.assert_array_equal(st, np.where(api == 2, -1, api))
+    np.testing.assert_array_equal(st, api)  # "no equilibrium" is its own status, 2
+
+
+def _leso(**kw):
+    return make_observer("leso", DRIVE, **kw)
 
 
 def test_equilibria_json_fig9_design(capsys):
@@ -131,25 +147,27 @@ def test_equilibria_json_fig9_design(capsys):
     report = _strict_json(captured.out)  # stdout holds the JSON and nothing else
     assert captured.err == ""
     w0, i0 = 0.5 * float(DRIVE.w_rated), np.zeros(2)
-    gains = pj.ESODesign.fixed_ratio(0.5, 0.5)(DRIVE.motor, w0, i0)
-    eq = analysis.eso_equilibria(w0, i0, gains, DRIVE.motor)
+    # the CLI is analysis.equilibria of the default observer (the LESO) with this design
+    eq = analysis.equilibria(_leso(zeta1=0.5, ratio=0.5), DRIVE.motor, w0, i0)
     valid = np.asarray(eq.valid)
     got = report["equilibria"]
     assert report["status"] == "ok" and len(got) == int(eq.n) == 2
-    np.testing.assert_allclose([e["theta_deg"] for e in got],
-                               np.degrees(np.asarray(eq.theta)[valid]), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal([e["theta_rad"] for e in got], np.asarray(eq.theta)[valid])
     assert [e["stable"] for e in got] == list(np.asarray(eq.stable)[valid])
-    # the designed equilibrium at 0 and the one of tan(theta/2) = w1/(2 zeta1 w0) = 0.5
-    np.testing.assert_allclose(sorted(abs(e["theta_deg"]) for e in got),
-                               [0.0, 2 * math.degrees(math.atan(0.5))], atol=1e-9)
     for e, k in zip(got, np.flatnonzero(valid)):
-        A = analysis.eso_linearization(w0, i0, gains, DRIVE.motor, x=np.asarray(eq.x)[k])
-        ev = np.linalg.eigvals(np.asarray(A))
+        ev = np.linalg.eigvals(np.asarray(eq.jacobian)[k])
         got_ev = np.array([v["re"] + 1j * v["im"] for v in e["eigenvalues"]])
         np.testing.assert_allclose(np.sort_complex(got_ev), np.sort_complex(ev), rtol=1e-12)
         assert e["stable"] == bool(np.max(ev.real) < 0)
-    assert report["feasibility_status"] == int(analysis.classify_designs(
-        DRIVE.motor, w0, i0, 0.5, 0.5).status)
+        assert list(e["state"]) == ["psi_d", "psi_q", "theta", "w"]
+    # zhang2022's closed form: the designed equilibrium at 0 and the one of
+    # tan(theta/2) = w1/(2 zeta1 w0) = 0.5 (`tests/test_contract.py` compares the generic
+    # route with zhang2022's own in detail)
+    np.testing.assert_allclose(sorted(abs(e["theta_deg"]) for e in got),
+                               [0.0, 2 * math.degrees(math.atan(0.5))], atol=1e-7)
+    other_stable = any(e["stable"] and not e["designed"] for e in got)
+    assert report["feasibility_status"] == int(other_stable)
+    assert report["feasibility"] == ("infeasible" if other_stable else "feasible")
 
 
 def test_equilibria_table_and_file(tmp_path, capsys):
@@ -160,6 +178,60 @@ def test_equilibria_table_and_file(tmp_path, capsys):
     assert "design feasible" in out and str(tmp_path / "equilibria.json") in out
     report = _strict_json((tmp_path / "equilibria.json").read_text())
     assert report["design"]["schedule"] == "zhang38" and report["feasibility_status"] == 0
+
+
+EQUILIBRIUM_KEYS = {"theta_deg", "theta_rad", "designed", "stable", "tangent", "eigenvalues",
+                    "max_real_eigenvalue", "state", "residual"}
+
+
+def test_equilibria_mismatch_json_schema(capsys):
+    """`--observer leso --mismatch-L-q 1.5 --json`: the schema of every observer, state
+    names and units from `observer.coordinates`; the designed equilibrium moves off 0."""
+    assert main(["equilibria", "--observer", "leso", "--mismatch-L-q", "1.5", "--i-q", "1",
+                 "--json"]) == 0
+    report = _strict_json(capsys.readouterr().out)
+    assert {"command", "motor", "operating_point", "observer", "design", "status",
+            "status_code", "n_equilibria", "n_nonzero", "feasibility_status", "feasibility",
+            "coordinates", "units", "equilibria"} <= set(report)
+    coords = pj.LESOObserver.coordinates
+    assert [c["name"] for c in report["coordinates"]] == list(coords.names)
+    assert [c["unit"] for c in report["coordinates"]] == list(coords.units)
+    assert report["units"]["state"] == dict(zip(coords.names, coords.units))
+    obs = report["observer"]
+    assert obs["name"] == "leso" and obs["class"] == "LESOObserver" and obs["mismatch"]
+    assert obs["model"]["L_q_ratio"] == pytest.approx(1.5)
+    assert obs["model"]["L_q"] == pytest.approx(1.5 * float(DRIVE.motor.L_q))
+    assert obs["model"]["L_d_ratio"] == 1.0
+    assert report["design"]["schedule"] == "zhang38" and report["design"]["observer"] == "leso"
+    assert report["status"] == "ok" and report["status_code"] == 0
+    assert report["n_equilibria"] == len(report["equilibria"]) >= 1
+    for e in report["equilibria"]:
+        assert set(e) == EQUILIBRIUM_KEYS
+        assert list(e["state"]) == list(coords.names)
+        assert len(e["eigenvalues"]) == coords.n
+    designed = [e for e in report["equilibria"] if e["designed"]]
+    assert len(designed) == 1 and abs(designed[0]["theta_deg"]) > 1  # static error
+    m_hat = pj.replace_params(DRIVE, L_q=1.5 * float(DRIVE.motor.L_q)).motor
+    eq = analysis.equilibria(_leso(motor=m_hat), DRIVE.motor, 0.5 * float(DRIVE.w_rated),
+                             np.array([0.0, 1.0]) * float(DRIVE.base.I_b))
+    np.testing.assert_array_equal([e["theta_rad"] for e in report["equilibria"]],
+                                  np.asarray(eq.theta)[np.asarray(eq.valid)])
+
+
+def test_equilibria_no_equilibrium_is_its_own_status(capsys):
+    """A mismatch without any equilibrium: status 'no equilibrium' (code 2) in the text and
+    the JSON, exit 0; --observer-set gives the same observer model as --mismatch-L-q."""
+    base = ["equilibria", "--i-q", "2", "--speed", "0.02", "--zeta1", "0.5", "--ratio", "0.25"]
+    assert main([*base, "--mismatch-L-q", "1.5"]) == 0
+    out = capsys.readouterr().out
+    assert "0 equilibria; status no equilibrium; design no equilibrium" in out
+    L_q = repr(1.5 * float(DRIVE.motor.L_q))
+    assert main([*base, "--observer-set", f"L_q={L_q}", "--json"]) == 0
+    report = _strict_json(capsys.readouterr().out)
+    assert report["status"] == "no equilibrium" and report["status_code"] == 2
+    assert report["feasibility_status"] == 2 and report["feasibility"] == "no equilibrium"
+    assert report["equilibria"] == [] and report["observer"]["mismatch"]
+    assert report["observer"]["model"]["L_q_ratio"] == pytest.approx(1.5)
 
 
 def test_certify_matches_the_api(tmp_path, capsys):
@@ -196,6 +268,99 @@ def test_certify_matches_the_api(tmp_path, capsys):
     assert "computing" in captured.err
 
 
+def _fake_certificate(real):
+    """A stand-in for `slowly_varying_certificate` that records its arguments (the real
+    one with observer-model mismatch compiles for about a minute here; see the slow test
+    below) and returns a certificate with every constant 1."""
+    import dataclasses
+    import functools
+
+    seen = {}
+
+    @functools.wraps(real)  # keeps the signature: the CLI records the default resolution
+    def fake(drive, design, speed_range, **kw):
+        seen.update(drive=drive, observer=design, speed_range=speed_range, **kw)
+        values = {f.name: np.float64(1.0)
+                  for f in dataclasses.fields(analysis.LyapunovCertificate)}
+        values.update(speeds=np.linspace(*speed_range, 3), status=np.int32(0))
+        return analysis.LyapunovCertificate(**values)
+
+    return fake, seen
+
+
+def test_certify_passes_any_observer_with_mismatch(monkeypatch, tmp_path, capsys):
+    fake, seen = _fake_certificate(analysis.slowly_varying_certificate)
+    monkeypatch.setattr(analysis, "slowly_varying_certificate", fake)
+    assert main(["certify", "--observer", "eso", "--mismatch-R-s", "1.2", "--observer-set",
+                 "L_d=3e-3", "--gain", "w2=400", "--a", "0.7", "--speed-range", "0.3:1",
+                 "--i-q", "0.5", "--quick", "--out", str(tmp_path)]) == 0
+    obs = seen["observer"]
+    assert isinstance(obs, pj.ESOObserver) and seen["plant"] == DRIVE.motor
+    assert float(obs.motor.R_s) == pytest.approx(1.2 * float(DRIVE.motor.R_s))
+    assert float(obs.motor.L_d) == 3e-3 and float(obs.motor.L_q) == float(DRIVE.motor.L_q)
+    assert obs.design_parameters()["w2"] == 400 and obs.design_parameters()["a"] == 0.7
+    assert seen["speed_range"] == (0.3, 1.0) and seen["i_dq"] == (0.0, 0.5)
+    assert seen["n_speed"] == 21  # --quick
+    report = _strict_json((tmp_path / "certificate.json").read_text())
+    assert report["observer"]["name"] == "eso" and report["observer"]["mismatch"]
+    assert report["observer"]["model"]["R_s_ratio"] == pytest.approx(1.2)
+    assert report["design"]["w2"] == 400 and report["design"]["given"] == {"w2": 400,
+                                                                           "a": 0.7}
+    assert report["status"] == "ok"
+
+
+@pytest.mark.slow
+def test_certify_with_mismatch_matches_the_api(capsys):
+    args = ["certify", "--quick", "--n-speed", "3", "--n-dirs", "16", "--speed-range",
+            "0.3:1", "--i-q", "0.5", "--mismatch-L-q", "1.2"]
+    assert main(args) == 0
+    report = _strict_json(capsys.readouterr().out)
+    m_hat = pj.replace_params(DRIVE, L_q=1.2 * float(DRIVE.motor.L_q)).motor
+    resolution = {**report["resolution"], "alphas": tuple(report["resolution"]["alphas"])}
+    cert = analysis.slowly_varying_certificate(DRIVE, _leso(motor=m_hat), (0.3, 1.0),
+                                               i_dq=(0.0, 0.5), **resolution)
+    assert report["status"] == "ok" and int(cert.status) == 0
+    assert report["dw_dt_bound_rad_s2"] == pytest.approx(float(cert.eps), rel=1e-9)
+
+
+def test_feasibility_any_two_design_parameters(tmp_path, capsys):
+    """--x/--y over any two design parameters: the map of `analysis.design_map`."""
+    x, y = np.linspace(200, 400, 3), np.linspace(0.7, 1.3, 2)
+    assert main(["feasibility", *SALIENT, "--i-q", "2", "--x", "w2=200:400:3", "--y",
+                 "zeta2=0.7:1.3:2", "--gain", "zeta1=0.5",
+                 "--gain", "ratio=0.5", "--speed", "0.5", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    assert "3 x 2 designs (w2 x zeta2)" in printed
+    assert (tmp_path / "feasibility.png").stat().st_size > 0
+    with np.load(tmp_path / "feasibility.npz", allow_pickle=False) as f:
+        data = {k: f[k] for k in f.files}
+    assert str(data["x_name"]) == "w2" and str(data["y_name"]) == "zeta2"
+    np.testing.assert_array_equal(data["w2"], x)
+    np.testing.assert_array_equal(data["zeta2"], y)
+    assert float(data["zeta1"]) == 0.5 and float(data["ratio"]) == 0.5  # fixed design
+    assert data["status"].shape == (2, 3)  # (y, x)
+    obs = make_observer("leso", SALIENT_DRIVE, zeta1=0.5, ratio=0.5)
+    fm = analysis.design_map(obs, SALIENT_DRIVE, [0.5], ("w2", x), ("zeta2", y),
+                             i_dq=(0.0, 2.0))
+    np.testing.assert_array_equal(data["status"], np.asarray(fm.status)[0, 0].T)
+    assert str(data["method"]) == fm.method
+
+
+def test_observer_choices_come_from_the_registry(monkeypatch, capsys):
+    """An observer registered later appears in every command without touching the CLI, and
+    --gain checks its own design names."""
+    from pmsmjax.observers import _registry
+
+    monkeypatch.setitem(_registry._REGISTRY, "copy-leso", pj.LESOObserver)
+    for command in ("simulate", "replay", "feasibility", "equilibria", "certify"):
+        assert main([command, "--help"]) == 0
+        assert "copy-leso" in " ".join(capsys.readouterr().out.split()), command
+    assert main(["equilibria", "--observer", "copy-leso", "--gain", "a=0.5"]) == 2
+    line = _one_line_error(capsys)
+    assert "--gain a=0.5: the copy-leso observer has no design parameter 'a'" in line
+    assert "allowed: w2, zeta2," in line
+
+
 def _psi_a0_zero_current():
     m = DRIVE.motor
     return repr(-float(m.psi_f) / (float(m.L_d) - float(m.L_q)) / float(DRIVE.base.I_b))
@@ -220,7 +385,43 @@ def _psi_a0_zero_current():
     (["equilibria", "--i-d", _psi_a0_zero_current()], ["--i-d", "infinite"]),
     (["certify", "--speed-range", "0:1"], ["--speed-range", "0 < LO < HI"]),
     (["certify", "--speed-range", "1:0.5"], ["--speed-range", "LO < HI"]),
-    (["certify", "--mismatch-L-d", "1.2"], ["--mismatch-L-d", "allowed: 1"]),
+    (["certify", "--c3", "1.5"], ["--c3 1.5", "0 < C3 < 1"]),
+    # observers from the registry: --observer, --gain, --observer-set, --mismatch-*
+    (["equilibria", "--observer", "kalman"],
+     ["--observer", "invalid choice: 'kalman'", "'eso', 'leso', 'afo'"]),
+    (["equilibria", "--gain", "foo=1"],
+     ["--gain foo=1", "the leso observer has no design parameter 'foo'", "allowed: w2,"]),
+    (["feasibility", "--observer", "afo", "--gain", "a=0.5"],
+     ["--gain a=0.5", "the afo observer has no design parameter 'a'", "allowed: w2,"]),
+    (["equilibria", "--gain", "w2"], ["--gain", "'w2'", "NAME=VALUE"]),
+    (["equilibria", "--gain", "w2=fast"], ["--gain", "'w2=fast'", "not a number"]),
+    (["equilibria", "--w2", "100", "--gain", "w2=200"], ["--w2 100", "--gain w2=200",
+                                                         "give it once"]),
+    (["equilibria", "--schedule", "fixed_w1", "--zeta1", "1"],
+     ["--schedule fixed_w1 needs --w1 and --w-min", "allowed schedules"]),
+    (["equilibria", "--observer-set", "Lq=0.01"],
+     ["--observer-set Lq=0.01", "unknown parameter 'Lq'", "allowed: R_s (Ohm), L_d (H), "
+      "L_q (H), psi_f (V s)"]),
+    (["equilibria", "--observer-set", "L_q=-0.01"],
+     ["--observer-set L_q=-0.01", "L_q", "must be finite and > 0"]),
+    (["certify", "--observer-set", "L_q=big"], ["--observer-set", "'L_q=big'", "not a number"]),
+    (["equilibria", "--mismatch-L-q", "0"], ["--mismatch-L-q", "'0'", "> 0"]),
+    (["certify", "--mismatch-psi-f", "-1.5"], ["--mismatch-psi-f", "'-1.5'", "> 0"]),
+    (["equilibria", "--mismatch-L-q", "1.5", "--observer-set", "L_q=0.004"],
+     ["--mismatch-L-q 1.5", "--observer-set L_q=0.004", "both set the observer's L_q",
+      "allowed: one of the two"]),
+    # design axes of the map
+    (["feasibility", "--x", "zeta1"], ["--x", "'zeta1'", "NAME=LO:HI:N"]),
+    (["feasibility", "--x", "zeta1=0:5"], ["--x", "'0:5'", "LO:HI:N"]),
+    (["feasibility", "--y", "ratio=2:1:5"], ["--y", "LO <= HI"]),
+    (["feasibility", "--x", "foo=0:1:3", "--y", "ratio=0:2:3"],
+     ["--x foo=0:1:3", "the leso observer has no design parameter 'foo'", "allowed: w2,"]),
+    (["feasibility", "--x", "w2=100:200:3"], ["--x needs --y", "w2, zeta2"]),
+    (["feasibility", "--x", "w2=100:200:3", "--y", "w2=1:2:2"], ["different", "allowed"]),
+    (["feasibility", "--x", "w2=100:200:3", "--y", "zeta2=1:2:2", "--zeta1", "0:1:3"],
+     ["--zeta1/--ratio and --x/--y", "allowed: one of the two"]),
+    (["feasibility", "--x", "w2=100:200:3", "--y", "zeta2=1:2:2", "--w2", "300"],
+     ["--x w2", "both set w2"]),
 ])
 def test_bad_inputs_exit_2_with_one_line(argv, words, capsys):
     assert main(argv) == 2

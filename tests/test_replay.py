@@ -147,7 +147,7 @@ def test_cli_replay_end_to_end(recording, tmp_path, kind, ext, capsys):
     for name in ("replay.npz", "stats.json", "replay.png"):
         assert (out / name).stat().st_size > 0
     res = pj.load_recording(out / "replay.npz", require=("t", "theta_hat", "w_hat"))
-    obs = pj._replay.make_observer(kind, DRIVE)
+    obs = pj.observers.make_observer(kind, DRIVE)
     th, w = pj.replay(obs, data)  # zero initial angle and speed, default gains
     np.testing.assert_allclose(res.theta_hat, th, atol=1e-12)
     np.testing.assert_allclose(res.w_hat, w, rtol=1e-12, atol=1e-9)
@@ -187,7 +187,7 @@ def test_cli_replay_gain_overrides(recording, tmp_path):
 @pytest.mark.parametrize("extra,fragment", [
     (["--observer", "kalman"], "invalid choice"),
     (["--zeta2", "-1"], "zeta2"),
-    (["--bandwidth", "0"], "w2"),
+    (["--bandwidth", "0"], "--bandwidth: '0' must be a finite number > 0"),
     (["--a", "1.5"], "`a`|a="),
     (["--eta", "-0.1"], "eta"),
     (["--schedule", "fixed_ratio"], "zeta1"),

@@ -1,7 +1,7 @@
 """Sensorless closed loop with the zhang2022 observers, and the paper's experiments.
 
 Tolerances are stated per test. The simulated drive has no dead time or other inverter
-non-linearity and white current noise of 0.02 A (see `pmsmjax._experiments`), so the
+non-linearity and white current noise of 0.02 A (see `pmsmjax.papers.zhang2022`), so the
 steady-state errors are far below the paper's measured ones; the tests bound them at
 values the model must meet, not at the paper's numbers (those are compared side by
 side in notebooks/02_eso_observers.ipynb).
@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
+from pmsmjax.papers import zhang2022
 
 
 DRIVE = pj.preset("zhang750")
@@ -28,6 +29,11 @@ OBSERVERS = {
 }
 
 
+def stable_deg(eq):
+    """Angles (deg) of the stable equilibria of an `Equilibria`."""
+    return np.degrees(np.asarray(eq.theta)[np.asarray(eq.stable)])
+
+
 @pytest.mark.parametrize("kind", list(OBSERVERS))
 def test_converges_from_30_deg_on_a_loaded_ramp(kind):
     """Fig. 2: ramp to 0.05 p.u. against 0.1 p.u. load, theta_err(0) = 30 deg.
@@ -36,7 +42,7 @@ def test_converges_from_30_deg_on_a_loaded_ramp(kind):
     error has |mean| < 0.2 deg, std < 0.2 deg and the speed stays within 5 % (paper:
     0.11 deg, 0.69 deg, +-5 %).
     """
-    r = pj.zhang_experiment("fig2", observer=OBSERVERS[kind]()).run()
+    r = zhang2022.experiment("fig2", observer=OBSERVERS[kind]()).run()
     assert bool(r.traj.ok)
     err0 = np.degrees(float(r.traj.theta_err[0]))
     assert err0 == pytest.approx(30.0, abs=1e-9)
@@ -51,7 +57,7 @@ def test_converges_from_30_deg_on_a_loaded_ramp(kind):
 def test_steady_state_at_rated_speed_and_load():
     """Fig. 4: 1.0 p.u., rated load. Tolerance |mean| < 0.2 deg, std < 0.2 deg, speed
     within 1 % (paper: 0.07 deg, 0.08 deg, +-1 %)."""
-    r = pj.zhang_experiment("fig4").run()
+    r = zhang2022.experiment("fig4").run()
     s = r.stats["eso"]
     assert abs(s["theta_err_mean_deg"]) < 0.2 and s["theta_err_std_deg"] < 0.2
     assert s["w_track_err_max_pct"] < 1.0
@@ -64,7 +70,7 @@ def test_low_speed_one_percent():
     """Fig. 3: 0.01 p.u., 0.01 p.u. load. Without inverter non-linearities the simulated
     drive holds |mean| < 0.5 deg, std < 0.2 deg, speed within 15 % (paper: 1.45 deg,
     0.10 deg, +-15 %)."""
-    r = pj.zhang_experiment("fig3").run()
+    r = zhang2022.experiment("fig3").run()
     s = r.stats["eso"]
     assert abs(s["theta_err_mean_deg"]) < 0.5 and s["theta_err_std_deg"] < 0.2
     assert s["w_track_err_max_pct"] < 15.0
@@ -78,25 +84,24 @@ def test_resistance_error_gives_the_static_error_of_11(fig, w_pu):
     with (17)/(38) the flux gain acts along psi_a only and the q-axis drop R i_q is
     balanced through the angle, about 2 zeta1 w0 / w1 = 4 zeta1^2 / 3 times the
     voltage-model error R i_q / (w0 psi_f).)"""
-    exp = pj.zhang_experiment(fig, noise_std=0.0)
+    exp = zhang2022.experiment(fig, noise_std=0.0)
     obs = eqx.tree_at(lambda o: o.motor.R_s, exp.kwargs["observer"], 1.2 * M.R_s)
-    r = pj.zhang_experiment(fig, noise_std=0.0, observer=obs).run()
+    r = zhang2022.experiment(fig, noise_std=0.0, observer=obs).run()
     tr = r.traj
     mask = np.asarray(tr.t) >= exp.t_settle
     i_c = np.asarray(pj.park(tr.i_meas_ab, tr.theta_hat))[mask].mean(0)
-    eq = [x for x in pj.zhang_equilibria(obs.motor, obs.design, w_pu * WR, i_c, motor=M,
-                                         a=obs.a, eta=obs.eta) if x["stable"]]
+    eq = stable_deg(pj.analysis.equilibria(obs, M, w_pu * WR, i_c))
     assert len(eq) == 1
     s = r.stats["eso"]
     assert abs(s["theta_err_mean_deg"]) > 1.0
-    assert s["theta_err_mean_deg"] == pytest.approx(eq[0]["theta_err_deg"], abs=0.1)
+    assert s["theta_err_mean_deg"] == pytest.approx(eq[0], abs=0.1)
 
 
 def test_speed_steps():
     """Fig. 5: 0 -> 1 -> 0.5 p.u. without load, from standstill. The drive follows the
     steps (speed within 1 % at the end of each plateau) and the angle error, large
     while accelerating at the torque limit, returns below 0.3 deg."""
-    r = pj.zhang_experiment("fig5").run()
+    r = zhang2022.experiment("fig5").run()
     tr = r.traj
     t, w = np.asarray(tr.t), np.asarray(tr.w_m)
     assert w[np.searchsorted(t, 0.55)] == pytest.approx(WR, rel=0.01)
@@ -111,7 +116,7 @@ def test_load_steps():
     """Fig. 6: +0.25 / -0.25 p.u. load at 1.0 p.u. The speed dips by less than 10 %,
     the angle error stays below 5 deg and the speed estimate follows the dips (error
     below 3 % of rated speed during the steps, 0.1 % before the next step)."""
-    r = pj.zhang_experiment("fig6").run()
+    r = zhang2022.experiment("fig6").run()
     tr = r.traj
     w, w_hat = np.asarray(tr.w_m), np.asarray(tr.w_hat)
     dip = np.max(np.abs(WR - w)) / WR
@@ -143,13 +148,11 @@ def test_delay_noise_initial_error_and_mismatch_step():
     after = e[t >= 0.9]
     assert abs(before.mean()) < 0.2 and before.std() < 0.2
     i_c = np.asarray(pj.park(tr.i_meas_ab, tr.theta_hat))[t >= 0.9].mean(0)
-    m_hat = eqx.tree_at(lambda p: (p.R_s, p.L_d, p.L_q), M,
-                        (1.5 * M.R_s, 0.8 * M.L_d, 0.8 * M.L_q))
-    eq = [x for x in pj.zhang_equilibria(m_hat, obs.design, 0.5 * WR, i_c, motor=M,
-                                         a=obs.a, eta=obs.eta) if x["stable"]]
+    obs_hat = obs.with_motor(pj.scale_motor(M, {"R_s": 1.5, "L_d": 0.8, "L_q": 0.8}))
+    eq = stable_deg(pj.analysis.equilibria(obs_hat, M, 0.5 * WR, i_c))
     assert len(eq) == 1
     assert abs(after.mean()) > 3.0
-    assert after.mean() == pytest.approx(eq[0]["theta_err_deg"], abs=0.3)
+    assert after.mean() == pytest.approx(eq[0], abs=0.3)
 
 
 def test_infeasible_design_of_fig9():
@@ -158,22 +161,24 @@ def test_infeasible_design_of_fig9():
     from (31)), and it is *unstable* with the paper's own gains: the simulated drive
     converges to zero from the paper's -14.53 deg (the paper measures 23.18 deg)."""
     design = pj.ESODesign.fixed_ratio(0.5, 0.5, 2 * math.pi * 50)
-    eq = pj.zhang_equilibria(M, design, 0.5 * WR, (0.0, 0.0))
-    angles = [x["theta_err_deg"] for x in eq]
+    eq = pj.analysis.equilibria(pj.LESOObserver(M, design), M, 0.5 * WR, (0.0, 0.0))
+    valid = np.asarray(eq.valid)
+    angles = np.degrees(np.asarray(eq.theta)[valid])
     assert angles == pytest.approx([0.0, math.degrees(2 * math.atan(0.5))], abs=1e-3)
-    assert eq[0]["stable"] and not eq[1]["stable"]
-    r = pj.zhang_experiment("fig9").run()
+    assert list(np.asarray(eq.stable)[valid]) == [True, False]
+    r = zhang2022.experiment("fig9").run()
     assert np.degrees(float(r.traj.theta_err[0])) == pytest.approx(-14.53, abs=1e-9)
     s = r.stats["eso"]
     assert abs(s["theta_err_mean_deg"]) < 0.2
-    assert [x["stable"] for x in r.theory["equilibria"]] == [True, False]
+    eq = r.theory["equilibria"]
+    assert list(np.asarray(eq.stable)[np.asarray(eq.valid)]) == [True, False]
 
 
 def test_noise_at_equal_bandwidth_fig7():
     """Fig. 7 (sensing mode, 0.25 p.u., both at 250 Hz): the same angle error, but the
     AFO's speed estimate (the PI output of (53)) fluctuates more than 3x as much as the
     ESO's (the integral state of (10c))."""
-    r = pj.zhang_experiment("fig7").run()
+    r = zhang2022.experiment("fig7").run()
     eso, afo = r.stats["eso"], r.stats["afo"]
     assert eso["theta_err_std_deg"] == pytest.approx(afo["theta_err_std_deg"], rel=0.1)
     assert afo["w_err_std"] > 3 * eso["w_err_std"]
@@ -184,19 +189,17 @@ def test_half_inductance_under_load_fig10():
     """Fig. 10 with rated load: L/2 in the observer gives the static error that (11)
     predicts (within 0.2 deg), for the ESO and the AFO alike; at zero load (the
     paper's setting) the inductance hardly matters (< 0.1 deg)."""
-    exp = pj.zhang_experiment("fig10", load_pu=1.0)
+    exp = zhang2022.experiment("fig10", load_pu=1.0)
     r = exp.run()
     for name in ("eso_half_L", "afo_half_L"):
         obs = exp.observers[name]
         s = r.stats[name]
         i_est = pj.rotate(np.asarray(pj.park(r.traj.i_meas_ab, r.traj.theta))[800:]
                           .mean(0), math.radians(s["theta_err_mean_deg"]))
-        eq = [x for x in pj.zhang_equilibria(obs.motor, obs.design, 0.1 * WR, i_est,
-                                             motor=M, a=getattr(obs, "a", 1.0),
-                                             eta=getattr(obs, "eta", 1.0)) if x["stable"]]
+        eq = stable_deg(pj.analysis.equilibria(obs, M, 0.1 * WR, i_est))
         assert s["theta_err_mean_deg"] < -5.0
-        assert s["theta_err_mean_deg"] == pytest.approx(eq[0]["theta_err_deg"], abs=0.2)
-    r0 = pj.zhang_experiment("fig10").run()
+        assert s["theta_err_mean_deg"] == pytest.approx(eq[0], abs=0.2)
+    r0 = zhang2022.experiment("fig10").run()
     assert abs(r0.stats["eso_half_L"]["theta_err_mean_deg"]
                - r0.stats["eso"]["theta_err_mean_deg"]) < 0.1
 
@@ -207,7 +210,7 @@ def test_adaptive_and_fixed_gains_fig11():
     default neither pulls in from w_hat = 0: the 754 rad/s offset is beyond the
     speed loop's pull-in range; see the notebook)."""
     for w_pu, bw in ((0.2, 50.0), (0.6, 250.0)):
-        r = pj.zhang_experiment("fig11", w_pu=w_pu, bandwidth_hz=bw).run()
+        r = zhang2022.experiment("fig11", w_pu=w_pu, bandwidth_hz=bw).run()
         for name in ("adaptive", "fixed"):
             s = r.stats[name]
             assert s["t_w_converge_s"] < 0.1, (w_pu, name, s)

@@ -1,21 +1,25 @@
 r"""The experiments of zhang2022 (Sec. VI, Figs. 2-11) as named, reproducible simulations.
 
-`zhang_experiment(name, drive)` builds one experiment: the scenario, every argument of
-`simulate`, the observers to replay over the simulated record (for the paper's
-"sensing mode" figures) and the paper's published numbers. `ZhangExperiment.run()`
-simulates it and returns the estimates and error statistics. Tests, the notebook
-`02_eso_observers.ipynb` and the command line share these definitions.
+M. Zhang, B. Xia, J. Zhang, "Parameter Design and Convergence Analysis of Flux Observer for
+Sensorless PMSM Drives", IEEE Trans. Energy Convers. 37(4), 2022.
 
-Common settings (Sec. VI-A and the lead's design notes; everything the paper does not
-state is an assumption and is named here):
+`experiment(name, drive)` builds one experiment: the scenario, every argument of
+`simulate`, the observers to replay over the simulated record (for the paper's
+"sensing mode" figures) and the paper's published numbers. `Experiment.run()`
+simulates it and returns the estimates and error statistics (measured with
+`pmsmjax.replay_stats`, `settling_time` and `error_stats`). The tests and the notebook
+`02_eso_observers.ipynb` share these definitions; `EXPERIMENTS` lists the names.
+
+Common settings (Sec. VI-A; everything the paper does not state is an assumption and is
+named here):
 
 - machine: `preset("zhang750")` (Table I; inertia assumed, see `Drive.notes`);
 - sampling 8 kHz (`T_s = 125e-6` s), FOC with current bandwidth 2 pi 500 rad/s and speed
   bandwidth 2 pi 5 rad/s, `i_d = 0`, no computational delay;
 - speeds "in p.u." are fractions of `drive.w_rated`, loads of `drive.tau_rated`;
-- observer: `ESOObserver` with the design (38)/(25), `w2 = 2 pi 50` rad/s (Figs. 2-6,
-  9-11) or as the figure says (250/150 Hz in Figs. 7-8), `zeta2 = 1`, fal `a = 0.5`,
-  `eta = 0.05 psi_f` (the paper gives neither);
+- observer: `ESOObserver` with the design zhang2022 (38), (25), `w2 = 2 pi 50` rad/s
+  (Figs. 2-6, 9-11) or as the figure says (250/150 Hz in Figs. 7-8), `zeta2 = 1`, fal
+  `a = 0.5`, `eta = 0.05 psi_f` (the paper gives neither);
 - current-sensor noise: white, `noise_std = 0.02` A per component (assumed: about two
   LSB of a 12-bit converter over +-20 A; the paper reports no noise level). No dead time
   or other inverter non-linearity is modelled (the paper compensates them [37]), so the
@@ -33,29 +37,29 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import jax
-import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
-from ._control import FOC
-from ._frames import park
-from ._params import Drive, preset
-from ._replay import replay, replay_stats, settling_time
-from ._scenario import Profile, Scenario
-from ._simulate import Sensing, simulate
-from .observers import (
+from .._control import FOC
+from .._frames import park
+from .._metrics import error_stats, replay_stats, settling_time
+from .._params import Drive, preset
+from .._replay import replay
+from .._scenario import Profile, Scenario
+from .._simulate import Sensing, scale_motor, simulate
+from ..analysis import equilibria
+from ..observers import (
     AFOObserver,
     ESODesign,
     ESOObserver,
     FixedGains,
+    LESOObserver,
     SensoredObserver,
 )
-from .observers._eso_design import error_dynamics
 
 
-ZHANG_EXPERIMENTS = ("fig2", "fig3", "fig4", "fig5", "fig6", "fig7", "fig8", "fig9",
-                    "fig10", "fig11")
+EXPERIMENTS = ("fig2", "fig3", "fig4", "fig5", "fig6", "fig7", "fig8", "fig9", "fig10",
+               "fig11")
 
 #: Numbers printed in zhang2022 Sec. VI (angles in deg, times in s, bands in %).
 PUBLISHED = {
@@ -80,14 +84,17 @@ PUBLISHED = {
 
 @dataclasses.dataclass(frozen=True)
 class ExperimentResult:
-    """Output of `ZhangExperiment.run()`.
+    """Output of `Experiment.run()`.
 
     - `traj`: the `Trajectory` of the simulated drive.
     - `t`: time axis of the estimates (s); for replays it starts at 0 at `replay_from`.
     - `theta`, `w_m`: true angle (rad) and speed (rad/s) on `t`.
     - `estimates`: `{observer name: (theta_hat, w_hat)}` on `t`.
     - `stats`: `{observer name: dict}` from `replay_stats` plus experiment metrics.
-    - `theory`: extra computed references (Fig. 9: the equilibria of (11)).
+    - `theory`: extra computed references (Fig. 9: `i_dq0`, the mean current in the
+      estimated frame (A); `w0`, the speed (rad/s); `equilibria`, the `Equilibria` there
+      of the error dynamics zhang2022 (11) with linear feedback, which the paper's
+      analysis zhang2022 (34)-(36) assumes).
     """
 
     traj: object
@@ -100,7 +107,7 @@ class ExperimentResult:
 
 
 @dataclasses.dataclass(frozen=True)
-class ZhangExperiment:
+class Experiment:
     """One experiment of zhang2022 Sec. VI (see the module docstring).
 
     - `name`, `title`: e.g. `"fig2"`, and a one-line description.
@@ -155,89 +162,42 @@ class ZhangExperiment:
                                T_s=self.kwargs["T_s"])
                 estimates[name] = (np.asarray(th), np.asarray(w))
         stats = {}
+        w_abs = abs(self.w_op)
         for name, (th, w) in estimates.items():
             s = replay_stats(t, th, w, theta, w_m, t_settle=self.t_settle)
             w_err = w_m - w
-            s["t_w_converge_s"] = float(settling_time(t, w_err, 0.05 * abs(self.w_op)))
-            s["w_hat_overshoot_pct"] = float(
-                100 * (np.max(w) - np.max(w_m)) / abs(self.w_op))
+            s["t_w_converge_s"] = float(settling_time(t, w_err, 0.05 * w_abs))
+            s["w_hat_overshoot_pct"] = float(100 * (np.max(w) - np.max(w_m)) / w_abs)
             stats[name] = s
         if self.closed_loop:
             s = stats["eso"]
             mask = t >= self.t_settle
-            w_ref = np.asarray(traj.w_m_ref)
-            s["w_track_err_max_pct"] = float(
-                100 * np.max(np.abs(w_ref - w_m)[mask]) / abs(self.w_op))
-            s["theta_err_max_all_deg"] = float(np.max(np.abs(np.degrees(
-                np.asarray(traj.theta_err)))))
-            s["w_dip_max_pct"] = float(100 * np.max(np.abs(w_ref - w_m)) / abs(self.w_op))
+            w_track_err = np.asarray(traj.w_m_ref) - w_m
+            s["w_track_err_max_pct"] = 100 * error_stats(w_track_err[mask])["max_abs"] / w_abs
+            s["theta_err_max_all_deg"] = error_stats(
+                np.degrees(np.asarray(traj.theta_err)))["max_abs"]
+            s["w_dip_max_pct"] = 100 * error_stats(w_track_err)["max_abs"] / w_abs
             if self.name == "fig9":
                 i_c = np.asarray(park(traj.i_meas_ab, traj.theta_hat))[mask].mean(0)
                 obs = self.kwargs["observer"]
+                if isinstance(obs, ESOObserver):  # the paper analyses linear feedback
+                    obs = LESOObserver(obs.motor, obs.design)
                 theory = {"i_dq0": i_c, "w0": self.w_op,
-                          "equilibria": zhang_equilibria(obs.motor, obs.design, self.w_op,
-                                                         i_c, motor=self.drive.motor)}
+                          "equilibria": equilibria(obs, self.drive.three_phase_motor,
+                                                   self.w_op, i_c)}
         return ExperimentResult(traj=traj, t=t, theta=theta, w_m=w_m, estimates=estimates,
                                 stats=stats, theory=theory)
 
 
-def zhang_equilibria(motor_hat, design, w0, i_dq, *, motor=None, a=1.0, eta=1.0,
-                     n_starts=72, tol=1e-9) -> list:
-    r"""Equilibria of the error dynamics (11) at speed `w0` (rad/s), current `i_dq` (A,
-    estimator frame) by multi-start Newton on the full state, and their stability.
-
-    The gains are `design`'s at the operating point, scheduled with the estimate
-    $\hat\omega = \omega_0 - \tilde\omega$ (as in the observer). Newton starts from
-    $\tilde\theta$ on a grid of `n_starts` angles (zero flux and speed errors).
-
-    **Returns:** a list of dicts `theta_err_deg`, `max_real_eig` (1/s, of the Jacobian
-    (37)), `stable`, `x` (the equilibrium state), sorted by angle.
-    """
-    motor = motor_hat if motor is None else motor
-    i_dq = jnp.asarray(i_dq, dtype=float)
-
-    def f(x):
-        g = design(motor_hat, w0 - x[3], i_dq)
-        return error_dynamics(x, w0, i_dq, g, motor, motor_hat, a=a, eta=eta)
-
-    jac = jax.jacfwd(f)
-
-    def newton(x):
-        def body(x, _):
-            return x - jnp.linalg.solve(jac(x), f(x)), None
-
-        x, _ = jax.lax.scan(body, x, None, length=60)
-        return x
-
-    th = jnp.linspace(-math.pi, math.pi, n_starts, endpoint=False)
-    x0 = jnp.stack([jnp.zeros_like(th), jnp.zeros_like(th), th, jnp.zeros_like(th)], 1)
-    xs = jax.jit(jax.vmap(newton))(x0)
-    res = np.asarray(jnp.max(jnp.abs(jax.vmap(f)(xs)), 1))
-    out = {}
-    for x, r in zip(np.asarray(xs), res):
-        if not np.isfinite(r) or r > tol:
-            continue
-        ang = round(math.degrees(math.remainder(float(x[2]), 2 * math.pi)), 3)
-        ang = 0.0 if ang == 0 else ang
-        if ang in out:
-            continue
-        x = x.copy()
-        x[2] = math.remainder(float(x[2]), 2 * math.pi)
-        ev = np.linalg.eigvals(np.asarray(jac(jnp.asarray(x))))
-        out[ang] = {"theta_err_deg": ang, "max_real_eig": float(np.max(ev.real)),
-                    "stable": bool(np.max(ev.real) < 0), "x": x}
-    return [out[k] for k in sorted(out)]
-
-
-def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e-6,
-                     noise_std: float = 0.02, seed: int = 0, w_pu: float | None = None,
-                     load_pu: float = 0.0, bandwidth_hz: float = 50.0,
-                     observer=None) -> ZhangExperiment:
+def experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e-6,
+               noise_std: float = 0.02, seed: int = 0, w_pu: float | None = None,
+               load_pu: float = 0.0, bandwidth_hz: float = 50.0,
+               observer=None) -> Experiment:
     """One experiment of zhang2022 Sec. VI by name.
 
     **Arguments:**
 
-    - `name`: `"fig2"` ... `"fig11"` (`ZHANG_EXPERIMENTS`).
+    - `name`: `"fig2"` ... `"fig11"` (`EXPERIMENTS`).
     - `drive`: the plant (default `preset("zhang750")`).
     - `T_s`: sampling period (s), default 125e-6 (8 kHz, as the paper).
     - `noise_std`: current-sensor noise (A per component); 0 = none.
@@ -251,11 +211,11 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
     - `observer`: replaces the in-loop observer of the closed-loop figures (e.g. an
       `LESOObserver` or `AFOObserver` to exercise them the same way).
 
-    **Returns:** a `ZhangExperiment`; `exp.run()` simulates it.
+    **Returns:** an `Experiment`; `exp.run()` simulates it.
     """
-    if name not in ZHANG_EXPERIMENTS:
+    if name not in EXPERIMENTS:
         raise ValueError(
-            f"Unknown experiment {name!r}; choose one of {', '.join(ZHANG_EXPERIMENTS)}."
+            f"Unknown experiment {name!r}; choose one of {', '.join(EXPERIMENTS)}."
         )
     drive = preset("zhang750") if drive is None else drive
     wr = float(drive.w_rated)
@@ -270,7 +230,7 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
 
     def closed(title, scenario, w_op, t_settle, obs=eso, **init):
         kw = dict(common, observer=obs, scenario=scenario, **init)
-        return ZhangExperiment(name, title, drive, scenario, kw, {}, 0.0, t_settle, w_op,
+        return Experiment(name, title, drive, scenario, kw, {}, 0.0, t_settle, w_op,
                                PUBLISHED[name])
 
     def sensing_mode(title, w_op, t_end, observers, replay_from=0.1, t_settle=None,
@@ -279,7 +239,7 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
                       tau_L=Profile.constant(load) if load else None)
         kw = dict(common, observer=SensoredObserver(), scenario=sc, w_m0=w_op)
         t_settle = 0.5 * (t_end - replay_from) if t_settle is None else t_settle
-        return ZhangExperiment(name, title, drive, sc, kw, observers, replay_from,
+        return Experiment(name, title, drive, sc, kw, observers, replay_from,
                                t_settle, w_op, PUBLISHED[name])
 
     if name == "fig2":
@@ -321,7 +281,7 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
                       "-14.53 deg initial error", sc, w_op, 0.7, obs=obs, theta0=0.0,
                       theta_hat0=math.radians(14.53))
     if name == "fig10":
-        half = _scaled(m, L_d=0.5, L_q=0.5)
+        half = scale_motor(m, {"L_d": 0.5, "L_q": 0.5})
         obs = {"eso": ESOObserver.from_drive(drive, w2=bw),
                "eso_half_L": ESOObserver.from_drive(drive, w2=bw, motor=half),
                "afo": AFOObserver.from_drive(drive, w2=bw),
@@ -336,12 +296,4 @@ def zhang_experiment(name: str, drive: Drive | None = None, *, T_s: float = 125e
            "fixed": ESOObserver(m, FixedGains.at(design, m, 0.2 * wr))}
     return sensing_mode(f"Adaptive (scheduled) vs fixed gains (frozen at 0.2 p.u.) at {pu} "
                         "p.u., sensing mode", pu * wr, 0.8, obs, t_settle=0.4)
-
-
-def _scaled(motor, **factors):
-    import equinox as eqx
-
-    names = list(factors)
-    return eqx.tree_at(lambda p: [getattr(p, n) for n in names], motor,
-                       [getattr(motor, n) * factors[n] for n in names])
 

@@ -1,0 +1,189 @@
+r"""The one place errors, settling and noise are measured.
+
+Replay (`pmsmjax replay`), the command line, the paper reproductions (`pmsmjax.papers`)
+and the gain tuner (`tuning`) all measure their runs with these functions, so a number
+called "settling time" or "angle error RMS" means the same everywhere. Errors are *true
+minus estimate* (or reference minus actual), angles wrapped to (-pi, pi].
+
+Two kinds:
+
+- **Reporting** (`error_stats`, `settled_mask`, `replay_stats`): NumPy, concrete arrays,
+  plain floats out (JSON-ready).
+- **Differentiable** (`settling_time`, `trajectory_metrics`): JAX, pure, jit/vmap/grad
+  safe, any leading batch axes.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ._frames import wrap_angle
+
+
+_EPS = 1e-12  # added under the square roots of `trajectory_metrics` (finite gradient at 0)
+
+
+def settling_time(t, err, tol):
+    """Time after which `|err| <= tol` for good; `nan` if it never settles (the last
+    sample is outside the band). Works under `vmap`.
+
+    **Arguments:**
+
+    - `t`: sample times (s), `(..., N)`.
+    - `err`: the error on `t` (any unit), `(..., N)`.
+    - `tol`: the band (unit of `err`).
+
+    **Returns:** the settling time (s), measured from `t[..., 0]`.
+    """
+    t = jnp.asarray(t)
+    err = jnp.asarray(err)
+    out = jnp.abs(err) > tol
+    idx = jnp.arange(t.shape[-1])
+    last_out = jnp.max(jnp.where(out, idx, -1), axis=-1)
+    n = t.shape[-1]
+    k = jnp.clip(last_out + 1, 0, n - 1)
+    ts = jnp.take(t, k, axis=-1) - t[..., 0]
+    return jnp.where(last_out >= n - 1, jnp.nan, ts)
+
+
+def error_stats(err) -> dict:
+    """Mean, standard deviation, RMS and largest magnitude of the error samples `err`
+    (1-D, non-empty; any unit, the results are in the same unit).
+
+    **Returns:** a dict of floats `mean`, `std`, `rms`, `max_abs`.
+    """
+    e = np.asarray(err, dtype=float)
+    if e.size == 0:
+        raise ValueError("`error_stats(err=...)` needs at least one sample.")
+    return {"mean": float(np.mean(e)), "std": float(np.std(e)),
+            "rms": float(np.sqrt(np.mean(e ** 2))), "max_abs": float(np.max(np.abs(e)))}
+
+
+def settled_mask(t, *references, t_settle: float) -> np.ndarray:
+    """True at the samples where every reference signal has been constant for at least
+    `t_settle`.
+
+    **Arguments:**
+
+    - `t`: sample times (s), `(N,)`.
+    - `references`: reference signals on `t` (e.g. the speed reference in rad/s and the
+      load torque in N m), each `(N,)`; a change is a step above 1e-12 of the signal's
+      largest magnitude (at least 1e-12).
+    - `t_settle`: the time since the last change (s).
+
+    **Returns:** a boolean array `(N,)`.
+    """
+    t = np.asarray(t, dtype=float)
+
+    def changed(x):
+        x = np.asarray(x, dtype=float)
+        tol = 1e-12 * max(1.0, float(np.max(np.abs(x))))
+        return np.r_[True, np.abs(np.diff(x)) > tol]
+
+    step = np.zeros(len(t), dtype=bool)
+    step[0] = True
+    for x in references:
+        step = step | changed(x)
+    idx = np.arange(len(t))
+    last = np.maximum.accumulate(np.where(step, idx, 0))
+    return (t - t[last]) >= t_settle - 1e-12
+
+
+def replay_stats(t, theta_hat, w_hat, theta=None, w_m=None, *, t_settle=0.0,
+                 tol_deg=2.0) -> dict:
+    """Error statistics of estimates against the true angle and speed.
+
+    **Arguments:**
+
+    - `t` (s), `theta_hat` (rad), `w_hat` (rad/s): estimates at t_k, (N,).
+    - `theta` (rad), `w_m` (rad/s): true electrical angle and speed at t_k, (N,).
+    - `t_settle`: statistics use samples with `t - t[0] >= t_settle` (s).
+    - `tol_deg`: band for the settling time of the angle error (deg).
+
+    **Returns:** a dict of floats (JSON-ready): `n_samples`, `t_settle`, and when `theta`
+    is given `theta_err_mean_deg`, `theta_err_std_deg`, `theta_err_max_deg` (max of
+    the absolute error), `theta_err_rms_deg`, `t_converge_s` (time after which
+    |theta_err| <= `tol_deg` for good, measured from t[0]; NaN if never) and
+    `tol_deg`; when `w_m` is given `w_err_mean`, `w_err_std`, `w_err_max` (rad/s, true
+    minus estimate, max absolute). Errors are true minus estimate, angles wrapped.
+    """
+    t = np.asarray(t, dtype=float)
+    mask = (t - t[0]) >= t_settle
+    if not np.any(mask):
+        raise ValueError(
+            f"`replay_stats(t_settle={t_settle!r})` (s) leaves no samples: the record "
+            f"lasts {float(t[-1] - t[0]):.6g} s."
+        )
+    out = {"n_samples": int(np.sum(mask)), "t_settle": float(t_settle)}
+    if theta is not None:
+        err = np.degrees(np.asarray(wrap_angle(jnp.asarray(theta) - jnp.asarray(theta_hat))))
+        s = error_stats(err[mask])
+        out.update(
+            theta_err_mean_deg=s["mean"], theta_err_std_deg=s["std"],
+            theta_err_max_deg=s["max_abs"], theta_err_rms_deg=s["rms"],
+            t_converge_s=float(settling_time(t, err, tol_deg)), tol_deg=float(tol_deg),
+        )
+    if w_m is not None:
+        s = error_stats((np.asarray(w_m, dtype=float) - np.asarray(w_hat, dtype=float))[mask])
+        out.update(w_err_mean=s["mean"], w_err_std=s["std"], w_err_max=s["max_abs"])
+    return out
+
+
+def _safe_sqrt(x):
+    return jnp.sqrt(jnp.maximum(x, 0.0) + _EPS)
+
+
+def trajectory_metrics(traj, *, t_transient, T_s, save_every=1, theta_err0) -> dict:
+    r"""Differentiable error metrics of a (batched) closed-loop `Trajectory`.
+
+    With the angle error $\tilde\theta$ (`traj.theta_err`, true minus estimate) and the
+    speed-estimate error $\tilde\omega = \omega - \hat\omega$ on the saved samples, and
+    "after the transient" meaning $t \ge t_{tr} - T_s/2$:
+
+    - `pos_rms_deg`: RMS of $\tilde\theta$ after the transient (deg);
+    - `theta_ss_deg`: mean of $\tilde\theta$ after the transient, the static error (deg);
+    - `settle_s`: settling-time surrogate (s), $\sqrt{4\sum_k t_k(\tilde\theta_k -
+      \tilde\theta_\infty)^2\,\Delta t / \tilde\theta_0^2}$ with $\tilde\theta_\infty$ the
+      static error and $\Delta t$ = `T_s * save_every`: exactly the time constant $\tau$
+      of a decay $\tilde\theta_0 e^{-t/\tau}$;
+    - `noise_rad_s`: standard deviation of $\tilde\omega$ after the transient (rad/s);
+    - `w_bias_rad_s`: its mean (rad/s);
+    - `ok`: the run did not diverge and every sample is finite.
+
+    Non-finite samples are replaced by 0 (their gradient is dropped); the square roots
+    carry 1e-12 so that their gradient stays finite at 0.
+
+    **Arguments:**
+
+    - `traj`: a `Trajectory` (any leading batch axes; samples on the last axis).
+    - `t_transient`: start of the averaging window (s).
+    - `T_s`: sampling period of the run (s).
+    - `save_every`: sampling periods per saved sample.
+    - `theta_err0`: initial angle error $\tilde\theta_0$ (rad) that normalises the
+      settling surrogate; 0 means 1 rad.
+
+    **Returns:** a dict of arrays with the batch shape of `traj`.
+    """
+    t = traj.t
+    th = traj.theta_err
+    w_err = traj.w_m - traj.w_hat
+    fin = jnp.isfinite(th) & jnp.isfinite(w_err)
+    ok = traj.ok & jnp.all(fin, axis=-1)
+    # keep non-finite samples out of the arithmetic (their gradient is dropped anyway)
+    th = jnp.where(fin, th, 0.0)
+    w_err = jnp.where(fin, w_err, 0.0)
+    dt = T_s * save_every
+    mask = (t >= t_transient - 0.5 * T_s).astype(th.dtype)
+    nm = jnp.maximum(jnp.sum(mask, -1), 1.0)
+    mean = lambda x: jnp.sum(x * mask, -1) / nm  # noqa: E731
+    pos_ms = mean(th ** 2)
+    th_ss = mean(th)
+    dev = th - th_ss[..., None]
+    th0 = jnp.where(theta_err0 == 0, 1.0, theta_err0)
+    itse = jnp.sum(t * dev ** 2, -1) * dt
+    w_mean = mean(w_err)
+    w_var = mean((w_err - w_mean[..., None]) ** 2)
+    return dict(pos_rms_deg=jnp.degrees(_safe_sqrt(pos_ms)), theta_ss_deg=jnp.degrees(th_ss),
+                settle_s=_safe_sqrt(4.0 * itse / th0 ** 2), noise_rad_s=_safe_sqrt(w_var),
+                w_bias_rad_s=w_mean, ok=ok)

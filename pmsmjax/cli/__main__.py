@@ -1,0 +1,80 @@
+"""The `pmsmjax` command line: the parser, the registry of commands, `main`.
+
+Every command is a module of this package that defines `COMMAND`, a `Command` with its
+name, help texts, `add_arguments(parser)` and `run(args) -> exit status`; `COMMANDS` below
+lists them, and `build_parser` makes one argparse subparser per command. The options that
+several commands share are defined once in `_options.py`.
+
+Errors in the inputs (a bad file, a bad `--set`, an unknown motor or observer, an invalid
+option value) end the command with exit status 2 and a one-line message on stderr, without
+a traceback. Exit status 1: the command ran but its result is a failure (a diverged run, a
+degenerate analysis, no certificate).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import pmsmjax as pj
+
+from . import _certify, _equilibria, _feasibility, _plant, _replay, _simulate
+from ._options import CLIError, Command
+
+
+#: The commands, by name, in the order `pmsmjax --help` lists them.
+COMMANDS: dict[str, Command] = {
+    m.COMMAND.name: m.COMMAND
+    for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify)
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise CLIError(f"{self.prog}: error: {message} (see `{self.prog} --help`)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argparse parser with one subparser per command (the observer choices are read
+    from the registry `pmsmjax.observers` each time)."""
+    parser = _Parser(
+        prog="pmsmjax",
+        description="Differentiable PMSM drive simulator: command-line front end. "
+                    "Run `pmsmjax COMMAND --help` for the options of each command.",
+    )
+    parser.add_argument("--version", action="version", version=f"pmsmjax {pj.__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
+                                parser_class=_Parser)
+    for cmd in COMMANDS.values():
+        p = sub.add_parser(cmd.name, help=cmd.help, description=cmd.description)
+        cmd.add_arguments(p)
+        p.set_defaults(_run=cmd.run)
+    return parser
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split())
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the command line `argv` (default `sys.argv[1:]`); return the exit status.
+
+    0 = success, 1 = the run finished but failed (e.g. diverged), 2 = bad input.
+    """
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except CLIError as e:
+        print(_one_line(e), file=sys.stderr)
+        return 2
+    except SystemExit as e:  # --help, --version
+        return e.code if isinstance(e.code, int) else 0
+    try:
+        return int(args._run(args))
+    except (CLIError, ValueError, OSError) as e:
+        print(f"pmsmjax {args.command}: error: {_one_line(e)}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,306 @@
+"""`pmsmjax feasibility`: feasibility maps of any observer over two of its design
+parameters (zhang2022 Fig. 1 for the ESO's (zeta1, w1/|w0|)), via
+`pmsmjax.analysis.design_map`."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from ._options import (
+    MODEL_PARAMETERS,
+    CLIError,
+    Command,
+    add_drive_options,
+    add_observer_options,
+    add_operating_point_options,
+    add_output_options,
+    current_from_args,
+    drive_from_args,
+    dumps_json,
+    grid,
+    grid_values,
+    named_grid,
+    observer_from_args,
+    prepare_out_dir,
+)
+
+
+#: `status` codes of the map (those of `pmsmjax.analysis.DesignClass`).
+STATUS = {0: "feasible", 1: "infeasible", 2: "no equilibrium", -1: "degenerate"}
+STATUS_CODES = "0 feasible, 1 infeasible, 2 no equilibrium, -1 degenerate or failed"
+PER_DESIGN = ("status", "n_nonzero", "stable_theta_deg", "principal_stable",
+              "principal_theta_deg")
+_DEFAULT_AXES = (("zeta1", (0.0, 5.0, 101)), ("ratio", (0.0, 2.0, 101)))
+
+
+def _feasibility_arguments(p: argparse.ArgumentParser) -> None:
+    add_drive_options(p)
+    add_operating_point_options(p, speed="list")
+    add_observer_options(p, default="leso", mismatch=True, flux="grid", fixed_at=False,
+                         default_note=": the linear-feedback ESO that zhang2022 §III-IV "
+                                      "analyses")
+    g = p.add_argument_group("design axes")
+    g.add_argument("--x", type=named_grid, default=None, metavar="NAME=LO:HI:N",
+                   help="first axis of the map: a design parameter of the observer (a name "
+                        "of --gain; SI units as there) and N values from LO to HI "
+                        "inclusive, e.g. --x w2=100:600:26; give --y too")
+    g.add_argument("--y", type=named_grid, default=None, metavar="NAME=LO:HI:N",
+                   help="second axis, e.g. --y zeta2=0.5:2:16")
+    g.add_argument("--zeta1", type=grid(nonneg=True), default=None, metavar="LO:HI:N",
+                   help="zhang2022 shorthand for --x zeta1=LO:HI:N: damping ratios of the "
+                        "flux poles (-, >= 0), N points from LO to HI inclusive, or a single "
+                        "number (default with --ratio, and when neither --x nor --y is "
+                        "given: 0:5:101, zhang2022 Fig. 1)")
+    g.add_argument("--ratio", type=grid(nonneg=True), default=None, metavar="LO:HI:N",
+                   help="zhang2022 shorthand for --y ratio=LO:HI:N: w1 / |w0| (-, >= 0; 0 is "
+                        "degenerate), or a single number (default 0:2:101, zhang2022 Fig. 1)")
+    add_output_options(p, "results")
+
+
+def _axes(args, choice) -> tuple[tuple[str, np.ndarray], tuple[str, np.ndarray]]:
+    eso = args.zeta1 is not None or args.ratio is not None
+    generic = args.x is not None or args.y is not None
+    if eso and generic:
+        raise CLIError("--zeta1/--ratio and --x/--y both give the axes of the map; allowed: "
+                       "one of the two spellings (--zeta1 A:B:N is --x zeta1=A:B:N, --ratio "
+                       "is --y ratio=...)")
+    units = choice.cls.design_units
+    allowed = ", ".join(units) or "none"
+    if generic:
+        if args.x is None or args.y is None:
+            raise CLIError(f"{'--x' if args.y is None else '--y'} needs "
+                           f"{'--y' if args.y is None else '--x'} as well (two design "
+                           f"parameters of the {choice.name} observer: {allowed})")
+        axes = (args.x, args.y)
+        opts = ("--x", "--y")
+    else:
+        axes = ((name, spec if given is None else given) for (name, spec), given in
+                zip(_DEFAULT_AXES, (args.zeta1, args.ratio)))
+        axes = tuple(axes)
+        opts = ("--zeta1", "--ratio")
+    for opt, (name, spec) in zip(opts, axes):
+        if name not in units:
+            what = f"{opt} {name}={spec[0]:g}:{spec[1]:g}:{spec[2]}" if opt in ("--x", "--y") \
+                else opt
+            hint = "" if generic else "; choose the axes with --x NAME=LO:HI:N --y NAME=LO:HI:N"
+            raise CLIError(f"{what}: the {choice.name} observer has no design parameter "
+                           f"{name!r}; allowed: {allowed}{hint}")
+    if axes[0][0] == axes[1][0]:
+        raise CLIError(f"--x {axes[0][0]}=... and --y {axes[1][0]}=...: the two axes must be "
+                       f"different design parameters; allowed: two of {allowed}")
+    gains = choice.gains
+    for opt, (name, _) in zip(opts, axes):
+        if name in gains:
+            raise CLIError(f"{opt} {name}=... and a fixed value of {name} (--gain or a "
+                           f"shorthand) both set {name}; give it once")
+    return tuple((name, grid_values(spec)) for name, spec in axes)
+
+
+def _plot(fm, title: str, path: str) -> None:
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.5, 5.0))
+    ax = fig.add_subplot()
+    if (fm.x_name, fm.y_name) == ("zeta1", "ratio"):
+        from pmsmjax.plotting_analysis import plot_feasibility
+
+        plot_feasibility(fm, ax=ax)
+    else:
+        _plot_generic(fm, ax)
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=120)
+
+
+def _plot_generic(fm, ax) -> None:
+    """Infeasible regions over any two design parameters, one colour per speed."""
+    from matplotlib.patches import Patch
+
+    colours = ("tab:red", "tab:blue", "tab:green", "tab:purple", "tab:orange", "tab:brown")
+    x, y = np.asarray(fm.x), np.asarray(fm.y)
+    X, Y = np.meshgrid(x, y, indexing="ij")
+    st = np.asarray(fm.status)[:, 0]
+    handles = []
+    for i, s in enumerate(np.asarray(fm.speeds)):
+        col = colours[i % len(colours)]
+        inf = (st[i] == 1).astype(float)
+        if inf.any():
+            ax.contourf(X, Y, inf, levels=[0.5, 1.5], colors=[col], alpha=0.25)
+            ax.contour(X, Y, inf, levels=[0.5], colors=[col], linewidths=1.8)
+        handles.append(Patch(facecolor=col, alpha=0.4, edgecolor=col,
+                             label=f"w0 = {s:g} p.u.: infeasible {inf.mean():.1%}"))
+    for code, hatch, label in ((-1, "////", "degenerate"), (2, "..", "no equilibrium")):
+        mask = np.any(st == code, axis=0).astype(float)
+        if mask.any():
+            ax.contourf(X, Y, mask, levels=[0.5, 1.5], colors="none", hatches=[hatch])
+            handles.append(Patch(facecolor="none", hatch=hatch, edgecolor="grey", label=label))
+    ax.set_xlabel(fm.x_name)
+    ax.set_ylabel(fm.y_name)
+    ax.legend(handles=handles, loc="best", fontsize=8)
+    ax.set_title(f"{fm.observer}: feasible designs [{fm.method}]", fontsize=10)
+
+
+def _zhang_shorthand(choice, xn: str, yn: str) -> dict | None:
+    """The arguments of `feasibility_map` (the zhang2022 shorthand: the closed form
+    zhang2022 (34)-(36) when matched, the ESO-specific general route otherwise) when it
+    computes exactly this map, else None. It covers the ESO/LESO over (zeta1, ratio) with
+    the minimum-norm gains zhang2022 (25), and accepts the degenerate zeta1 = 0, ratio = 0
+    of zhang2022 Fig. 1."""
+    from pmsmjax.observers import ESODesign, ESOObserver, LESOObserver
+
+    obs = choice.observer
+    if (xn, yn) != ("zeta1", "ratio") or type(obs) not in (ESOObserver, LESOObserver):
+        return None
+    d = obs.design
+    if not isinstance(d, ESODesign) or float(d.n2) != 0.0 or float(d.n3) != 0.0:
+        return None
+    kw = dict(zeta2=float(d.zeta2), w2=float(d.w2),
+              motor_hat=obs.motor if choice.mismatched else None)
+    if isinstance(obs, ESOObserver):
+        kw.update(a=float(obs.a), eta=float(obs.eta))
+    return kw
+
+
+def _map(choice, drive, speeds, x, y, i_pu):
+    """The `FeasibilityMap` over `speeds` (p.u.): `feasibility_map` when it applies (a
+    standstill speed gets status -1 there: w1 = ratio |w0| = 0), else `design_map`."""
+    from pmsmjax.analysis import FeasibilityMap, design_map, feasibility_map
+
+    kw = _zhang_shorthand(choice, x[0], y[0])
+    if kw is None:
+        # (plant only with mismatch: `design_map(plant=None)` allows the closed form)
+        plant = choice.plant if choice.mismatched else None
+        return design_map(choice.observer, drive, speeds, x, y, i_dq=i_pu, plant=plant)
+    nonzero = [s for s in speeds if s != 0.0]
+    if len(nonzero) == len(speeds):
+        return feasibility_map(drive, speeds, x[1], y[1], i_dq=i_pu, **kw)
+    shape = (len(speeds), 1, len(x[1]), len(y[1]))
+    # every zhang2022 design is degenerate at standstill: status -1, nothing else
+    full = dict(status=np.full(shape, -1, np.int32), n_nonzero=np.zeros(shape, np.int32),
+                stable_theta_deg=np.full(shape, np.nan),
+                principal_stable=np.zeros(shape, bool),
+                principal_theta_deg=np.full(shape, np.nan))
+    method = "none (standstill only)"
+    if nonzero:
+        fm = feasibility_map(drive, nonzero, x[1], y[1], i_dq=i_pu, **kw)
+        idx = [i for i, s in enumerate(speeds) if s != 0.0]
+        for k in full:
+            full[k][idx] = np.asarray(getattr(fm, k))
+        method = fm.method
+    K = 1
+    return FeasibilityMap(
+        **full, theta_deg=np.full(shape + (K,), np.nan), stable=np.zeros(shape + (K,), bool),
+        speeds=np.asarray(speeds, float), i_dq=np.asarray([i_pu], float), x=x[1], y=y[1],
+        w_rated=float(drive.w_rated), I_b=float(drive.base.I_b), method=method,
+        frame="observer", x_name=x[0], y_name=y[0], observer=type(choice.observer).__name__)
+
+
+def feasibility_command(args: argparse.Namespace) -> int:
+    drive = drive_from_args(args)
+    choice = observer_from_args(args, drive, skip=("zeta1", "ratio"))
+    (xn, x), (yn, y) = _axes(args, choice)
+    i_pu, _ = current_from_args(args, drive)
+    speeds = [s for group in (args.speed or [[0.5]]) for s in group]
+    out = prepare_out_dir(args.out)
+    S, NX, NY = len(speeds), len(x), len(y)
+    print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = ({i_pu[0]:g}, "
+          f"{i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} speed"
+          f"{'s' if S > 1 else ''}")
+    t0 = time.perf_counter()
+    try:
+        fm = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu)
+    except ValueError as e:
+        raise CLIError(f"{choice.describe()}: {e}") from None
+    status = np.asarray(fm.status)
+    t_map = time.perf_counter() - t0
+
+    # FeasibilityMap arrays are (speed, load, x, y); the file's are (speed, y, x), so that
+    # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
+    per_design = {
+        "status": status[:, 0].transpose(0, 2, 1).astype(np.int32),
+        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1).astype(np.int32),
+        "stable_theta_deg": np.asarray(fm.stable_theta_deg)[:, 0].transpose(0, 2, 1),
+        "principal_stable": np.asarray(fm.principal_stable)[:, 0].transpose(0, 2, 1),
+        "principal_theta_deg": np.asarray(fm.principal_theta_deg)[:, 0].transpose(0, 2, 1),
+    }
+    one = S == 1
+    if one:
+        per_design = {k: v[0] for k, v in per_design.items()}
+    info = choice.info()
+    inputs = {
+        "x_name": np.str_(xn), "y_name": np.str_(yn), "x": x, "y": y,
+        "speed": np.asarray(speeds[0] if one else speeds, float),
+        "i_dq": np.asarray(i_pu, float), "w_rated": np.float64(fm.w_rated),
+        "I_b": np.float64(fm.I_b), "motor": np.str_(drive.name),
+        "observer": np.str_(choice.name), "observer_class": np.str_(choice.cls.__name__),
+        "method": np.str_(fm.method), "status_codes": np.str_(STATUS_CODES),
+        "design": np.str_(dumps_json(info["design"])),
+        "observer_model": np.str_(dumps_json(info["model"])),
+    }
+    m = choice.observer.motor
+    for p in MODEL_PARAMETERS:
+        inputs[f"mismatch_{p}"] = np.float64(float(getattr(m, p)) /
+                                             float(getattr(choice.plant, p)))
+    inputs[xn], inputs[yn] = x, y  # e.g. zeta1, ratio
+    for k, v in choice.observer.design_parameters().items():
+        if k not in inputs and k not in per_design and np.ndim(v) == 0:
+            inputs[k] = np.float64(v)  # the fixed design parameters, e.g. zeta2, w2
+    files = {"data": os.path.join(out, "feasibility.npz")}
+    np.savez(files["data"], **per_design, **inputs)
+
+    plot_note = ""
+    if not args.no_plot:
+        if NX < 2 or NY < 2:
+            plot_note = f"no PNG: the map needs at least 2 values of {xn} and of {yn}"
+        else:
+            files["plot"] = os.path.join(out, "feasibility.png")
+            title = f"{drive.name}, {choice.describe()}"
+            _plot(fm, title, files["plot"])
+
+    print(f"classified {S * NX * NY} designs in {t_map:.2f} s ({fm.method})")
+    for i, s in enumerate(speeds):
+        st = status[i, 0]
+        counts = ", ".join(f"{STATUS[c]} {int(np.sum(st == c))}" for c in (0, 1, 2, -1))
+        line = f"speed {s:g} p.u.: {counts}"
+        th = np.asarray(fm.stable_theta_deg)[i, 0]
+        th = th[np.isfinite(th)]
+        if th.size:
+            line += f"; static error of infeasible designs {th.min():.3g}..{th.max():.3g} deg"
+        if s == 0.0:
+            line += " (standstill)"
+        print(line)
+    if plot_note:
+        print(plot_note)
+    print(f"wrote {', '.join(files.values())}")
+    return 0
+
+
+COMMAND = Command(
+    name="feasibility",
+    help="feasibility map of any observer over two design parameters (zhang2022 Fig. 1)",
+    description=(
+        "Classify every design of a grid over two design parameters of the observer (--x "
+        "NAME=LO:HI:N --y NAME=LO:HI:N; for the zhang2022 observers --zeta1 and --ratio = "
+        "w1/|w0|, the axes of zhang2022 Fig. 1, are the default) at one or more speeds: "
+        "feasible when no equilibrium of the error dynamics other than the designed one is "
+        "stable (pmsmjax.analysis.design_map: the closed form zhang2022 (34)-(36) for the "
+        "matched ESO/LESO, the generic equilibria route otherwise, e.g. with observer-model "
+        "mismatch). Writes DIR/feasibility.npz (no pickled objects) with x (NX,), y (NY,), "
+        "x_name, y_name (also the axes under their names, e.g. zeta1, ratio), status (NY, "
+        "NX) ints (0 feasible, 1 infeasible, 2 no equilibrium, -1 degenerate or failed), "
+        "n_nonzero (number of equilibria other than the designed one), stable_theta_deg "
+        "(angle of the stable non-designed equilibrium closest to 0, deg; NaN if none), "
+        "principal_stable, principal_theta_deg (NY, NX), and the inputs: speed (p.u.), i_dq "
+        "(p.u.), observer, observer_class, the other design parameters (e.g. zeta2, w2), "
+        "design and observer_model (JSON text), mismatch_R_s, mismatch_L_d, mismatch_L_q, "
+        "mismatch_psi_f (observer / plant), w_rated (rad/s), I_b (A), motor, method, "
+        "status_codes. With several speeds every per-design array gets a leading speed "
+        "axis (S, NY, NX) and speed has shape (S,). DIR/feasibility.png overlays the maps "
+        "of all speeds."
+    ),
+    add_arguments=_feasibility_arguments,
+    run=feasibility_command,
+)
