@@ -17,7 +17,10 @@ simulations and warm wall time until the best-so-far loss first reaches it.
 Usage:
 
     .venv/bin/python benchmarks/bench_tuning.py [--quick] [--steps N]
-        [--methods adam,bfgs,random,local] [--out FILE.json]
+        [--observer NAME] [--methods adam,bfgs,random,local] [--out FILE.json]
+
+`--observer` tunes another registered observer (its declared tunable design; see
+`python -m tuning --observer`).
 
 Prints a table and writes JSON (default `benchmarks/out/bench_tuning.json`).
 """
@@ -84,6 +87,8 @@ def main():
     ap.add_argument("--quick", action="store_true", help="TuningConfig.quick() (tests)")
     ap.add_argument("--steps", type=int, default=None,
                     help="evaluations per method (default: the config's steps)")
+    ap.add_argument("--observer", default="eso",
+                    help="registered observer to tune (its class declares the design)")
     ap.add_argument("--methods", default="adam,bfgs,random,local",
                     help="comma-separated: adam, bfgs, lm (gradient-based), random (uniform "
                          "over the box), local ((1+1) evolution strategy)")
@@ -91,17 +96,20 @@ def main():
                     help="JSON output file")
     args = ap.parse_args()
     # a fixed budget: no early stopping, so every method gets the same evaluations
-    cfg = (tg.TuningConfig.quick() if args.quick else tg.TuningConfig()).replace(patience=0)
+    cfg = (tg.TuningConfig.quick() if args.quick else tg.TuningConfig()).replace(
+        patience=0, observer=args.observer)
     steps = cfg.steps if args.steps is None else args.steps
     scen = tg.training_scenarios(cfg)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    print(f"gain tuning benchmark: {cfg.motor}, {cfg.observer}, {scen.n} scenarios per "
+    print(f"gain tuning benchmark: {cfg.motor}, {cfg.observer} ({cfg.design_kind}: "
+          f"{', '.join(cfg.tuned)}), {scen.n} scenarios per "
           f"evaluation, {steps} evaluations per method; CPU {cpu_model()}, "
           f"{os.cpu_count()} cores")
     t = time.perf_counter()
     base, _ = tg.evaluate(cfg.initial_schedule(), cfg, scen)
     base = float(base)
-    print(f"(38)/(25) robust loss {base:.4f} ({time.perf_counter() - t:.1f} s incl. "
+    label = cfg.initial_schedule().label
+    print(f"{label} robust loss {base:.4f} ({time.perf_counter() - t:.1f} s incl. "
           f"compilation)")
     results, rows = {}, {}
     for m in methods:
@@ -114,7 +122,7 @@ def main():
 
     best = min(r.loss for r in results.values())
     fracs = (0.25, 0.5, 0.75, 0.9)
-    targets = [("(38) - 10 %", 0.9 * base)] + [
+    targets = [(f"{label} - 10 %", 0.9 * base)] + [
         (f"{int(100 * f)} % to best", base - f * (base - best)) for f in fracs]
     table = []
     for label, tgt in targets:
@@ -131,14 +139,14 @@ def main():
                 table.append(dict(target=label, loss=tgt, method=m, reached=False,
                                   evaluations=None, n_simulations=None, wall_time_s=None))
     print()
-    print(f"{'target':<14}{'loss':>9}  {'method':<8}{'evals':>7}{'sims':>8}{'wall (s)':>10}")
+    print(f"{'target':<20}{'loss':>9}  {'method':<8}{'evals':>7}{'sims':>8}{'wall (s)':>10}")
     for r in table:
         if r["reached"]:
-            print(f"{r['target']:<14}{r['loss']:>9.4f}  {r['method']:<8}{r['evaluations']:>7}"
+            print(f"{r['target']:<20}{r['loss']:>9.4f}  {r['method']:<8}{r['evaluations']:>7}"
                   f"{r['n_simulations']:>8}{r['wall_time_s']:>10.1f}")
         else:
             miss = f"not reached in {rows[r['method']]['n_simulations']} sims"
-            print(f"{r['target']:<14}{r['loss']:>9.4f}  {r['method']:<8}{miss:>25}")
+            print(f"{r['target']:<20}{r['loss']:>9.4f}  {r['method']:<8}{miss:>25}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     payload = dict(

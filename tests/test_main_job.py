@@ -42,6 +42,9 @@ def test_main_job_quick(tmp_path):
     assert set(tg.REQUIRED_KEYS) <= set(s)
     cfg = tg.TuningConfig.quick()
     assert s["config"]["n_mismatch"] == cfg.n_mismatch and s["motor"] == "zhang750"
+    assert s["observer"] == "eso" and s["observer_class"] == "ESOObserver"
+    assert s["parametrisation"] == "scheduled" and s["baseline_label"] == "(38)/(25)"
+    assert s["tuned_parameters"] == list(tg.TUNABLE)
     # the tuned design beats the paper's (38)/(25) on the robust objective, on the
     # training grid and on the held-out mismatch, and is feasible on every scenario
     assert s["objective"] == "robust"
@@ -53,7 +56,7 @@ def test_main_job_quick(tmp_path):
     n_train = cfg.n_mismatch ** 2 * len(cfg.speeds_pu) * len(cfg.loads_pu)
     assert len(s["scenarios"]["train"]) == n_train
     row = s["scenarios"]["heldout"][0]
-    assert {"k_d", "k_q", "speed_pu", "load_pu", "zhang38", "tuned"} <= set(row)
+    assert {"k_d", "k_q", "speed_pu", "load_pu", "paper", "tuned"} <= set(row)
     assert {"loss", "pos_rms_deg", "settle_ms", "noise_rad_s", "feasible"} <= set(row["tuned"])
     assert len(s["loss_history"]) == s["histories"]["tuned"]["n_simulations"][-1] // n_train
     assert np.all(np.isfinite(s["loss_history"]))

@@ -1,17 +1,23 @@
-"""Gradient-based tuning of sensorless-observer gains under inductance mismatch.
+"""Gradient-based tuning of sensorless-observer designs under inductance mismatch.
 
 `python -m tuning` runs the whole job (see `tuning.__main__`); the pieces are public:
-`TuningConfig` and the scenario grids (`tuning.scenarios`), the tunable `GainSchedule`
-(unconstrained <-> physical, `filter_spec`), the objective (`tuning.objectives`), the
+`TuningConfig` and the scenario grids (`tuning.scenarios`), the tunable designs
+(`AbstractDesign`: the speed-scheduled zhang2022 `GainSchedule` and the generic
+`ConstantDesign` for any registered observer that declares `tunable` design parameters;
+unconstrained <-> physical, `filter_spec`), the objective (`tuning.objectives`), the
 optimisers (`tuning.optimise`) and `run_tuning` / `write_report`.
 """
 
 from ._parametrise import (
     TUNABLE as TUNABLE,
+    AbstractDesign as AbstractDesign,
     Bounds as Bounds,
+    ConstantDesign as ConstantDesign,
+    FactorBounds as FactorBounds,
     GainSchedule as GainSchedule,
     filter_spec as filter_spec,
     schedule_table as schedule_table,
+    set_schedule as set_schedule,
     zhang38_schedule as zhang38_schedule,
 )
 from ._pipeline import (
@@ -28,6 +34,7 @@ from ._report import (
     plot_report as plot_report,
     report_figures as report_figures,
     summary as summary,
+    tuned_design as tuned_design,
     write_report as write_report,
 )
 from .objectives import (
@@ -39,6 +46,8 @@ from .objectives import (
     feasibility as feasibility,
     loss as loss,
     residuals as residuals,
+    routh_margins as routh_margins,
+    sampling_penalty as sampling_penalty,
     scenario_losses as scenario_losses,
     stability_penalty as stability_penalty,
     trajectory_metrics as trajectory_metrics,
@@ -53,12 +62,16 @@ from .optimise import (
     random_search as random_search,
 )
 from .scenarios import (
+    PARAMETRISATIONS as PARAMETRISATIONS,
     ScenarioSet as ScenarioSet,
     TuningConfig as TuningConfig,
+    apply_design as apply_design,
+    design_quantities as design_quantities,
     heldout_scenarios as heldout_scenarios,
     make_observer as make_observer,
     make_scenarios as make_scenarios,
     observer_motor as observer_motor,
+    parametrisation_of as parametrisation_of,
     simulate_scenarios as simulate_scenarios,
     training_scenarios as training_scenarios,
 )

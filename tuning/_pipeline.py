@@ -22,15 +22,13 @@ from .scenarios import (
 )
 
 
-#: Names of the designs in a report, in the order they are reported.
-DESIGNS = ("zhang38", "tuned", "min_norm_25", "random_search", "local_search")
+#: Names of the designs in a report, in the order they are reported ("paper": the
+#: observer's paper design, the tuner's start; the ablation's name comes from the
+#: parametrisation, `AbstractDesign.ablation`: "min_norm_25" for `GainSchedule`).
+DESIGNS = ("paper", "tuned", "min_norm_25", "random_search", "local_search")
 
 DESCRIPTIONS = {
-    "zhang38": "paper: flux gains (38), minimum-norm speed gains (25), w2 = 2 pi "
-               "w2_paper_hz, zeta2 = 1 (the tuner's starting point)",
-    "tuned": "gradient-based tuning of the gain schedule (all tuned quantities)",
-    "min_norm_25": "the same tuning restricted to the minimum-norm speed gains (25) "
-                   "(nu2 = nu3 = 0 frozen by the filter spec)",
+    "tuned": "gradient-based tuning of the design (all tuned quantities)",
     "random_search": "gradient-free random search, uniform over the same unconstrained box "
                      "(+-3 around the start), with the same number of simulations as the "
                      "gradient-based run",
@@ -40,12 +38,21 @@ DESCRIPTIONS = {
 }
 
 
+def descriptions(design) -> dict:
+    """`{name: description}` of the designs of a report whose baseline is `design`."""
+    out = {"paper": design.describe(), **DESCRIPTIONS}
+    if design.ablation is not None:
+        out[design.ablation[0]] = design.ablation[2]
+    return out
+
+
 @dataclasses.dataclass
 class TuningReport:
     """Everything `run_tuning` computed (see `tuning._report.summary` for the JSON).
 
     - `config`, `train`, `heldout`: the problem.
-    - `designs`: `{name: design}` for the names of `DESIGNS` that were run.
+    - `designs`: `{name: design}` for the names of `DESIGNS` that were run ("paper" is
+      the observer's paper design, the tuner's starting point).
     - `losses`: `{name: {"train": float, "heldout": float}}` (objective `config.objective`).
     - `metrics`: `{name: {"train": Metrics, "heldout": Metrics}}` per scenario.
     - `feasibility`: `{name: {"train": dict, "heldout": dict}}` (`objectives.feasibility`).
@@ -70,9 +77,15 @@ class TuningReport:
     def tuned(self):
         return self.designs["tuned"]
 
+    @property
+    def label(self) -> str:
+        """How the paper's design is labelled ("(38)/(25)" for zhang2022's schedule)."""
+        return self.designs["paper"].label
+
     def improvement_pct(self, split: str, name: str = "tuned") -> float:
-        """Relative reduction of the objective against (38) on `split` (%)."""
-        b = self.losses["zhang38"][split]
+        """Relative reduction of the objective against the paper's design on `split`
+        (%)."""
+        b = self.losses["paper"][split]
         return 100.0 * (b - self.losses[name][split]) / b
 
     def all_feasible(self, name: str = "tuned") -> bool:
@@ -89,24 +102,29 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
                ablation: bool = True, random: bool = True) -> TuningReport:
     """Run the whole job for `config` and return a `TuningReport`.
 
-    1. the paper's design (38)/(25) on the training and held-out grids;
-    2. the tuner (`config.optimiser`) from (38)/(25) sampled at the schedule nodes;
-    3. (`ablation`) the same tuner restricted to the minimum-norm gains (25);
+    1. the observer's paper design (zhang2022's ESO family: (38)/(25)) on the training
+       and held-out grids;
+    2. the tuner (`config.optimiser`) from it (`config.initial_schedule()`);
+    3. (`ablation`) the parametrisation's ablation, if it has one (`GainSchedule`: the
+       same tuner restricted to the minimum-norm gains (25));
     4. (`random`) two gradient-free searches with the same number of simulations:
        uniform random search over the box, and a local (1+1) evolution strategy;
     5. every design on the held-out grid, the exact feasibility check on both grids, and
-       time traces of the hardest training scenario (for the (38) design).
+       time traces of the hardest training scenario (for the paper's design).
     """
     t_start = time.perf_counter()
     timings = {}
     train, held = training_scenarios(config), heldout_scenarios(config)
     n = train.n
-    _say(log, f"tuning: {config.motor}, {config.observer.upper()} observer, "
+    _say(log, f"tuning: {config.motor}, {config.observer.upper()} observer "
+              f"({config.observer_class().__name__}, {config.design_kind} design: "
+              f"{', '.join(config.tuned)}), "
               f"{n} training scenarios ({len(config.training_mismatch())}^2 inductance "
               f"factors x {len(config.speeds_pu)} speeds x {len(config.loads_pu)} loads), "
               f"{held.n} held-out, {config.t_end:g} s runs at T_s = {config.T_s:g} s")
-    init = config.initial_schedule()  # (38)/(25) exactly, as a GainSchedule
-    designs = {"zhang38": init}
+    init = config.initial_schedule()  # the paper's design exactly, e.g. (38)/(25)
+    label = init.label
+    designs = {"paper": init}
     losses, metrics, results = {}, {}, {}
 
     def score(name, split, scen):
@@ -115,10 +133,10 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
         metrics.setdefault(name, {})[split] = m
 
     t = time.perf_counter()
-    _say(log, "evaluating the paper's design (38)/(25) (compiling the batch) ...")
-    score("zhang38", "train", train)
+    _say(log, f"evaluating the paper's design {label} (compiling the batch) ...")
+    score("paper", "train", train)
     timings["baseline_s"] = time.perf_counter() - t
-    _say(log, f"  (38)/(25): {config.objective} loss {losses['zhang38']['train']:.4f}")
+    _say(log, f"  {label}: {config.objective} loss {losses['paper']['train']:.4f}")
 
     t = time.perf_counter()
     _say(log, f"tuning with {config.optimiser} ({config.steps} steps; the first step "
@@ -128,14 +146,16 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     timings["tuning_s"] = time.perf_counter() - t
     _say(log, f"  {res.result}; best loss {res.loss:.4f}")
 
-    restricted = tuple(q for q in config.tuned if q not in ("nu2", "nu3"))
-    if ablation and config.optimiser == "adam" and restricted and restricted != config.tuned:
-        t = time.perf_counter()
-        _say(log, "tuning within the minimum-norm gains (25) (nu2 = nu3 = 0) ...")
-        r = adam(init, config, train, tuned=restricted, progress=progress)
-        results["min_norm_25"], designs["min_norm_25"] = r, r.value
-        timings["min_norm_25_s"] = time.perf_counter() - t
-        _say(log, f"  {r.result}; best loss {r.loss:.4f}")
+    if ablation and init.ablation is not None and config.optimiser == "adam":
+        name, frozen, about = init.ablation
+        restricted = tuple(q for q in config.tuned if q not in frozen)
+        if restricted and restricted != config.tuned:
+            t = time.perf_counter()
+            _say(log, f"ablation: {about} ...")
+            r = adam(init, config, train, tuned=restricted, progress=progress)
+            results[name], designs[name] = r, r.value
+            timings[f"{name}_s"] = time.perf_counter() - t
+            _say(log, f"  {r.result}; best loss {r.loss:.4f}")
 
     if random:
         t = time.perf_counter()
@@ -156,7 +176,7 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     t = time.perf_counter()
     _say(log, "evaluating on the held-out grid and checking feasibility ...")
     for name in designs:
-        if name != "zhang38":
+        if name != "paper":
             score(name, "train", train)
         score(name, "heldout", held)
     feas = {name: {"train": feasibility(d, config, train, chunk=n),
@@ -165,7 +185,7 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     timings["evaluation_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    traces = time_traces(designs, config, train, metrics["zhang38"]["train"])
+    traces = time_traces(designs, config, train, metrics["paper"]["train"])
     timings["traces_s"] = time.perf_counter() - t
     wall = time.perf_counter() - t_start
     return TuningReport(config=config, train=train, heldout=held, designs=designs,
@@ -174,7 +194,7 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
 
 
 def time_traces(designs: dict, config: TuningConfig, scenarios: ScenarioSet,
-                reference: Metrics, names=("zhang38", "tuned")) -> dict:
+                reference: Metrics, names=("paper", "tuned")) -> dict:
     """Every-sample traces of the scenario with the largest loss under `reference`:
     `{"scenario": dict, "t": array, name: {"theta_err_deg": ..., "w_err": ...}}`."""
     j = int(np.argmax(np.asarray(reference.loss)))
@@ -198,7 +218,7 @@ def targets_reached(results: dict, baseline: float, fractions=(0.25, 0.5, 0.75, 
     Wall times are cumulative from the start of each loop, with (`wall_time_s`) and
     without (`wall_time_warm_s`) the first evaluation's compilation.
 
-    The targets lie `fractions` of the way from the (38) loss `baseline` down to the
+    The targets lie `fractions` of the way from the paper design's loss `baseline` down to the
     best loss any of `results` found. Returns `{"targets": [...], name: [{"target",
     "reached", "n_simulations", "wall_time_s", "step"}, ...]}`.
     """
@@ -225,5 +245,5 @@ def targets_reached(results: dict, baseline: float, fractions=(0.25, 0.5, 0.75, 
     return out
 
 
-__all__ = ["DESIGNS", "TuningReport", "run_tuning", "targets_reached", "time_traces",
-           "TuningResult"]
+__all__ = ["DESIGNS", "TuningReport", "descriptions", "run_tuning", "targets_reached",
+           "time_traces", "TuningResult"]

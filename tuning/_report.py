@@ -1,5 +1,6 @@
-"""Output of a tuning run: `summary.json`, the tuned schedule (equinox serialisation) and
-plots (loss curves, error-versus-mismatch heat maps before/after, a time trace)."""
+"""Output of a tuning run: `summary.json`, the tuned design (equinox serialisation) and
+plots (loss curves, error-versus-mismatch heat maps before/after, a time trace), for any
+tuned observer and parametrisation."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import pathlib
 import equinox as eqx
 import numpy as np
 
-from ._parametrise import TUNABLE, Bounds, GainSchedule, schedule_table
-from ._pipeline import DESCRIPTIONS, TuningReport, targets_reached
+from ._parametrise import AbstractDesign, GainSchedule
+from ._pipeline import TuningReport, descriptions, targets_reached
 from .scenarios import TuningConfig
 
 
@@ -71,41 +72,38 @@ def summary(report: TuningReport) -> dict:
     L = report.losses
     res = report.results["tuned"]
     feas_all = report.all_feasible("tuned")
-    speeds = sorted(set(cfg.speeds_pu) | set(cfg.nodes_pu))
+    desc = descriptions(report.designs["paper"])
     out = dict(
-        motor=cfg.motor, observer=cfg.observer, optimiser=cfg.optimiser,
-        objective=cfg.objective,
-        baseline_loss=L["zhang38"]["train"], tuned_loss=L["tuned"]["train"],
-        heldout_baseline_loss=L["zhang38"]["heldout"],
+        motor=cfg.motor, observer=cfg.observer,
+        observer_class=cfg.observer_class().__name__, parametrisation=cfg.design_kind,
+        tuned_parameters=list(cfg.tuned), baseline_label=report.label,
+        optimiser=cfg.optimiser, objective=cfg.objective,
+        baseline_loss=L["paper"]["train"], tuned_loss=L["tuned"]["train"],
+        heldout_baseline_loss=L["paper"]["heldout"],
         heldout_tuned_loss=L["tuned"]["heldout"],
         improvement_pct=dict(train=report.improvement_pct("train"),
                              heldout=report.improvement_pct("heldout")),
-        beats_baseline=dict(train=L["tuned"]["train"] < L["zhang38"]["train"],
-                            heldout=L["tuned"]["heldout"] < L["zhang38"]["heldout"]),
+        beats_baseline=dict(train=L["tuned"]["train"] < L["paper"]["train"],
+                            heldout=L["tuned"]["heldout"] < L["paper"]["heldout"]),
         feasible=feas_all,
         feasible_per_scenario=dict(
             train=report.feasibility["tuned"]["train"]["feasible"],
             heldout=report.feasibility["tuned"]["heldout"]["feasible"]),
-        baseline_feasible=report.all_feasible("zhang38"),
+        baseline_feasible=report.all_feasible("paper"),
         loss_history=res.stats["loss"], best_loss_history=res.stats["best"],
         n_simulations_history=res.stats["n_simulations"],
         optimiser_wall_time_history_s=res.stats["wall_time_s"],
         optimiser_result=res.result,
         wall_time_s=report.wall_time_s, timings_s=report.timings,
         compile_time_s={k: r.stats["compile_time_s"] for k, r in report.results.items()},
-        designs={k: dict(description=DESCRIPTIONS[k], train_loss=L[k]["train"],
+        designs={k: dict(description=desc[k], train_loss=L[k]["train"],
                          heldout_loss=L[k]["heldout"],
                          feasible=report.all_feasible(k))
                  for k in report.designs},
-        tuned_design=dict(nodes=schedule_table(report.tuned),
-                          at_speeds=schedule_table(report.tuned, speeds),
-                          tuned_quantities=list(cfg.tuned),
-                          units=dict(zeta1="-", ratio="w1/|w0|", zeta2="-", w2="rad/s",
-                                     nu2="x min-norm |g2|", nu3="x min-norm |g3|",
-                                     w1_rad_s="rad/s")),
+        tuned_design=tuned_design(report),
         scenarios=dict(train=_scenario_rows(report, "train"),
                        heldout=_scenario_rows(report, "heldout")),
-        benchmark=targets_reached(report.results, L["zhang38"]["train"]),
+        benchmark=targets_reached(report.results, L["paper"]["train"]),
         histories={k: dict(loss=r.stats["loss"], best=r.stats["best"],
                            n_simulations=r.stats["n_simulations"],
                            wall_time_s=r.stats["wall_time_s"],
@@ -119,14 +117,35 @@ def summary(report: TuningReport) -> dict:
             "error after t_transient (deg) + w_settle*settling surrogate/settle_unit + "
             "w_noise*speed-estimate noise std/noise_unit + w_stab*stability penalty.",
             "feasible: for every training and held-out scenario, the exact analysis "
-            "(pmsmjax.analysis.eso_equilibria at the scenario's operating point with the "
-            "mismatched observer model) finds the designed equilibrium stable (Hurwitz) "
-            "and no other stable equilibrium.",
+            "(pmsmjax.analysis.equilibria_traced over the observer's error_rhs, or the "
+            "family's own route observer.fast_equilibria, on the grid n_grid, at the "
+            "scenario's operating point with the mismatched observer model) finds the "
+            "designed equilibrium stable (Hurwitz) and no other stable equilibrium.",
             "The held-out grid uses inductance factors not in the training grid and other "
             "noise keys; it is not used during tuning.",
         ],
     )
     return _clean(out)
+
+
+_SCHEDULE_UNITS = dict(zeta1="-", ratio="w1/|w0|", zeta2="-", w2="rad/s",
+                      nu2="x min-norm |g2|", nu3="x min-norm |g3|", w1_rad_s="rad/s")
+
+
+def tuned_design(report: TuningReport) -> dict:
+    """The tuned design for summary.json: its parametrisation, the tuned quantities, and
+    the physical values (`AbstractDesign.table`; for a `GainSchedule` at its nodes
+    (`nodes`) and at every speed of the problem (`at_speeds`))."""
+    cfg = report.config
+    d = report.tuned
+    out = dict(parametrisation=d.kind, observer=cfg.observer,
+               tuned_quantities=list(cfg.tuned))
+    if isinstance(d, GainSchedule):
+        speeds = sorted(set(cfg.speeds_pu) | set(cfg.nodes_pu))
+        out.update(nodes=d.table(), at_speeds=d.table(speeds), units=_SCHEDULE_UNITS)
+    else:
+        out.update(d.table())
+    return out
 
 
 def write_report(report: TuningReport, out, *, plot: bool = True) -> dict:
@@ -149,15 +168,16 @@ def config_from_summary(summary_or_dir) -> TuningConfig:
         p = p / SUMMARY_FILE if p.is_dir() else p
         s = json.loads(p.read_text())
     c = dict(s["config"])
-    c["bounds"] = Bounds(**{n: tuple(c["bounds"][n]) for n in TUNABLE})
+    c["bounds"] = {n: tuple(b) for n, b in c["bounds"].items()}
     for k, v in c.items():
         if isinstance(v, list):
             c[k] = tuple(v)
     return TuningConfig(**c)
 
 
-def load_schedule(out) -> GainSchedule:
-    """The tuned `GainSchedule` saved in the output folder `out` (bit-identical)."""
+def load_schedule(out) -> AbstractDesign:
+    """The tuned design saved in the output folder `out` (bit-identical): a
+    `GainSchedule` or a `ConstantDesign`, as `config_from_summary(out).initial_schedule()`."""
     out = pathlib.Path(out)
     like = config_from_summary(out).initial_schedule()
     return eqx.tree_deserialise_leaves(out / SCHEDULE_FILE, like)
@@ -167,8 +187,12 @@ def load_schedule(out) -> GainSchedule:
 # Plots
 # ---------------------------------------------------------------------------------------
 
-_LABELS = {"zhang38": "(38)/(25)", "tuned": "tuned", "min_norm_25": "tuned, min-norm (25)",
+_LABELS = {"tuned": "tuned", "min_norm_25": "tuned, min-norm (25)",
            "random_search": "random search", "local_search": "(1+1) local search"}
+
+
+def _label(report, name):
+    return report.label if name == "paper" else _LABELS.get(name, name)
 _COLORS = {"tuned": "C0", "min_norm_25": "C2", "random_search": "C1", "local_search": "C4"}
 
 
@@ -194,24 +218,25 @@ def plot_report(report: TuningReport, out) -> None:
 
 def _plot_loss(report, plt):
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-    base = report.losses["zhang38"]["train"]
+    base = report.losses["paper"]["train"]
     for name, r in report.results.items():
         s = r.stats
-        kw = dict(label=_LABELS[name], color=_COLORS[name])
+        kw = dict(label=_label(report, name), color=_COLORS.get(name))
         if name in ("tuned", "min_norm_25"):
             axes[0].plot(np.arange(1, s["steps"] + 1), s["loss"], alpha=0.35, lw=1,
-                         color=_COLORS[name])
+                         color=_COLORS.get(name))
         axes[0].plot(np.arange(1, s["steps"] + 1), s["best"], **kw)
         axes[1].plot(s["wall_time_warm_s"], s["best"], **kw)
     for ax in axes:
-        ax.axhline(base, color="k", ls="--", lw=1, label="(38)/(25)")
+        ax.axhline(base, color="k", ls="--", lw=1, label=report.label)
         ax.set_ylabel(f"{report.config.objective} loss (best so far)")
         ax.grid(alpha=0.3)
     axes[0].set_xlabel(f"evaluation (x {report.train.n} simulations)")
     axes[1].set_xlabel("wall time without compilation (s)")
     axes[0].legend()
-    fig.suptitle(f"Gain tuning, {report.config.motor}, {report.config.observer.upper()}: "
-                 f"training objective")
+    fig.suptitle(f"Design tuning, {report.config.motor}, {report.config.observer.upper()} "
+                 f"({report.config.design_kind}: {', '.join(report.config.tuned)}): "
+                 f"training objective", fontsize=10)
     fig.tight_layout()
     return fig
 
@@ -232,7 +257,7 @@ def _plot_heatmaps(report, plt):
     cols = [("train", "loss", "training: scenario loss"),
             ("heldout", "loss", "held-out: scenario loss"),
             ("heldout", "pos_rms_deg", "held-out: RMS angle error (deg)")]
-    names = ("zhang38", "tuned")
+    names = ("paper", "tuned")
     fig, axes = plt.subplots(2, 3, figsize=(13, 7.5))
     for c, (split, field, title) in enumerate(cols):
         grids = [_grid(report, split, n, field) for n in names]
@@ -250,10 +275,10 @@ def _plot_heatmaps(report, plt):
                             color="w" if g[i, j] < 0.5 * (vmin + vmax) else "k")
             ax.set_xlabel("$\\hat L_d / L_d$")
             ax.set_ylabel("$\\hat L_q / L_q$")
-            ax.set_title(f"{_LABELS[n]}: {title}", fontsize=9)
+            ax.set_title(f"{_label(report, n)}: {title}", fontsize=9)
             fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.suptitle("Worst case over the operating points (speeds x loads) per inductance "
-                 "mismatch")
+    fig.suptitle(f"{report.config.observer.upper()}: worst case over the operating points "
+                 f"(speeds x loads) per inductance mismatch")
     fig.tight_layout()
     return fig
 
@@ -263,11 +288,12 @@ def _plot_trace(report, plt):
     sc = tr["scenario"]
     fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True)
     t = 1e3 * np.asarray(tr["t"])
-    for name, color in (("zhang38", "C3"), ("tuned", "C0")):
+    for name, color in (("paper", "C3"), ("tuned", "C0")):
         if name not in tr:
             continue
-        axes[0].plot(t, tr[name]["theta_err_deg"], color=color, lw=1, label=_LABELS[name])
-        axes[1].plot(t, tr[name]["w_err"], color=color, lw=0.8, label=_LABELS[name])
+        lab = _label(report, name)
+        axes[0].plot(t, tr[name]["theta_err_deg"], color=color, lw=1, label=lab)
+        axes[1].plot(t, tr[name]["w_err"], color=color, lw=0.8, label=lab)
     axes[0].set_ylabel("angle error $\\theta - \\hat\\theta$ (deg)")
     axes[1].set_ylabel("speed error $\\omega - \\hat\\omega$ (rad/s)")
     axes[1].set_xlabel("t (ms)")
@@ -276,7 +302,8 @@ def _plot_trace(report, plt):
         ax.grid(alpha=0.3)
         ax.legend()
     axes[0].set_title(
-        f"Hardest training scenario for (38): L_d x {sc['k_d']:.3g}, L_q x {sc['k_q']:.3g}, "
-        f"{sc['speed_pu']:.3g} p.u. speed, {sc['load_pu']:.3g} p.u. load", fontsize=10)
+        f"{report.config.observer.upper()}, hardest training scenario for {report.label}: "
+        f"L_d x {sc['k_d']:.3g}, L_q x {sc['k_q']:.3g}, {sc['speed_pu']:.3g} p.u. speed, "
+        f"{sc['load_pu']:.3g} p.u. load", fontsize=10)
     fig.tight_layout()
     return fig

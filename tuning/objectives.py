@@ -25,37 +25,46 @@ $T\log\big(\frac1n\sum_j e^{\ell_j/T}\big)$ (log-mean-exp at temperature $T$, in
 units), which lies between the average and the maximum and tends to the maximum as
 $T \to 0$.
 
-**Stability/feasibility penalty.** At each scenario's operating point
-$(\omega_0, i_0 = (0, i_q))$, with the observer's mismatched model and the design's gains
-there, the error dynamics (11) (`pmsmjax.analysis.eso_rhs`, observer frame, fal
-feedback for the ESO) have a designed (principal) equilibrium near $\tilde\theta = 0$ and
-possibly others. Their locations come from `pmsmjax.analysis.eso_equilibria`
-(bracketing and bisection: not differentiable, so they are computed under
+**Stability/feasibility penalty** (generic over the observer contract,
+`pmsmjax.observers.AbstractObserver`). At each scenario's operating point
+`OperatingPoint(w_0, i_0 = (0, i_q))`, with the observer's mismatched model
+(`observer.with_motor`) and the tuned design, the error dynamics `observer.error_rhs`
+(for zhang2022's observers (11) with the design's gains at the operating point, fal
+feedback for the ESO, the AFO's PI law (53) as $g_2 = [0, -k_p]$, $g_3 = [0, -k_i]$)
+have a designed (principal) equilibrium near $\tilde\theta = 0$ and possibly others.
+Their locations come from the analysis (`pmsmjax.analysis.equilibria_traced`, or the
+family's own route where it declares one, `observer.fast_equilibria`, both on the grid
+`n_grid`; bracketing and refinement: not differentiable, so they are computed under
 `stop_gradient`) and are then refined by two Newton steps on the differentiable
 right-hand side, which by the implicit-function theorem gives their exact first-order
-dependence on the gains. For each equilibrium the Jacobian (37) is scaled as in the
-analysis module (states by $|\psi_{a0}|$ and $|\omega_0|$, time by $|\omega_0|$), and its
-characteristic polynomial $s^4 + c_1 s^3 + c_2 s^2 + c_3 s + c_4$
-(`pmsmjax.analysis.charpoly`) gives the Routh-Hurwitz quantities
-$m = (c_1, c_3, c_4, c_1c_2 - c_3, (c_1c_2-c_3)c_3 - c_1^2c_4)$, each divided by its
+dependence on the design. For each equilibrium the Jacobian (`jax.jacfwd` of
+`error_rhs`; zhang2022 (37) for the ESO) is scaled as in the analysis module (states by
+`observer.error_scale`, time by $|\omega_0|$), and its characteristic polynomial
+$s^n + c_1 s^{n-1} + \dots + c_n$ (`pmsmjax.analysis.charpoly`) gives the Routh-Hurwitz
+quantities (`routh_margins`): the odd coefficients $c_1, c_3, \dots$, $c_n$ and the
+Hurwitz determinants $\Delta_2, \dots, \Delta_{n-1}$ (for $n = 4$:
+$m = (c_1, c_3, c_4, c_1c_2 - c_3, (c_1c_2-c_3)c_3 - c_1^2c_4)$), each divided by its
 degree in a spectral scale $\rho$ (the mean root magnitude); all are positive iff the
-equilibrium is stable (the exact test `routh_hurwitz` uses). The penalty $s_j$ sums
+equilibrium is stable (the exact test `routh_hurwitz` uses: $\Delta_1 = c_1$,
+$\Delta_n = c_n\Delta_{n-1}$). The penalty $s_j$ sums
 
 - designed equilibrium, Hurwitz with margin: $\sum_k \mathrm{sp}(-m_k)$ for the matrix
   shifted by the margin $\sigma = $ `hurwitz_margin` (rad/s), i.e. all poles left of
   $-\sigma$;
-- every other equilibrium *not* stable (feasibility, Sec. IV):
+- every other equilibrium *not* stable (feasibility, zhang2022 Sec. IV):
   $\mathrm{sp}(\mathrm{smin}_k\, m_k)$;
-- the slope bound $\kappa$ of the analysis' reduction (`reduction_kappa`) above 0.05:
-  $\mathrm{sp}(1 - \kappa/0.05)$. The minimum-norm gains (25) always satisfy it;
-  null-space components can violate it, and there the exact analysis does not apply
-  (status -1), so the tuner is kept where feasibility can be certified;
-- the designed poles resolvable at the sampling rate (`sampling_penalty`),
+- the design's own margins (`design_penalty`; for zhang2022's `GainSchedule` the slope
+  bound $\kappa$ of the reduction behind the ESO family's own equilibrium route,
+  `reduction_kappa`, above 0.05: the minimum-norm gains (25) always satisfy it,
+  null-space components can violate it, and there that analysis does not apply);
+- the fast poles resolvable at the sampling rate (`sampling_penalty`): the design's own
+  pole bounds where it has them (`GainSchedule.pole_bounds`), else an estimate from the
+  designed equilibrium's characteristic polynomial,
 
 with $\mathrm{sp}(x) = \log(1 + e^{30x})/30$ and smin a smooth minimum. The penalty is
 smooth and never NaN for a nondegenerate equilibrium, and its first two parts vanish
 (in the limit) exactly where the exact test says feasible and Hurwitz. The report checks
-feasibility with the exact (non-smooth) classification as well.
+feasibility with the exact (non-smooth) classification as well (`feasibility`).
 
 **Limits.** The analysis holds the gains fixed at the operating point, while the observer
 schedules them with its own $\hat\omega$; and "no other stable equilibrium" does not
@@ -65,6 +74,7 @@ their 30 deg initial error, are what checks the large-signal behaviour.
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import equinox as eqx
@@ -73,14 +83,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import pmsmjax as pj
-from pmsmjax import jmul
-from pmsmjax.analysis import charpoly, eso_equilibria, eso_rhs
-from pmsmjax.observers import ESOGains, psi_a
+from pmsmjax.analysis import charpoly, equilibria_traced
+from pmsmjax.observers import OperatingPoint
 
-from ._parametrise import GainSchedule
+from ._parametrise import AbstractDesign, reduction_kappa  # noqa: F401  (re-exported)
 from .scenarios import (
     ScenarioSet,
     TuningConfig,
+    make_observer,
     observer_motor,
     operating_current,
     simulate_scenarios,
@@ -125,102 +135,131 @@ def _safe_sqrt(x):
 
 
 def trajectory_metrics(traj: pj.Trajectory, config: TuningConfig) -> dict:
-    """RMS error after the transient (deg), static error (deg), settling surrogate (s),
+    """`pmsmjax.trajectory_metrics` with `config`'s transient, sampling and initial error:
+    RMS error after the transient (deg), static error (deg), settling surrogate (s),
     speed-estimate noise and mean error (rad/s) and `ok` of a batched `Trajectory`."""
-    t = traj.t
-    th = traj.theta_err
-    w_err = traj.w_m - traj.w_hat
-    fin = jnp.isfinite(th) & jnp.isfinite(w_err)
-    ok = traj.ok & jnp.all(fin, axis=-1)
-    # keep non-finite samples out of the arithmetic (their gradient is dropped anyway)
-    th = jnp.where(fin, th, 0.0)
-    w_err = jnp.where(fin, w_err, 0.0)
-    dt = config.T_s * config.save_every
-    mask = (t >= config.t_transient - 0.5 * config.T_s).astype(th.dtype)
-    nm = jnp.maximum(jnp.sum(mask, -1), 1.0)
-    mean = lambda x: jnp.sum(x * mask, -1) / nm  # noqa: E731
-    pos_ms = mean(th ** 2)
-    th_ss = mean(th)
-    dev = th - th_ss[..., None]
-    th0 = math.radians(config.theta_err0_deg) or 1.0
-    itse = jnp.sum(t * dev ** 2, -1) * dt
-    w_mean = mean(w_err)
-    w_var = mean((w_err - w_mean[..., None]) ** 2)
-    return dict(pos_rms_deg=jnp.degrees(_safe_sqrt(pos_ms)), theta_ss_deg=jnp.degrees(th_ss),
-                settle_s=_safe_sqrt(4.0 * itse / th0 ** 2), noise_rad_s=_safe_sqrt(w_var),
-                w_bias_rad_s=w_mean, ok=ok)
+    return pj.trajectory_metrics(traj, t_transient=config.t_transient, T_s=config.T_s,
+                                 save_every=config.save_every,
+                                 theta_err0=math.radians(config.theta_err0_deg))
 
 
 # ---------------------------------------------------------------------------------------
 # Stability and feasibility
 # ---------------------------------------------------------------------------------------
 
-def fal_parameters(kind: str, motor_hat: pj.PMSMParams):
-    """`(a, eta)` of the feedback: ESO fal (0.5, 0.05 psi_f), linear (1, 1) otherwise."""
-    if kind == "eso":
-        return 0.5, 0.05 * motor_hat.psi_f
-    return 1.0, 1.0
+def _hurwitz_minors(c, n: int) -> list:
+    r"""Leading principal minors $\Delta_2, \dots, \Delta_{n-1}$ of the Hurwitz matrix
+    $H_{ij} = c_{2j-i}$ (1-based; $c_0 = 1$, $c_k = 0$ outside $0..n$) of the monic
+    polynomial with coefficients `c = [1, c1, ..., cn]` (last axis): exact polynomials
+    in the coefficients, by cofactor expansion along the first row with the structural
+    zeros and ones of $H$ skipped at trace time (no division, so always finite)."""
+    def entry(i, j):  # 0-based
+        k = 2 * (j + 1) - (i + 1)
+        if k < 0 or k > n:
+            return 0
+        return 1 if k == 0 else c[..., k]
+
+    def mul(a, b):
+        if isinstance(a, int) and a == 0 or isinstance(b, int) and b == 0:
+            return 0
+        if isinstance(a, int) and a == 1:
+            return b
+        if isinstance(b, int) and b == 1:
+            return a
+        return a * b
+
+    def add(a, b, sign):
+        if isinstance(b, int) and b == 0:
+            return a
+        if isinstance(a, int) and a == 0:
+            return b if sign > 0 else -b
+        return a + b if sign > 0 else a - b
+
+    memo = {}
+
+    def det(row, cols):  # rows row..k-1, the columns `cols` (a tuple, increasing)
+        if not cols:
+            return 1
+        key = (row, cols)
+        if key not in memo:
+            out = 0
+            for pos, j in enumerate(cols):
+                e = entry(row, j)
+                if isinstance(e, int) and e == 0:
+                    continue
+                term = mul(e, det(row + 1, cols[:pos] + cols[pos + 1:]))
+                out = add(out, term, 1 if pos % 2 == 0 else -1)
+            memo[key] = out
+        return memo[key]
+
+    zero = jnp.zeros_like(c[..., 0])
+    out = []
+    for k in range(2, n):
+        d = det(0, tuple(range(k)))
+        out.append(zero + d if isinstance(d, int) else d)
+    return out
 
 
-def design_gains(design, kind: str, motor_hat: pj.PMSMParams, w0, i0) -> ESOGains:
-    """The gains of (15) at operating point `w0` (rad/s), `i0` (A) for the observer
-    `kind`; the AFO's PI law (53) is the LESO with $g_2 = [0, -k_p]$, $g_3 = [0, -k_i]$
-    (see `pmsmjax.AFOObserver`)."""
-    g = design(motor_hat, w0, i0)
-    if kind != "afo":
-        return g
-    k_p, k_i = design.pi(motor_hat, w0, i0)
-    z = jnp.zeros_like(k_p)
-    return ESOGains(G1=g.G1, g2=jnp.stack([z, -k_p]), g3=jnp.stack([z, -k_i]))
+def routh_margins(A):
+    r"""Normalised Routh-Hurwitz quantities of a square matrix `A` `(n, n)` (all > 0 iff
+    it is Hurwitz): the coefficients $c_k$ of its characteristic polynomial
+    (`pmsmjax.analysis.charpoly`) for odd $k < n$, $c_n$, and the Hurwitz determinants
+    $\Delta_2, \dots, \Delta_{n-1}$ (for $n = 4$: $c_1, c_3, c_4, c_1c_2 - c_3,
+    (c_1c_2 - c_3)c_3 - c_1^2c_4$).
 
-
-def _routh_margins(A):
-    r"""Normalised Routh-Hurwitz quantities of a 4x4 matrix (all > 0 iff Hurwitz).
-
-    Each is divided by its degree in a spectral scale $\rho$: the mean of
-    $|c_1|/4$, $\sqrt{|c_2|/6}$, $\sqrt[3]{|c_3|/4}$, $\sqrt[4]{|c_4|}$ (each equals the
-    root magnitude when all four roots are equal), so healthy margins are O(1)."""
+    Each is divided by its degree in a spectral scale $\rho$, the mean over $k$ of
+    $\sqrt[k]{|c_k|/\binom{n}{k}}$ (each equals the root magnitude when all roots are
+    equal), so healthy margins are O(1)."""
     c = charpoly(A)
-    c1, c2, c3, c4 = c[1], c[2], c[3], c[4]
+    n = A.shape[-1]
     root = lambda x, k: (x * x + 1e-24) ** (0.5 / k)  # noqa: E731  (smooth |x|^(1/k))
-    rho = 0.25 * (root(c1, 1) / 4 + root(c2 / 6, 2) + root(c3 / 4, 3) + root(c4, 4))
+    rho = sum(root(c[k] / math.comb(n, k), k) for k in range(1, n + 1)) / n
     rho = jnp.maximum(rho, 1e-6)
-    d2 = c1 * c2 - c3
-    d3 = d2 * c3 - c1 * c1 * c4
-    return jnp.stack([c1 / rho, c3 / rho ** 3, c4 / rho ** 4, d2 / rho ** 3, d3 / rho ** 6])
+    ks = [k for k in range(1, n, 2)] + [n]
+    m = [c[k] / rho ** k for k in ks]
+    for k, d in zip(range(2, n), _hurwitz_minors(c, n)):
+        m.append(d / rho ** (k * (k + 1) // 2))
+    return jnp.stack(m)
 
 
-def reduction_kappa(gains: ESOGains, w0):
-    r"""$\kappa = 1 - u\cdot JG_1u/\omega_0$, $u = Jg_3^T/\|g_3\|$: the slope bound of
-    the reduction `pmsmjax.analysis.eso_equilibria` relies on (it needs $\kappa > 0$,
-    else it reports status -1). With the minimum-norm gains (25) $\kappa =
-    \omega_1^2/\omega_0^2 > 0$; null-space components rotate $u$ and can make it
-    negative when $\zeta_1 > 1$."""
-    g3 = gains.g3
-    u = jmul(g3) / jnp.sqrt(jnp.sum(g3 ** 2) + 1e-300)
-    return 1.0 - jnp.dot(u, jmul(gains.G1 @ u)) / w0
+def pole_size(A):
+    r"""A smooth estimate of the largest pole magnitude of `A` `(n, n)`:
+    $\max_k \sqrt[k]{|c_k|}$ over its characteristic polynomial. For poles with negative
+    real parts $c_1 = \sum_i |\mathrm{Re}\,\lambda_i| + \dots$ bounds the fastest real pole
+    and $\sqrt{c_2}$ the magnitude of a lightly damped pair; Fujiwara's bound says no pole
+    exceeds twice it."""
+    c = charpoly(A)
+    n = A.shape[-1]
+    return jnp.max(jnp.stack([(c[k] * c[k] + 1e-24) ** (0.5 / k) for k in range(1, n + 1)]))
 
 
-_KAPPA_MIN = 0.05
 _POLE_TS_MAX = 0.8  # fastest designed pole times T_s
 
 
-def sampling_penalty(design, kind: str, w0, T_s):
-    r"""Keep the designed poles resolvable at the sampling rate: with
-    $p(\zeta, \omega) = \omega(\zeta + \sqrt{\zeta^2 + 1})$ (a smooth upper bound of the
-    faster pole of $s^2 + 2\zeta\omega s + \omega^2$), the penalty is
-    $\mathrm{sp}((p\,T_s - 0.8)/0.2)$ for the flux and the speed/angle poles at `w0`.
-    The discrete observer integrates the speed and angle by forward Euler, which turns
-    unstable for poles beyond about $2/T_s$. Defined for a `GainSchedule`; other designs
-    give 0."""
-    if not isinstance(design, GainSchedule):
+def sampling_penalty(design, w0, T_s, A=None):
+    r"""Keep the fast poles resolvable at the sampling rate: for each pole bound $p$
+    (1/s), $\mathrm{sp}((p\,T_s - 0.8)/0.2)$, summed. The bounds are the design's own
+    (`AbstractDesign.pole_bounds`; for `GainSchedule` $p(\zeta, \omega) = \omega(\zeta +
+    \sqrt{\zeta^2 + 1})$ of the flux and speed/angle poles at `w0`), else
+    `pole_size(A) |w0|` of the designed equilibrium's scaled Jacobian `A` (time in units
+    of $1/|\omega_0|$). The discrete observers integrate by forward Euler, which turns
+    unstable for poles beyond about $2/T_s$."""
+    p = design.pole_bounds(w0) if isinstance(design, AbstractDesign) else None
+    if p is None:
+        if A is None:
+            return jnp.zeros(())
+        p = pole_size(A) * jnp.abs(w0)
+    return jnp.sum(_sp((jnp.asarray(p) * T_s - _POLE_TS_MAX) / 0.2))
+
+
+def design_penalty(design, observer, op):
+    r"""$\sum_k \mathrm{sp}(-m_k)$ over the design's own margins
+    (`AbstractDesign.design_margins`; `GainSchedule`: zhang2022's reduction slope bound
+    $\kappa$ above 0.05), 0 for a design without any."""
+    m = design.design_margins(observer, op) if isinstance(design, AbstractDesign) else None
+    if m is None:
         return jnp.zeros(())
-    v = design.values(w0 / design.w_rated)
-    p = lambda z, w: w * (z + jnp.sqrt(z * z + 1.0))  # noqa: E731
-    del kind  # the same poles for ESO, LESO and AFO
-    flux = p(v["zeta1"], v["ratio"] * jnp.abs(w0))
-    speed = p(v["zeta2"], v["w2"])
-    return (_sp((flux * T_s - _POLE_TS_MAX) / 0.2) + _sp((speed * T_s - _POLE_TS_MAX) / 0.2))
+    return jnp.sum(_sp(-m))
 
 
 def _sp(x):
@@ -232,12 +271,13 @@ def _smin(m, tau=0.05):
 
 
 class EquilibriumSet(eqx.Module):
-    """Equilibria of the error dynamics (11) at every scenario's operating point
-    (`pmsmjax.analysis.eso_equilibria`, leading axis: scenario, then `K` slots).
+    """Equilibria of the error dynamics at every scenario's operating point
+    (`equilibria`; leading axis: scenario, then `K` slots).
 
-    - `x`: states `(n, K, 4)` (V s, V s, rad, rad/s), 0 in invalid slots; `theta` (rad).
+    - `x`: states `(n, K, n_x)` in the observer's `coordinates` (SI; zhang2022's
+      observers: V s, V s, rad, rad/s), 0 in invalid slots; `theta` (rad).
     - `valid`, `stable`: `(n, K)`; `principal`: index of the designed equilibrium `(n,)`.
-    - `status`: 0 ok, -1 the analysis failed or does not apply.
+    - `status`: 0 ok, 2 no equilibrium, -1 the analysis failed (degenerate).
     """
 
     x: jnp.ndarray
@@ -248,30 +288,47 @@ class EquilibriumSet(eqx.Module):
     status: jnp.ndarray
 
 
+#: Equilibrium slots per operating point (more zeros than slots: status -1).
+MAX_ROOTS = 8
+
+
 def _point(config: TuningConfig, drive, kind, design, k_d, k_q, speed_pu, load_pu):
-    """Operating point, observer model, fal parameters and gains of one scenario."""
-    mh = observer_motor(drive, k_d, k_q)
-    w0 = speed_pu * float(drive.w_rated)
-    i0 = operating_current(drive, load_pu)
-    a, eta = fal_parameters(kind, mh)
-    gains = design_gains(design, kind, mh, w0, i0)
-    return w0, i0, drive.three_phase_motor, mh, a, eta, gains
+    """The observer (registry, design applied, mismatched model), the operating point and
+    the true machine of one scenario."""
+    obs = make_observer(kind, drive, design, motor=observer_motor(drive, k_d, k_q))
+    op = OperatingPoint(speed_pu * float(drive.w_rated), operating_current(drive, load_pu))
+    return obs, op, drive.three_phase_motor
+
+
+def _raw_equilibria(config, drive, kind, design, k_d, k_q, speed_pu, load_pu):
+    """The family's own route where it has one (`observer.fast_equilibria`, e.g.
+    zhang2022's reduction for the ESO's fal feedback) on the tuner's grid, else the
+    generic route; as `pmsmjax.analysis.equilibria(method="auto")`, with `n_grid`."""
+    obs, op, plant = _point(config, drive, kind, design, k_d, k_q, speed_pu, load_pu)
+    # a family route that does not take a grid (the contract's optional argument) keeps
+    # its own
+    grid = ({"n_grid": config.n_grid}
+            if "n_grid" in inspect.signature(obs.fast_equilibria).parameters else {})
+    fast = obs.fast_equilibria(plant, op, **grid)
+    if fast is not None:
+        return fast
+    tol = float(jnp.finfo(op.w_m.dtype).eps) ** 0.6  # as `pmsmjax.analysis.equilibria`
+    return equilibria_traced(obs, plant, op, method="generic", n_grid=config.n_grid,
+                             max_roots=MAX_ROOTS, tol=tol)
 
 
 @eqx.filter_jit
 def equilibria(design, config: TuningConfig, scenarios: ScenarioSet, kind: str | None = None
                ) -> EquilibriumSet:
-    """Every equilibrium of the error dynamics at each scenario's operating point, for the
-    gains of `design` (bracketing and bisection: not differentiable; see
+    """Every equilibrium of the error dynamics at each scenario's operating point, for
+    `design` (`pmsmjax.analysis.equilibria_traced`, or the family's own route
+    `observer.fast_equilibria`, on the grid `config.n_grid`: not differentiable; see
     `stability_penalty` for how the loss uses them)."""
     drive = config.drive()
     kind = config.observer if kind is None else kind
 
     def one(k_d, k_q, speed_pu, load_pu):
-        w0, i0, motor, mh, a, eta, gains = _point(config, drive, kind, design, k_d, k_q,
-                                                  speed_pu, load_pu)
-        eq = eso_equilibria(w0, i0, gains, motor, mh, a=a, eta=eta, n_grid=config.n_grid,
-                            max_roots=8 if kind == "eso" else 4)
+        eq = _raw_equilibria(config, drive, kind, design, k_d, k_q, speed_pu, load_pu)
         valid = eq.valid & (eq.status == 0)
         return EquilibriumSet(x=jnp.where(valid[:, None], eq.x, 0.0), theta=eq.theta,
                               valid=valid, stable=eq.stable & valid,
@@ -295,13 +352,14 @@ def stability_penalty(design, config: TuningConfig, scenarios: ScenarioSet,
     eqs = jax.lax.stop_gradient(eqs)
 
     def one(k_d, k_q, speed_pu, load_pu, eq):
-        w0, i0, motor, mh, a, eta, gains = _point(config, drive, kind, design, k_d, k_q,
-                                                  speed_pu, load_pu)
-        pn = jnp.sqrt(jnp.sum(psi_a(mh, i0) ** 2))
-        d = jnp.stack([1 / pn, 1 / pn, jnp.ones_like(pn), 1 / jnp.abs(w0)])
+        obs, op, plant = _point(config, drive, kind, design, k_d, k_q, speed_pu, load_pu)
+        w0 = op.w_m
+        d = 1.0 / obs.error_scale(op, plant)
+        n = d.shape[0]
+        eye = jnp.eye(n)
 
         def rhs(x):
-            return eso_rhs(x, w0, i0, gains, motor, mh, a, eta)
+            return obs.error_rhs(x, op, plant)
 
         def refine(x):
             for _ in range(2):
@@ -318,20 +376,21 @@ def stability_penalty(design, config: TuningConfig, scenarios: ScenarioSet,
         K = valid.shape[0]
         principal = (jnp.arange(K) == eq.principal) & valid
         sigma = config.hurwitz_margin / jnp.abs(w0)
-        m_shift = jax.vmap(_routh_margins)(A + sigma * jnp.eye(4))
-        m = jax.vmap(_routh_margins)(A)
+        m_shift = jax.vmap(routh_margins)(A + sigma * eye)
+        m = jax.vmap(routh_margins)(A)
         pen_p = jnp.sum(_sp(-m_shift), -1)
         pen_o = _sp(jax.vmap(_smin)(m))
         # the designed equilibrium: if the search failed, use the origin
-        A0 = scaled_jac(refine(jnp.zeros(4, A.dtype)))
-        pen_0 = jnp.sum(_sp(-_routh_margins(A0 + sigma * jnp.eye(4))))
+        A0 = scaled_jac(refine(jnp.zeros(n, A.dtype)))
+        pen_0 = jnp.sum(_sp(-routh_margins(A0 + sigma * eye)))
         has_p = jnp.any(principal)
         pen = jnp.where(has_p, jnp.sum(jnp.where(principal, pen_p, 0.0)), pen_0)
         pen = pen + jnp.sum(jnp.where(valid & ~principal, pen_o, 0.0))
-        pen = pen + _sp(1.0 - reduction_kappa(gains, w0) / _KAPPA_MIN)
-        pen = pen + sampling_penalty(design, kind, w0, config.T_s)
+        pen = pen + design_penalty(design, obs, op)
+        A_p = jnp.where(has_p, jnp.sum(jnp.where(principal[:, None, None], A, 0.0), 0), A0)
+        pen = pen + sampling_penalty(design, w0, config.T_s, A_p)
         margin = jnp.where(has_p, jnp.sum(jnp.where(principal[:, None], m, 0.0), 0),
-                           _routh_margins(A0))
+                           routh_margins(A0))
         pen = jnp.where(jnp.isfinite(pen), pen, 10.0)
         return pen, _smin(margin)
 
@@ -344,10 +403,8 @@ def _principal_max_eig(design, config, scenarios, eqs, kind):
     drive = config.drive()
 
     def one(k_d, k_q, speed_pu, load_pu, eq):
-        w0, i0, motor, mh, a, eta, gains = _point(config, drive, kind, design, k_d, k_q,
-                                                  speed_pu, load_pu)
-        A = jax.jacfwd(lambda x: eso_rhs(x, w0, i0, gains, motor, mh, a, eta))(
-            eq.x[eq.principal])
+        obs, op, plant = _point(config, drive, kind, design, k_d, k_q, speed_pu, load_pu)
+        A = jax.jacfwd(lambda x: obs.error_rhs(x, op, plant))(eq.x[eq.principal])
         return jnp.max(jnp.real(jnp.linalg.eigvals(A)))
 
     return jax.vmap(one)(scenarios.k_d, scenarios.k_q, scenarios.speed_pu,
@@ -373,7 +430,9 @@ def _concat(parts, n):
 
 def feasibility(design, config: TuningConfig, scenarios: ScenarioSet, *,
                 kind: str | None = None, chunk: int | None = None) -> dict:
-    """Exact (non-smooth) check per scenario, from `pmsmjax.analysis.eso_equilibria`.
+    """Exact (non-smooth) check per scenario, from the analysis (`equilibria`:
+    `pmsmjax.analysis.equilibria_traced` or the family's own route; Routh-Hurwitz on
+    each equilibrium).
 
     Returns numpy arrays: `feasible` (the analysis succeeded, the designed equilibrium is
     stable and no other equilibrium is: Sec. IV's condition, plus Hurwitz),

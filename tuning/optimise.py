@@ -1,8 +1,9 @@
 r"""Optimisers for the gain schedule: optax Adam, optimistix BFGS and Levenberg-Marquardt,
 and a gradient-free random search with the same simulation budget.
 
-All work on the tuned part of a `GainSchedule` (`eqx.partition` with
-`filter_spec(schedule, config.tuned)`), i.e. on unconstrained variables, and return a
+All work on the tuned part of a tunable design (`tuning.AbstractDesign`: the
+speed-scheduled `GainSchedule` or the generic `ConstantDesign`; `eqx.partition` with
+`filter_spec(design, config.tuned)`), i.e. on unconstrained variables, and return a
 `TuningResult`. Every loop
 
 - compiles its step once (`eqx.filter_jit`; the Adam step is wrapped in
@@ -35,7 +36,7 @@ import optax
 import optimistix as optx
 from tqdm import tqdm
 
-from ._parametrise import GainSchedule, filter_spec
+from ._parametrise import AbstractDesign, filter_spec
 from .objectives import Metrics, equilibria, evaluate, loss, residuals
 from .scenarios import ScenarioSet, TuningConfig
 
@@ -43,7 +44,8 @@ from .scenarios import ScenarioSet, TuningConfig
 class TuningResult(eqx.Module):
     """Output of an optimiser.
 
-    - `value`: the best `GainSchedule` found (lowest loss among the evaluated iterates).
+    - `value`: the best design found (lowest loss among the evaluated iterates; the same
+      type as the starting design, e.g. a `GainSchedule` or a `ConstantDesign`).
     - `loss`: its objective value.
     - `metrics`: its per-scenario `Metrics` on the training scenarios.
     - `result`: a message: why the loop stopped.
@@ -55,7 +57,7 @@ class TuningResult(eqx.Module):
       `steps`, `method`, `stopped_early`.
     """
 
-    value: GainSchedule
+    value: AbstractDesign
     loss: float
     metrics: Metrics
     result: str
@@ -116,9 +118,9 @@ def _eqs(schedule, config, scenarios):
 
 
 def _check_schedule(schedule):
-    if not isinstance(schedule, GainSchedule):
-        raise ValueError(f"the optimisers tune a `tuning.GainSchedule`; got "
-                         f"{type(schedule).__name__}.")
+    if not isinstance(schedule, AbstractDesign):
+        raise ValueError(f"the optimisers tune a `tuning.AbstractDesign` (`GainSchedule`, "
+                         f"`ConstantDesign`); got {type(schedule).__name__}.")
 
 
 def _optimiser(lr):
@@ -154,7 +156,7 @@ def _adam_step(config: TuningConfig, diff, n_scen: int):
     return _ADAM_STEPS[key]
 
 
-def adam(schedule: GainSchedule, config: TuningConfig, scenarios: ScenarioSet, *,
+def adam(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
          steps: int | None = None, learning_rate: float | None = None,
          tuned=None, progress: bool = True) -> TuningResult:
     """Adam (optax) on the unconstrained tuned leaves, `config.steps` steps.
@@ -278,7 +280,7 @@ def _objective_from_aux(metrics: Metrics, config):
     return aggregate(metrics.loss, config.objective, config.temperature)
 
 
-def bfgs(schedule: GainSchedule, config: TuningConfig, scenarios: ScenarioSet, *,
+def bfgs(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
          steps: int | None = None, tuned=None, progress: bool = True) -> TuningResult:
     """BFGS (optimistix) on the objective, stepped manually for progress and history."""
     _check_schedule(schedule)
@@ -289,7 +291,7 @@ def bfgs(schedule: GainSchedule, config: TuningConfig, scenarios: ScenarioSet, *
                       f_struct, tuned)
 
 
-def levenberg_marquardt(schedule: GainSchedule, config: TuningConfig,
+def levenberg_marquardt(schedule: AbstractDesign, config: TuningConfig,
                         scenarios: ScenarioSet, *, steps: int | None = None, tuned=None,
                         progress: bool = True) -> TuningResult:
     """Levenberg-Marquardt (optimistix) on `objectives.residuals` (forward-mode
@@ -303,7 +305,7 @@ def levenberg_marquardt(schedule: GainSchedule, config: TuningConfig,
                       f_struct, tuned)
 
 
-def random_search(schedule: GainSchedule, config: TuningConfig, scenarios: ScenarioSet, *,
+def random_search(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
                   n_designs: int, box: float = 3.0, seed: int | None = None, tuned=None,
                   progress: bool = True) -> TuningResult:
     """Gradient-free baseline: `n_designs` designs, the first one `schedule` itself, the
@@ -334,7 +336,7 @@ def random_search(schedule: GainSchedule, config: TuningConfig, scenarios: Scena
     return tr.finish(static, message, compile_time, stopped)
 
 
-def local_search(schedule: GainSchedule, config: TuningConfig, scenarios: ScenarioSet, *,
+def local_search(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
                  n_designs: int, sigma: float = 0.3, seed: int | None = None, tuned=None,
                  progress: bool = True) -> TuningResult:
     """Gradient-free (1+1) evolution strategy: start at `schedule`; each evaluation
@@ -373,7 +375,7 @@ def local_search(schedule: GainSchedule, config: TuningConfig, scenarios: Scenar
 OPTIMISER_FNS = {"adam": adam, "bfgs": bfgs, "lm": levenberg_marquardt}
 
 
-def optimise(schedule: GainSchedule, config: TuningConfig, scenarios: ScenarioSet, *,
+def optimise(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
              method: str | None = None, progress: bool = True, **kwargs) -> TuningResult:
     """Run the optimiser `method` (default `config.optimiser`: "adam", "bfgs", "lm")."""
     method = config.optimiser if method is None else method

@@ -31,13 +31,88 @@ import jax.random as jr
 import numpy as np
 
 import pmsmjax as pj
+from pmsmjax._simulate import scale_motor
+from pmsmjax.observers import (
+    AbstractGainSchedule,
+    AbstractObserver,
+    observer_class,
+    observer_names,
+)
+from pmsmjax.observers import make_observer as registry_observer
 
-from ._parametrise import TUNABLE, Bounds, GainSchedule, zhang38_schedule
+from ._parametrise import (
+    TUNABLE,
+    AbstractDesign,
+    Bounds,
+    ConstantDesign,
+    FactorBounds,
+    set_schedule,
+    zhang38_schedule,
+)
 
 
-OBSERVERS = ("eso", "leso", "afo")
 OBJECTIVES = ("robust", "average")
 OPTIMISERS = ("adam", "bfgs", "lm")
+#: How the design is parametrised: "auto" follows the observer's declaration
+#: (`speed_scheduled` -> "scheduled", else "constant").
+PARAMETRISATIONS = ("auto", "scheduled", "constant")
+
+#: The design parameter (`design_units`) behind each quantity of `GainSchedule`.
+SCHEDULE_PARAMETERS = {"zeta1": "zeta1", "ratio": "ratio", "zeta2": "zeta2", "w2": "w2",
+                       "nu2": "n2", "nu3": "n3"}
+
+
+def _observer_cls(name: str):
+    if str(name).lower() not in observer_names():
+        raise ValueError(f"`TuningConfig(observer=...)` must be one of the registered "
+                         f"observers {', '.join(observer_names())}; got {name!r}.")
+    return observer_class(name)
+
+
+def parametrisation_of(observer: str, requested: str = "auto") -> str:
+    """Which parametrisation tunes the registered observer `observer`, from its class's
+    declaration: "scheduled" (`GainSchedule`) if it declares `speed_scheduled` design
+    parameters, else "constant" (`ConstantDesign` over its `tunable` parameters);
+    `requested` ("scheduled" or "constant") forces one. `ValueError` if the observer
+    declares nothing to tune (or not what is requested)."""
+    cls = _observer_cls(observer)
+    if requested not in PARAMETRISATIONS:
+        raise ValueError(f"`TuningConfig(parametrisation=...)` must be one of "
+                         f"{', '.join(PARAMETRISATIONS)}; got {requested!r}.")
+    sched = tuple(cls.speed_scheduled)
+    unknown = [p for p in sched if p not in SCHEDULE_PARAMETERS.values()]
+    if sched and unknown:
+        raise ValueError(f"{cls.__name__} declares speed-scheduled parameters "
+                         f"{', '.join(unknown)} that `tuning.GainSchedule` does not have "
+                         f"(it schedules {', '.join(SCHEDULE_PARAMETERS.values())}).")
+    if requested == "auto":
+        if sched:
+            return "scheduled"
+        if not cls.tunable:
+            raise ValueError(
+                f"observer {observer!r} ({cls.__name__}) declares no tunable design: its "
+                f"class attributes `tunable` and `speed_scheduled` are empty. Declare the "
+                f"tunable design parameters and their factor bounds to tune it.")
+        return "constant"
+    if requested == "scheduled" and not sched:
+        raise ValueError(f"observer {observer!r} ({cls.__name__}) declares no "
+                         f"`speed_scheduled` design parameters; use "
+                         f"parametrisation='constant' (or 'auto').")
+    if requested == "constant" and not cls.tunable:
+        raise ValueError(f"observer {observer!r} ({cls.__name__}) declares no constant "
+                         f"tunable design (`tunable` is empty).")
+    return requested
+
+
+def design_quantities(observer: str, parametrisation: str = "auto") -> tuple[str, ...]:
+    """Every quantity the tuner can move for `observer`: the `GainSchedule` quantities
+    whose design parameter the class declares `speed_scheduled`, or its `tunable`
+    names (constant parametrisation)."""
+    kind = parametrisation_of(observer, parametrisation)
+    cls = observer_class(observer)
+    if kind == "scheduled":
+        return tuple(q for q in TUNABLE if SCHEDULE_PARAMETERS[q] in cls.speed_scheduled)
+    return tuple(cls.tunable)
 
 
 def _tuple(x):
@@ -51,8 +126,13 @@ class TuningConfig:
     **Problem**
 
     - `motor`: preset name (`pmsmjax.PRESET_NAMES`).
-    - `observer`: `"eso"` (fal feedback, `a = 0.5`, `eta = 0.05 psi_f`), `"leso"` or
-      `"afo"`.
+    - `observer`: any registered observer (`pmsmjax.observers.observer_names()`, e.g.
+      `"eso"` (fal feedback, `a = 0.5`, `eta = 0.05 psi_f`), `"leso"`, `"afo"`), built by
+      `pmsmjax.observers.make_observer` with its paper design for the drive; it must
+      declare a tunable design (class attributes `speed_scheduled` or `tunable`).
+    - `parametrisation`: `"auto"` (from the observer's declaration: the speed-scheduled
+      `GainSchedule` if it declares `speed_scheduled` parameters, else `ConstantDesign`,
+      constant factors on its paper design), `"scheduled"` or `"constant"` (forced).
     - `T_s` (s), `t_end` (s): sampling period and run length.
     - `t_transient` (s): the position-error energy and the speed-estimate noise are
       measured on `[t_transient, t_end)`.
@@ -63,12 +143,15 @@ class TuningConfig:
     - `mismatch`: `(lo, hi)` range of $\\hat L/L$; `n_mismatch` values per axis on the
       training grid (product over $k_d$, $k_q$), or `mismatch_values` explicitly.
     - `n_heldout`: values per axis of the held-out grid (midpoints, disjoint).
-    - `nodes_pu`: speed nodes of the `GainSchedule` (p.u.).
+    - `nodes_pu`: speed nodes of the `GainSchedule` (p.u.; scheduled parametrisation).
     - `w2_paper_hz`: bandwidth of the paper's design (38)/(25) used as baseline and
-      starting point (Hz).
-    - `bounds`: the `Bounds` (or a dict of its arguments) of the corrections on the
-      paper's design; `tuned`: which of
-      `TUNABLE` are tuned (the others stay at the (38)/(25) values).
+      starting point (Hz; scheduled parametrisation).
+    - `bounds`: the box of the corrections on the paper's design: for the scheduled
+      parametrisation a `Bounds` (or a dict of its arguments), for the constant one a
+      `FactorBounds` (or a dict `{name: (lo, hi)}` overriding the class's `tunable`);
+      None: the default. `tuned`: which quantities are tuned (`design_quantities`;
+      None: all; the others stay at the paper's values). Quantities of `TUNABLE` that
+      the observer does not schedule (the AFO's `nu2`, `nu3`) are dropped.
 
     **Objective** (see `tuning.objectives`)
 
@@ -93,6 +176,7 @@ class TuningConfig:
 
     motor: str = "zhang750"
     observer: str = "eso"
+    parametrisation: str = "auto"
     T_s: float = 125e-6
     t_end: float = 0.2
     t_transient: float = 0.1
@@ -106,8 +190,8 @@ class TuningConfig:
     n_heldout: int = 4
     nodes_pu: tuple = (0.2, 0.6, 1.0)
     w2_paper_hz: float = 50.0
-    bounds: Bounds = dataclasses.field(default_factory=Bounds)
-    tuned: tuple = TUNABLE
+    bounds: Bounds | FactorBounds | dict | None = None
+    tuned: tuple | None = None
     w_pos: float = 1.0
     w_settle: float = 1.0
     w_noise: float = 1.0
@@ -133,8 +217,10 @@ class TuningConfig:
         if self.motor not in pj.PRESET_NAMES:
             raise ValueError(f"Unknown motor {self.motor!r}; choose one of "
                              f"{', '.join(pj.PRESET_NAMES)}.")
-        for name, allowed in (("observer", OBSERVERS), ("objective", OBJECTIVES),
-                              ("optimiser", OPTIMISERS)):
+        set_("observer", str(self.observer).lower())
+        _observer_cls(self.observer)
+        kind = parametrisation_of(self.observer, self.parametrisation)
+        for name, allowed in (("objective", OBJECTIVES), ("optimiser", OPTIMISERS)):
             if getattr(self, name) not in allowed:
                 raise ValueError(f"`TuningConfig({name}=...)` must be one of "
                                  f"{', '.join(allowed)}; got {getattr(self, name)!r}.")
@@ -224,6 +310,17 @@ class TuningConfig:
         if common:
             raise ValueError(f"The held-out mismatch grid shares values {sorted(common)} "
                              "with the training grid; change `n_heldout` or `n_mismatch`.")
+        if kind == "scheduled":
+            self._check_scheduled()
+        else:
+            self._check_constant()
+        # the starting design must lie inside the bounds (raises a clear ValueError)
+        self.initial_schedule()
+
+    def _check_scheduled(self):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        if self.bounds is None:
+            set_("bounds", Bounds())
         if isinstance(self.bounds, dict):
             unknown = [k for k in self.bounds if k not in TUNABLE]
             if unknown:
@@ -232,21 +329,63 @@ class TuningConfig:
                                  f"{', '.join(TUNABLE)}.")
             set_("bounds", Bounds(**{k: tuple(v) for k, v in self.bounds.items()}))
         if not isinstance(self.bounds, Bounds):
-            raise ValueError(f"`TuningConfig(bounds=...)` must be a `tuning.Bounds`; got "
+            raise ValueError(f"`TuningConfig(bounds=...)` must be a `tuning.Bounds` for the "
+                             f"speed-scheduled parametrisation; got "
                              f"{type(self.bounds).__name__}.")
-        tuned = tuple(self.tuned)
+        allowed = self.quantities()
+        tuned = TUNABLE if self.tuned is None else tuple(self.tuned)
         if not tuned or any(n not in TUNABLE for n in tuned) or len(set(tuned)) != len(tuned):
             raise ValueError(f"`TuningConfig(tuned=...)` must be distinct names from "
                              f"{', '.join(TUNABLE)}; got {tuned}.")
-        if self.observer == "afo" and any(n in tuned for n in ("nu2", "nu3")):
-            tuned = tuple(n for n in tuned if n not in ("nu2", "nu3"))
-            if not tuned:
-                raise ValueError("`AFOObserver` uses the PI law (53): nu2, nu3 do not apply.")
+        kept = tuple(n for n in tuned if n in allowed)
+        if not kept:
+            cls = observer_class(self.observer)
+            raise ValueError(f"`{cls.__name__}` does not schedule {', '.join(tuned)} (its "
+                             f"speed-scheduled quantities are {', '.join(allowed)}).")
+        set_("tuned", kept)
+
+    def _check_constant(self):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        cls = observer_class(self.observer)
+        names = self.quantities()
+        owner = "TuningConfig(bounds=...)"
+        if self.bounds is None or isinstance(self.bounds, dict):
+            over = {} if self.bounds is None else dict(self.bounds)
+            unknown = [k for k in over if k not in names]
+            if unknown:
+                raise ValueError(f"`{owner}`: unknown quantity "
+                                 f"{', '.join(map(repr, unknown))}; {cls.__name__} declares "
+                                 f"{', '.join(names)} tunable.")
+            boxes = {n: over.get(n, cls.tunable[n]) for n in names}
+            set_("bounds", FactorBounds.of(boxes, owner))
+        if not isinstance(self.bounds, FactorBounds):
+            raise ValueError(f"`{owner}` must be a `tuning.FactorBounds` (or a dict "
+                             f"{{name: (lo, hi)}}) for the constant parametrisation; got "
+                             f"{type(self.bounds).__name__}.")
+        missing = [n for n in names if n not in self.bounds.names]
+        if missing:
+            raise ValueError(f"`{owner}` has no box for {', '.join(missing)}.")
+        tuned = names if self.tuned is None else tuple(self.tuned)
+        if not tuned or any(n not in names for n in tuned) or len(set(tuned)) != len(tuned):
+            raise ValueError(f"`TuningConfig(tuned=...)` must be distinct names from "
+                             f"{', '.join(names)}; got {tuned}.")
         set_("tuned", tuned)
-        # the starting design must lie inside the bounds (raises a clear ValueError)
-        self.initial_schedule()
 
     # --- derived quantities ----------------------------------------------------------
+
+    @property
+    def design_kind(self) -> str:
+        """The parametrisation in use: "scheduled" (`GainSchedule`) or "constant"
+        (`ConstantDesign`)."""
+        return parametrisation_of(self.observer, self.parametrisation)
+
+    def observer_class(self) -> type:
+        """The registered observer class of `observer`."""
+        return observer_class(self.observer)
+
+    def quantities(self) -> tuple[str, ...]:
+        """Every quantity the tuner can move for this observer (`design_quantities`)."""
+        return design_quantities(self.observer, self.parametrisation)
 
     @property
     def n_steps(self) -> int:
@@ -273,23 +412,49 @@ class TuningConfig:
         k = np.arange(self.n_heldout) + 0.5
         return _tuple(lo + (hi - lo) * k / self.n_heldout)
 
-    def paper_design(self) -> pj.ESODesign:
-        """The paper's design: (38) flux gains, (25) speed gains at `w2_paper_hz`."""
-        return pj.ESODesign.zhang38(float(self.drive().w_rated),
-                                    2 * math.pi * self.w2_paper_hz, 1.0)
+    def paper_design(self):
+        """The paper's design as `pmsmjax` builds it: zhang2022's `ESODesign` (38) flux
+        gains and (25) speed gains at `w2_paper_hz` for the scheduled parametrisation;
+        otherwise the `ConstantDesign` with all factors 1 (`from_drive`'s design)."""
+        if self.design_kind == "scheduled":
+            return pj.ESODesign.zhang38(float(self.drive().w_rated),
+                                        2 * math.pi * self.w2_paper_hz, 1.0)
+        return self.initial_schedule()
 
-    def initial_schedule(self) -> GainSchedule:
-        """The paper's design (38)/(25) as a `GainSchedule` (all corrections 1): the
-        starting point of the tuner and the baseline every result is compared with."""
-        return zhang38_schedule(float(self.drive().w_rated), self.nodes_pu,
-                                w2=2 * math.pi * self.w2_paper_hz, bounds=self.bounds)
+    def initial_schedule(self) -> AbstractDesign:
+        """The paper's design as a tunable design (all corrections 1): the starting point
+        of the tuner and the baseline every result is compared with. Scheduled: (38)/(25)
+        as a `GainSchedule` with nodes `nodes_pu`; constant: `ConstantDesign.paper` of
+        the registry's observer for the drive (`from_drive`)."""
+        if self.design_kind == "scheduled":
+            return zhang38_schedule(float(self.drive().w_rated), self.nodes_pu,
+                                    w2=2 * math.pi * self.w2_paper_hz, bounds=self.bounds)
+        obs = registry_observer(self.observer, self.drive())
+        return ConstantDesign.paper(obs, self.quantities(), self.bounds)
 
     def replace(self, **changes) -> TuningConfig:
+        """A copy with `changes`. Changing the observer or the parametrisation resets
+        `tuned` and `bounds` to the new defaults unless they are given or were changed
+        from the old defaults."""
+        if {"observer", "parametrisation"} & set(changes):
+            if "tuned" not in changes and self.tuned == self.quantities():
+                changes["tuned"] = None
+            if "bounds" not in changes and self.bounds == self._default_bounds():
+                changes["bounds"] = None
         return dataclasses.replace(self, **changes)
+
+    def _default_bounds(self):
+        if self.design_kind == "scheduled":
+            return Bounds()
+        cls = observer_class(self.observer)
+        return FactorBounds.of({n: cls.tunable[n] for n in self.quantities()})
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
-        d["bounds"] = {n: list(getattr(self.bounds, n)) for n in TUNABLE}
+        if isinstance(self.bounds, Bounds):
+            d["bounds"] = {n: list(getattr(self.bounds, n)) for n in TUNABLE}
+        else:
+            d["bounds"] = {n: list(b) for n, b in self.bounds.as_dict().items()}
         return d
 
     @classmethod
@@ -298,7 +463,7 @@ class TuningConfig:
         one load, 0.1 s runs at 4 kHz, a two-node schedule, 12 Adam steps."""
         kw = dict(T_s=250e-6, t_end=0.1, t_transient=0.05, speeds_pu=(0.4,),
                   loads_pu=(0.5,), n_mismatch=2, n_heldout=3, nodes_pu=(0.2, 0.6),
-                  steps=12, patience=6, learning_rate=0.15, n_grid=32, save_every=2)
+                  steps=12, patience=6, learning_rate=0.15, save_every=2)
         kw.update(changes)
         return cls(**kw)
 
@@ -373,21 +538,33 @@ def heldout_scenarios(config: TuningConfig) -> ScenarioSet:
 
 
 def observer_motor(drive: pj.Drive, k_d, k_q) -> pj.PMSMParams:
-    """The observer's machine model: the drive's with $L_d$, $L_q$ scaled by `k_d`, `k_q`."""
-    m = drive.three_phase_motor
-    return eqx.tree_at(lambda p: (p.L_d, p.L_q), m, (m.L_d * k_d, m.L_q * k_q))
+    """The observer's machine model: the drive's with $L_d$, $L_q$ scaled by `k_d`, `k_q`
+    (`pmsmjax._simulate.scale_motor`)."""
+    return scale_motor(drive.three_phase_motor, {"L_d": k_d, "L_q": k_q})
 
 
-def make_observer(kind: str, motor: pj.PMSMParams, design) -> pj.AbstractObserver:
-    """`"eso"` -> `ESOObserver(motor, design)` (fal `a = 0.5`, `eta = 0.05 psi_f`),
-    `"leso"` -> `LESOObserver`, `"afo"` -> `AFOObserver`."""
-    if kind == "eso":
-        return pj.ESOObserver(motor, design)
-    if kind == "leso":
-        return pj.LESOObserver(motor, design)
-    if kind == "afo":
-        return pj.AFOObserver(motor, design)
-    raise ValueError(f"unknown observer {kind!r}; choose one of {', '.join(OBSERVERS)}.")
+def apply_design(design, observer: AbstractObserver) -> AbstractObserver:
+    """`observer` with `design`: an `AbstractDesign` (`GainSchedule`, `ConstantDesign`)
+    applies itself; a `pmsmjax` gain schedule (`ESODesign`, `FixedGains`) goes into the
+    `design` field of an observer that declares `speed_scheduled` parameters; None
+    leaves the observer's paper design."""
+    if design is None:
+        return observer
+    if isinstance(design, AbstractDesign):
+        return design.apply(observer)
+    if isinstance(design, AbstractGainSchedule):
+        return set_schedule(observer, design)
+    raise ValueError(f"a design must be a `tuning.AbstractDesign` or a `pmsmjax` gain "
+                     f"schedule; got {type(design).__name__}.")
+
+
+def make_observer(name: str, drive: pj.Drive, design=None, *,
+                  motor: pj.PMSMParams | None = None) -> AbstractObserver:
+    """The registered observer `name` (`pmsmjax.observers.make_observer`, the paper's
+    design for `drive`), with `design` applied (`apply_design`) and, if given, the
+    machine model `motor` (observer-model mismatch: `observer.with_motor(motor)`)."""
+    obs = apply_design(design, registry_observer(name, drive))
+    return obs if motor is None else obs.with_motor(motor)
 
 
 def operating_current(drive: pj.Drive, load_pu):
@@ -400,10 +577,12 @@ def operating_current(drive: pj.Drive, load_pu):
 def simulate_scenarios(design, config: TuningConfig, scenarios: ScenarioSet, *,
                        save_every: int | None = None, kind: str | None = None
                        ) -> pj.Trajectory:
-    """Run every scenario with observer gains `design` (vmapped, `throw=False`).
+    """Run every scenario with the observer `config.observer` (or `kind`, any registered
+    name) and `design` (vmapped, `throw=False`).
 
-    `design` is any gain schedule (`GainSchedule`, `ESODesign`, `FixedGains`); `kind`
-    overrides `config.observer`. Returns a batched `Trajectory` (leading axis: scenario).
+    `design`: an `AbstractDesign` (`GainSchedule`, `ConstantDesign`) or, for a
+    speed-scheduled observer, a `pmsmjax` gain schedule (`ESODesign`, `FixedGains`); see
+    `apply_design`. Returns a batched `Trajectory` (leading axis: scenario).
     """
     drive = config.drive()
     foc = config.controller()
@@ -414,7 +593,7 @@ def simulate_scenarios(design, config: TuningConfig, scenarios: ScenarioSet, *,
     theta_hat0 = -math.radians(config.theta_err0_deg)
 
     def one(k_d, k_q, speed_pu, load_pu, key):
-        obs = make_observer(kind, observer_motor(drive, k_d, k_q), design)
+        obs = make_observer(kind, drive, design, motor=observer_motor(drive, k_d, k_q))
         w = speed_pu * w_r
         i0 = operating_current(drive, load_pu)
         sc = pj.Scenario(t_end=config.t_end, w_m_imposed=pj.Profile.constant(w),

@@ -206,11 +206,12 @@ class AbstractObserver(eqx.Module):
         """The observer state at t_k (as after a step) whose error coordinates against
         `truth` are `x`: the inverse of `error_state`."""
 
-    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint):
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint, n_grid=None):
         """The equilibria by a family-specific route (`analysis.Equilibria`), where the
         family has one that is preferable to the generic route, else None (the
-        default). `analysis.equilibria(method="auto")` uses it."""
-        del plant, op
+        default). `analysis.equilibria(method="auto")` uses it. `n_grid`: the route's
+        search grid where it has one (None: its default; the tuner passes its own)."""
+        del plant, op, n_grid
         return None
 
     def fast_classify(self, w_m, i_dq):

@@ -2,7 +2,7 @@ r"""Extended-state flux observers of zhang2022 and the adaptive full-order basel
 
 Reference: M. Zhang, B. Xia, J. Zhang, "Parameter Design and Convergence Analysis of Flux
 Observer for Sensorless PMSM Drives", IEEE Trans. Energy Convers., 37(4), 2022,
-doi:10.1109/TEC.2022.3177707 (`shared/papers/zhang2022-eso-flux-observer.md`). The
+doi:10.1109/TEC.2022.3177707. The
 baseline is the adaptive full-order observer of its reference [21] (M. Hinkkanen et al.,
 "Observers for sensorless synchronous motor drives: framework for design and analysis",
 IEEE Trans. Ind. Appl., 54(6), 2018, doi:10.1109/TIA.2018.2858753) with the speed law
@@ -385,6 +385,7 @@ class _AbstractFluxObserver(AbstractObserver):
         if isinstance(d, ESODesign):
             out = {"w2": d.w2, "zeta2": d.zeta2, "n2": d.n2, "n3": d.n3}
             out.update({k: getattr(d, k) for k in _SCHEDULE_PARAMS[d.schedule]})
+        out = {k: v for k, v in out.items() if k in self.design_units}
         return {**out, **self._fal_parameters()}
 
     def _fal_parameters(self) -> dict:
@@ -529,7 +530,7 @@ class _AbstractESO(_AbstractFluxObserver):
         del psi_ab, theta, i_ab
         return w
 
-    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint):
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint, n_grid=None):
         """With fal feedback (a < 1), zhang2022's own reduction (`analysis.eso_equilibria`,
         which inverts fal in closed form): the generic route's Gauss-Newton steps can
         oscillate across fal's kinks (its slope jumps at |e| = eta) and then report a
@@ -539,8 +540,9 @@ class _AbstractESO(_AbstractFluxObserver):
             return None
         from ..analysis._equilibria import eso_equilibria
 
+        grid = {} if n_grid is None else {"n_grid": n_grid}
         return eso_equilibria(op.w_m, op.i_dq, self.linear_gains(op.w_m, op.i_dq), plant,
-                              self.motor, a=a, eta=eta)
+                              self.motor, a=a, eta=eta, **grid)
 
     def fast_classify(self, w_m, i_dq):
         """zhang2022's quartic (34)-(36) in closed form (`analysis.classify_designs`), for
@@ -678,6 +680,10 @@ class AFOObserver(_AbstractFluxObserver):
     - `design`: `ESODesign` (G1 from its flux schedule, $k_p$, $k_i$ from `w2`,
       `zeta2`) or `FixedGains`.
     """
+
+    #: the PI speed law (53) has no null-space components (n2, n3 do not apply)
+    design_units: ClassVar[dict[str, str]] = {
+        k: v for k, v in _DESIGN_UNITS.items() if k not in ("n2", "n3")}
 
     motor: PMSMParams
     design: AbstractGainSchedule
