@@ -4,7 +4,7 @@ Two routes, which agree where both apply (tests):
 
 1. **General route** (`eso_equilibria`): every equilibrium of the full nonlinear
    right-hand side, with parameter mismatch and with linear or fal feedback.
-2. **Quartic route** (`quartic_equilibria`): the paper's closed form (34)-(36), matched
+2. **Quartic route** (`quartic_equilibria`): the paper's closed form zhang2022 (34)-(36), matched
    parameters and linear feedback only.
 
 **Reduction used by the general route.** Write $f = \eta^{1-a}\mathrm{fal}(e)$ for the
@@ -24,7 +24,7 @@ $$b(\tilde\theta) := e_0(\tilde\theta) + J\Delta R\, i_0/\omega_0
 
 Component along $u$: $\varphi(s) := u\cdot c(s) = u\cdot b(\tilde\theta)$. Since fal is
 odd and increasing with slope $\le\eta^{a-1}$, $u\cdot E'(s) \ge 1$, and with the gains
-(17) $u\cdot JG_1u = -(\omega_1^2/\omega_0 - \omega_0)$, so
+zhang2022 (17) $u\cdot JG_1u = -(\omega_1^2/\omega_0 - \omega_0)$, so
 $\varphi'(s) \ge \kappa := 1 - u\cdot JG_1 u/\omega_0 = \omega_1^2/\omega_0^2 > 0$:
 $\varphi$ is strictly increasing, $s(\tilde\theta)$ is unique and lies in
 $[0, u\cdot b/\kappa]$ (closed form $s = u\cdot b/\kappa$ for linear feedback). The
@@ -35,7 +35,7 @@ $$r(\tilde\theta) = Ju\cdot\big(b(\tilde\theta) - c(s(\tilde\theta))\big).$$
 For linear feedback $r$ is a trigonometric polynomial of degree 2 in $\tilde\theta$
 (with or without mismatch), so it has at most 4 zeros unless it vanishes identically.
 With matched parameters it equals, up to a constant factor,
-$Ju\cdot e_0 + (2\zeta_1\omega_0/\omega_1)\,u\cdot e_0$: the left side of (34).
+$Ju\cdot e_0 + (2\zeta_1\omega_0/\omega_1)\,u\cdot e_0$: the left side of zhang2022 (34).
 
 The zeros are bracketed by sign changes of $r$ on a periodic grid offset by half a step
 (so $\tilde\theta = 0, \pi$ are never grid points), and each bracket is refined with
@@ -49,13 +49,14 @@ it is never classified stable). Tangencies are the boundary between 1 and 3 nonz
 equilibria, a measure-zero set of designs. Not resolved: more than two zeros, or two
 extrema, inside one grid cell (a cusp; refine `n_grid`).
 
-**Quartic route.** (34)-(35) with $G_1 = [g_1, g_2]^T[1, -\beta]$, $\beta =
+**Quartic route.** zhang2022 (34)-(35) with $G_1 = [g_1, g_2]^T[1, -\beta]$, $\beta =
 -\psi_{aq0}/\psi_{ad0}$ ($g_1$, $g_2$ are the entries of $G_1$'s first column here, not
-the speed gains) and $\hat\omega = \omega_0$. Our derivation from (31), (33) gives
+the speed gains) and $\hat\omega = \omega_0$. Our derivation from zhang2022 (31), (33)
+gives
 $A\Delta_d + B\Delta_q = 0$ with $A = \omega_0\beta + (1+\beta^2)g_1$,
 $B = \omega_0 + (1+\beta^2)g_2$ and $\Delta = -e_0$, whose Fourier coefficients are
-exactly the printed $p_1 \dots p_5$: (35) is correct as printed (checked numerically
-against the general route in the tests). With (36),
+exactly the printed $p_1 \dots p_5$: zhang2022 (35) is correct as printed (checked numerically
+against the general route in the tests). With zhang2022 (36),
 $(1+t^2)^2 \cdot (34)$ is the quartic $c_4t^4 + c_3t^3 + c_2t^2 + c_1t + c_0$ with
 $c_4 = p_1 - p_3 + p_5$, $c_3 = 2p_4 - 4p_2$, $c_2 = 2p_5 - 6p_1$, $c_1 = 4p_2 + 2p_4$,
 $c_0 = p_1 + p_3 + p_5 = 0$. So $t = 0$ is always a root and the nonzero equilibria are
@@ -65,7 +66,7 @@ $\tilde\theta = \pi$, when $c_4 = -2p_3 = 0$). We solve it as the binary cubic f
 $(\cos x, \sin x)$, $x = \tilde\theta/2$, in closed form, so the root at infinity needs
 no special case, and polish each root with Newton steps on the form.
 
-**Stability** of each equilibrium from the Jacobian (37) (`jax.jacfwd` of the error
+**Stability** of each equilibrium from the Jacobian zhang2022 (37) (`jax.jacfwd` of the error
 dynamics, in the frame convention `frame`), by the exact Routh-Hurwitz test on its
 characteristic polynomial (`routh_hurwitz`), after the similarity and time scaling
 $\mathrm{diag}(1/|\psi_{a0}|, 1/|\psi_{a0}|, 1, 1/|\omega_0|)$, $1/|\omega_0|$ (which
@@ -98,7 +99,7 @@ class Equilibria(eqx.Module):
     - `x`: the full state `[psi_err_d, psi_err_q, theta_err, w_err]` (V s, V s, rad,
       rad/s), shape `(..., max_roots, 4)`.
     - `valid`: slot holds an equilibrium.
-    - `stable`: its Jacobian (37) is Hurwitz (Routh-Hurwitz).
+    - `stable`: its Jacobian zhang2022 (37) is Hurwitz (Routh-Hurwitz).
     - `tangent`: a double zero of the reduced function (saddle-node; never stable).
     - `residual`: max |f(x)| after the scaling of the module docstring (dimensionless;
       ~1e-12 or less in float64).
@@ -340,7 +341,8 @@ def eso_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams,
                    motor_hat: PMSMParams | None = None, *, a=1.0, eta=1.0,
                    frame: str = "observer", n_grid: int = 256, max_roots: int = 8,
                    n_crit: int = 8) -> Equilibria:
-    r"""Every equilibrium of the ESO error dynamics (11) at constant speed (general route).
+    r"""Every equilibrium of the ESO error dynamics zhang2022 (11) at constant speed (general
+    route).
 
     **Arguments:**
 
@@ -360,7 +362,7 @@ def eso_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams,
     !!! note
         The reduction needs $\kappa = 1 - u\cdot JG_1u/\omega_0 > 0$, which makes its
         scalar equation in $s$ monotone. The minimum-norm gains zhang2022 (25) give
-        $\kappa = \omega_1^2/\omega_0^2 > 0$; null-space components of (19)
+        $\kappa = \omega_1^2/\omega_0^2 > 0$; null-space components of zhang2022 (19)
         (`ESODesign(n2=..., n3=...)`) rotate $u$ away from $\psi_{a0}$ and can make
         $\kappa \le 0$ (mostly with $\zeta_1 > 1$): then $s(\tilde\theta)$ need not
         be unique and this route reports status -1 instead of guessing. The generic
@@ -443,11 +445,11 @@ def _eso_equilibria(w0, i0, gains, motor, motor_hat, a, eta, frame, n_grid, max_
 
 
 # ---------------------------------------------------------------------------------------
-# Quartic route (34)-(36)
+# Quartic route zhang2022 (34)-(36)
 # ---------------------------------------------------------------------------------------
 
 def quartic_coefficients(w0, i0, gains: ESOGains, motor: PMSMParams):
-    r"""$p_1 \dots p_5$ of (35) exactly as printed (matched parameters, linear feedback).
+    r"""$p_1 \dots p_5$ of zhang2022 (35) exactly as printed (matched parameters, linear feedback).
 
     $\beta = -\psi_{aq0}/\psi_{ad0}$; $g_1$, $g_2$ are the entries of the first column of
     $G_1 = [g_1, g_2]^T[1, -\beta]$; $\hat\omega = \omega_0$ (the frame speed at an
@@ -470,7 +472,8 @@ def quartic_coefficients(w0, i0, gains: ESOGains, motor: PMSMParams):
 
 
 def quartic_t_coefficients(p):
-    r"""Quartic in $t = \tan(\tilde\theta/2)$ from (34) and (36): `[c4, c3, c2, c1, c0]`
+    r"""Quartic in $t = \tan(\tilde\theta/2)$ from zhang2022 (34) and (36): `[c4, c3, c2,
+    c1, c0]`
     of $(1+t^2)^2\,(34)$ (highest power first, as `numpy.roots` expects)."""
     p1, p2, p3, p4, p5 = (p[..., k] for k in range(5))
     return jnp.stack([p1 - p3 + p5, 2 * p4 - 4 * p2, 2 * p5 - 6 * p1, 4 * p2 + 2 * p4,
@@ -478,7 +481,7 @@ def quartic_t_coefficients(p):
 
 
 def trig_poly(p, theta):
-    """Left side of (34): p1 cos 2th + p2 sin 2th + p3 cos th + p4 sin th + p5."""
+    """Left side of zhang2022 (34): p1 cos 2th + p2 sin 2th + p3 cos th + p4 sin th + p5."""
     return (p[..., 0] * jnp.cos(2 * theta) + p[..., 1] * jnp.sin(2 * theta)
             + p[..., 2] * jnp.cos(theta) + p[..., 3] * jnp.sin(theta) + p[..., 4])
 
@@ -540,7 +543,8 @@ def _binary_cubic_angles(a0, a1, a2, a3, n_newton=3):
 
 def quartic_equilibria(w0, i0, gains: ESOGains, motor: PMSMParams, *,
                        frame: str = "observer") -> Equilibria:
-    r"""Equilibria from the paper's quartic (34)-(36), matched parameters, linear feedback.
+    r"""Equilibria from the paper's quartic zhang2022 (34)-(36), matched parameters, linear
+    feedback.
 
     $p$ from (35) as printed (`quartic_coefficients`); the root $t = 0$ of the quartic is
     divided out and the cubic is solved in closed form (see the module docstring).

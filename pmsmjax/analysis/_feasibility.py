@@ -3,7 +3,7 @@ r"""Feasibility maps of the zhang2022 ESO flux-gain design (Fig. 1).
 A design $(\zeta_1, \omega_1/|\omega_0|)$ at an operating point (speed, current, parameter
 mismatch) is
 
-- **feasible** (`status = 0`) if every equilibrium of the error dynamics (11) other than
+- **feasible** (`status = 0`) if every equilibrium of the error dynamics zhang2022 (11) other than
   the designed one is unstable, so the error cannot settle at a static angle error;
 - **infeasible** (`status = 1`) if at least one of them is stable (its angle is reported:
   the static position error the observer can lock to);
@@ -16,12 +16,12 @@ mismatch) is
 "Designed equilibrium": $\tilde\theta = 0$ with matched parameters; with mismatch the
 equilibrium closest to $\tilde\theta = 0$. Whether it is itself stable is reported
 separately (`principal_stable`; it is Hurwitz for every $\zeta_1, \omega_1, \zeta_2,
-\omega_2 > 0$ with matched parameters, by (16)/(18)).
+\omega_2 > 0$ with matched parameters, by zhang2022 (16)/(18)).
 
 Two methods:
 
-- `"closed_form"` (matched parameters, linear feedback): the quartic route (34)-(36) with
-  its root $t = 0$ divided out, as a closed-form cubic, then the Jacobian (37) written out
+- `"closed_form"` (matched parameters, linear feedback): the quartic route zhang2022 (34)-(36) with
+  its root $t = 0$ divided out, as a closed-form cubic, then the Jacobian zhang2022 (37) written out
   by hand and the exact Routh-Hurwitz test, all element-wise in dimensionless variables
   (flux / $|\psi_{a0}|$, speed error / $|\omega_0|$, time $\times|\omega_0|$). It is one
   fused, vectorised XLA computation: millions of designs per second on one CPU core.
@@ -29,7 +29,7 @@ Two methods:
   right-hand side, Jacobian by `jax.jacfwd`), vmapped. Works with parameter mismatch and
   fal feedback; about 10^3 - 10^4 designs per second.
 
-`"auto"` picks `"closed_form"` when it applies. With the minimum-norm gains (25) the
+`"auto"` picks `"closed_form"` when it applies. With the minimum-norm gains zhang2022 (25) the
 equilibria do not depend on $\zeta_2$, $\omega_2$ (the condition $g_3 f = 0$ fixes only
 the direction of $f$), but their stability can.
 """
@@ -233,7 +233,7 @@ def _closed_form_classify(w0, i_d, i_q, zeta1, ratio, zeta2, w2, L_d, L_q, psi_f
     o = frame == "observer"
 
     def stability(ct, st, origin):
-        """Hurwitz test of the scaled Jacobian (37) at the equilibrium with angle theta
+        """Hurwitz test of the scaled Jacobian zhang2022 (37) at the equilibrium with angle theta
         given by (cos theta, sin theta)."""
         c2t, s2t = ct * ct - st * st, 2.0 * st * ct
         # de0/dtheta (scaled) and u.e0
@@ -392,7 +392,7 @@ def classify_designs(motor: PMSMParams, w0, i_dq, zeta1, ratio, *, zeta2=1.0,
       float64; float32 works for the closed form).
 
     Returns a `DesignClass` with the broadcast batch shape. Concrete inputs are checked
-    (empty or NaN raise `ValueError`); `w0 = 0` (the gains (17) contain w1^2/w0 and the
+    (empty or NaN raise `ValueError`); `w0 = 0` (the gains zhang2022 (17) contain w1^2/w0 and the
     error dynamics have a continuum of equilibria at standstill) and, under
     `jit`/`vmap`, other bad points get status -1.
     """
@@ -529,7 +529,7 @@ def feasibility_map(drive: Drive, speeds, zeta1, ratio, *, i_dq=(0.0, 0.0),
     - `i_dq`: controlled current(s) in the estimator frame, p.u. of `drive.base.I_b`:
       `(2,)` or `(n_load, 2)`.
     - `motor_hat`: the observer's model (parameter mismatch), default the plant.
-    - `zeta2`, `w2` (rad/s): speed/angle design (25). `a`, `eta` (V s): fal feedback.
+    - `zeta2`, `w2` (rad/s): speed/angle design zhang2022 (25). `a`, `eta` (V s): fal feedback.
     - `frame`, `method`, `n_grid`, `max_roots`, `dtype`: see `classify_designs`.
 
     One jitted, vmapped call. Returns a `FeasibilityMap`.
@@ -610,7 +610,7 @@ def classify(observer, plant=None, w_m=None, i_dq=(0.0, 0.0), *, method: str = "
     Returns a `DesignClass` (status 0 feasible, 1 infeasible, 2 no equilibrium, -1
     degenerate; never raises for a bad point).
     """
-    from ._generic import check_observer, equilibria_traced, _op
+    from ._generic import _op, check_observer, equilibria_traced
 
     check_observer("classify", observer)
     if w_m is None:

@@ -309,7 +309,8 @@ def _continuation(sys: _Scaled, grid, y0, n_iter):
 
 
 def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0), *,
-               method: str = "auto", n_grid: int = 64, max_roots: int = 6, n_crit: int = 2, n_golden: int = 16,
+               method: str = "auto", n_grid: int = 64, max_roots: int = 6, n_crit: int = 2,
+               n_golden: int = 16,
                angle_weight: float = 1000.0, n_gauss_newton: int = 3, n_refine: int = 10,
                n_newton: int = 8, tol: float | None = None) -> Equilibria:
     r"""Every equilibrium of `observer`'s error dynamics at one operating point.

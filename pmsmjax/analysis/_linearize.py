@@ -4,9 +4,9 @@ r"""Linearisation of observer error dynamics and exact stability tests for small
   `fn(x, *args) -> dx/dt` at `x`, by `jax.jacfwd` (forward mode: the state is small).
   Pure, so `jax.vmap` over operating points and designs works directly.
 - `eso_rhs(...)`: the zhang2022 error dynamics (11) in one of two frame conventions (see
-  below), and `eso_linearization(...)`: its Jacobian (37) at an operating point
+  below), and `eso_linearization(...)`: its Jacobian zhang2022 (37) at an operating point
   $(\omega_0, i_0$, parameter mismatch$)$ and a state (default the origin, where it is
-  (15)).
+  zhang2022 (15)).
 - `charpoly(A)`: characteristic-polynomial coefficients by Faddeev-LeVerrier (exact
   rational arithmetic on the entries, no eigenvalues), `routh_hurwitz(c)`: the exact
   Routh test "every root in the open left half plane", `is_hurwitz(A)` = both.
@@ -16,9 +16,9 @@ Frame convention of the error dynamics. The observers of `pmsmjax.observers` rot
 estimator frame at $\omega_f = \hat\omega + g_2 f(e)$, which gives the error dynamics
 `observers.error_dynamics` (`frame="observer"`, the default):
 $\dot{\tilde\psi} = -(\omega_0 - \tilde\omega + g_2 f) J\tilde\psi - G_1 f - \Delta R\, i_0$.
-(11) prints the rotation term as $-(\omega_0 - \tilde\omega) J\tilde\psi$
-(`frame="paper"`). Both have the same linearisation at the origin (15) and the same
-equilibria with the minimum-norm gains (25), but their Jacobians differ at nonzero
+zhang2022 (11) prints the rotation term as $-(\omega_0 - \tilde\omega) J\tilde\psi$
+(`frame="paper"`). Both have the same linearisation at the origin zhang2022 (15) and the same
+equilibria with the minimum-norm gains zhang2022 (25), but their Jacobians differ at nonzero
 equilibria by $-(J\tilde\psi)\,\partial(g_2 f)/\partial x$, so the stability of a
 static-error equilibrium may depend on the convention. `frame="paper"` is kept so that
 the paper's own model can be evaluated; the implemented observers follow `"observer"`.
@@ -58,14 +58,14 @@ def linearize(fn, x, *args, **kwargs):
 
 def eso_rhs(x, w0, i0, gains: ESOGains, motor: PMSMParams,
             motor_hat: PMSMParams | None = None, a=1.0, eta=1.0, frame: str = "observer"):
-    r"""Error dynamics (11) of the zhang2022 ESO at constant speed `w0` (rad/s).
+    r"""Error dynamics zhang2022 (11) of the zhang2022 ESO at constant speed `w0` (rad/s).
 
     State `x = [psi_err_d, psi_err_q, theta_err, w_err]` (V s, V s, rad, rad/s), errors
     true minus estimate; `i0` the controlled current in the estimator frame (A); `gains`
     the observer's gains; `motor` the plant and `motor_hat` (default `motor`) the
     observer's model; `a`, `eta` the fal parameters (`a = 1`: linear feedback, LESO).
     `frame`: `"observer"` (= `observers.error_dynamics`) or `"paper"` (the rotation term
-    exactly as printed in (11)); see the module docstring.
+    exactly as printed in zhang2022 (11)); see the module docstring.
     """
     check_frame("eso_rhs", frame)
     f = error_dynamics(x, w0, i0, gains, motor, motor_hat, a, eta)
@@ -81,9 +81,9 @@ def eso_rhs(x, w0, i0, gains: ESOGains, motor: PMSMParams,
 def eso_linearization(w0, i0, gains: ESOGains, motor: PMSMParams,
                       motor_hat: PMSMParams | None = None, x=None, a=1.0, eta=1.0,
                       frame: str = "observer"):
-    r"""Jacobian (37) of the ESO error dynamics at state `x` (default: the origin).
+    r"""Jacobian zhang2022 (37) of the ESO error dynamics at state `x` (default: the origin).
 
-    At the origin with matched parameters this is the matrix $A$ of (15)
+    At the origin with matched parameters this is the matrix $A$ of zhang2022 (15)
     (`observers.error_matrix`) for any `a`, `eta` (fal's slope at 0 is scaled to 1).
     Arguments as for `eso_rhs`. Returns a `(4, 4)` array in SI units of the state.
     """
@@ -149,11 +149,3 @@ def is_hurwitz(A):
 def max_real_eig(A):
     """Largest real part of the eigenvalues of `A` (eigenvalue solver; for checks)."""
     return jnp.max(jnp.real(jnp.linalg.eigvals(A)), -1)
-
-
-def design_poles(zeta1, w1, zeta2, w2):
-    """The four designed poles of (16) and (18) (complex, rad/s)."""
-    def pair(z, w):
-        d = jnp.sqrt(jnp.asarray(z ** 2 - 1.0 + 0j))
-        return jnp.stack([-w * (z - d), -w * (z + d)])
-    return jnp.concatenate([pair(zeta1, w1), pair(zeta2, w2)])

@@ -1,25 +1,26 @@
 r"""Slowly-varying-speed certificate of zhang2022 §V / Appendix A, computed numerically.
 
-The error dynamics with a time-varying speed, (40), $\dot z = g(z, \omega(t))$, is
-exponentially stable at $z = 0$ if (Khalil's Theorem 9.3, quoted as (41)-(45)) a
-Lyapunov function $V = z^TP(\omega)z$ with (48) $PA + A^TP = -I$ satisfies (43a)-(43d)
+The error dynamics with a time-varying speed, zhang2022 (40), $\dot z = g(z, \omega(t))$, is
+exponentially stable at $z = 0$ if (Khalil's Theorem 9.3, quoted as zhang2022 (41)-(45)) a
+Lyapunov function $V = z^TP(\omega)z$ with (48) $PA + A^TP = -I$ satisfies zhang2022
+(43a)-(43d)
 with constants $c_1 \dots c_5$ on a ball $\|z\| < r$ and $|\dot\omega| \le \varepsilon <
 c_3/c_5$ (52); then every solution with $\|z(0)\| < r\sqrt{c_1/c_2}$ converges.
 
 This module computes every ingredient for a design, over a dense grid of the operating
 range $\Omega = [\omega_{lo}, \omega_{hi}]$, two ways:
 
-- **paper** constants (51)/(55)-(64): $\rho = \max\|A\|_2$; $\gamma$, $k$ with
+- **paper** constants zhang2022 (51)/(55)-(64): $\rho = \max\|A\|_2$; $\gamma$, $k$ with
   $\|e^{tA}\| \le k e^{-\gamma t}$; $c_1 = 1/(2\rho)$, $c_2 = k^2/(2\gamma)$,
   $c_4 = k^2/\gamma$, $c_5 = k^4 b/(2\gamma^2)$ with $b = \max\|\partial A/\partial\omega\|_2$
-  computed (the paper's (49) sets $\|\partial A/\partial\omega_0\| = 1$, which is not true
+  computed (the paper's zhang2022 (49) sets $\|\partial A/\partial\omega_0\| = 1$, which is not true
   in general: its value depends on units and on the gain schedule; `c5_paper` keeps b = 1);
 - **sharp** constants from $P$ itself: $c_1 = \min\lambda_{min}(P)$,
   $c_2 = \max\lambda_{max}(P)$, $c_4 = 2c_2$, $c_5 = \max\|P'(\omega)\|_2$ with $P'$ by
   `jax.jacfwd` through the Lyapunov solve.
 
 $c_3$ and the radius $r$ come from (59): $\dot V \le -\|z\|^2 + 2c_2k_1\|z\|^3$, where
-$k_1 = \max \|g(z,\omega) - A z\|/\|z\|^2$ over $\|z\| \le r$ and $\omega \in \Omega$ (54)
+$k_1 = \max \|g(z,\omega) - A z\|/\|z\|^2$ over $\|z\| \le r$ and $\omega \in \Omega$ zhang2022 (54)
 is estimated by sampling the ball (random directions and radii, every speed of a subgrid)
 and refining the best samples by gradient ascent; so $c_3 = 1 - 2c_2k_1r$. For a target
 $c_3$ (default 1/2) the largest sampled $r$ is used. The certified rate is
@@ -31,7 +32,7 @@ is evaluated on a geometric time grid with local refinement (a grid sup is a low
 of the true sup, to about 1e-6 relative after refinement). $k$ grows without bound as
 $\gamma \to \sigma$ when $A$ has a Jordan block (the critically damped $\zeta_2 = 1$
 design has one), and $c_5 \propto k^4/\gamma^2$, so `alpha` is chosen from a grid to
-maximise the paper's bound (when the slowest eigenvalue is simple, as for the (38)
+maximise the paper's bound (when the slowest eigenvalue is simple, as for the zhang2022 (38)
 design, $k$ stays bounded as $\alpha \to 1$ and the best $\alpha$ is the largest).
 
 **State scaling.** Norms of $z = [\tilde\psi, \tilde\theta, \tilde\omega]$ mix units, so
@@ -39,11 +40,12 @@ every constant and the bound depend on the scaling; `scale="pu"` (default) uses
 $z = [\tilde\psi/\psi_b, \tilde\psi/\psi_b, \tilde\theta, \tilde\omega/\omega_b]$ (time
 stays in seconds, $\omega$ in rad/s, so $\varepsilon$ is in rad/s^2); `"si"` uses SI.
 
-**Which dynamics.** (40) is (11) with $\omega_0$ replaced by $\omega(t)$ and the gains
+**Which dynamics.** zhang2022 (40) is zhang2022 (11) with $\omega_0$ replaced by $\omega(t)$ and
+the gains
 scheduled at $\omega(t)$. The true error dynamics of the observer also contain
 $+\dot\omega$ in $\dot{\tilde\omega}$ (the speed is the extended state, (6)'s $h_\delta$)
 and schedule the gains at $\hat\omega$: `simulate_ramp(model="observer")`. That forcing
-is not covered by (40): a ramp leaves a constant angle error of about
+is not covered by zhang2022 (40): a ramp leaves a constant angle error of about
 $\dot\omega/\omega_2^2$, so "convergence" there means back to zero after the ramp.
 """
 
@@ -112,7 +114,7 @@ class LyapunovCertificate(eqx.Module):
       `rho` = max ||A||; `b` = max ||dA/dw||; `alpha`, `gamma` (1/s), `k`.
     - paper constants `c1, c2, c3, c4, c5` (with the true `b`), `c5_paper` (b = 1);
       sharp constants `c1_sharp, c2_sharp, c3_sharp, c4_sharp, c5_sharp`.
-    - `k1`: the estimate of (54) on the ball of radius `r` (paper) / `r_sharp`.
+    - `k1`: the estimate of zhang2022 (54) on the ball of radius `r` (paper) / `r_sharp`.
     - `eps`: c3/c5 (paper constants, true b); `eps_paper`: c3/c5_paper (b = 1);
       `eps_sharp`: c3_sharp/c5_sharp; `eps_sup`, `eps_sup_sharp`: 1/c5, 1/c5_sharp.
     - `r_init`, `r_init_sharp`: certified initial ball r sqrt(c1/c2).
@@ -404,11 +406,11 @@ def slowly_varying_certificate(drive: Drive, design, speed_range=(0.1, 1.0), *,
       it certifies that the frozen-speed family is uniformly exponentially stable and
       that the error tracks $x^*(\omega(t))$ for slowly varying speed; the motion of
       $x^*$ itself adds the forcing $-\partial x^*/\partial\omega\,\dot\omega$, which
-      leaves an error of order $\dot\omega$ (Khalil, Sec. 9.6), not covered by (52).
+      leaves an error of order $\dot\omega$ (Khalil, Sec. 9.6), not covered by zhang2022 (52).
       `status` is -1 when no such equilibrium is found.
     - `plant`: the true machine (`PMSMParams`); default the drive's.
     - `speed_range`: `(lo, hi)` in p.u. of `drive.w_rated`, `0 < lo < hi` (the paper's
-      $\Omega = (0, \omega_{max}]$ cannot be used: the flux poles of (38) tend to 0 with
+      $\Omega = (0, \omega_{max}]$ cannot be used: the flux poles of zhang2022 (38) tend to 0 with
       the speed, so no uniform $\sigma$ exists).
     - `i_dq`: controlled current in the estimator frame (p.u. of `drive.base.I_b`).
     - `frame`, `a`, `eta`: for a gain schedule: the error dynamics used for $k_1$
@@ -515,7 +517,7 @@ def simulate_ramp(drive: Drive, design, speeds=(0.2, 1.0), rate=1.0,
     (p.u.) at `rate` (rad/s^2), then holds for `t_hold` (s; default 20/sigma of the end
     speed, i.e. ample settling time). Equal speeds give a constant-speed run.
 
-    `model="paper"`: (40), gains scheduled at the true speed, no acceleration forcing;
+    `model="paper"`: zhang2022 (40), gains scheduled at the true speed, no acceleration forcing;
     `model="observer"`: the observer's true error dynamics, gains scheduled at
     $\hat\omega$ and $+\dot\omega$ in $\dot{\tilde\omega}$. `x0` (SI) or `theta0_deg`:
     the initial error. Convergence: see `RampRun` (modulo 2 pi; cycle slips are
