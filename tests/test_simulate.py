@@ -392,7 +392,7 @@ class GarbageObserver(pj.SensoredObserver):
     current to about u_max / R = 230 A < 20 i_max, so a broken observer is used instead.
     """
 
-    bad: jax.Array
+    bad: jax.Array = 0.0  # (a default: the base's `motor` field has one)
 
     def init(self, theta0=0.0, w0=0.0):
         return ()
