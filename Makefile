@@ -1,21 +1,24 @@
 # Two commands do everything (see README):
 #   make run    -> installs into .venv and runs the main job on its built-in default
 #   make test   -> installs into .venv (with test extras) and runs the test suite
+# Both install the tested versions pinned in constraints.txt (pyproject.toml keeps the
+# compatible ranges); `make lock` re-resolves the newest versions and rewrites the file.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 OUT    ?= results
+PIP    := $(PY) -m pip install --quiet -c constraints.txt
 
-.PHONY: run test bench install install-tests clean
+.PHONY: run test bench stress install install-tests lock clean
 
-$(VENV)/.installed: pyproject.toml
+$(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e .
+	$(PIP) -e .
 	touch $@
 
-$(VENV)/.installed-tests: $(VENV)/.installed pyproject.toml
-	$(PY) -m pip install --quiet -e ".[tests]"
+$(VENV)/.installed-tests: $(VENV)/.installed pyproject.toml constraints.txt
+	$(PIP) -e ".[tests]"
 	touch $@
 
 install: $(VENV)/.installed
@@ -30,5 +33,20 @@ test: $(VENV)/.installed-tests
 bench: $(VENV)/.installed-tests
 	$(PY) benchmarks/bench_simulate.py
 
+stress: $(VENV)/.installed-tests
+	$(PY) benchmarks/stress_hang.py --out $(OUT)/stress
+
+# Resolve the newest versions allowed by pyproject.toml in a scratch environment, run
+# nothing, and write them to constraints.txt (review the diff, then run `make test`).
+lock:
+	rm -rf .lock-venv
+	$(PYTHON) -m venv .lock-venv
+	.lock-venv/bin/python -m pip install --quiet --upgrade pip
+	.lock-venv/bin/python -m pip install --quiet -e ".[tests]"
+	{ echo "# Tested versions of every dependency (make lock rewrites this file)."; \
+	  .lock-venv/bin/python -m pip freeze --exclude-editable | LC_ALL=C sort -f; } > constraints.txt
+	rm -rf .lock-venv
+	@echo "constraints.txt updated: review the diff, then run make test"
+
 clean:
-	rm -rf $(VENV) results .pytest_cache
+	rm -rf $(VENV) .lock-venv results .pytest_cache
