@@ -11,6 +11,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 import tuning as tg
 
@@ -24,6 +25,7 @@ def test_makefile_runs_the_tuner():
     assert "-m tuning --out $(OUT)" in run
 
 
+@pytest.mark.timeout(1200)
 def test_main_job_quick(tmp_path):
     out = tmp_path / "results"
     proc = subprocess.run(

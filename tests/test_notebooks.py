@@ -10,6 +10,8 @@ import os
 import pathlib
 import sys
 
+import nbclient
+import nbformat
 import pytest
 
 
@@ -31,10 +33,9 @@ def test_notebooks_found():
     assert NOTEBOOKS, "no notebooks found in notebooks/"
 
 
+@pytest.mark.timeout(2 * TIMEOUT_S)
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=[p.name for p in NOTEBOOKS])
 def test_notebook_runs(path, tmp_path, monkeypatch):
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
     monkeypatch.setenv("MPLBACKEND", "Agg")
     monkeypatch.chdir(tmp_path)
     nb = nbformat.read(path, as_version=4)
