@@ -427,7 +427,14 @@ def slowly_varying_certificate(drive: Drive, design, speed_range=(0.1, 1.0), *,
     dtype = jnp.float64
     i0 = jnp.asarray(i_dq, dtype) * drive.base.I_b
     plant = drive.three_phase_motor if plant is None else plant
-    matched = bool(eqx.tree_equal(as_arrays(plant, dtype), as_arrays(observer.motor, dtype)))
+    # matched model: the origin is the equilibrium. Decided on concrete values (also under
+    # an outer jit); a traced machine counts as mismatched (the general route is exact too)
+    with jax.ensure_compile_time_eval():
+        try:
+            matched = bool(eqx.tree_equal(as_arrays(plant, dtype),
+                                          as_arrays(observer.motor, dtype)))
+        except jax.errors.ConcretizationTypeError:
+            matched = False
     dyn = _ScaledDynamics(observer=observer, plant=plant, i0=i0,
                           d=_state_scale(drive, observer, scale, dtype), frame=frame,
                           matched=matched)
