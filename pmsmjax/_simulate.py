@@ -32,6 +32,7 @@ from .observers import AbstractObserver, Measurement
 
 
 _OK_NAME = "pmsmjax.simulate.ok"
+_NOISE_BLOCK = 256  # current-noise samples drawn at once (see `_simulate`)
 _CHECKPOINT_POLICY = jax.checkpoint_policies.save_only_these_names(_OK_NAME)
 
 
@@ -215,16 +216,31 @@ def _simulate(arguments: dict) -> Trajectory:
     # `astype`); inputs and initial states are cast to it, and so is the carried state
     # after every step, so a float64 leaf elsewhere (e.g. an observer) cannot promote it.
     dtype = _run_dtype(drive, controller)
-    t = jnp.arange(N, dtype=dtype) * T_s
-    inputs = _cast_floats(scenario.sample(t), dtype)
-    if key is None:
-        noise = None  # no noise: nothing to add
-    else:
-        noise = sensing.noise_std * jr.normal(key, (N, 2), dtype)
+    # The scenario's inputs and the current noise are evaluated inside the scan, from the
+    # step index, so memory grows with the batch, not with batch x steps. The noise comes
+    # in blocks of _NOISE_BLOCK steps (block j from `fold_in(key, j)`), drawn when a block
+    # starts and carried: the same sequence whatever `save_every`, at the cost of one
+    # random draw per block. (The step index is not batched, so under `vmap` the refill
+    # stays a real branch.)
+    T_s_ = jnp.asarray(T_s, dtype)
+
+    def inputs_at(k):
+        t_k = k.astype(dtype) * T_s_
+        return t_k, _cast_floats(scenario.sample(t_k), dtype)
+
+    def noise_block(j):
+        return sensing.noise_std * jr.normal(jr.fold_in(key, j), (_NOISE_BLOCK, 2), dtype)
+
+    def noise_at(blk, k):
+        blk = jax.lax.cond(k % _NOISE_BLOCK == 0, lambda: noise_block(k // _NOISE_BLOCK),
+                           lambda: blk)
+        return blk, blk[k % _NOISE_BLOCK]
+
+    inputs0 = inputs_at(jnp.asarray(0))[1]
 
     y0 = _cast_floats(plant0.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0), dtype)
     if scenario.w_m_imposed is not None:
-        y0 = eqx.tree_at(lambda y: y.w_m, y0, jnp.asarray(inputs["w_m_imposed"][0], dtype))
+        y0 = eqx.tree_at(lambda y: y.w_m, y0, jnp.asarray(inputs0["w_m_imposed"], dtype))
     th_hat0 = y0.theta if theta_hat0 is None else jnp.asarray(theta_hat0, dtype)
     w_hat0_ = y0.w_m if w_hat0 is None else jnp.asarray(w_hat0, dtype)
     u_zero = jnp.zeros(2, dtype)
@@ -238,6 +254,7 @@ def _simulate(arguments: dict) -> Trajectory:
         i_hist=jnp.zeros((sensing.delay, 2), dtype),
         ok=jnp.array(True),
         ise=(zero, zero, zero),  # integrals of theta_err^2, (w_ref - w)^2, (w - w_hat)^2
+        noise=None if key is None else jnp.zeros((_NOISE_BLOCK, 2), dtype),
     )
     carry_dtypes = jax.tree_util.tree_map(lambda a: a.dtype, carry0)
     i_bound = 20.0 * drive.i_max
@@ -247,8 +264,12 @@ def _simulate(arguments: dict) -> Trajectory:
 
     # The step works on vector components (x, y) where it can, and evaluates each sin/cos
     # once (`cos_sin`): XLA then compiles it to a few element-wise loops (see BENCHMARKS.md).
-    def step(carry, x):
-        t_k, inp, n_k = x
+    def step(carry, k):
+        t_k, inp = inputs_at(k)
+        if key is None:
+            n_k, noise_blk = None, carry["noise"]
+        else:
+            noise_blk, n_k = noise_at(carry["noise"], k)
         y = carry["plant"]
         if imposed:
             y = eqx.tree_at(lambda s: s.w_m, y, inp["w_m_imposed"])
@@ -305,7 +326,8 @@ def _simulate(arguments: dict) -> Trajectory:
         ise = tuple(a + T_s * b for a, b in zip(carry["ise"], (
             theta_err ** 2, (inp["w_m_ref"] - y.w_m) ** 2, (y.w_m - est.w_hat) ** 2)))
         new_carry = dict(plant=y_next, ctrl=ctrl_state, obs=obs_state, u_prev=u_apply,
-                         u_pending=u_pending, i_hist=i_hist, ok=good, ise=ise)
+                         u_pending=u_pending, i_hist=i_hist, ok=good, ise=ise,
+                         noise=noise_blk)
         new_carry = jax.tree_util.tree_map(lambda a, d: jnp.asarray(a, d), new_carry,
                                            carry_dtypes)
 
@@ -336,26 +358,25 @@ def _simulate(arguments: dict) -> Trajectory:
     def step_unrecorded(carry, x):
         return step(carry, x)[0], None
 
-    xs = (t, inputs, noise)
+    steps = jnp.arange(N, dtype=jnp.int32)
     if save_every == 1:
-        carry, rec = jax.lax.scan(step_recorded, carry0, xs)
+        carry, rec = jax.lax.scan(step_recorded, carry0, steps)
     else:
         # Record the first sample of each chunk of `save_every` steps; the other steps
-        # record nothing, so memory does not grow with `save_every`. (Inputs are indexed
-        # in place, not re-sliced per chunk, which would copy them.)
-        def x_at(k):
-            return jax.tree_util.tree_map(lambda a: a[k], xs)
-
+        # record nothing, so memory does not grow with `save_every`.
         def chunk(c, k0):
-            c, r = step_recorded(c, x_at(k0))
-            c, _ = jax.lax.scan(lambda c, k: step_unrecorded(c, x_at(k)), c,
-                                k0 + jnp.arange(1, save_every))
+            c, r = step_recorded(c, k0)
+            c, _ = jax.lax.scan(step_unrecorded, c, k0 + jnp.arange(1, save_every,
+                                                                     dtype=jnp.int32))
             return c, r
 
-        carry, rec = jax.lax.scan(chunk, carry0, jnp.arange(0, N, save_every))
+        carry, rec = jax.lax.scan(chunk, carry0, steps[::save_every])
     status = RESULTS.where(carry["ok"], RESULTS.successful, RESULTS.diverged)
+    y_end = carry["plant"]
     traj = Trajectory(**rec, ise_theta=carry["ise"][0], ise_w=carry["ise"][1],
-                      ise_w_hat=carry["ise"][2], status=status)
+                      ise_w_hat=carry["ise"][2], status=status,
+                      t_end=jnp.asarray(N, dtype) * T_s_, theta_end=wrap_angle(y_end.theta),
+                      w_m_end=y_end.w_m, i_dq_end=jnp.stack(y_end.i_dq, -1))
     if throw:
         traj = eqx.error_if(
             traj, ~carry["ok"],

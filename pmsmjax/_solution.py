@@ -36,6 +36,8 @@ class Trajectory(eqx.Module):
     - `ise_theta`: integral of theta_err^2 over the whole run (rad^2 s).
     - `ise_w`: integral of (w_m_ref - w_m)^2 (rad^2/s); `ise_w_hat`: of (w_m - w_hat)^2.
     - `status`: `RESULTS` code of the run (0 = successful).
+    - `t_end` (s), `theta_end` (rad, wrapped), `w_m_end` (rad/s), `i_dq_end` (A): the
+      plant state after the last step, at t_N = N T_s (the samples stop at t_{N-1}).
     - `extras`: the observer's own estimates by name (`Estimate.extras`, units in the
       observer class's `extras`), e.g. `psi_ab_hat` (V s) for the zhang2022 observers.
     """
@@ -61,6 +63,10 @@ class Trajectory(eqx.Module):
     ise_w_hat: jnp.ndarray
     status: RESULTS
     extras: dict = eqx.field(default_factory=dict)
+    t_end: jnp.ndarray | None = None
+    theta_end: jnp.ndarray | None = None
+    w_m_end: jnp.ndarray | None = None
+    i_dq_end: jnp.ndarray | None = None
 
     @property
     def ok(self):
