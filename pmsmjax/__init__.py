@@ -5,28 +5,21 @@ cast a PyTree with `astype`) for bulk sweeps in single precision.
 """
 
 import importlib.metadata
-import os
+
+import jax
 
 
-# Opt-in speed-up (BENCHMARKS.md): XLA's CPU backend splits a `lax.scan` whose body is
-# above a small byte threshold into separate kernels; raising the threshold compiles the
-# whole closed-loop step into one kernel (about 9x faster single runs here). It is opt-in
-# (PMSMJAX_XLA_SMALL_LOOPS=1) because an intermittent hang of a jitted computation was
-# seen with it on a heavily loaded 2-core machine and its cause is not yet understood.
-# XLA reads the flag when the backend starts: set the variable before importing pmsmjax.
-if os.environ.get("PMSMJAX_XLA_SMALL_LOOPS") == "1" and \
-        "xla_backend_extra_options" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "")
-        + " --xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000"
-    ).strip()
-
-import jax  # noqa: E402
-
-
+# The one process-wide setting a library import makes: analysis needs float64. Everything
+# else that changes the whole process (XLA flags, the compilation cache) belongs to the
+# entry points, which call `pmsmjax.runtime.configure()` (see that module).
 jax.config.update("jax_enable_x64", True)
 
-from . import analysis as analysis, observers as observers, papers as papers  # noqa: E402
+from . import (  # noqa: E402
+    analysis as analysis,
+    observers as observers,
+    papers as papers,
+    runtime as runtime,
+)
 from ._control import (  # noqa: E402
     FOC as FOC,
     CurrentController as CurrentController,

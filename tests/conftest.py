@@ -2,7 +2,12 @@ import jax
 import jax.random as jr
 import pytest
 
+import pmsmjax
 
+
+# The test suite is an entry point: the same process settings as the command line
+# (pmsmjax.runtime: XLA flags, compilation cache), applied before any computation.
+pmsmjax.runtime.configure()
 jax.config.update("jax_enable_x64", True)
 
 

@@ -131,6 +131,7 @@ def main(argv=None) -> int:
         print(f"python -m tuning: error: {e}", file=sys.stderr)
         return 2
     out = pathlib.Path(args.out)
+    pj.runtime.configure()  # process settings of an entry point (pmsmjax.runtime)
     from ._pipeline import run_tuning
     from ._report import write_report
 

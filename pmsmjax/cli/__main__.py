@@ -18,14 +18,14 @@ import sys
 
 import pmsmjax as pj
 
-from . import _certify, _equilibria, _feasibility, _plant, _replay, _simulate
+from . import _cache, _certify, _equilibria, _feasibility, _plant, _replay, _simulate
 from ._options import CLIError, Command
 
 
 #: The commands, by name, in the order `pmsmjax --help` lists them.
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
-    for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify)
+    for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
 }
 
 
@@ -69,6 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except SystemExit as e:  # --help, --version
         return e.code if isinstance(e.code, int) else 0
+    pj.runtime.configure()  # process settings of an entry point (pmsmjax.runtime)
     try:
         return int(args._run(args))
     except (CLIError, ValueError, OSError) as e:

@@ -1,0 +1,135 @@
+"""Process-wide settings for the programs that use pmsmjax: the entry points call
+`configure()` once at start-up (the `pmsmjax` command line, `python -m tuning`, the test
+suite and the notebooks' first cell); a library import changes only `jax_enable_x64`.
+
+What `configure()` sets, and why (measurements in BENCHMARKS.md):
+
+- **Fast single runs.** XLA's CPU backend compiles a `while` loop (a `lax.scan` over
+  time) into one kernel only while its buffers stay below a small byte threshold;
+  above it every fusion of the loop body is dispatched on its own, about 1 us per time
+  step. A closed-loop drive step is just above the default threshold, so `configure`
+  raises it (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`):
+  single runs become about 5-9x faster, batched runs are unchanged.
+- **No hangs.** `--xla_cpu_multi_thread_eigen=false` (see `SAFE_FLAGS`); asynchronous
+  CPU dispatch stays on (the stress reproducer found no hang with it either way).
+- **Persistent compilation cache.** Compiled programs are kept in a per-user directory
+  (`cache_dir()`: `$PMSMJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/pmsmjax/jax`, else
+  `~/.cache/pmsmjax/jax`), so a repeated command skips XLA compilation. Opt out with
+  `PMSMJAX_CACHE=0` (or `configure(cache=False)`); clear it with `pmsmjax cache --clear`
+  or `clear_cache()`.
+
+XLA reads its flags when the first computation starts the backend, so `configure` must
+run before any JAX computation; called later it keeps the backend as it is and warns.
+Set `PMSMJAX_FAST_LOOPS=0` to keep XLA's default loop threshold.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+import jax
+
+
+#: XLA flags `configure` adds for fast single runs (see the module docstring).
+FAST_LOOP_FLAGS = ("--xla_backend_extra_options="
+                   "xla_cpu_small_while_loop_byte_threshold=100000000",)
+#: XLA flags `configure` adds so that the process cannot hang: XLA CPU's multi-threaded
+#: Eigen pool (used for dot/convolution kernels only; pmsmjax's loops are element-wise
+#: fusions) is what public reports of the same symptom (caller blocked on a vmapped
+#: result, XLA workers idle) found wedged; switching it to single-threaded mode avoided
+#: it there. Our stress reproducer (`benchmarks/stress_hang.py`, BENCHMARKS.md) did not
+#: hang with or without it; it costs nothing measurable here, so it is on.
+SAFE_FLAGS: tuple[str, ...] = ("--xla_cpu_multi_thread_eigen=false",)
+
+_configured: dict | None = None
+
+
+def _env_flag(name: str, default: bool) -> bool:
+    v = os.environ.get(name)
+    if v is None or v.strip() == "":
+        return default
+    if v.strip().lower() in ("0", "false", "no", "off"):
+        return False
+    if v.strip().lower() in ("1", "true", "yes", "on"):
+        return True
+    raise ValueError(f"environment variable {name}={v!r}: use 1/0 (or true/false)")
+
+
+def cache_dir() -> Path:
+    """The per-user directory of the persistent compilation cache (it may not exist)."""
+    if os.environ.get("PMSMJAX_CACHE_DIR"):
+        return Path(os.environ["PMSMJAX_CACHE_DIR"]).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "pmsmjax" / "jax"
+
+
+def cache_size() -> tuple[int, int]:
+    """(number of files, total bytes) in `cache_dir()`."""
+    d = cache_dir()
+    if not d.is_dir():
+        return 0, 0
+    files = [p for p in d.rglob("*") if p.is_file()]
+    return len(files), sum(p.stat().st_size for p in files)
+
+
+def clear_cache() -> int:
+    """Delete the persistent compilation cache; return the number of files removed."""
+    d = cache_dir()
+    n, _ = cache_size()
+    if d.is_dir():
+        shutil.rmtree(d)
+    return n
+
+
+def _backend_started() -> bool:
+    from jax._src import xla_bridge
+
+    return xla_bridge.backends_are_initialized()
+
+
+def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> dict:
+    """Apply the entry points' process settings (see the module docstring); idempotent.
+
+    **Arguments:**
+
+    - `cache`: use the persistent compilation cache in `cache_dir()`; default from
+      `PMSMJAX_CACHE` (on unless it is 0).
+    - `fast_loops`: raise XLA's small-loop threshold; default from `PMSMJAX_FAST_LOOPS`
+      (on unless it is 0).
+
+    Returns what was applied: `{"xla_flags": [...], "cache_dir": str | None,
+    "backend_was_started": bool}`.
+    """
+    global _configured
+    cache = _env_flag("PMSMJAX_CACHE", True) if cache is None else bool(cache)
+    fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True) if fast_loops is None else bool(fast_loops)
+    flags = list(SAFE_FLAGS) + (list(FAST_LOOP_FLAGS) if fast_loops else [])
+    started = _backend_started()
+    current = os.environ.get("XLA_FLAGS", "")
+    missing = [f for f in flags if f.split("=")[0] not in current]
+    if missing:
+        if started:
+            warnings.warn("pmsmjax.runtime.configure() was called after JAX started its "
+                          f"backend; XLA flags {missing} are not applied (call it first)",
+                          RuntimeWarning, stacklevel=2)
+        else:
+            os.environ["XLA_FLAGS"] = " ".join([current, *missing]).strip()
+    applied_dir = None
+    if cache:
+        d = cache_dir()
+        try:
+            d.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            warnings.warn(f"compilation cache disabled: cannot create {d}: {e}",
+                          RuntimeWarning, stacklevel=2)
+        else:
+            jax.config.update("jax_compilation_cache_dir", str(d))
+            # cache every compiled program that took noticeable time (default 1 s)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+            applied_dir = str(d)
+    _configured = dict(xla_flags=os.environ.get("XLA_FLAGS", "").split(),
+                       cache_dir=applied_dir, backend_was_started=started)
+    return dict(_configured)

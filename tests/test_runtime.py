@@ -1,0 +1,83 @@
+"""The entry points' process settings (`pmsmjax.runtime`): XLA flags, the persistent
+compilation cache (filled by a command, reused, cleared, opted out of)."""
+
+import json
+import os
+import subprocess
+import sys
+import warnings
+
+import pytest
+
+import pmsmjax as pj
+
+
+def _run(args, env):
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True,
+                          env=env, timeout=600)
+
+
+@pytest.fixture
+def env(tmp_path):
+    e = dict(os.environ)
+    e["PMSMJAX_CACHE_DIR"] = str(tmp_path / "cache")
+    e.pop("PMSMJAX_CACHE", None)
+    e.pop("XLA_FLAGS", None)
+    return e
+
+
+def test_configure_in_a_fresh_process(env, tmp_path):
+    code = ("import pmsmjax as pj, jax, os, json\n"
+            "r = pj.runtime.configure()\n"
+            "jax.numpy.ones(3).block_until_ready()\n"
+            "print(json.dumps(dict(r, flags=os.environ['XLA_FLAGS'],"
+            " cache=jax.config.jax_compilation_cache_dir)))\n")
+    res = _run(["-c", code], env)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert "xla_cpu_small_while_loop_byte_threshold" in out["flags"]
+    assert out["cache"] == str(tmp_path / "cache") == out["cache_dir"]
+    assert out["backend_was_started"] is False
+    env["PMSMJAX_CACHE"] = "0"
+    env["PMSMJAX_FAST_LOOPS"] = "0"
+    res = _run(["-c", code.replace("os.environ['XLA_FLAGS']",
+                                   "os.environ.get('XLA_FLAGS', '')")], env)
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert out["cache"] is None and out["cache_dir"] is None
+    assert "small_while_loop" not in out["flags"]
+    env["PMSMJAX_CACHE"] = "maybe"
+    res = _run(["-c", code], env)
+    assert res.returncode != 0 and "PMSMJAX_CACHE='maybe'" in res.stderr
+
+
+def test_configure_after_the_backend_started_warns(monkeypatch):
+    import jax
+
+    jax.numpy.zeros(1).block_until_ready()  # the backend is running in this process
+    monkeypatch.setenv("XLA_FLAGS", "")
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        r = pj.runtime.configure(cache=False, fast_loops=True)
+    assert r["backend_was_started"]
+    assert any("after JAX started its backend" in str(x.message) for x in w)
+    assert os.environ["XLA_FLAGS"] == ""  # not pretended to be applied
+
+
+def test_cache_is_filled_reused_and_cleared(env, tmp_path):
+    cmd = ["-m", "pmsmjax", "equilibria", "--speed", "0.5", "--json"]
+    first = _run(cmd, env)
+    assert first.returncode == 0, first.stderr
+    files = [p for p in (tmp_path / "cache").rglob("*") if p.is_file()]
+    n, size = len(files), sum(p.stat().st_size for p in files)
+    assert n > 0 and size > 0
+    second = _run(cmd, env)
+    assert second.returncode == 0 and second.stdout == first.stdout  # same result, cached
+    info = _run(["-m", "pmsmjax", "cache"], env)
+    assert info.returncode == 0 and f"({n} files" in info.stdout
+    assert str(tmp_path / "cache") in info.stdout
+    cleared = _run(["-m", "pmsmjax", "cache", "--clear"], env)
+    assert cleared.returncode == 0 and f"removed {n} files" in cleared.stdout
+    assert not (tmp_path / "cache").exists()
+    env["PMSMJAX_CACHE"] = "0"
+    assert _run(cmd, env).returncode == 0
+    assert not (tmp_path / "cache").exists()
