@@ -1,0 +1,348 @@
+"""Stress reproducer for the intermittent hang of jitted, vmapped computations on CPU.
+
+Symptom seen twice (a vmapped `slowly_varying_certificate` inside a Jupyter kernel, and
+earlier any computation with XLA's small-while-loop flag on a loaded 2-core machine): the
+caller blocks on its output buffers while XLA's worker threads sit idle.
+
+This script repeats the affected computations many times in several concurrent worker
+processes, with extra CPU load beside them, under a set of process configurations
+("variants"), and counts hangs. A watchdog declares a hang when a worker makes no
+progress for `--timeout` seconds; it then dumps the native and Python stacks of every
+thread of the worker with py-spy (`py-spy dump --native`) into the output folder, kills
+the worker and starts a fresh one, so one hang does not stop the count.
+
+Workloads (each iteration uses new inputs, so nothing is served from a cache):
+
+- `certificate`: `jax.vmap` of `analysis.slowly_varying_certificate` over 4 LESO designs
+  (reduced resolution), the computation that hung in the notebook;
+- `certificate_eager`: the same `jax.vmap` without an outer `jit` (as the notebook
+  called it: many small dispatched computations);
+- `loop`: one sensorless closed-loop run (ESO, 4000 steps) and a vmapped batch of 16;
+- `equilibria`: the generic equilibria route vmapped over 256 operating points.
+
+Variants (process settings, applied before JAX starts):
+
+- `default`: XLA's defaults;
+- `small_loops`: `--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`;
+- `small_loops_sync`: the same with `jax_cpu_enable_async_dispatch=False`;
+- `small_loops_no_eigen_mt`: the same with `--xla_cpu_multi_thread_eigen=false`;
+- `pmsmjax`: whatever `pmsmjax.runtime.configure()` chooses (the entry points' default).
+
+`--mode kernel` runs the iterations inside Jupyter kernels driven by jupyter_client
+(the notebook condition); the watchdog then dumps the kernel's stacks.
+
+Usage (results go to BENCHMARKS.md):
+
+    .venv/bin/python benchmarks/stress_hang.py [--runs 100] [--procs 3] [--load 2]
+        [--variants default,small_loops,...] [--workloads certificate,loop]
+        [--timeout 120] [--out results/stress]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import queue
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+
+SMALL_LOOPS = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000"
+VARIANTS = {
+    "default": dict(xla_flags="", sync=False, configure=False),
+    "small_loops": dict(xla_flags=SMALL_LOOPS, sync=False, configure=False),
+    "small_loops_sync": dict(xla_flags=SMALL_LOOPS, sync=True, configure=False),
+    "small_loops_no_eigen_mt": dict(
+        xla_flags=SMALL_LOOPS + " --xla_cpu_multi_thread_eigen=false", sync=False,
+        configure=False),
+    "pmsmjax": dict(xla_flags="", sync=False, configure=True),
+}
+WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria")
+
+
+# ----------------------------------------------------------------------------- worker
+
+def _workload(name):
+    """A function `f(i)` that runs iteration `i` of the workload to completion."""
+    import jax
+    import jax.numpy as jnp
+
+    import pmsmjax as pj
+    from pmsmjax import analysis
+
+    drive = pj.preset("zhang750")
+    wr = float(drive.w_rated)
+    if name in ("certificate", "certificate_eager"):
+        base = pj.observers.make_observer("leso", drive)
+
+        def cert(zeta1):
+            obs = base.with_design(zeta1=zeta1, ratio=0.5)
+            c = analysis.slowly_varying_certificate(
+                drive, obs, (0.2, 1.0), n_speed=21, n_time=60, n_dirs=64, n_refine=10,
+                n_k1_speeds=5)
+            return c.eps
+
+        f = jax.vmap(cert) if name.endswith("eager") else jax.jit(jax.vmap(cert))
+        return lambda i: f(jnp.linspace(0.6, 1.2, 4) + 1e-3 * (i % 7))
+    if name == "loop":
+        foc = pj.FOC.from_drive(drive)
+        obs = pj.ESOObserver.from_drive(drive)
+
+        def one(w):
+            sc = pj.Scenario(t_end=4000 * 125e-6, w_m_ref=pj.Profile.ramp(0.0, 0.1, 0.0, w),
+                             tau_L=pj.Profile.steps([0.3], [1.0]))
+            tr = pj.simulate(drive, foc, obs, sc, T_s=125e-6, save_every=4000, throw=False)
+            return tr.ise_theta
+
+        single = jax.jit(one)
+        batch = jax.jit(jax.vmap(one))
+
+        def run(i):
+            w = (0.3 + 0.01 * (i % 11)) * wr
+            jax.block_until_ready(single(w))
+            return batch(w * jnp.linspace(0.8, 1.2, 16))
+        return run
+    if name == "equilibria":
+        obs = pj.observers.make_observer("leso", drive)
+        f = jax.jit(jax.vmap(lambda w, iq: analysis.equilibria(
+            obs, drive.motor, w, jnp.stack([0.0, iq]), method="generic").status))
+        w = jnp.linspace(0.1, 1.0, 256) * wr
+        return lambda i: f(w * (1 + 1e-3 * (i % 5)), jnp.full(256, 0.5 + 0.01 * (i % 3)))
+    raise ValueError(f"unknown workload {name!r}")
+
+
+def kernel_worker(args):
+    """The same iterations inside a Jupyter kernel (the notebook condition): this process
+    drives an ipykernel with jupyter_client and reports its pid for the stack dump."""
+    from jupyter_client.manager import start_new_kernel
+
+    variant = VARIANTS[args.variant]
+    env = dict(os.environ)
+    if variant["xla_flags"]:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + variant["xla_flags"]).strip()
+    km, kc = start_new_kernel(kernel_name="python3", env=env)
+    try:
+        pid = km.provisioner.process.pid
+        print(f"kernel_pid {pid}", flush=True)
+        setup = (f"import sys, time; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+                 "import jax\n"
+                 f"if {variant['sync']}: jax.config.update("
+                 "'jax_cpu_enable_async_dispatch', False)\n"
+                 f"if {variant['configure']}:\n"
+                 "    import pmsmjax as pj; pj.runtime.configure(cache=False)\n"
+                 "import stress_hang as sh\n"
+                 f"fns = {{w: sh._workload(w) for w in {args.workloads.split(',')!r}}}\n")
+        kc.execute_interactive(setup, timeout=None, store_history=False)
+        print("ready", flush=True)
+        for i in range(args.runs):
+            for w in args.workloads.split(","):
+                t0 = time.perf_counter()
+                r = kc.execute_interactive(f"jax.block_until_ready(fns[{w!r}]({i}))",
+                                           timeout=None, store_history=False,
+                                           output_hook=lambda msg: None)
+                if r["content"]["status"] != "ok":
+                    print("error", r["content"].get("ename"), r["content"].get("evalue"),
+                          flush=True)
+                    raise SystemExit(1)
+                print(f"done {i} {w} {time.perf_counter() - t0:.3f}", flush=True)
+    finally:
+        kc.stop_channels()
+        km.shutdown_kernel(now=True)
+
+
+def worker(args):
+    if args.mode == "kernel":
+        return kernel_worker(args)
+    variant = VARIANTS[args.variant]
+    if variant["xla_flags"]:
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " "
+                                   + variant["xla_flags"]).strip()
+    import jax
+
+    if variant["sync"]:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
+    if variant["configure"]:
+        import pmsmjax as pj
+
+        pj.runtime.configure(cache=False)
+    fns = {w: _workload(w) for w in args.workloads.split(",")}
+    print("ready", flush=True)
+    for i in range(args.runs):
+        for w, f in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(i))
+            print(f"done {i} {w} {time.perf_counter() - t0:.3f}", flush=True)
+
+
+# ----------------------------------------------------------------------------- parent
+
+def _load_proc():
+    """A busy process (NumPy matrix products) as concurrent CPU load."""
+    code = ("import numpy as np\n"
+            "a = np.random.rand(300, 300)\n"
+            "while True:\n    a = np.tanh(a @ a.T / 300.0)\n")
+    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+
+
+def _dump_stacks(pid, path: Path):
+    spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
+    try:
+        res = subprocess.run([spy, "dump", "--native", "--pid", str(pid)],
+                             capture_output=True, text=True, timeout=60)
+        path.write_text(res.stdout + res.stderr)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        path.write_text(f"py-spy failed: {e}\n")
+
+
+def _reader(proc, q):
+    for line in proc.stdout:
+        q.put(line)
+    q.put(None)
+
+
+def run_variant(variant, args, out: Path) -> dict:
+    """Run `args.runs` iterations of each workload split over `args.procs` workers."""
+    per = max(1, args.runs // args.procs)
+    todo = [per] * args.procs
+    stats = dict(variant=variant, mode=args.mode, iterations=0, hangs=0, crashes=0, times=[],
+                 dumps=[])
+    slots: list = [None] * args.procs
+    t_start = time.perf_counter()
+
+    def start(k):
+        cmd = [sys.executable, __file__, "--child", "--variant", variant, "--mode", args.mode,
+               "--workloads", args.workloads, "--runs", str(todo[k])]
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             text=True)
+        q: queue.Queue = queue.Queue()
+        threading.Thread(target=_reader, args=(p, q), daemon=True).start()
+        slots[k] = dict(proc=p, q=q, last=time.monotonic(), ready=False, done=0, tail=[])
+
+    for k in range(args.procs):
+        start(k)
+    while any(s is not None for s in slots):
+        time.sleep(0.2)
+        for k, s in enumerate(slots):
+            if s is None:
+                continue
+            while True:
+                try:
+                    line = s["q"].get_nowait()
+                except queue.Empty:
+                    break
+                if line is None:
+                    s["eof"] = True
+                    break
+                s["last"] = time.monotonic()
+                s["tail"] = (s["tail"] + [line])[-30:]
+                if line.startswith("kernel_pid"):
+                    s["dump_pid"] = int(line.split()[1])
+                elif line.startswith("ready"):
+                    s["ready"] = True
+                elif line.startswith("done"):
+                    _, i, w, dt = line.split()
+                    stats["iterations"] += 1
+                    s["done"] += 1
+                    stats["times"].append(float(dt))
+                    todo[k] -= 1 if w == args.workloads.split(",")[-1] else 0
+            limit = args.timeout if s["ready"] else max(args.timeout, 600)
+            if s.get("eof"):
+                rc = s["proc"].wait()
+                if rc != 0:
+                    stats["crashes"] += 1
+                    if s["done"] == 0:  # a broken workload, not an intermittent failure
+                        raise SystemExit(f"worker of {variant} failed (exit {rc}):\n"
+                                         + "".join(s["tail"]))
+                slots[k] = None
+                if rc != 0 and todo[k] > 0:
+                    start(k)
+            elif time.monotonic() - s["last"] > limit:
+                stats["hangs"] += 1
+                dump = out / f"hang_{variant}_{stats['hangs']}.txt"
+                _dump_stacks(s.get("dump_pid", s["proc"].pid), dump)
+                if "dump_pid" in s:
+                    try:
+                        os.kill(s["dump_pid"], 9)
+                    except OSError:
+                        pass
+                stats["dumps"].append(dump.name)
+                print(f"  HANG in {variant} (pid {s['proc'].pid}); stacks in {dump}",
+                      flush=True)
+                s["proc"].kill()
+                s["proc"].wait()
+                slots[k] = None
+                if todo[k] > 0:
+                    start(k)
+    stats["wall_s"] = time.perf_counter() - t_start
+    ts = sorted(stats.pop("times"))
+    stats["median_iteration_s"] = ts[len(ts) // 2] if ts else None
+    stats["max_iteration_s"] = ts[-1] if ts else None
+    stats["hangs_per_100"] = 100.0 * stats["hangs"] / max(1, stats["iterations"])
+    return stats
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--variant", default="default")
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--workloads", default="certificate,loop")
+    ap.add_argument("--mode", choices=("process", "kernel"), default="process",
+                    help="run the workloads in plain worker processes or inside Jupyter "
+                         "kernels driven by jupyter_client (the notebook condition)")
+    ap.add_argument("--runs", type=int, default=100,
+                    help="iterations of each workload per variant, over all workers")
+    ap.add_argument("--procs", type=int, default=3, help="concurrent worker processes")
+    ap.add_argument("--load", type=int, default=2, help="extra busy processes")
+    ap.add_argument("--timeout", type=float, default=120.0,
+                    help="seconds without progress that count as a hang")
+    ap.add_argument("--out", default="results/stress")
+    args = ap.parse_args()
+    if args.child:
+        worker(args)
+        return
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    loads = [_load_proc() for _ in range(args.load)]
+    results = []
+    try:
+        for v in args.variants.split(","):
+            if v not in VARIANTS:
+                raise SystemExit(f"--variants: unknown variant {v!r}; "
+                                 f"choose from {', '.join(VARIANTS)}")
+            print(f"variant {v} ({args.mode}): {args.runs} x ({args.workloads}) on "
+                  f"{args.procs} workers "
+                  f"+ {args.load} load processes", flush=True)
+            r = run_variant(v, args, out)
+            print(f"  {r['iterations']} iterations, {r['hangs']} hangs, {r['crashes']} "
+                  f"crashes, median {r['median_iteration_s']} s, wall {r['wall_s']:.0f} s",
+                  flush=True)
+            results.append(r)
+    finally:
+        for p in loads:
+            p.kill()
+    print("\n| variant | mode | iterations | hangs | hangs per 100 | median s | max s |")
+    print("|---|---|---:|---:|---:|---:|---:|")
+    for r in results:
+        print(f"| {r['variant']} | {r['mode']} | {r['iterations']} | {r['hangs']} | "
+              f"{r['hangs_per_100']:.1f} | {r['median_iteration_s']} | "
+              f"{r['max_iteration_s']} |")
+    import jax
+
+    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
+                machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version(),
+                jax=jax.__version__, args=vars(args))
+    (out / "stress.json").write_text(json.dumps(dict(meta=meta, results=results), indent=2))
+    print(f"\nwrote {out / 'stress.json'}")
+
+
+if __name__ == "__main__":
+    main()
