@@ -9,7 +9,7 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   above it every fusion of the loop body is dispatched on its own, about 1 us per time
   step. A closed-loop drive step is just above the default threshold, so `configure`
   raises it (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`):
-  single runs become about 5-9x faster, batched runs are unchanged.
+  single runs become about 8x faster, batched runs are unchanged (see `FAST_LOOP_FLAGS`).
 - **No hangs.** `--xla_cpu_multi_thread_eigen=false` (see `SAFE_FLAGS`); asynchronous
   CPU dispatch stays on (the stress reproducer found no hang with it either way).
 - **Persistent compilation cache.** Compiled programs are kept in a per-user directory
@@ -34,8 +34,13 @@ import jax
 
 
 #: XLA flags `configure` adds for fast single runs (see the module docstring).
+#: 64 KiB: a single closed-loop run (a few KiB of loop buffers, just above XLA's default
+#: threshold) becomes one kernel, while a large batch (1024 runs: hundreds of KiB) stays
+#: split into kernels that XLA runs on several cores. With no upper bound (1e8, tried
+#: first) batch 1024 ran 15 % slower than with XLA's default; with 64 KiB it runs as
+#: fast as with the default (BENCHMARKS.md).
 FAST_LOOP_FLAGS = ("--xla_backend_extra_options="
-                   "xla_cpu_small_while_loop_byte_threshold=100000000",)
+                   "xla_cpu_small_while_loop_byte_threshold=65536",)
 #: XLA flags `configure` adds so that the process cannot hang: XLA CPU's multi-threaded
 #: Eigen pool (used for dot/convolution kernels only; pmsmjax's loops are element-wise
 #: fusions) is what public reports of the same symptom (caller blocked on a vmapped
