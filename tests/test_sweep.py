@@ -229,7 +229,10 @@ print(json.dumps(report))
 
 def _subprocess_env(n_devices):
     env = dict(os.environ)
-    env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={n_devices}"
+    # the same XLA flags as this process (pmsmjax.runtime.configure() in conftest), so that
+    # both sides compile the same code, plus the device count
+    env["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                        f" --xla_force_host_platform_device_count={n_devices}").strip()
     env["JAX_PLATFORMS"] = "cpu"
     env["PYTHONPATH"] = REPO + os.pathsep + env.get("PYTHONPATH", "")
     return env
