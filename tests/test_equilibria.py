@@ -49,6 +49,26 @@ def _both(motor, w0, i0, z1, ratio, frame):
     return jax.vmap(one)(w0, i0, z1, ratio)
 
 
+def _fd_max_real_eigenvalue(motor, w0, i0, z1, ratio, x):
+    """Largest real part of the eigenvalues of the central-difference Jacobian of
+    `eso_rhs` at each equilibrium `x` (n, 4 roots, 4), NaN where x is NaN."""
+    rhs = jax.jit(jax.vmap(jax.vmap(
+        lambda x, w0, i0, z1, ratio: analysis.eso_rhs(
+            x, w0, i0, _gains(motor, w0, i0, z1, ratio), motor),
+        (0, None, None, None, None)), (0, 0, 0, 0, 0)))
+    x = np.nan_to_num(x)
+    step = np.array([1e-7, 1e-7, 1e-7, 1e-3])  # V s, V s, rad, rad/s
+    cols = []
+    for k in range(4):
+        e = np.zeros(4)
+        e[k] = step[k]
+        fp = np.asarray(rhs(x + e, w0, i0, z1, ratio))
+        fm = np.asarray(rhs(x - e, w0, i0, z1, ratio))
+        cols.append((fp - fm) / (2 * step[k]))
+    J = np.stack(cols, -1)
+    return np.linalg.eigvals(J).real.max(-1)
+
+
 @pytest.mark.parametrize("motor", [M, SALIENT], ids=["tableI", "salient"])
 def test_quartic_and_general_route_agree(motor):
     w0, i0, z1, ratio = _random_designs(200, seed=1)
@@ -59,6 +79,13 @@ def test_quartic_and_general_route_agree(motor):
     tg = np.sort(np.nan_to_num(np.asarray(g.theta), nan=99.0), -1)[:, :4]
     np.testing.assert_allclose(tq, tg, atol=1e-9)
     np.testing.assert_array_equal(np.asarray(q.stable), np.asarray(g.stable)[:, :4])
+    # Both flags come from the same Routh-Hurwitz code: check them against eigenvalues of
+    # a central-difference Jacobian of the error dynamics (NumPy), independent of both.
+    ev = _fd_max_real_eigenvalue(motor, w0, i0, z1, ratio, np.asarray(q.x))
+    v = np.asarray(q.valid)
+    clear = v & (np.abs(ev) > 1e-6 * np.abs(w0)[:, None])
+    assert clear.sum() > 0.9 * v.sum()
+    np.testing.assert_array_equal(np.asarray(q.stable)[clear], ev[clear] < 0)
     # the paper's "either 1 or 3" nonzero equilibria (the cubic after t = 0 is divided out)
     assert set(np.unique(np.asarray(q.n_nonzero))) <= {1, 3}
     if motor is SALIENT:  # the test must exercise both cases and stable nonzero ones
@@ -212,14 +239,28 @@ def test_routh_hurwitz_matches_eigenvalues(n, getkey):
 
 
 def test_equilibria_do_not_depend_on_the_speed_gains():
+    # zhang2022 §IV: at an equilibrium g3 f = 0, so the equilibria do not depend on the
+    # speed/angle gains g2, g3 (only their stability does). The quartic route never reads
+    # g2, g3, so the claim is checked with the generic route, which solves the full error
+    # dynamics (speed and angle rows included) of observers with different (zeta2, w2);
+    # the Jacobians at the equilibria must differ, or the route did not read the gains.
     w0 = 0.5 * DRIVE.w_rated
     i0 = jnp.array([0.0, 2.0]) * DRIVE.base.I_b
-    th = []
+    th, jac = [], []
     for zeta2, w2 in [(1.0, W2), (0.5, 50.0), (3.0, 3000.0)]:
-        g = _gains(SALIENT, w0, i0, 0.4, 1.3, zeta2, w2)
-        th.append(np.asarray(analysis.quartic_equilibria(w0, i0, g, SALIENT).theta))
-    np.testing.assert_allclose(th[0], th[1], atol=1e-12)
-    np.testing.assert_allclose(th[0], th[2], atol=1e-12)
+        obs = pj.LESOObserver(SALIENT, pj.observers.ESODesign.fixed_ratio(0.4, 1.3, w2=w2,
+                                                                          zeta2=zeta2))
+        eq = analysis.equilibria(obs, SALIENT, w0, i0, method="generic")
+        assert int(eq.status) == 0
+        v = np.asarray(eq.valid)
+        th.append(np.sort(np.asarray(eq.theta)[v]))
+        jac.append(np.asarray(eq.jacobian)[v][np.argsort(np.asarray(eq.theta)[v])])
+    q = analysis.quartic_equilibria(w0, i0, _gains(SALIENT, w0, i0, 0.4, 1.3), SALIENT)
+    ref = np.sort(np.asarray(q.theta)[np.asarray(q.valid)])
+    assert len(th[0]) >= 2  # the origin and at least one other equilibrium
+    for t in th:
+        np.testing.assert_allclose(t, ref, atol=1e-9)
+    assert np.abs(jac[0] - jac[1]).max() > 1.0 and np.abs(jac[0] - jac[2]).max() > 1.0
 
 
 def test_degenerate_points_report_status_not_errors():
