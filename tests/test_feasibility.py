@@ -129,14 +129,30 @@ def test_float32_agrees_with_float64():
 
 
 def test_general_route_map_with_mismatch_and_fal():
+    # zhang2022's reduction (the map's "general" route) against the generic contract route
+    # (constrained least squares on the observer's full error dynamics, another algorithm)
+    # on every grid point: same status, same number of equilibria, same angles.
     mh = pj.PMSMParams(R_s=0.7, L_d=1.3e-3, L_q=4.0e-3, psi_f=0.06, n_p=5.0)
-    fm = analysis.feasibility_map(SALIENT_DRIVE, [0.5], [0.3, 1.0, 2.0], [0.3, 1.0],
+    zetas, ratios = [0.3, 1.0, 2.0], [0.3, 1.0]
+    fm = analysis.feasibility_map(SALIENT_DRIVE, [0.5], zetas, ratios,
                                   i_dq=(0.0, 1.0), motor_hat=mh, a=0.6, eta=0.003,
                                   n_grid=64)
     assert fm.method == "general"
     st = np.asarray(fm.status)
     assert st.shape == (1, 1, 3, 2)
-    assert np.all(np.isin(st, [0, 1, 2]))
+    w0 = 0.5 * float(SALIENT_DRIVE.w_rated)
+    i0 = jnp.array([0.0, 1.0]) * SALIENT_DRIVE.base.I_b
+    for i, z1 in enumerate(zetas):
+        for j, r in enumerate(ratios):
+            obs = pj.ESOObserver(mh, pj.observers.ESODesign.fixed_ratio(z1, r, w2=W2),
+                                 a=0.6, eta=0.003)
+            ref = analysis.classify(obs, SALIENT, w0, i0, method="generic")
+            assert st[0, 0, i, j] == int(ref.status), (z1, r)
+            assert int(np.asarray(fm.n_nonzero)[0, 0, i, j]) == int(ref.n_nonzero)
+            np.testing.assert_allclose(np.asarray(fm.principal_theta_deg)[0, 0, i, j],
+                                       np.degrees(float(ref.principal_theta)), atol=1e-6)
+    # the mismatch moves the designed equilibrium off zero (a static error)
+    assert np.all(np.abs(np.asarray(fm.principal_theta_deg)) > 0.01)
 
 
 def test_bad_grids_raise():
