@@ -43,6 +43,9 @@ FIELDS: dict[str, tuple[str, bool]] = {
 
 #: Largest relative deviation of a sample spacing from the mean spacing T_s.
 T_RTOL = 1e-6
+#: Largest recording `load_recording` reads by default (bytes): 1 GiB, about 16 M samples
+#: of the full set of arrays; pass `max_bytes` to read larger files.
+MAX_RECORDING_BYTES = 2 ** 30
 
 _EXTENSIONS = (".npz", ".csv")
 
@@ -340,8 +343,8 @@ def _locate_csv_error(path, header, numbered) -> None:
     raise ValueError(f"{path}: cannot parse the CSV data as numbers.")
 
 
-def load_recording(path, require=("t", "u_ab", "i_ab"), *, t_rtol: float = T_RTOL
-                   ) -> RecordedData:
+def load_recording(path, require=("t", "u_ab", "i_ab"), *, t_rtol: float = T_RTOL,
+                   max_bytes: int = MAX_RECORDING_BYTES) -> RecordedData:
     """Read recorded drive data from an `.npz` or `.csv` file (see the module docstring).
 
     **Arguments:**
@@ -350,6 +353,11 @@ def load_recording(path, require=("t", "u_ab", "i_ab"), *, t_rtol: float = T_RTO
     - `require`: names of the arrays that must be present, e.g. `("t", "u_ab")` to drive
       the plant or `("t", "u_ab", "i_ab")` to replay an observer. `t` is always required.
     - `t_rtol`: tolerance on the uniformity of `t`, relative to T_s (default 1e-6).
+    - `max_bytes`: refuse larger files (default `MAX_RECORDING_BYTES`, 1 GiB) instead of
+      filling the memory.
+
+    Arrays or CSV columns with other names are ignored (a drive's own extra signals, or
+    an observer's outputs in `replay.npz`).
 
     **Returns:** a validated `RecordedData`.
 
@@ -360,6 +368,12 @@ def load_recording(path, require=("t", "u_ab", "i_ab"), *, t_rtol: float = T_RTO
     """
     require = _check_names(require)
     ext = _extension(path)
+    size = os.path.getsize(path)  # FileNotFoundError for a missing file
+    if size > max_bytes:
+        raise ValueError(
+            f"{path}: the file is {size / 2**20:.0f} MiB, above the limit of "
+            f"{max_bytes / 2**20:.0f} MiB for recorded data (split the recording, or pass "
+            f"`max_bytes` to pmsmjax.load_recording).")
     arrays = _read_npz(path) if ext == ".npz" else _read_csv(path)
     missing = [k for k in dict.fromkeys(("t",) + require) if k not in arrays]
     if missing:

@@ -16,6 +16,7 @@ import sys
 import time
 
 import pmsmjax as pj
+from pmsmjax.cli._options import out_dir_transaction
 from pmsmjax.observers import observer_names
 
 from .scenarios import OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
@@ -138,7 +139,8 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     report = run_tuning(config, progress=not args.no_progress, log=print,
                         ablation=not args.no_ablation)
-    s = write_report(report, out, plot=not args.no_plot)
+    with out_dir_transaction(str(out)):  # a failed write leaves nothing half-written
+        s = write_report(report, out, plot=not args.no_plot)
     wall = time.perf_counter() - t0
     print()
     print(f"{'design':<16}{'train loss':>12}{'held-out loss':>15}{'feasible':>10}")

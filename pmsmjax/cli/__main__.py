@@ -19,7 +19,7 @@ import sys
 import pmsmjax as pj
 
 from . import _cache, _certify, _equilibria, _feasibility, _plant, _replay, _simulate
-from ._options import CLIError, Command
+from ._options import CLIError, Command, out_dir_transaction
 
 
 #: The commands, by name, in the order `pmsmjax --help` lists them.
@@ -71,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         return e.code if isinstance(e.code, int) else 0
     pj.runtime.configure()  # process settings of an entry point (pmsmjax.runtime)
     try:
-        return int(args._run(args))
+        with out_dir_transaction(getattr(args, "out", None)):
+            return int(args._run(args))
     except (CLIError, ValueError, OSError) as e:
         print(f"pmsmjax {args.command}: error: {_one_line(e)}", file=sys.stderr)
         return 2

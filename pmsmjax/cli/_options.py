@@ -18,6 +18,7 @@ prints it as one line and exits with status 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import inspect
 import json
@@ -278,6 +279,48 @@ def add_json_option(group) -> None:
     group.add_argument("--json", action="store_true",
                        help="print the result as JSON only (strict JSON: NaN becomes null) "
                             "instead of a table")
+
+
+@contextlib.contextmanager
+def out_dir_transaction(path: str | None):
+    """Leave nothing half-written in the output folder `path` when the block fails: every
+    file the block created or changed in it is removed again (and the folder itself if
+    the block created it), then the exception propagates. Files that were there before and
+    that the block did not touch stay."""
+    if not path:
+        yield
+        return
+    existed = os.path.isdir(path)
+
+    def snapshot():
+        out = {}
+        for root, _, files in os.walk(path):
+            for f in files:
+                q = os.path.join(root, f)
+                try:
+                    st = os.stat(q)
+                except OSError:
+                    continue
+                out[q] = (st.st_mtime_ns, st.st_size)
+        return out
+
+    before = snapshot() if existed else {}
+    try:
+        yield
+    except BaseException:
+        if os.path.isdir(path):
+            for q, sig in snapshot().items():
+                if before.get(q) != sig:
+                    with contextlib.suppress(OSError):
+                        os.remove(q)
+            for root, dirs, _ in os.walk(path, topdown=False):
+                for d in dirs:
+                    with contextlib.suppress(OSError):
+                        os.rmdir(os.path.join(root, d))  # only empty ones
+            if not existed:
+                with contextlib.suppress(OSError):
+                    os.rmdir(path)
+        raise
 
 
 def prepare_out_dir(path: str) -> str:
