@@ -512,6 +512,10 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
         ~(sys.rate > 0)
     status = jnp.where(degenerate, STATUS_DEGENERATE,
                        jnp.where(nval == 0, STATUS_NONE, STATUS_OK)).astype(jnp.int32)
+    # a degenerate point has no equilibria to report (nothing valid, everything NaN)
+    valid = valid & ~degenerate
+    stable, tangent = stable & valid, tangent & valid
+    nval = jnp.sum(valid)
     nan = jnp.nan
     return Equilibria(
         theta=jnp.where(valid, theta, nan), x=jnp.where(valid[:, None], x, nan),
