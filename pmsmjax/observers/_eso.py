@@ -652,7 +652,8 @@ class AFOObserver(_AbstractFluxObserver):
     r"""Adaptive full-order observer [21] with the PI speed law (53) of zhang2022.
 
     Flux: the same model as `ESOObserver` with linear feedback $G_1 e$ (the gain $K$ of
-    [21] is (17), scheduled with this observer's $\hat\omega$). Speed and angle (53):
+    [21] is (17), scheduled on the integral state $x_I$ of the speed law, the smooth part
+    of this observer's $\hat\omega$; see `_advance`). Speed and angle (53):
 
     $$\hat\omega = -\left(k_p \varepsilon + k_i \int \varepsilon\, dt\right),\qquad
     \frac{d\hat\theta}{dt} = \hat\omega,\qquad k_p = \frac{2\zeta_2\omega_2}{\psi_{ad0}},
@@ -712,7 +713,12 @@ class AFOObserver(_AbstractFluxObserver):
     def _advance(self, state, meas, T_s):
         w_f, e, i_dq, k_i = self._pi_output(state.psi_ab, state.theta, state.w,
                                             state.i_prev)
-        G1 = self.design(self.motor, w_f, i_dq).G1
+        # The flux gain (17) is scheduled on the integral state x_I, the smooth speed
+        # estimate (as k_p, k_i are, and as the ESO/LESO schedule on theirs), not on the
+        # PI output w_f = x_I - k_p e_q: at the end of a fast ramp k_p e_q is large and a
+        # G1 scheduled on w_f lost lock for good (stumper's 31,500 rpm/s ramp on a 7 mH
+        # machine, docs/fast_ramp.md); the linearisation at e = 0 is the same either way.
+        G1 = self.design(self.motor, state.w, i_dq).G1
         psi = self._flux_update(state, meas, T_s, G1 @ e, w_f)
         theta = wrap_angle(state.theta + T_s * w_f)
         x_I = state.w - T_s * k_i * e[..., 1]
