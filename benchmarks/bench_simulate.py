@@ -121,6 +121,7 @@ def make_pmsmjax_run(dtype_name: str, n_steps: int, save_every: int | None = Non
 
     `params(foc) -> foc` may replace controller fields (for the gradient)."""
     import jax.numpy as jnp
+
     import pmsmjax as pj
 
     drive, foc = drive_and_controller()
@@ -388,6 +389,7 @@ def worker_first_compile(cfg: dict) -> dict:
     """Wall time from a cold `import pmsmjax` to the first result of one `simulate` call."""
     t0 = time.perf_counter()
     import jax
+
     import pmsmjax as pj
 
     t1 = time.perf_counter()

@@ -33,6 +33,7 @@ def test_main_job_quick(tmp_path):
         capture_output=True, text=True, timeout=1200, cwd=ROOT)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
+    assert "after JAX started its backend" not in proc.stderr  # configured in time
     printed = proc.stdout
     assert "tuned beats (38)/(25)" in printed
     assert str(out / "summary.json") in printed

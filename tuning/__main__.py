@@ -126,13 +126,13 @@ def config_from_args(args) -> TuningConfig:
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)  # bad options: argparse exits with status 2
+    pj.runtime.configure()  # process settings of an entry point, before any computation
     try:
         config = config_from_args(args)
     except ValueError as e:
         print(f"python -m tuning: error: {e}", file=sys.stderr)
         return 2
     out = pathlib.Path(args.out)
-    pj.runtime.configure()  # process settings of an entry point (pmsmjax.runtime)
     from ._pipeline import run_tuning
     from ._report import write_report
 

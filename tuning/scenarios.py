@@ -35,10 +35,10 @@ from pmsmjax._simulate import scale_motor
 from pmsmjax.observers import (
     AbstractGainSchedule,
     AbstractObserver,
+    make_observer as registry_observer,
     observer_class,
     observer_names,
 )
-from pmsmjax.observers import make_observer as registry_observer
 
 from ._parametrise import (
     TUNABLE,

@@ -61,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
 
     0 = success, 1 = the run finished but failed (e.g. diverged), 2 = bad input.
     """
+    pj.runtime.configure()  # process settings of an entry point, before any computation
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -69,7 +70,6 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except SystemExit as e:  # --help, --version
         return e.code if isinstance(e.code, int) else 0
-    pj.runtime.configure()  # process settings of an entry point (pmsmjax.runtime)
     try:
         with out_dir_transaction(getattr(args, "out", None)):
             return int(args._run(args))
