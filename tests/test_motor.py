@@ -44,7 +44,6 @@ def test_steady_state_vector_field(name):
     R, Ld, Lq, psi_f, _ = motor_numbers(drive.motor)
     rng = np.random.default_rng(0)
     thetas = [0.0, 1.0, -2.5, 17.3]
-    n = 15 * len(thetas)  # 15 random operating points, each at every angle
     i_dq = np.repeat(rng.uniform(-1, 1, (15, 2)) * float(drive.i_max), len(thetas), 0)
     w = np.repeat(rng.uniform(-2, 2, 15) * float(drive.w_rated), len(thetas))
     theta = np.tile(thetas, 15)
