@@ -265,7 +265,29 @@ def test_quick_tuning_beats_paper_design_is_feasible_and_reloads(tmp_path):
     assert saved["tuned_loss"] == L["tuned"]["train"]
     assert len(saved["loss_history"]) == cfg.steps
     assert len(saved["scenarios"]["train"]) == report.train.n
-    for name in ("loss_curve.png", "heatmaps.png", "time_trace.png", "tuned_schedule.eqx"):
+    # per-scenario accounting: counts add up, the worst regression is the largest change,
+    # and a scenario's numbers equal a direct evaluation of that scenario alone
+    for split, scen in (("train", report.train), ("heldout", report.heldout)):
+        acc = saved["accounting"][split]
+        assert acc["improved"] + acc["worse"] + acc["unchanged"] == acc["n"] == scen.n
+        ch = np.array([r["change_pct"] for r in acc["scenarios"]])
+        assert acc["improved"] == int(np.sum(ch < -1.0)) and acc["worse"] == int(
+            np.sum(ch > 1.0))
+        if acc["worse"]:
+            assert acc["worst_regression"]["change_pct"] == pytest.approx(ch.max())
+        else:
+            assert acc["worst_regression"] is None
+        j = int(np.argmax(ch))
+        one = jax.tree_util.tree_map(lambda a: a[j:j + 1], scen)
+        for name, key in (("paper", "baseline"), ("tuned", "tuned")):
+            _, m = tg.evaluate(report.designs[name], cfg, one)
+            row = acc["scenarios"][j]
+            assert float(m.loss[0]) == pytest.approx(row[f"{key}_loss"], rel=1e-9)
+            assert float(m.pos_rms_deg[0]) == pytest.approx(row[f"{key}_rms_deg"], rel=1e-9)
+            assert float(m.theta_ss_deg[0]) == pytest.approx(row[f"{key}_static_deg"],
+                                                             rel=1e-9, abs=1e-12)
+    for name in ("loss_curve.png", "heatmaps.png", "time_trace.png", "per_scenario.png",
+                 "tuned_schedule.eqx"):
         assert (tmp_path / name).stat().st_size > 0
     back = tg.load_schedule(tmp_path)
     la, ta = jax.tree_util.tree_flatten(report.tuned)

@@ -29,6 +29,7 @@ from ._pipeline import (
 )
 from ._report import (
     REQUIRED_KEYS as REQUIRED_KEYS,
+    accounting as accounting,
     config_from_summary as config_from_summary,
     load_schedule as load_schedule,
     plot_report as plot_report,

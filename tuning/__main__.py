@@ -153,6 +153,11 @@ def main(argv=None) -> int:
     print(f"tuned {verdict} {s['baseline_label']}: {imp['train']:+.1f} % (training), "
           f"{imp['heldout']:+.1f} % (held-out) lower {config.objective} loss; "
           f"feasible on every scenario: {s['feasible']}")
+    from ._report import accounting_lines
+
+    for split in ("train", "heldout"):
+        for line in accounting_lines(s["accounting"][split], split):
+            print(line)
     print(f"wall time {wall:.1f} s (job {s['wall_time_s']:.1f} s); wrote {out / 'summary.json'}")
     return 0 if all(math.isfinite(s[k]) for k in ("tuned_loss", "heldout_tuned_loss")) else 1
 

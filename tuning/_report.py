@@ -18,7 +18,9 @@ from .scenarios import TuningConfig
 
 SCHEDULE_FILE = "tuned_schedule.eqx"
 SUMMARY_FILE = "summary.json"
-PLOTS = ("loss_curve.png", "heatmaps.png", "time_trace.png")
+PLOTS = ("loss_curve.png", "heatmaps.png", "time_trace.png", "per_scenario.png")
+#: Relative change of a scenario's loss that counts as improved / worse (1 %).
+CHANGE_TOL = 0.01
 
 #: Keys every summary.json has (tests check them).
 REQUIRED_KEYS = ("baseline_loss", "tuned_loss", "heldout_baseline_loss",
@@ -66,6 +68,49 @@ def _scenario_rows(report: TuningReport, split: str) -> list:
     return rows
 
 
+def accounting(report: TuningReport, split: str, tol: float = CHANGE_TOL) -> dict:
+    """Per-scenario comparison of the tuned design with the baseline on `split`
+    ("train" or "heldout"): how many scenarios improved or got worse (relative change of
+    the scenario loss beyond `tol`), the worst regression and where, and the change of
+    loss, RMS and static angle error per scenario."""
+    scen = report.train if split == "train" else report.heldout
+    b, t = report.metrics["paper"][split], report.metrics["tuned"][split]
+    lb, lt = np.asarray(b.loss, float), np.asarray(t.loss, float)
+    rel = (lt - lb) / np.maximum(np.abs(lb), 1e-12)
+    rows = scen.table()
+    per = [dict(**row, baseline_loss=float(lb[j]), tuned_loss=float(lt[j]),
+                change_pct=100.0 * float(rel[j]),
+                baseline_rms_deg=float(b.pos_rms_deg[j]),
+                tuned_rms_deg=float(t.pos_rms_deg[j]),
+                baseline_static_deg=float(b.theta_ss_deg[j]),
+                tuned_static_deg=float(t.theta_ss_deg[j]))
+           for j, row in enumerate(rows)]
+    j = int(np.argmax(rel))
+    worst = dict(per[j]) if rel[j] > tol else None
+    return dict(n=len(per), improved=int(np.sum(rel < -tol)), worse=int(np.sum(rel > tol)),
+                unchanged=int(np.sum(np.abs(rel) <= tol)), tolerance_pct=100.0 * tol,
+                worst_regression=worst,
+                best_improvement_pct=100.0 * float(np.min(rel)),
+                rms_worse=int(np.sum(np.asarray(t.pos_rms_deg) >
+                                     (1 + tol) * np.asarray(b.pos_rms_deg))),
+                scenarios=per)
+
+
+def accounting_lines(acc: dict, split: str) -> list[str]:
+    """Console lines for one split's accounting."""
+    lines = [f"{split}: {acc['improved']} of {acc['n']} scenarios improved, {acc['worse']} "
+             f"worse, {acc['unchanged']} within {acc['tolerance_pct']:.0f} % "
+             f"(RMS angle error worse in {acc['rms_worse']})"]
+    w = acc["worst_regression"]
+    if w is not None:
+        lines.append(
+            f"  worst regression {w['change_pct']:+.1f} % at speed {w['speed_pu']:g} p.u., "
+            f"load {w['load_pu']:g} p.u., L_d x {w['k_d']:.3g}, L_q x {w['k_q']:.3g} "
+            f"(loss {w['baseline_loss']:.3f} -> {w['tuned_loss']:.3f}, RMS "
+            f"{w['baseline_rms_deg']:.2f} -> {w['tuned_rms_deg']:.2f} deg)")
+    return lines
+
+
 def summary(report: TuningReport) -> dict:
     """The content of summary.json (plain Python types)."""
     cfg = report.config
@@ -103,6 +148,7 @@ def summary(report: TuningReport) -> dict:
         tuned_design=tuned_design(report),
         scenarios=dict(train=_scenario_rows(report, "train"),
                        heldout=_scenario_rows(report, "heldout")),
+        accounting={split: accounting(report, split) for split in ("train", "heldout")},
         benchmark=targets_reached(report.results, L["paper"]["train"]),
         histories={k: dict(loss=r.stats["loss"], best=r.stats["best"],
                            n_simulations=r.stats["n_simulations"],
@@ -203,7 +249,7 @@ def report_figures(report: TuningReport) -> dict:
 
     return {name: fn(report, plt) for name, fn in (
         ("loss_curve.png", _plot_loss), ("heatmaps.png", _plot_heatmaps),
-        ("time_trace.png", _plot_trace))}
+        ("time_trace.png", _plot_trace), ("per_scenario.png", _plot_per_scenario))}
 
 
 def plot_report(report: TuningReport, out) -> None:
@@ -279,6 +325,43 @@ def _plot_heatmaps(report, plt):
             fig.colorbar(im, ax=ax, shrink=0.8)
     fig.suptitle(f"{report.config.observer.upper()}: worst case over the operating points "
                  f"(speeds x loads) per inductance mismatch")
+    fig.tight_layout()
+    return fig
+
+
+def _plot_per_scenario(report, plt):
+    """Tuned vs baseline loss per scenario (left) and the relative change per scenario
+    against the speed, coloured by the inductance mismatch (right)."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    lim = 0.0
+    accs = {split: accounting(report, split) for split in ("train", "heldout")}
+    mis_max = max(max(abs(r["k_d"] - 1), abs(r["k_q"] - 1))
+                  for a in accs.values() for r in a["scenarios"])
+    for split, marker in (("train", "o"), ("heldout", "s")):
+        acc = accs[split]
+        lb = np.array([r["baseline_loss"] for r in acc["scenarios"]])
+        lt = np.array([r["tuned_loss"] for r in acc["scenarios"]])
+        lim = max(lim, lb.max(), lt.max())
+        worse = lt > (1 + CHANGE_TOL) * lb
+        axes[0].scatter(lb[~worse], lt[~worse], marker=marker, s=18, color="C0", alpha=0.7,
+                        label=f"{split}: better or equal ({(~worse).sum()})")
+        axes[0].scatter(lb[worse], lt[worse], marker=marker, s=24, color="C3",
+                        label=f"{split}: worse ({worse.sum()})")
+        sp = np.array([r["speed_pu"] for r in acc["scenarios"]])
+        mis = np.array([max(abs(r["k_d"] - 1), abs(r["k_q"] - 1)) for r in acc["scenarios"]])
+        ch = np.array([r["change_pct"] for r in acc["scenarios"]])
+        sc = axes[1].scatter(sp, ch, c=mis, marker=marker, s=20, cmap="viridis",
+                             vmin=0.0, vmax=max(mis_max, 1e-9), label=split)
+    axes[0].plot([0, lim], [0, lim], "k--", lw=0.8)
+    axes[0].set_xlabel(f"{report.label} loss per scenario")
+    axes[0].set_ylabel("tuned loss per scenario")
+    axes[0].legend(fontsize=8)
+    axes[1].axhline(0.0, color="k", lw=0.8)
+    axes[1].set_xlabel("speed (p.u.)")
+    axes[1].set_ylabel("change of the scenario loss (%)")
+    axes[1].legend(fontsize=8)
+    fig.colorbar(sc, ax=axes[1], label="largest |inductance factor - 1|")
+    fig.suptitle("Per-scenario change, tuned vs " + report.label)
     fig.tight_layout()
     return fig
 
