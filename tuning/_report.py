@@ -93,6 +93,9 @@ def accounting(report: TuningReport, split: str, tol: float = CHANGE_TOL) -> dic
                 best_improvement_pct=100.0 * float(np.min(rel)),
                 rms_worse=int(np.sum(np.asarray(t.pos_rms_deg) >
                                      (1 + tol) * np.asarray(b.pos_rms_deg))),
+                worst_rms_change_pct=100.0 * float(np.max(
+                    np.asarray(t.pos_rms_deg) / np.maximum(np.asarray(b.pos_rms_deg), 1e-12)
+                    - 1.0)),
                 scenarios=per)
 
 
@@ -100,7 +103,8 @@ def accounting_lines(acc: dict, split: str) -> list[str]:
     """Console lines for one split's accounting."""
     lines = [f"{split}: {acc['improved']} of {acc['n']} scenarios improved, {acc['worse']} "
              f"worse, {acc['unchanged']} within {acc['tolerance_pct']:.0f} % "
-             f"(RMS angle error worse in {acc['rms_worse']})"]
+             f"(RMS angle error worse in {acc['rms_worse']}, by up to "
+             f"{max(acc['worst_rms_change_pct'], 0.0):.0f} %)"]
     w = acc["worst_regression"]
     if w is not None:
         lines.append(
