@@ -252,7 +252,8 @@ def run_variant(variant, args, out: Path) -> dict:
                     stats["iterations"] += 1
                     s["done"] += 1
                     stats["times"].append(float(dt))
-                    todo[k] -= 1 if w == args.workloads.split(",")[-1] else 0
+                    if w == args.workloads.split(",")[-1]:  # an iteration is complete
+                        todo[k] -= 1
             limit = args.timeout if s["ready"] else max(args.timeout, 600)
             if s.get("eof"):
                 rc = s["proc"].wait()

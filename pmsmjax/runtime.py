@@ -49,9 +49,6 @@ FAST_LOOP_FLAGS = ("--xla_backend_extra_options="
 #: hang with or without it; it costs nothing measurable here, so it is on.
 SAFE_FLAGS: tuple[str, ...] = ("--xla_cpu_multi_thread_eigen=false",)
 
-_configured: dict | None = None
-
-
 def _env_flag(name: str, default: bool) -> bool:
     v = os.environ.get(name)
     if v is None or v.strip() == "":
@@ -108,7 +105,6 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> d
     Returns what was applied: `{"xla_flags": [...], "cache_dir": str | None,
     "backend_was_started": bool}`.
     """
-    global _configured
     cache = _env_flag("PMSMJAX_CACHE", True) if cache is None else bool(cache)
     fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True) if fast_loops is None else bool(fast_loops)
     flags = list(SAFE_FLAGS) + (list(FAST_LOOP_FLAGS) if fast_loops else [])
@@ -135,6 +131,5 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> d
             # cache every compiled program that took noticeable time (default 1 s)
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
             applied_dir = str(d)
-    _configured = dict(xla_flags=os.environ.get("XLA_FLAGS", "").split(),
-                       cache_dir=applied_dir, backend_was_started=started)
-    return dict(_configured)
+    return dict(xla_flags=os.environ.get("XLA_FLAGS", "").split(), cache_dir=applied_dir,
+                backend_was_started=started)

@@ -27,13 +27,8 @@ I_DQ = (0.05, 0.5)
 class _AFOScheduledOnPIOutput(AFOObserver):
     """The AFO as it was: flux gain (17) scheduled on the PI output w_f = x_I - k_p e_q."""
 
-    def _advance(self, state, meas, T_s):
-        w_f, e, i_dq, k_i = self._pi_output(state.psi_ab, state.theta, state.w,
-                                            state.i_prev)
-        G1 = self.design(self.motor, w_f, i_dq).G1
-        psi = self._flux_update(state, meas, T_s, G1 @ e, w_f)
-        theta = pj.wrap_angle(state.theta + T_s * w_f)
-        return psi, theta, state.w - T_s * k_i * e[..., 1]
+    def _flux_gain_speed(self, x_I, w_f):
+        return w_f
 
 
 @pytest.fixture(scope="module")

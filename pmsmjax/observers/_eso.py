@@ -710,15 +710,19 @@ class AFOObserver(_AbstractFluxObserver):
         k_p, k_i = self.design.pi(self.motor, x_I, i_dq)
         return x_I - k_p * e[..., 1], e, i_dq, k_i
 
+    def _flux_gain_speed(self, x_I, w_f):
+        """The speed the flux gain (17) is scheduled on: the integral state x_I, the smooth
+        speed estimate (as k_p, k_i are, and as the ESO/LESO schedule on theirs), not the
+        PI output w_f = x_I - k_p e_q. At the end of a fast ramp k_p e_q is large, and a
+        G1 scheduled on w_f lost lock for good (stumper's 31,500 rpm/s ramp on a 7 mH
+        machine, docs/fast_ramp.md); the linearisation at e = 0 is the same either way."""
+        del w_f
+        return x_I
+
     def _advance(self, state, meas, T_s):
         w_f, e, i_dq, k_i = self._pi_output(state.psi_ab, state.theta, state.w,
                                             state.i_prev)
-        # The flux gain (17) is scheduled on the integral state x_I, the smooth speed
-        # estimate (as k_p, k_i are, and as the ESO/LESO schedule on theirs), not on the
-        # PI output w_f = x_I - k_p e_q: at the end of a fast ramp k_p e_q is large and a
-        # G1 scheduled on w_f lost lock for good (stumper's 31,500 rpm/s ramp on a 7 mH
-        # machine, docs/fast_ramp.md); the linearisation at e = 0 is the same either way.
-        G1 = self.design(self.motor, state.w, i_dq).G1
+        G1 = self.design(self.motor, self._flux_gain_speed(state.w, w_f), i_dq).G1
         psi = self._flux_update(state, meas, T_s, G1 @ e, w_f)
         theta = wrap_angle(state.theta + T_s * w_f)
         x_I = state.w - T_s * k_i * e[..., 1]
