@@ -58,6 +58,25 @@ from ._metrics import (  # noqa: E402
     trajectory_metrics as trajectory_metrics,
 )
 from ._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
+from ._gains_table import (  # noqa: E402
+    FILES as GAINS_TABLE_FILES,
+    TabulatedDesign as TabulatedDesign,
+    apply_gains_table as apply_gains_table,
+    check_gains_table as check_gains_table,
+    constant_table as gains_table_constant,
+    load_gains_table as load_gains_table,
+    scheduled_table as gains_table_scheduled,
+    speed_grid as gains_speed_grid,
+    write_gains_table as write_gains_table,
+)
+from ._motorfile import (  # noqa: E402
+    MOTOR_FILE_SCHEMA as MOTOR_FILE_SCHEMA,
+    MotorFileError as MotorFileError,
+    load_motor_file as load_motor_file,
+    motor_file_text as motor_file_text,
+    parse_motor_file as parse_motor_file,
+    save_motor_file as save_motor_file,
+)
 from ._params import (  # noqa: E402
     PRESET_NAMES as PRESET_NAMES,
     BaseValues as BaseValues,

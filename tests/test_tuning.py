@@ -517,3 +517,12 @@ def test_quick_generic_tuning_of_an_unknown_observer(registered, tmp_path):
     assert tg.config_from_summary(tmp_path) == cfg
     back = tg.load_schedule(tmp_path)
     assert bool(eqx.tree_equal(back, report.tuned))
+    # deployment: gains.json holds the constant design; the observer built from it is the
+    # tuned one
+    table = pj.load_gains_table(tmp_path)
+    assert table["kind"] == "constant" and table["columns"] == ["w2", "zeta2"]
+    made = pj.apply_gains_table(table, pj.observers.make_observer("test-constant-leso",
+                                                                  cfg.drive()))
+    tuned = tg.make_observer("test-constant-leso", cfg.drive(), report.tuned)
+    for k, v in tuned.design_parameters().items():
+        assert float(made.design_parameters()[k]) == pytest.approx(float(v), rel=1e-12)

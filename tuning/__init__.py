@@ -8,6 +8,7 @@ unconstrained <-> physical, `filter_spec`), the objective (`tuning.objectives`),
 optimisers (`tuning.optimise`) and `run_tuning` / `write_report`.
 """
 
+from ._export import gains_table as gains_table, table_speeds as table_speeds
 from ._parametrise import (
     TUNABLE as TUNABLE,
     AbstractDesign as AbstractDesign,

@@ -3,8 +3,10 @@
 Runs `tuning.run_tuning` on the built-in default (zhang2022's ESO on zhang750) or the
 options given (`--observer NAME`: any registered observer that declares a tunable
 design) and writes `summary.json`, `tuned_schedule.eqx` and the plots into `--out`
-(default `results/tuning`). Exit status 0 on success, 2 for a bad configuration (one-line
-message, no traceback).
+(default `results/tuning`), with the tuned gains as a lookup table (`gains.csv`,
+`gains.json`, `gains.h`) and the drive as a motor file (`motor.toml`). The drive is a
+preset (`--motor`) or your own (`--motor-file`), changed by `--set`. Exit status 0 on
+success, 2 for a bad configuration (one-line message, no traceback).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import sys
 import time
 
 import pmsmjax as pj
-from pmsmjax.cli._options import out_dir_transaction
+from pmsmjax.cli._options import name_value, out_dir_transaction
 from pmsmjax.observers import observer_names
 
 from .scenarios import OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
@@ -41,6 +43,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="output folder (summary.json, tuned_schedule.eqx, plots)")
     p.add_argument("--motor", default=d.motor, choices=pj.PRESET_NAMES,
                    help="motor preset (plant and nominal observer model)")
+    p.add_argument("--motor-file", default=None, metavar="FILE",
+                   help="your own drive as a motor file (TOML; `pmsmjax motor --export "
+                        "NAME` writes a preset as one), instead of --motor")
+    p.add_argument("--set", dest="set_params", action="append", default=[],
+                   type=name_value, metavar="NAME=VALUE",
+                   help="replace a drive parameter (SI units, e.g. J=3e-3), repeatable; "
+                        "changes the plant and the observer's nominal model")
     p.add_argument("--observer", default=d.observer, choices=observer_names(),
                    help="observer to tune (a registered name: its class declares the "
                         "tunable design, its from_drive the paper's design)")
@@ -118,6 +127,10 @@ def config_from_args(args) -> TuningConfig:
         v = tuple(getattr(args, opt))
         if v != tuple(getattr(d, field)):
             kw[field] = v
+    if args.motor_file is not None:
+        kw["motor_file"] = args.motor_file
+    if args.set_params:
+        kw["set_params"] = tuple(args.set_params)
     if args.tune is not None:
         kw["tuned"] = tuple(s.strip() for s in args.tune.split(",") if s.strip())
     return base.replace(**kw)

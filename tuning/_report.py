@@ -11,12 +11,17 @@ import pathlib
 import equinox as eqx
 import numpy as np
 
+import pmsmjax as pj
+
+from ._export import gains_table
 from ._parametrise import AbstractDesign, GainSchedule
 from ._pipeline import TuningReport, descriptions, targets_reached
 from .scenarios import TuningConfig
 
 
 SCHEDULE_FILE = "tuned_schedule.eqx"
+#: The drive the design was tuned for (after `set_params`), as a motor file.
+MOTOR_FILE = "motor.toml"
 SUMMARY_FILE = "summary.json"
 PLOTS = ("loss_curve.png", "heatmaps.png", "time_trace.png", "per_scenario.png")
 #: Relative change of a scenario's loss that counts as improved / worse (1 %).
@@ -160,7 +165,8 @@ def summary(report: TuningReport) -> dict:
                            wall_time_warm_s=r.stats["wall_time_warm_s"], result=r.result)
                    for k, r in report.results.items()},
         config=cfg.to_dict(),
-        files=dict(schedule=SCHEDULE_FILE, plots=list(PLOTS)),
+        files=dict(schedule=SCHEDULE_FILE, plots=list(PLOTS), motor=MOTOR_FILE,
+                   gains_table=dict(pj.GAINS_TABLE_FILES)),
         notes=[
             "Losses are the configured objective (robust = smooth maximum over scenarios, "
             "log-mean-exp at `temperature`) of the per-scenario loss w_pos*RMS angle "
@@ -203,6 +209,9 @@ def write_report(report: TuningReport, out, *, plot: bool = True) -> dict:
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     eqx.tree_serialise_leaves(out / SCHEDULE_FILE, report.tuned)
+    # deployment: the tuned gains as a lookup table, and the drive they were tuned for
+    pj.write_gains_table(gains_table(report.tuned, report.config), out)
+    pj.save_motor_file(report.config.drive(), out / MOTOR_FILE)
     s = summary(report)
     (out / SUMMARY_FILE).write_text(json.dumps(s, indent=1, allow_nan=False))
     if plot:
@@ -218,6 +227,9 @@ def config_from_summary(summary_or_dir) -> TuningConfig:
         p = p / SUMMARY_FILE if p.is_dir() else p
         s = json.loads(p.read_text())
     c = dict(s["config"])
+    moved = c.get("motor_file") and not pathlib.Path(c["motor_file"]).is_file()
+    if moved and not isinstance(summary_or_dir, dict):  # the folder's copy of the drive
+        c["motor_file"], c["set_params"] = str(p.parent / MOTOR_FILE), ()
     c["bounds"] = {n: tuple(b) for n, b in c["bounds"].items()}
     for k, v in c.items():
         if isinstance(v, list):

@@ -22,7 +22,9 @@ of a regular grid over the same range) and other noise keys.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+import os
 
 import equinox as eqx
 import jax
@@ -119,13 +121,33 @@ def _tuple(x):
     return tuple(float(v) for v in np.asarray(x, dtype=float).reshape(-1))
 
 
+def _mtime(path) -> int:
+    try:
+        return os.stat(path).st_mtime_ns if path is not None else 0
+    except OSError:
+        return 0
+
+
+@functools.lru_cache(maxsize=16)
+def _drive(motor: str, motor_file: str | None, set_params: tuple, mtime: int) -> pj.Drive:
+    del mtime  # part of the cache key: an edited motor file is read again
+    drive = pj.preset(motor) if motor_file is None else pj.load_motor_file(motor_file)
+    return pj.replace_params(drive, **dict(set_params)) if set_params else drive
+
+
 @dataclasses.dataclass(frozen=True)
 class TuningConfig:
     """Everything that defines a tuning run (validated on construction).
 
     **Problem**
 
-    - `motor`: preset name (`pmsmjax.PRESET_NAMES`).
+    - `motor`: preset name (`pmsmjax.PRESET_NAMES`); with `motor_file` it is set to the
+      name the file gives its drive.
+    - `motor_file`: path of a motor file (`pmsmjax.load_motor_file`, TOML) for a drive
+      of your own instead of a preset; stored as an absolute path.
+    - `set_params`: `((name, value), ...)` replacements of drive parameters in SI units
+      (`pmsmjax.replace_params`, e.g. `(("J", 3e-3),)`), applied to the plant and so to
+      the observer's nominal model.
     - `observer`: any registered observer (`pmsmjax.observers.observer_names()`, e.g.
       `"eso"` (fal feedback, `a = 0.5`, `eta = 0.05 psi_f`), `"leso"`, `"afo"`), built by
       `pmsmjax.observers.make_observer` with its paper design for the drive; it must
@@ -175,6 +197,8 @@ class TuningConfig:
     """
 
     motor: str = "zhang750"
+    motor_file: str | None = None
+    set_params: tuple = ()
     observer: str = "eso"
     parametrisation: str = "auto"
     T_s: float = 125e-6
@@ -214,9 +238,25 @@ class TuningConfig:
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
-        if self.motor not in pj.PRESET_NAMES:
+        if self.motor_file is None and self.motor not in pj.PRESET_NAMES:
             raise ValueError(f"Unknown motor {self.motor!r}; choose one of "
-                             f"{', '.join(pj.PRESET_NAMES)}.")
+                             f"{', '.join(pj.PRESET_NAMES)} or give `motor_file`.")
+        if self.motor_file is not None:
+            set_("motor_file", os.path.abspath(os.fspath(self.motor_file)))
+        try:
+            pairs = tuple((str(n), float(v)) for n, v in (
+                self.set_params.items() if isinstance(self.set_params, dict)
+                else self.set_params))
+        except (TypeError, ValueError):
+            raise ValueError(f"`TuningConfig(set_params=...)` must be (name, value) pairs "
+                             f"(SI units); got {self.set_params!r}.") from None
+        set_("set_params", pairs)
+        try:  # a malformed motor file or set_params raises a ValueError naming the field
+            drive = self.drive()
+        except OSError as e:
+            raise ValueError(f"`TuningConfig(motor_file=...)` cannot be read: {e}") from None
+        if self.motor_file is not None:
+            set_("motor", drive.name)
         set_("observer", str(self.observer).lower())
         _observer_cls(self.observer)
         kind = parametrisation_of(self.observer, self.parametrisation)
@@ -277,7 +317,6 @@ class TuningConfig:
                 b <= a for a, b in zip(self.nodes_pu, self.nodes_pu[1:])):
             raise ValueError("`TuningConfig(nodes_pu=...)` must be >= 0 and strictly "
                              f"increasing; got {self.nodes_pu}.")
-        drive = pj.preset(self.motor)
         psi_f = float(drive.three_phase_motor.psi_f)
         i_q = [abs(x) * float(drive.tau_rated) / (float(drive.k_tau) * psi_f)
                for x in self.loads_pu]
@@ -392,7 +431,10 @@ class TuningConfig:
         return int(round(self.t_end / self.T_s))
 
     def drive(self) -> pj.Drive:
-        return pj.preset(self.motor)
+        """The drive: the preset `motor` or the drive of `motor_file`, with
+        `set_params` applied."""
+        return _drive(self.motor, self.motor_file, self.set_params,
+                      _mtime(self.motor_file))
 
     def controller(self) -> pj.FOC:
         return pj.FOC.from_drive(self.drive())

@@ -19,6 +19,7 @@ import sys
 import pmsmjax as pj
 
 from . import _cache, _certify, _equilibria, _feasibility, _plant, _replay, _simulate
+from . import _motor
 from ._options import CLIError, Command, out_dir_transaction
 
 
@@ -27,6 +28,8 @@ COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
     for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
 }
+COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
+
 
 
 class _Parser(argparse.ArgumentParser):

@@ -1,6 +1,6 @@
 r"""Options and helpers shared by the subcommands of `pmsmjax`, each defined once.
 
-- drive: `--motor NAME`, `--set NAME=VALUE` (the plant);
+- drive: `--motor NAME` or `--motor-file FILE`, `--set NAME=VALUE` (the plant);
 - output: `--out DIR`, `--no-plot`, `--json`; the JSON helpers `json_safe`, `write_json`,
   `dumps_json` (strict JSON: non-finite numbers become null);
 - operating point of the analysis commands: `--speed`/`--speed-range`, `--i-d`, `--i-q`;
@@ -210,12 +210,16 @@ _SETTABLE = ("R_s (Ohm), L_d (H), L_q (H), psi_f (V s), n_p (pole pairs), J (kg 
 
 
 def add_drive_options(parser: argparse.ArgumentParser) -> None:
-    """`--motor NAME` and `--set NAME=VALUE` (the plant)."""
+    """`--motor NAME` or `--motor-file FILE`, and `--set NAME=VALUE` (the plant)."""
     g = parser.add_argument_group("drive (the plant)")
-    g.add_argument("--motor", default="zhang750", choices=pj.PRESET_NAMES, metavar="NAME",
+    g.add_argument("--motor", default=None, choices=pj.PRESET_NAMES, metavar="NAME",
                    help=f"motor preset, one of {', '.join(pj.PRESET_NAMES)} "
-                        "(default: %(default)s); each preset states its source and "
-                        "assumptions in summary.json")
+                        f"(default: {DEFAULT_MOTOR} unless --motor-file is given); each "
+                        "preset states its source and assumptions in summary.json")
+    g.add_argument("--motor-file", dest="motor_file", default=None, metavar="FILE",
+                   help="your own drive as a motor file (TOML, SI units; `pmsmjax motor "
+                        "--export NAME` writes a preset as one to start from; schema in "
+                        "docs/motor-file.md), instead of --motor")
     g.add_argument("--set", dest="set_params", action="append", default=[], type=name_value,
                    metavar="NAME=VALUE",
                    help=f"replace a parameter of the drive (the plant), in SI units; "
@@ -224,9 +228,25 @@ def add_drive_options(parser: argparse.ArgumentParser) -> None:
                         "--observer-set (or a --mismatch option) changes it")
 
 
+#: The preset used when neither --motor nor --motor-file is given.
+DEFAULT_MOTOR = "zhang750"
+
+
 def drive_from_args(args: argparse.Namespace) -> pj.Drive:
-    """The preset of `--motor` with the `--set` replacements applied."""
-    drive = pj.preset(args.motor)
+    """The preset of `--motor` (or the drive of `--motor-file`) with the `--set`
+    replacements applied."""
+    motor_file = getattr(args, "motor_file", None)
+    if motor_file is not None:
+        if args.motor is not None:
+            raise CLIError(f"--motor {args.motor} and --motor-file {motor_file}: give one "
+                           f"of the two")
+        try:
+            drive = pj.load_motor_file(motor_file)
+        except OSError as e:
+            raise CLIError(f"--motor-file {motor_file}: cannot read it ({e.strerror})"
+                           ) from None
+    else:
+        drive = pj.preset(DEFAULT_MOTOR if args.motor is None else args.motor)
     values = dict(args.set_params)
     if values:
         try:
@@ -239,6 +259,7 @@ def drive_from_args(args: argparse.Namespace) -> pj.Drive:
 def drive_info(drive: pj.Drive, args) -> dict:
     return {
         "motor": drive.name,
+        "motor_file": getattr(args, "motor_file", None),
         "preset_notes": drive.notes,
         "parameter_overrides": dict(args.set_params),
         "ratings": {"w_rated_rad_s": float(drive.w_rated), "tau_rated_Nm": float(drive.tau_rated),

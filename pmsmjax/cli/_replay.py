@@ -10,6 +10,7 @@ import numpy as np
 
 import pmsmjax as pj
 
+from ._design import add_design_option, observer_with_design
 from ._options import (
     CLIError,
     Command,
@@ -20,7 +21,6 @@ from ._options import (
     drive_info,
     finite_float,
     nonneg_float,
-    observer_from_args,
     prepare_out_dir,
     write_json,
 )
@@ -40,6 +40,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
     add_observer_options(p, default="eso")
+    add_design_option(p)
     add_output_options(p, None)
 
 
@@ -70,7 +71,7 @@ def _plot(path, data: pj.RecordedData, theta_hat, w_hat, name: str) -> None:
 
 def replay_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
-    choice = observer_from_args(args, drive)
+    choice = observer_with_design(args, drive, default="eso")
     data = pj.load_recording(args.data, require=("t", "u_ab", "i_ab"))
     out = prepare_out_dir(args.out)
     duration = float(data.t[-1] - data.t[0])
@@ -104,6 +105,7 @@ def replay_command(args: argparse.Namespace) -> int:
         **drive_info(drive, args),
         "observer": choice.name,
         "observer_details": choice.info(),
+        "design_file": getattr(args, "design", None),
         "data": str(args.data),
         "T_s": data.T_s,
         "initial_estimate": {"theta0_deg": float(args.theta0), "w0_rad_s": float(args.w0)},

@@ -16,6 +16,7 @@ import numpy as np
 
 import pmsmjax as pj
 
+from ._design import add_design_option, observer_with_design
 from ._options import (
     CLIError,
     Command,
@@ -27,7 +28,6 @@ from ._options import (
     drive_info,
     finite_float,
     nonneg_float,
-    observer_from_args,
     positive_float,
     positive_int,
     prepare_out_dir,
@@ -153,6 +153,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="RK4 steps of the plant per sampling period (default: %(default)s)")
     add_observer_options(p, default="sensored", sensored=True,
                          default_note=": the encoder angle and speed")
+    add_design_option(p)
     add_output_options(p, "results")
 
 
@@ -171,7 +172,7 @@ def simulate_command(args: argparse.Namespace) -> int:
     scenario, description, w_m0 = spec.build(drive, args.t_end, args.speed, load)
     alpha_c, alpha_s = 2 * math.pi * args.current_bw, 2 * math.pi * args.speed_bw
     controller = pj.FOC.from_drive(drive, alpha_c=alpha_c, alpha_s=alpha_s)
-    choice = observer_from_args(args, drive)
+    choice = observer_with_design(args, drive, default="sensored")
     observer = choice.observer
     sensing = pj.Sensing(noise_std=args.noise)
     n_steps = scenario.n_steps(args.T_s)
@@ -224,6 +225,7 @@ def simulate_command(args: argparse.Namespace) -> int:
                        "current_bandwidth_rad_s": alpha_c, "speed_bandwidth_rad_s": alpha_s},
         "observer": args.observer,
         "observer_details": choice.info() if args.observer != "sensored" else None,
+        "design_file": getattr(args, "design", None),
         "sensing": {"noise_std_A": float(args.noise), "seed": int(args.seed)},
         "computational_delay": bool(args.delay),
         "T_s": float(args.T_s),

@@ -1,0 +1,312 @@
+r"""Gains tables: a tuned observer design as a plain lookup table a drive's firmware can use.
+
+`python -m tuning` writes the tuned design three ways, with the same numbers (SI units):
+`gains.json` (this module reads it back: `load_gains_table`), `gains.csv` (one row per
+speed, header row of column names) and `gains.h` (a C header with one array per column).
+`pmsmjax replay --design` and `pmsmjax simulate --design` run the observer the table
+describes (`apply_gains_table`).
+
+**Speed-scheduled designs** (zhang2022's ESO, LESO, AFO): one row per electrical speed
+`w_m` (rad/s, signed, increasing, symmetric about 0) with
+
+- the design quantities of zhang2022 Sec. III at that speed: `zeta1` (-) and `w1`
+  (rad/s) of the flux poles zhang2022 (16)-(17), `zeta2` (-) and `w2` (rad/s) of the
+  speed/angle poles zhang2022 (18)-(19), and `nu2`, `nu3` (-), the null-space
+  components of zhang2022 (19) as multiples of the minimum-norm gain sizes
+  ($n_2 = \nu_2 2\zeta_2\omega_2/|\psi_{a0}|$, $n_3 = \nu_3\omega_2^2/|\psi_{a0}|$);
+- the gains themselves for the observer's nominal model at $i_{dq} = 0$ (so
+  $\psi_{a0} = [\psi_f, 0]$): `G1_11`, `G1_12`, `G1_21`, `G1_22` (1/s, zhang2022 (17)),
+  `g2_1`, `g2_2` (rad/s per V s) and `g3_1`, `g3_2` (rad/s^2 per V s) of zhang2022
+  (25), and `k_p`, `k_i` of the AFO's speed law zhang2022 (53).
+
+**Interpolation rule** (`INTERPOLATION`): every column is interpolated linearly in the
+speed estimate $\hat\omega$ between neighbouring rows and held at the first/last row
+outside the table. Firmware that recomputes the gains on line from the current (the
+observer's adaptive gains, as `TabulatedDesign` does) interpolates the design columns
+and applies zhang2022 (17), (25); firmware with fixed gain matrices interpolates the
+gain columns, which are exact at $i_{dq} = 0$ (for a salient machine $\psi_{a0}$, and so
+the gains, change with the current).
+
+**Constant designs** (observers tuned by constant factors): the table is one row of the
+observer's design parameters (`design_units`), applied with `with_design`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pathlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._params import PMSMParams
+from .observers import (
+    AbstractGainSchedule,
+    AbstractObserver,
+    eso_gains,
+    gains_pi,
+    observer_class,
+    psi_a,
+)
+
+
+FORMAT = "pmsmjax-gains"
+VERSION = 1
+#: File names of a gains table in a tuner output folder.
+FILES = {"json": "gains.json", "csv": "gains.csv", "c": "gains.h"}
+
+INTERPOLATION = (
+    "linear in the electrical speed estimate w_hat (rad/s) between neighbouring rows, "
+    "held at the first/last row outside the table; the design columns (zeta1, w1, zeta2, "
+    "w2, nu2, nu3) give the gains at any current by zhang2022 (17), (25), (53) from the "
+    "observer's machine model; the gain columns are those gains at i_dq = 0")
+
+#: Columns of a speed-scheduled table and their units.
+DESIGN_COLUMNS = {"w_m": "rad/s", "zeta1": "-", "w1": "rad/s", "zeta2": "-", "w2": "rad/s",
+                  "nu2": "-", "nu3": "-"}
+GAIN_COLUMNS = {"G1_11": "1/s", "G1_12": "1/s", "G1_21": "1/s", "G1_22": "1/s",
+                "g2_1": "rad/s per V s", "g2_2": "rad/s per V s",
+                "g3_1": "rad/s^2 per V s", "g3_2": "rad/s^2 per V s",
+                "k_p": "rad/s per V s", "k_i": "rad/s^2 per V s"}
+
+
+class TabulatedDesign(AbstractGainSchedule):
+    r"""zhang2022's gain design tabulated over speed (the `design` of an ESO, LESO or
+    AFO), interpolated as `INTERPOLATION` says.
+
+    At electrical speed $\omega_0$ and current $i_{dq}$ the gains are
+    `eso_gains(psi_a(motor, i_dq), w0, zeta1, w1, zeta2, w2, n2, n3)` with the columns
+    interpolated at $\omega_0$ and $n_2 = \nu_2 2\zeta_2\omega_2/|\psi_{a0}|$,
+    $n_3 = \nu_3\omega_2^2/|\psi_{a0}|$; `pi` gives zhang2022 (53) from `zeta2`, `w2`.
+
+    **Arguments:** `w_m` (rad/s, strictly increasing, >= 2 rows), `zeta1` (-), `w1`
+    (rad/s, >= 0), `zeta2` (-), `w2` (rad/s), `nu2`, `nu3` (-), one value per row.
+    """
+
+    w_m: jnp.ndarray
+    zeta1: jnp.ndarray
+    w1: jnp.ndarray
+    zeta2: jnp.ndarray
+    w2: jnp.ndarray
+    nu2: jnp.ndarray
+    nu3: jnp.ndarray
+
+    def __check_init__(self):
+        w = np.asarray(self.w_m, dtype=float)
+        if w.ndim != 1 or w.size < 2 or np.any(~np.isfinite(w)) or np.any(np.diff(w) <= 0):
+            raise ValueError("`TabulatedDesign(w_m=...)` (rad/s) must be a strictly "
+                             f"increasing 1-D array of >= 2 finite speeds; got {w}.")
+        for name in ("zeta1", "w1", "zeta2", "w2", "nu2", "nu3"):
+            a = np.asarray(getattr(self, name), dtype=float)
+            if a.shape != w.shape or np.any(~np.isfinite(a)):
+                raise ValueError(f"`TabulatedDesign({name}=...)` must hold one finite value "
+                                 f"per row ({w.size}); got shape {a.shape}.")
+            if name in ("zeta1", "zeta2", "w2") and np.any(a <= 0):
+                raise ValueError(f"`TabulatedDesign({name}=...)` must be > 0.")
+            if name == "w1" and np.any(a < 0):
+                raise ValueError("`TabulatedDesign(w1=...)` (rad/s) must be >= 0.")
+
+    def values(self, w0) -> dict:
+        """The design columns interpolated at electrical speed `w0` (rad/s)."""
+        return {n: jnp.interp(w0, self.w_m, getattr(self, n))
+                for n in ("zeta1", "w1", "zeta2", "w2", "nu2", "nu3")}
+
+    def __call__(self, motor: PMSMParams, w0, i_dq):
+        v = self.values(w0)
+        pa = psi_a(motor, i_dq)
+        pn = jnp.sqrt(jnp.sum(pa ** 2))
+        n2 = v["nu2"] * 2.0 * v["zeta2"] * v["w2"] / pn
+        n3 = v["nu3"] * v["w2"] ** 2 / pn
+        return eso_gains(pa, w0, v["zeta1"], v["w1"], v["zeta2"], v["w2"], n2=n2, n3=n3)
+
+    def pi(self, motor: PMSMParams, w0, i_dq):
+        v = self.values(w0)
+        return gains_pi(psi_a(motor, i_dq), v["zeta2"], v["w2"])
+
+
+def gain_columns(schedule: AbstractGainSchedule, motor: PMSMParams, w_m) -> dict:
+    """The gain columns (`GAIN_COLUMNS`) of `schedule` for the machine model `motor` at
+    the speeds `w_m` (rad/s) and `i_dq = 0`, as NumPy arrays."""
+    def one(w):
+        i0 = jnp.zeros(2, dtype=w.dtype)
+        g = schedule(motor, w, i0)
+        k_p, k_i = schedule.pi(motor, w, i0)
+        return jnp.stack([g.G1[0, 0], g.G1[0, 1], g.G1[1, 0], g.G1[1, 1],
+                          g.g2.reshape(-1)[0], g.g2.reshape(-1)[1], g.g3.reshape(-1)[0],
+                          g.g3.reshape(-1)[1], jnp.asarray(k_p, w.dtype),
+                          jnp.asarray(k_i, w.dtype)])
+
+    a = np.asarray(jax.vmap(one)(jnp.asarray(w_m, dtype=float)), dtype=float)
+    return {k: a[:, j] for j, k in enumerate(GAIN_COLUMNS)}
+
+
+def scheduled_table(observer: str, schedule: TabulatedDesign, motor: PMSMParams, *,
+                    drive: str = "", notes=()) -> dict:
+    """The gains table (a JSON-ready dict) of a speed-scheduled design given as a
+    `TabulatedDesign`, with the gain columns for the machine model `motor`."""
+    cols = {"w_m": np.asarray(schedule.w_m)}
+    cols.update({n: np.asarray(getattr(schedule, n)) for n in list(DESIGN_COLUMNS)[1:]})
+    cols.update(gain_columns(schedule, motor, schedule.w_m))
+    units = {**DESIGN_COLUMNS, **GAIN_COLUMNS}
+    return {
+        "format": FORMAT, "version": VERSION, "observer": observer, "kind": "scheduled",
+        "drive": drive, "interpolation": INTERPOLATION,
+        "observer_model": {k: float(getattr(motor, k)) for k in ("R_s", "L_d", "L_q",
+                                                                 "psi_f")},
+        "columns": list(units), "units": units,
+        "rows": [[float(cols[c][j]) for c in units] for j in range(len(cols["w_m"]))],
+        "notes": list(notes),
+    }
+
+
+def constant_table(observer: str, values: dict, units: dict, *, drive: str = "",
+                   notes=()) -> dict:
+    """The gains table of a constant design: `values` `{name: value}` (SI, `units`)."""
+    names = list(values)
+    return {
+        "format": FORMAT, "version": VERSION, "observer": observer, "kind": "constant",
+        "drive": drive, "interpolation": "none: constant design parameters",
+        "columns": names, "units": {n: units.get(n, "") for n in names},
+        "rows": [[float(values[n]) for n in names]], "notes": list(notes),
+    }
+
+
+def check_gains_table(table: dict, source: str = "gains table") -> dict:
+    """Validate a gains table dict; returns it. `ValueError` naming what is wrong."""
+    def fail(msg):
+        raise ValueError(f"{source}: {msg}")
+
+    if not isinstance(table, dict) or table.get("format") != FORMAT:
+        fail(f"not a pmsmjax gains table (format must be {FORMAT!r})")
+    if table.get("version") != VERSION:
+        fail(f"version {table.get('version')!r}; this pmsmjax reads version {VERSION}")
+    for key in ("observer", "kind", "columns", "rows"):
+        if key not in table:
+            fail(f"missing key {key!r}")
+    observer_class(table["observer"])  # a registered name (ValueError lists them)
+    if table["kind"] not in ("scheduled", "constant"):
+        fail(f"kind {table['kind']!r}; allowed: 'scheduled', 'constant'")
+    cols, rows = table["columns"], table["rows"]
+    if not rows or any(len(r) != len(cols) for r in rows):
+        fail(f"every row must have one value per column ({len(cols)})")
+    a = np.asarray(rows, dtype=float)
+    if not np.all(np.isfinite(a)):
+        fail("every value must be finite")
+    if table["kind"] == "scheduled":
+        missing = [c for c in DESIGN_COLUMNS if c not in cols]
+        if missing:
+            fail(f"missing columns {', '.join(missing)}")
+    elif len(rows) != 1:
+        fail("a constant design has exactly one row")
+    return table
+
+
+def load_gains_table(path) -> dict:
+    """Read a gains table: `gains.json`, or a tuner output folder (or a file in it, e.g.
+    `tuned_schedule.eqx`) that holds one. Returns the validated dict."""
+    p = pathlib.Path(path)
+    if p.is_dir():
+        p = p / FILES["json"]
+    elif p.suffix != ".json":
+        p = p.parent / FILES["json"]
+    if not p.is_file():
+        raise ValueError(f"{path}: no gains table there (expected {FILES['json']}, written "
+                         f"by `python -m tuning`)")
+    try:
+        table = json.loads(p.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{p}: not valid JSON ({e})") from None
+    return check_gains_table(table, str(p))
+
+
+def table_columns(table: dict) -> dict:
+    """`{column: (n_rows,) array}` of a gains table."""
+    a = np.asarray(table["rows"], dtype=float).reshape(len(table["rows"]), -1)
+    return {c: a[:, j] for j, c in enumerate(table["columns"])}
+
+
+def tabulated_design(table: dict) -> TabulatedDesign:
+    """The `TabulatedDesign` of a speed-scheduled gains table."""
+    c = table_columns(check_gains_table(table))
+    return TabulatedDesign(**{n: jnp.asarray(c[n]) for n in DESIGN_COLUMNS})
+
+
+def apply_gains_table(table: dict, observer: AbstractObserver) -> AbstractObserver:
+    """`observer` (of the table's class, e.g. from `make_observer`) with the table's
+    design: a speed-scheduled table replaces its gain schedule by `TabulatedDesign`,
+    a constant one is applied with `with_design`."""
+    check_gains_table(table)
+    cls = observer_class(table["observer"])
+    if type(observer) is not cls:
+        raise ValueError(f"the gains table is for the {table['observer']!r} observer "
+                         f"({cls.__name__}); got a {type(observer).__name__}.")
+    if table["kind"] == "constant":
+        return observer.with_design(**{k: float(v[0]) for k, v in
+                                       table_columns(table).items()})
+    if not isinstance(getattr(observer, "design", None), AbstractGainSchedule):
+        raise ValueError(f"{cls.__name__} holds no gain schedule in its `design` field; a "
+                         f"speed-scheduled gains table cannot be applied to it.")
+    return eqx.tree_at(lambda o: o.design, observer, tabulated_design(table))
+
+
+# ---------------------------------------------------------------------------------------
+# Writing
+# ---------------------------------------------------------------------------------------
+
+def gains_csv(table: dict) -> str:
+    """The CSV text: a header row of column names, then one row per speed."""
+    lines = [",".join(table["columns"])]
+    lines += [",".join(repr(float(x)) for x in row) for row in table["rows"]]
+    return "\n".join(lines) + "\n"
+
+
+def _c_name(s: str) -> str:
+    return "".join(ch if ch.isalnum() else "_" for ch in s)
+
+
+def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
+    """A C header with the table: `#define`s for the row count and one `static const`
+    array per column (`PMSMJAX_GAINS_REAL`, default `float`), units and the
+    interpolation rule in comments."""
+    P = prefix.upper()
+    n = len(table["rows"])
+    c = table_columns(table)
+    out = [f"/* Gains table of the {table['observer']} observer, drive "
+           f"{table.get('drive') or '(unnamed)'}, written by pmsmjax (SI units).",
+           f" * Interpolation: {table['interpolation']}.", " */",
+           f"#ifndef {P}_H", f"#define {P}_H", "",
+           f"#ifndef {P}_REAL", f"#define {P}_REAL float", "#endif", "",
+           f"#define {P}_N_ROWS {n}", ""]
+    for name in table["columns"]:
+        unit = table.get("units", {}).get(name, "")
+        vals = ", ".join(f"{float(x):.9g}" for x in c[name])
+        out.append(f"/* {name} ({unit or '-'}) */")
+        out.append(f"static const {P}_REAL {prefix}_{_c_name(name)}[{P}_N_ROWS] = "
+                   f"{{{vals}}};")
+    out += ["", f"#endif /* {P}_H */", ""]
+    return "\n".join(out)
+
+
+def write_gains_table(table: dict, folder) -> dict:
+    """Write `gains.json`, `gains.csv` and `gains.h` into `folder`; returns their paths."""
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    check_gains_table(table)
+    paths = {k: folder / v for k, v in FILES.items()}
+    paths["json"].write_text(json.dumps(table, indent=1, allow_nan=False) + "\n")
+    paths["csv"].write_text(gains_csv(table))
+    paths["c"].write_text(gains_c_header(table))
+    return {k: os.fspath(v) for k, v in paths.items()}
+
+
+def speed_grid(w_rated: float, s_max: float, n_half: int) -> np.ndarray:
+    """Signed electrical speeds `s w_rated` for `s` in `linspace(-s_max, s_max,
+    2 n_half + 1)` (rad/s): the rows of a speed-scheduled table."""
+    if not (math.isfinite(s_max) and s_max > 0 and n_half >= 1):
+        raise ValueError(f"`speed_grid`: s_max must be > 0 (p.u.) and n_half >= 1; got "
+                         f"{s_max!r}, {n_half!r}.")
+    return np.linspace(-s_max, s_max, 2 * n_half + 1) * float(w_rated)

@@ -1,0 +1,418 @@
+r"""Motor files: a user's drive as a small TOML file (`load_motor_file`, `motor_file_text`).
+
+A motor file holds everything `Drive` holds: the machine (three-phase or dual
+three-phase, optional back-EMF harmonics), the mechanics, the inverter, the ratings and
+the per-unit bases, all in SI units. Every preset can be written as one
+(`pmsmjax motor --export NAME`), and a file written that way loads back to the identical
+`Drive`. Example (the `zhang750` preset):
+
+```toml
+format = "pmsmjax-motor"
+version = 1
+name = "zhang750"
+notes = "zhang2022 Table I ..."
+
+[motor]
+type = "three-phase"     # or "dual-three-phase"
+R_s = 0.78               # Ohm, > 0
+L_d = 0.00246            # H, > 0
+L_q = 0.00268            # H, > 0
+psi_f = 0.056            # V s, >= 0
+n_p = 5.0                # pole pairs, > 0
+
+[mechanics]
+J = 0.0015               # kg m^2, > 0
+B = 0.0                  # N m s/rad, >= 0
+
+[inverter]
+u_dc = 311.0             # V, > 0
+
+[ratings]
+w_rated = 1256.6370614359173   # rad/s electrical, > 0 (or n_rated_rpm)
+tau_rated = 2.4                # N m, > 0
+i_max = 13.576450198781712     # A peak, > 0
+
+[base]
+U_b = 179.55...          # V peak phase (or U_rated_ll and I_rated_rms)
+I_b = 6.788...           # A peak
+w_b = 1256.63...         # rad/s electrical
+```
+
+`MOTOR_FILE_SCHEMA` lists every section and field with its unit, allowed range and
+whether it is required; `docs/motor-file.md` is written from it. A malformed file
+raises `MotorFileError` (a `ValueError`) whose message names the file, the section and
+field, the value found and what is allowed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import tomllib
+
+import equinox as eqx
+import numpy as np
+
+from ._params import (
+    BaseValues,
+    Drive,
+    DualThreePhaseParams,
+    EMFHarmonics,
+    Inverter,
+    Mechanics,
+    PMSMParams,
+)
+
+
+FORMAT = "pmsmjax-motor"
+VERSION = 1
+MOTOR_TYPES = ("three-phase", "dual-three-phase")
+
+
+class MotorFileError(ValueError):
+    """A malformed motor file: the message names the file, the field and what is
+    allowed."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Field:
+    """One field of a motor file: unit, allowed range (`lo`/`hi`, open or closed), kind
+    (`"number"`, `"string"`, `"bool"`, `"numbers"`, `"integers"`), whether it is
+    required, and what it is."""
+
+    unit: str
+    doc: str
+    kind: str = "number"
+    required: bool = True
+    lo: float | None = None
+    lo_open: bool = False
+    hi: float | None = None
+
+    def allowed(self) -> str:
+        if self.kind == "string":
+            return "a string"
+        if self.kind == "bool":
+            return "true or false"
+        if self.kind == "integers":
+            return "a list of integers other than 0 and 1"
+        what = "a list of finite numbers" if self.kind == "numbers" else "a finite number"
+        if self.lo is not None:
+            what += f" {'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.hi is not None:
+            what += f" and <= {self.hi:g}"
+        return what
+
+
+_POS = dict(lo=0.0, lo_open=True)
+_NONNEG = dict(lo=0.0)
+
+#: Every section of a motor file and its fields (`Field`); top-level keys under "".
+MOTOR_FILE_SCHEMA: dict[str, dict[str, Field]] = {
+    "": {
+        "format": Field("", f'always "{FORMAT}"', kind="string"),
+        "version": Field("", f"format version, {VERSION}", lo=VERSION, hi=VERSION),
+        "name": Field("", "name of the drive (reports, plots)", kind="string",
+                      required=False),
+        "notes": Field("", "source of the data and every assumption made", kind="string",
+                       required=False),
+    },
+    "motor": {
+        "type": Field("", f"machine type: {' or '.join(MOTOR_TYPES)}", kind="string",
+                      required=False),
+        "R_s": Field("Ohm", "stator resistance", **_POS),
+        "L_d": Field("H", "d-axis inductance", **_POS),
+        "L_q": Field("H", "q-axis inductance", **_POS),
+        "psi_f": Field("V s", "permanent-magnet flux linkage (peak, per three-phase set)",
+                       **_NONNEG),
+        "n_p": Field("-", "pole pairs", **_POS),
+        "L_xy": Field("H", "x-y subspace inductance (dual three-phase only)",
+                      required=False, **_POS),
+        "gamma": Field("rad", "angle between the two winding sets (dual three-phase "
+                       "only; default pi/6)", required=False, lo=0.0, hi=math.pi),
+    },
+    "motor.harmonics": {
+        "order": Field("-", "signed harmonic orders (positive: rotating with the rotor, "
+                       "e.g. 7; negative: against it, e.g. -5)", kind="integers"),
+        "amplitude": Field("-", "back-EMF amplitude of each harmonic relative to the "
+                           "fundamental", kind="numbers"),
+        "phase": Field("rad", "phase of each harmonic at theta = 0 (default zeros)",
+                       kind="numbers", required=False),
+    },
+    "mechanics": {
+        "J": Field("kg m^2", "total moment of inertia", **_POS),
+        "B": Field("N m s/rad", "viscous friction (default 0)", required=False, **_NONNEG),
+    },
+    "inverter": {
+        "u_dc": Field("V", "DC-link voltage", **_POS),
+        "u_max": Field("V", "largest voltage-vector amplitude, peak phase (default "
+                       "u_dc / sqrt(3); at most 2 u_dc / 3)", required=False, **_POS),
+        "delay": Field("", "one-sample computational delay (default false)", kind="bool",
+                       required=False),
+    },
+    "ratings": {
+        "w_rated": Field("rad/s", "rated electrical speed (give this or n_rated_rpm)",
+                         required=False, **_POS),
+        "n_rated_rpm": Field("rpm", "rated mechanical speed (give this or w_rated)",
+                             required=False, **_POS),
+        "tau_rated": Field("N m", "rated torque", **_POS),
+        "i_max": Field("A", "current-vector amplitude limit of the controller (peak)",
+                       **_POS),
+    },
+    "base": {
+        "U_b": Field("V", "base voltage, peak phase (with I_b, w_b)", required=False,
+                     **_POS),
+        "I_b": Field("A", "base current, peak (with U_b, w_b)", required=False, **_POS),
+        "w_b": Field("rad/s", "base electrical speed (default: w_rated)", required=False,
+                     **_POS),
+        "U_rated_ll": Field("V", "rated line-to-line rms voltage: U_b = sqrt(2/3) "
+                            "U_rated_ll (instead of U_b)", required=False, **_POS),
+        "I_rated_rms": Field("A", "rated rms current: I_b = sqrt(2) I_rated_rms "
+                             "(instead of I_b)", required=False, **_POS),
+    },
+}
+
+#: Sections that must be present.
+REQUIRED_SECTIONS = ("motor", "mechanics", "inverter", "ratings")
+
+
+def _where(section: str, key: str) -> str:
+    return f"[{section}] {key}" if section else key
+
+
+class _Reader:
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, msg: str):
+        raise MotorFileError(f"motor file {self.source}: {msg}")
+
+    def section(self, data: dict, section: str, required: bool) -> dict | None:
+        parts = section.split(".") if section else []
+        node = data
+        for p in parts:
+            if not isinstance(node, dict) or p not in node:
+                if required:
+                    self.fail(f"missing section [{section}] (required sections: "
+                              f"{', '.join(f'[{s}]' for s in REQUIRED_SECTIONS)})")
+                return None
+            node = node[p]
+        if not isinstance(node, dict):
+            self.fail(f"[{section}] must be a table (a [{section}] section); got "
+                      f"{node!r}")
+        schema = MOTOR_FILE_SCHEMA[section]
+        sub = set(MOTOR_FILE_SCHEMA)  # sub-sections are keys of their parent table
+        for key in node:
+            if key not in schema and f"{section}.{key}".lstrip(".") not in sub:
+                self.fail(f"unknown field {_where(section, key)!r}; allowed in "
+                          f"[{section or 'top level'}]: {', '.join(schema)}")
+        out = {}
+        for key, f in schema.items():
+            if key not in node:
+                if f.required:
+                    self.fail(f"missing field {_where(section, key)} ({f.doc}; "
+                              f"{f.allowed()}{', ' + f.unit if f.unit else ''})")
+                continue
+            out[key] = self.value(section, key, node[key], f)
+        return out
+
+    def value(self, section: str, key: str, v, f: Field):
+        where = _where(section, key)
+        unit = f" ({f.unit})" if f.unit else ""
+        bad = lambda: self.fail(f"{where} = {v!r}{unit}: must be {f.allowed()}")  # noqa: E731
+        if f.kind == "string":
+            return v if isinstance(v, str) else bad()
+        if f.kind == "bool":
+            return v if isinstance(v, bool) else bad()
+        if f.kind in ("numbers", "integers"):
+            if not isinstance(v, list) or not v:
+                bad()
+            if f.kind == "integers":
+                if not all(isinstance(x, int) and not isinstance(x, bool) and x not in (0, 1)
+                           for x in v):
+                    bad()
+                return tuple(v)
+            if not all(isinstance(x, int | float) and not isinstance(x, bool)
+                       and math.isfinite(x) for x in v):
+                bad()
+            return tuple(float(x) for x in v)
+        if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+            bad()
+        x = float(v)
+        if f.lo is not None and (x <= f.lo if f.lo_open else x < f.lo):
+            bad()
+        if f.hi is not None and x > f.hi:
+            bad()
+        return x
+
+
+def parse_motor_file(text: str, source: str = "<text>") -> Drive:
+    """The `Drive` described by the motor-file text `text` (`source` names it in
+    errors). Raises `MotorFileError` naming the field for any malformed input."""
+    r = _Reader(source)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        r.fail(f"not valid TOML: {e}")
+    if "version" in data and data["version"] != VERSION:
+        r.fail(f"version = {data['version']!r}: this pmsmjax reads motor-file version "
+               f"{VERSION}")
+    top = r.section(data, "", True)
+    if top["format"] != FORMAT:
+        r.fail(f"format = {top['format']!r}: must be {FORMAT!r}")
+    m = r.section(data, "motor", True)
+    harm = r.section(data, "motor.harmonics", False)
+    mech = r.section(data, "mechanics", True)
+    inv = r.section(data, "inverter", True)
+    rat = r.section(data, "ratings", True)
+    base = r.section(data, "base", False) or {}
+    for s in data:
+        if s not in MOTOR_FILE_SCHEMA[""] and s not in MOTOR_FILE_SCHEMA:
+            r.fail(f"unknown section or field {s!r}; allowed sections: "
+                   f"{', '.join(f'[{k}]' for k in MOTOR_FILE_SCHEMA if k)}")
+
+    kind = m.get("type", "three-phase")
+    if kind not in MOTOR_TYPES:
+        r.fail(f"[motor] type = {kind!r}: must be one of {', '.join(map(repr, MOTOR_TYPES))}")
+    dual = kind == "dual-three-phase"
+    for key in ("L_xy", "gamma"):
+        if key in m and not dual:
+            r.fail(f"[motor] {key}: only for type = \"dual-three-phase\" (this motor is "
+                   f"{kind})")
+    if dual and "L_xy" not in m:
+        r.fail("missing field [motor] L_xy (x-y subspace inductance, H, > 0) of a "
+               "dual three-phase machine")
+
+    def build(what: str, fn):
+        try:
+            return fn()
+        except MotorFileError:
+            raise
+        except ValueError as e:
+            r.fail(f"[{what}]: {e}")
+
+    harmonics = None
+    if harm is not None:
+        n = len(harm["order"])
+        for key in ("amplitude", "phase"):
+            if key in harm and len(harm[key]) != n:
+                r.fail(f"[motor.harmonics] {key} has {len(harm[key])} entries; must have "
+                       f"one per order ({n})")
+        harmonics = build("motor.harmonics", lambda: EMFHarmonics(
+            order=harm["order"], amplitude=np.asarray(harm["amplitude"]),
+            phase=None if "phase" not in harm else np.asarray(harm["phase"])))
+    ab = build("motor", lambda: PMSMParams(R_s=m["R_s"], L_d=m["L_d"], L_q=m["L_q"],
+                                           psi_f=m["psi_f"], n_p=m["n_p"],
+                                           harmonics=harmonics))
+    motor = ab
+    if dual:
+        motor = build("motor", lambda: DualThreePhaseParams(
+            ab=ab, L_xy=m["L_xy"], gamma=m.get("gamma", math.pi / 6)))
+    mechanics = build("mechanics", lambda: Mechanics(J=mech["J"], B=mech.get("B", 0.0)))
+    inverter = build("inverter", lambda: Inverter(u_dc=inv["u_dc"], u_max=inv.get("u_max"),
+                                                  delay=inv.get("delay", False)))
+
+    if ("w_rated" in rat) == ("n_rated_rpm" in rat):
+        r.fail("[ratings]: give exactly one of w_rated (rad/s electrical) and n_rated_rpm "
+               "(rpm mechanical)")
+    w_rated = rat["w_rated"] if "w_rated" in rat else \
+        m["n_p"] * 2 * math.pi * rat["n_rated_rpm"] / 60
+    for direct, rated in (("U_b", "U_rated_ll"), ("I_b", "I_rated_rms")):
+        if (direct in base) == (rated in base) and base:
+            r.fail(f"[base]: give exactly one of {direct} and {rated}")
+    if base:
+        U_b = base["U_b"] if "U_b" in base else math.sqrt(2.0 / 3.0) * base["U_rated_ll"]
+        I_b = base["I_b"] if "I_b" in base else math.sqrt(2.0) * base["I_rated_rms"]
+        w_b = base.get("w_b", w_rated)
+    else:  # no [base]: the inverter's linear range, the current limit, the rated speed
+        U_b, I_b, w_b = float(inverter.u_lim), rat["i_max"], w_rated
+    bases = build("base", lambda: BaseValues(U_b=U_b, I_b=I_b, w_b=w_b, n_p=m["n_p"]))
+    name = top.get("name", os.path.splitext(os.path.basename(source))[0] or "custom")
+    return build("ratings", lambda: Drive(
+        motor=motor, mechanics=mechanics, inverter=inverter, base=bases, w_rated=w_rated,
+        tau_rated=rat["tau_rated"], i_max=rat["i_max"], name=name,
+        notes=top.get("notes", "")))
+
+
+def load_motor_file(path) -> Drive:
+    """The `Drive` of the motor file at `path` (TOML, schema `MOTOR_FILE_SCHEMA`).
+
+    Raises `MotorFileError` (a `ValueError`) naming the file, the section and field, the
+    value and the allowed range for a malformed file, and `OSError` if it cannot be
+    read.
+    """
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    return parse_motor_file(text, str(path))
+
+
+def _num(x) -> str:
+    x = float(np.asarray(x))
+    if not math.isfinite(x):
+        raise ValueError(f"a motor file holds finite numbers only; got {x!r}")
+    return repr(x)
+
+
+def _str(s: str) -> str:
+    return json.dumps(s)  # a TOML basic string: the same escapes as JSON
+
+
+def _line(key: str, value: str, comment: str) -> str:
+    return f"{key} = {value}".ljust(34) + f"  # {comment}" if comment else f"{key} = {value}"
+
+
+def motor_file_text(drive: Drive) -> str:
+    """The motor file (TOML text) of `drive`; `parse_motor_file` of it gives back a
+    `Drive` equal to `drive` (every number is written exactly). Values must be concrete
+    (not traced)."""
+    S = MOTOR_FILE_SCHEMA
+
+    def row(section, key, value, text=None):
+        f = S[section][key]
+        note = ", ".join(p for p in (f.unit, f.allowed().removeprefix("a finite number ")
+                                     if f.kind == "number" else "") if p and p != "-")
+        return _line(key, text if text is not None else _num(value), note)
+
+    ab = drive.three_phase_motor
+    lines = ["# pmsmjax motor file: SI units; the schema is in docs/motor-file.md.",
+             f"format = {_str(FORMAT)}", f"version = {VERSION}",
+             f"name = {_str(drive.name)}", f"notes = {_str(drive.notes)}", "",
+             "[motor]",
+             _line("type", _str("dual-three-phase" if drive.dual else "three-phase"), "")]
+    lines += [row("motor", k, getattr(ab, k)) for k in ("R_s", "L_d", "L_q", "psi_f", "n_p")]
+    if drive.dual:
+        lines += [row("motor", "L_xy", drive.motor.L_xy),
+                  row("motor", "gamma", drive.motor.gamma)]
+    if ab.harmonics is not None:
+        h = ab.harmonics
+        arr = lambda xs: "[" + ", ".join(_num(x) for x in np.asarray(xs)) + "]"  # noqa: E731
+        lines += ["", "[motor.harmonics]",
+                  _line("order", "[" + ", ".join(str(int(o)) for o in h.order) + "]", ""),
+                  _line("amplitude", arr(h.amplitude), "relative to the fundamental"),
+                  _line("phase", arr(h.phase), "rad")]
+    inv = drive.inverter
+    lines += ["", "[mechanics]", row("mechanics", "J", drive.mechanics.J),
+              row("mechanics", "B", drive.mechanics.B),
+              "", "[inverter]", row("inverter", "u_dc", inv.u_dc)]
+    if inv.u_max is not None:
+        lines.append(row("inverter", "u_max", inv.u_max))
+    if inv.delay:
+        lines.append(_line("delay", "true", "one-sample computational delay"))
+    lines += ["", "[ratings]", row("ratings", "w_rated", drive.w_rated),
+              row("ratings", "tau_rated", drive.tau_rated),
+              row("ratings", "i_max", drive.i_max),
+              "", "[base]", row("base", "U_b", drive.base.U_b),
+              row("base", "I_b", drive.base.I_b), row("base", "w_b", drive.base.w_b)]
+    return "\n".join(lines) + "\n"
+
+
+def save_motor_file(drive: Drive, path) -> None:
+    """Write the motor file of `drive` to `path` (`motor_file_text`)."""
+    with open(path, "w", encoding="utf-8") as f:
+        f.write(motor_file_text(drive))
+
+
+def drives_equal(a: Drive, b: Drive) -> bool:
+    """True if the two drives hold the same parameters, names and notes."""
+    return bool(eqx.tree_equal(a, b))

@@ -1,0 +1,49 @@
+"""`--design FILE` of `pmsmjax simulate` and `pmsmjax replay`: run a tuned design.
+
+FILE is the tuner's output: the gains table `gains.json` that `python -m tuning` writes,
+or its output folder (or any file in it, such as `tuned_schedule.eqx`). The observer is
+the table's (`--observer` may be left out or must name the same one); its machine model
+follows `--observer-set` / `--mismatch-*` as usual, and the design replaces the paper's
+(`pmsmjax.apply_gains_table`), so `--gain` and the design shorthands are not allowed
+with it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import pmsmjax as pj
+
+from ._options import CLIError, ObserverChoice, observer_from_args
+
+
+def add_design_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--design", default=None, metavar="FILE",
+        help="run a tuned design: the gains table gains.json written by `python -m "
+             "tuning` (or its output folder). The observer is the table's; its gains "
+             "follow the table over speed (linear interpolation)")
+
+
+def observer_with_design(args, drive: pj.Drive, *, default: str) -> ObserverChoice:
+    """`observer_from_args`, with the design of `--design` applied when given
+    (`default`: the command's default `--observer`)."""
+    if getattr(args, "design", None) is None:
+        return observer_from_args(args, drive)
+    table = pj.load_gains_table(args.design)
+    name = table["observer"]
+    if args.observer not in (default, name):
+        raise CLIError(f"--design {args.design} is a design of the {name} observer; "
+                       f"--observer {args.observer} names another (leave --observer out "
+                       f"or give --observer {name})")
+    if args.gain or getattr(args, "fixed_at", None) is not None:
+        raise CLIError(f"--design {args.design} sets the whole design; --gain and "
+                       f"--fixed-at are not allowed with it")
+    args.observer = name
+    choice = observer_from_args(args, drive)
+    if choice.gains:
+        raise CLIError(f"--design {args.design} sets the whole design; the design options "
+                       f"({', '.join(choice.gains)}) are not allowed with it")
+    observer = pj.apply_gains_table(table, choice.observer)
+    return dataclasses.replace(choice, observer=observer)

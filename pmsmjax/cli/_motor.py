@@ -1,0 +1,91 @@
+"""`pmsmjax motor`: write a drive as a motor file, or check one."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+import pmsmjax as pj
+
+from ._options import CLIError, Command, add_drive_options, drive_from_args
+
+
+def _motor_arguments(p: argparse.ArgumentParser) -> None:
+    add_drive_options(p)
+    g = p.add_argument_group("motor file")
+    g.add_argument("--export", default=None, choices=pj.PRESET_NAMES, metavar="NAME",
+                   help=f"write the motor file of the preset NAME (one of "
+                        f"{', '.join(pj.PRESET_NAMES)}); the same as --motor NAME")
+    g.add_argument("--out", dest="out_file", default=None, metavar="FILE",
+                   help="write the motor file to FILE (default: print it on stdout)")
+    g.add_argument("--check", action="store_true",
+                   help="only validate the drive (--motor-file FILE) and print a summary: "
+                        "parameters, per-unit bases and derived ratings")
+
+
+def _summary(drive: pj.Drive) -> list[str]:
+    m = drive.three_phase_motor
+    w_M = float(drive.w_rated) / float(m.n_p)
+    e_rated = float(drive.w_rated) * float(m.psi_f)
+    lines = [
+        f"drive {drive.name}: {'dual three-phase' if drive.dual else 'three-phase'} PMSM",
+        f"  R_s {float(m.R_s):.4g} Ohm, L_d {1e3 * float(m.L_d):.4g} mH, L_q "
+        f"{1e3 * float(m.L_q):.4g} mH, psi_f {float(m.psi_f):.4g} V s, n_p {float(m.n_p):g}",
+        f"  J {float(drive.mechanics.J):.4g} kg m^2, B {float(drive.mechanics.B):.4g} N m s/rad,"
+        f" u_dc {float(drive.inverter.u_dc):.4g} V (voltage limit "
+        f"{float(drive.inverter.u_lim):.4g} V peak)",
+        f"  rated: {float(drive.w_rated):.4g} rad/s electrical = {w_M * 60 / (2 * math.pi):.4g}"
+        f" rpm, {float(drive.tau_rated):.4g} N m, current limit {float(drive.i_max):.4g} A peak",
+        f"  back-EMF at rated speed {e_rated:.4g} V peak ({e_rated / float(drive.inverter.u_lim):.3g}"
+        f" of the voltage limit)",
+        f"  base: U_b {float(drive.base.U_b):.4g} V, I_b {float(drive.base.I_b):.4g} A, w_b "
+        f"{float(drive.base.w_b):.4g} rad/s, tau_b {float(drive.base.tau_b):.4g} N m",
+    ]
+    if m.harmonics is not None:
+        lines.append("  back-EMF harmonics: " + ", ".join(
+            f"{h:+d}: {100 * float(a):.3g} %" for h, a in zip(m.harmonics.order,
+                                                               m.harmonics.amplitude)))
+    return lines
+
+
+def motor_command(args: argparse.Namespace) -> int:
+    if args.export is not None:
+        if args.motor is not None or args.motor_file is not None:
+            raise CLIError(f"--export {args.export} with --motor/--motor-file: give one "
+                           f"(--export NAME is --motor NAME)")
+        args.motor = args.export
+    drive = drive_from_args(args)
+    if args.check:
+        print("\n".join(_summary(drive)))
+        print("valid")
+        return 0
+    text = pj.motor_file_text(drive)
+    if args.out_file is None:
+        sys.stdout.write(text)
+        return 0
+    folder = os.path.dirname(args.out_file)
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+    with open(args.out_file, "w", encoding="utf-8") as f:
+        f.write(text)
+    print("\n".join(_summary(drive)))
+    print(f"wrote {args.out_file}")
+    return 0
+
+
+COMMAND = Command(
+    name="motor",
+    help="write a drive as a motor file (TOML), or check one",
+    description=(
+        "Write the drive given by --motor NAME (or --export NAME) or --motor-file FILE, "
+        "after the --set replacements, as a motor file (TOML, SI units) to --out FILE or "
+        "stdout; every command and `python -m tuning` accept it with --motor-file. With "
+        "--check, only validate it and print its parameters, bases and rated back-EMF. "
+        "A malformed file ends with exit status 2 and a message that names the field and "
+        "the allowed range."
+    ),
+    add_arguments=_motor_arguments,
+    run=motor_command,
+)

@@ -1,0 +1,243 @@
+"""Your own drive: motor files (round trip, validation, every command and the tuner accept
+them) and deploying a tuned design (gains table -> observer, `--design`)."""
+
+import json
+import math
+import pathlib
+import shutil
+import subprocess
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+import tuning as tg
+from pmsmjax.cli.__main__ import main
+from pmsmjax.observers import make_observer
+
+
+# ---------------------------------------------------------------------------------------
+# Motor files
+# ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", pj.PRESET_NAMES)
+def test_motor_file_round_trip(name, tmp_path, capsys):
+    """`pmsmjax motor --export NAME` -> `load_motor_file` gives the identical `Drive`
+    (every parameter bit for bit, name and notes)."""
+    path = tmp_path / f"{name}.toml"
+    assert main(["motor", "--export", name, "--out", str(path)]) == 0
+    assert f"wrote {path}" in capsys.readouterr().out
+    back = pj.load_motor_file(path)
+    assert bool(eqx.tree_equal(back, pj.preset(name)))
+    assert back.name == name and back.notes == pj.preset(name).notes
+    assert pj.parse_motor_file(pj.motor_file_text(back)).dual == pj.preset(name).dual
+
+
+_GOOD = pj.motor_file_text(pj.preset("zhang750"))
+
+
+def _edit(old, new):
+    assert old in _GOOD, old
+    return _GOOD.replace(old, new, 1)
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("R_s = ", "not valid TOML"),                                     # syntax
+    (_edit('format = "pmsmjax-motor"', 'format = "other"'), "format = 'other'"),
+    (_edit("version = 1", "version = 2"), "version = 2: this pmsmjax reads motor-file version 1"),
+    (_edit("[mechanics]", "[mech]"), "unknown field 'mech'; allowed in [top level]"),
+    (_GOOD[:_GOOD.index("[ratings]")], "missing section [ratings]"),
+    (_edit("R_s = 0.78", "# R_s"), "missing field [motor] R_s (stator resistance"),
+    (_edit("R_s = 0.78", "R_s = 0.78\nR_S = 1.0"), "unknown field '[motor] R_S'"),
+    (_edit("R_s = 0.78", 'R_s = "0.78"'), "[motor] R_s = '0.78' (Ohm): must be a finite"),
+    (_edit("L_d = 0.00246", "L_d = -0.00246"), "[motor] L_d = -0.00246 (H): must be a "
+                                               "finite number > 0"),
+    (_edit("psi_f = 0.056", "psi_f = nan"), "[motor] psi_f = nan (V s)"),
+    (_edit('type = "three-phase"', 'type = "five-phase"'), "type = 'five-phase': must be "
+                                                           "one of"),
+    (_edit('type = "three-phase"', 'type = "dual-three-phase"'), "missing field [motor] "
+                                                                 "L_xy"),
+    (_edit("n_p = 5.0", "n_p = 5.0\nL_xy = 1e-3"), "[motor] L_xy: only for type"),
+    (_edit("[mechanics]", "[motor.harmonics]\norder = [1]\namplitude = [0.1]\n\n"
+                          "[mechanics]"), "[motor.harmonics] order = [1]"),
+    (_edit("[mechanics]", "[motor.harmonics]\norder = [-5, 7]\namplitude = [0.1]\n\n"
+                          "[mechanics]"), "amplitude has 1 entries; must have one per "
+                                          "order (2)"),
+    (_edit("u_dc = 311.0", "u_dc = 311.0\nu_max = 300.0"), "[inverter]: `Inverter(u_max"),
+    (_edit("w_rated = ", "n_rated_rpm = 2400.0\nw_rated = "), "give exactly one of w_rated"),
+    (_edit("[base]\n", "[base]\nU_rated_ll = 220.0\n"), "give exactly one of U_b and "
+                                                        "U_rated_ll"),
+    (_edit("tau_rated = 2.4", "tau_rated = 0.0"), "[ratings] tau_rated = 0.0 (N m)"),
+    (_edit("J = 0.0015", "J = true"), "[mechanics] J = True (kg m^2)"),
+])
+def test_malformed_motor_files_name_the_field(text, fragment):
+    with pytest.raises(pj.MotorFileError) as e:
+        pj.parse_motor_file(text, "my.toml")
+    assert str(e.value).startswith("motor file my.toml: ")
+    assert fragment in str(e.value), str(e.value)
+
+
+def test_minimal_motor_file_defaults():
+    """Optional fields: no [base] (U_b = u_dc/sqrt(3), I_b = i_max, w_b = w_rated),
+    n_rated_rpm instead of w_rated, B = 0, no harmonics; the name from the file name."""
+    d = pj.parse_motor_file(
+        'format = "pmsmjax-motor"\nversion = 1\n[motor]\nR_s = 1.0\nL_d = 0.01\n'
+        'L_q = 0.02\npsi_f = 0.1\nn_p = 2\n[mechanics]\nJ = 0.01\n[inverter]\n'
+        'u_dc = 300.0\n[ratings]\nn_rated_rpm = 1500.0\ntau_rated = 5.0\ni_max = 10.0\n',
+        "/somewhere/my_motor.toml")
+    assert d.name == "my_motor" and not d.dual and float(d.mechanics.B) == 0.0
+    assert d.w_rated == pytest.approx(2 * 2 * math.pi * 1500 / 60)
+    assert d.base.U_b == pytest.approx(300 / math.sqrt(3)) and d.base.I_b == 10.0
+    assert d.base.w_b == d.w_rated
+
+
+def test_every_command_accepts_a_motor_file(tmp_path, capsys):
+    """--motor-file in the shared drive options: the drive of the file, changed by --set;
+    --motor with --motor-file and a malformed file are one-line errors (status 2)."""
+    path = tmp_path / "mine.toml"
+    path.write_text(_edit('name = "zhang750"', 'name = "mine"'))
+    assert main(["equilibria", "--motor-file", str(path), "--set", "R_s=0.9", "--json",
+                 "--speed", "0.5"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["motor"] == "mine" and s["motor_file"] == str(path)
+    assert s["parameter_overrides"] == {"R_s": 0.9}
+    assert main(["motor", "--motor", "stumper_mt5", "--motor-file", str(path)]) == 2
+    assert "give one of the two" in capsys.readouterr().err
+    bad = tmp_path / "bad.toml"
+    bad.write_text(_edit("J = 0.0015", "J = -1.0"))
+    assert main(["motor", "--motor-file", str(bad), "--check"]) == 2
+    err = capsys.readouterr().err
+    assert "[mechanics] J = -1.0 (kg m^2): must be a finite number > 0" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_tuning_config_from_a_motor_file(tmp_path):
+    """TuningConfig(motor_file=..., set_params=...) tunes the file's drive (the same
+    drive as the preset with the same replacement); the whole tuner on a motor file runs
+    in tests/test_readme_commands.py (the README's "your own drive" example)."""
+    path = tmp_path / "mine.toml"
+    path.write_text(_edit('name = "zhang750"', 'name = "mine"'))
+    cfg = tg.TuningConfig.quick(motor_file=str(path), set_params=(("J", 2e-3),))
+    ref = tg.TuningConfig.quick(set_params={"J": 2e-3})
+    assert cfg.motor == "mine" and cfg.motor_file == str(path)
+    assert float(cfg.drive().mechanics.J) == 2e-3
+    assert bool(eqx.tree_equal(cfg.drive().motor, ref.drive().motor))
+    assert bool(eqx.tree_equal(cfg.initial_schedule(), ref.initial_schedule()))
+    # the stored configuration comes back (set_params as pairs)
+    back = tg.config_from_summary({"config": json.loads(json.dumps(cfg.to_dict()))})
+    assert back == cfg
+    with pytest.raises(ValueError, match=r"\[motor\] R_s = -1.0"):
+        path.write_text(_edit("R_s = 0.78", "R_s = -1.0"))
+        tg.TuningConfig.quick(motor_file=str(path))
+    with pytest.raises(ValueError, match="Unknown parameter 'X'"):
+        tg.TuningConfig.quick(set_params=(("X", 1.0),))
+
+
+# ---------------------------------------------------------------------------------------
+# Deploying a tuned design: gains table
+# ---------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tuned():
+    """A tuned-looking schedule (non-trivial corrections at two nodes), its table."""
+    cfg = tg.TuningConfig.quick()
+    d = cfg.initial_schedule()
+    gs = tg.GainSchedule.from_factors(
+        d.s_nodes, d.w_rated, d.w2_paper,
+        dict(zeta1=[1.1, 0.9], ratio=[1.2, 0.9], zeta2=[1.1, 0.9], w2=[1.3, 0.8],
+             nu2=[0.05, -0.05], nu3=[0.02, 0.05]), d.bounds)
+    return cfg, gs, tg.gains_table(gs, cfg)
+
+
+def test_gains_table_gives_the_tuned_gains(tuned):
+    """Between the rows (half a step off) and at currents != 0 the table's gains match the
+    schedule's within the interpolation error (1 % of the gain; the largest error is at
+    the first row next to standstill, where the flux gains vanish); at the rows exactly;
+    the gain columns are the gains at i_dq = 0."""
+    cfg, gs, table = tuned
+    drive = cfg.drive()
+    m = drive.three_phase_motor
+    a = tg.make_observer("eso", drive, gs)
+    b = pj.apply_gains_table(table, make_observer("eso", drive))
+    cols = {c: np.array([r[j] for r in table["rows"]]) for j, c in
+            enumerate(table["columns"])}
+    w = cols["w_m"]
+    step = w[1] - w[0]
+    assert w[0] == -w[-1] and w[-1] >= 1.5 * float(drive.w_rated) - 1e-9
+    for w0 in np.concatenate([w[::7], 0.5 * (w[1:] + w[:-1])[::5]]):
+        for i_dq in ([0.0, 0.0], [-1.0, 4.0]):
+            ga = a.linear_gains(jnp.asarray(w0), jnp.asarray(i_dq))
+            gb = b.linear_gains(jnp.asarray(w0), jnp.asarray(i_dq))
+            for x, y in ((ga.G1, gb.G1), (ga.g2, gb.g2), (ga.g3, gb.g3)):
+                x, y = np.asarray(x), np.asarray(y)
+                tol = 1e-12 if np.any(np.isclose(w0, w, rtol=0, atol=1e-9)) else 1e-2
+                assert np.max(np.abs(x - y)) <= tol * np.max(np.abs(x)) + 1e-12, (w0, i_dq)
+    j = len(w) // 2 + 11  # a positive speed
+    g = a.linear_gains(jnp.asarray(w[j]), jnp.zeros(2))
+    np.testing.assert_allclose([cols["G1_11"][j], cols["G1_21"][j], cols["g3_2"][j]],
+                               [g.G1[0, 0], g.G1[1, 0], g.g3[1]], rtol=1e-12)
+    assert step / float(drive.w_rated) == pytest.approx(0.025)
+
+
+def test_gains_table_round_trip_estimates(tuned, tmp_path):
+    """tuned design -> gains.json -> observer from the table: the same estimates as the
+    tuned design on a recording, within the interpolation error."""
+    cfg, gs, table = tuned
+    drive = cfg.drive()
+    paths = pj.write_gains_table(table, tmp_path)
+    back = pj.load_gains_table(tmp_path)  # the folder, as --design takes it
+    assert back == json.loads(json.dumps(table))
+    w_r = float(drive.w_rated)
+    sc = pj.Scenario(t_end=0.15, w_m_imposed=pj.Profile.ramp(0.0, 0.15, 0.3 * w_r, 0.9 * w_r),
+                     i_d_ref=pj.Profile.constant(0.0), i_q_ref=pj.Profile.constant(2.0))
+    traj = pj.simulate(drive, pj.FOC.from_drive(drive), pj.SensoredObserver.from_drive(drive),
+                       sc, T_s=cfg.T_s, w_m0=0.3 * w_r)
+    rec = pj.RecordedData.from_trajectory(traj)
+    kw = dict(theta0=-0.5, w0=float(rec.w_m[0]))  # converge from a 29 deg angle error
+    ea = pj.replay_estimates(tg.make_observer("eso", drive, gs), rec, **kw)
+    eb = pj.replay_estimates(pj.apply_gains_table(back, make_observer("eso", drive)), rec,
+                             **kw)
+    d_theta = np.degrees(np.abs(np.asarray(pj.wrap_angle(ea.theta_hat - eb.theta_hat))))
+    assert d_theta.max() < 0.05  # measured 0.007 deg
+    assert np.max(np.abs(np.asarray(ea.w_hat - eb.w_hat))) < 1e-4 * w_r  # 0.015 rad/s
+    # CSV: the same numbers; C header: compiles (where a C compiler is installed)
+    csv = np.loadtxt(paths["csv"], delimiter=",", skiprows=1)
+    np.testing.assert_array_equal(csv, np.asarray(table["rows"]))
+    text = pathlib.Path(paths["c"]).read_text()
+    assert f"#define PMSMJAX_GAINS_N_ROWS {len(table['rows'])}" in text
+    if shutil.which("gcc"):
+        subprocess.run(["gcc", "-fsyntax-only", "-Wall", "-x", "c", paths["c"]], check=True)
+
+
+def test_design_option_in_replay_and_simulate(tuned, tmp_path, capsys):
+    """`simulate --design` and `replay --design` run the table's observer and design:
+    replay.npz holds the estimates of `apply_gains_table`."""
+    cfg, gs, table = tuned
+    drive = cfg.drive()
+    pj.write_gains_table(table, tmp_path / "tuned")
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--design", str(tmp_path / "tuned" / "gains.json"),
+                 "--scenario", "load-step", "--speed", "0.4", "--t-end", "0.1", "--no-plot",
+                 "--out", str(sim)]) == 0
+    s = json.loads((sim / "summary.json").read_text())
+    assert s["observer"] == "eso" and s["status"] == "successful"
+    assert s["design_file"].endswith("gains.json")
+    rep = tmp_path / "rep"
+    assert main(["replay", "--design", str(tmp_path / "tuned"), "--data",
+                 str(sim / "recording.npz"), "--no-plot", "--out", str(rep)]) == 0
+    rec = pj.load_recording(sim / "recording.npz")
+    est = pj.replay_estimates(pj.apply_gains_table(table, make_observer("eso", drive)), rec)
+    with np.load(rep / "replay.npz") as f:
+        np.testing.assert_array_equal(f["theta_hat"], np.asarray(est.theta_hat))
+    capsys.readouterr()
+    assert main(["replay", "--design", str(tmp_path / "tuned"), "--observer", "leso",
+                 "--data", str(sim / "recording.npz"), "--out", str(rep)]) == 2
+    assert "is a design of the eso observer" in capsys.readouterr().err
+    assert main(["replay", "--design", str(tmp_path / "tuned"), "--w2", "300",
+                 "--data", str(sim / "recording.npz"), "--out", str(rep)]) == 2
+    assert "not allowed with it" in capsys.readouterr().err
+    assert main(["replay", "--design", str(tmp_path), "--data",
+                 str(sim / "recording.npz"), "--out", str(rep)]) == 2
+    assert "no gains table there" in capsys.readouterr().err
