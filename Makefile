@@ -1,6 +1,7 @@
 # Two commands do everything (see README):
 #   make run    -> installs into .venv and runs the main job on its built-in default
-#   make test   -> installs into .venv (with test extras) and runs the test suite
+#   make test   -> installs into .venv (with test and docs extras) and runs the test suite
+#   make docs   -> builds the documentation site into site/ (executes the notebooks)
 # Both install the tested versions pinned in constraints.txt (pyproject.toml keeps the
 # compatible ranges); `make lock` re-resolves the newest versions and rewrites the file.
 PYTHON ?= python3
@@ -9,7 +10,7 @@ PY     := $(VENV)/bin/python
 OUT    ?= results
 PIP    := $(PY) -m pip install --quiet -c constraints.txt
 
-.PHONY: run test bench stress install install-tests lock clean
+.PHONY: run test docs bench stress install install-tests lock clean
 
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -18,7 +19,7 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	touch $@
 
 $(VENV)/.installed-tests: $(VENV)/.installed pyproject.toml constraints.txt
-	$(PIP) -e ".[tests]"
+	$(PIP) -e ".[tests,docs]"
 	touch $@
 
 install: $(VENV)/.installed
@@ -29,6 +30,11 @@ run: $(VENV)/.installed
 
 test: $(VENV)/.installed-tests
 	$(PY) -m pytest -n 2 -q
+
+# The documentation site (mkdocs.yml) into site/, strict (a broken link or reference
+# fails), executing every notebook; PMSMJAX_DOCS_EXECUTE=false renders them unexecuted.
+docs: $(VENV)/.installed-tests
+	$(VENV)/bin/mkdocs build --strict
 
 bench: $(VENV)/.installed-tests
 	$(PY) benchmarks/bench_simulate.py
@@ -42,11 +48,11 @@ lock:
 	rm -rf .lock-venv
 	$(PYTHON) -m venv .lock-venv
 	.lock-venv/bin/python -m pip install --quiet --upgrade pip
-	.lock-venv/bin/python -m pip install --quiet -e ".[tests]"
+	.lock-venv/bin/python -m pip install --quiet -e ".[tests,docs,notebooks]"
 	{ echo "# Tested versions of every dependency (make lock rewrites this file)."; \
 	  .lock-venv/bin/python -m pip freeze --exclude-editable | LC_ALL=C sort -f; } > constraints.txt
 	rm -rf .lock-venv
 	@echo "constraints.txt updated: review the diff, then run make test"
 
 clean:
-	rm -rf $(VENV) .lock-venv results .pytest_cache
+	rm -rf $(VENV) .lock-venv results .pytest_cache site

@@ -1,0 +1,53 @@
+"""The documentation site builds in strict mode (a broken link or reference fails), and
+the pages that are written from the code are up to date.
+
+The build here sets `PMSMJAX_DOCS_EXECUTE=false` (read by mkdocs.yml), so mkdocs-jupyter
+renders the notebooks without executing them: tests/test_notebooks.py executes every
+notebook already, and `make docs` builds the site with them executed.
+"""
+
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+import pmsmjax as pj
+
+
+ROOT = pathlib.Path(__file__).parents[1]
+DOCS = ROOT / "docs"
+
+
+@pytest.mark.timeout(600)
+def test_docs_build_strict(tmp_path):
+    site = tmp_path / "site"
+    env = dict(os.environ, PMSMJAX_DOCS_EXECUTE="false", NO_MKDOCS_2_WARNING="1")
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d",
+                           str(site)], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    # every notebook is a page (the hook adds them without editing mkdocs.yml), with
+    # admonitions and the API reference rendered
+    for nb in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        assert (site / "notebooks" / f"{nb.stem}.html").stat().st_size > 0, nb.name
+    api = (site / "api" / "pmsmjax.html").read_text()
+    assert "Simulate one closed-loop run" in api
+    assert 'class="admonition tip"' in (site / "getting-started.html").read_text()
+    assert not (ROOT / ".cache").exists()  # the build writes nothing into the repository
+
+
+def test_motor_file_page_lists_the_schema():
+    text = (DOCS / "motor-file.md").read_text()
+    for section, fields in pj.MOTOR_FILE_SCHEMA.items():
+        assert (f"[{section}]" if section else "top level") in text, section
+        for name, field in fields.items():
+            assert f"| `{name}` | {field.unit or '-'} |" in text, (section, name)
+
+
+@pytest.mark.parametrize("name", pj.PRESET_NAMES)
+def test_example_motor_files_are_current(name):
+    """docs/examples/NAME.toml is what `pmsmjax motor --export NAME` writes today."""
+    assert (DOCS / "examples" / f"{name}.toml").read_text() == pj.motor_file_text(
+        pj.preset(name))
