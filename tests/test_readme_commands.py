@@ -1,0 +1,119 @@
+"""Every command line the README shows runs, on small settings, in the order it shows them
+(one scratch folder, so the "your own drive" example runs end to end: motor file ->
+simulate -> replay -> analyse -> tune -> deploy).
+
+Command lines are read from the README's ```sh blocks, so lines added later are picked
+up without touching this file:
+
+- `pmsmjax ...` and `python -m tuning ...` (also spelled `.venv/bin/...`) run in-process
+  with `SMALL` options appended (shorter runs, no plots);
+- `ls FILE...` checks that the files exist;
+- `make ...` (tested by tests/test_main_job.py and the suite itself), `source ...`, and
+  installs (`pip`, `jupyter`) are skipped;
+- anything else fails: add a rule here.
+
+The command lines of docs/your-own-drive.md are parsed (every option must exist).
+"""
+
+import pathlib
+import re
+import shlex
+
+import pytest
+
+from pmsmjax.cli.__main__ import build_parser, main as pmsmjax_main
+from tuning.__main__ import build_parser as tuning_parser, main as tuning_main
+
+
+ROOT = pathlib.Path(__file__).parents[1]
+
+#: Options appended per command for a short run (only options the line does not give).
+SMALL = {
+    "simulate": ["--t-end", "0.2", "--no-plot"],
+    "replay": ["--no-plot"],
+    "plant": ["--no-plot"],
+    "feasibility": ["--no-plot"],
+    "certify": ["--quick"],
+    "tuning": ["--quick", "--steps", "1", "--no-ablation", "--no-plot", "--no-progress"],
+}
+SKIP = ("make", "source", "pip", "jupyter", "cd", "export")
+
+
+def command_lines(path: pathlib.Path) -> list[list[str]]:
+    """The command lines of the ```sh blocks of `path` (comments and line continuations
+    handled), as argument lists."""
+    out = []
+    for block in re.findall(r"```(?:sh|bash)\n(.*?)```", path.read_text(), flags=re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            argv = shlex.split(line, comments=True)
+            if argv:
+                out.append(argv)
+    return out
+
+
+def _program(argv):
+    """("pmsmjax" | "tuning" | "ls" | "skip", rest of the arguments)."""
+    exe = pathlib.PurePath(argv[0]).name
+    if exe == "pmsmjax":
+        return "pmsmjax", argv[1:]
+    if exe.startswith("python") and argv[1:3] == ["-m", "tuning"]:
+        return "tuning", argv[3:]
+    if exe.startswith("python") and argv[1:3] == ["-m", "pmsmjax"]:
+        return "pmsmjax", argv[3:]
+    if exe == "ls":
+        return "ls", argv[1:]
+    if exe in SKIP:
+        return "skip", argv
+    raise AssertionError(f"README command line {' '.join(argv)!r}: no rule in "
+                         f"tests/test_readme_commands.py")
+
+
+def _small(cmd: str, args: list[str]) -> list[str]:
+    extra = SMALL.get(cmd, [])
+    out, i = [], 0
+    while i < len(extra):  # append an option (and its value) only if not given
+        opt = extra[i]
+        has_value = i + 1 < len(extra) and not extra[i + 1].startswith("--")
+        if opt not in args:
+            out += extra[i:i + 1 + has_value]
+        i += 1 + has_value
+    return args + out
+
+
+@pytest.mark.timeout(900)
+def test_readme_command_lines_run(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    monkeypatch.chdir(tmp_path)
+    lines = command_lines(ROOT / "README.md")
+    ran = []
+    for argv in lines:
+        prog, args = _program(argv)
+        if prog == "skip":
+            continue
+        if prog == "ls":
+            for f in args:
+                assert (tmp_path / f).is_file(), f"README: `ls {f}`: no such file"
+            continue
+        if prog == "tuning":
+            rc = tuning_main(_small("tuning", args))
+        else:
+            rc = pmsmjax_main(_small(args[0], args) if args else args)
+        out = capsys.readouterr()
+        assert rc == 0, f"README command line {' '.join(argv)!r} -> exit {rc}\n" \
+                        f"{out.out[-2000:]}\n{out.err[-2000:]}"
+        ran.append(" ".join(argv))
+    # the your-own-drive example is there and ran end to end
+    assert any("--motor-file" in r and "tuning" in r for r in ran)
+    assert any("--design" in r and "replay" in r for r in ran)
+
+
+def test_docs_command_lines_parse():
+    """The command lines of the your-own-drive guide name existing options."""
+    lines = command_lines(ROOT / "docs" / "your-own-drive.md")
+    assert lines
+    for argv in lines:
+        prog, args = _program(argv)
+        if prog == "pmsmjax":
+            build_parser().parse_args(args)
+        elif prog == "tuning":
+            tuning_parser().parse_args(args)
