@@ -7,6 +7,7 @@ notebook already, and `make docs` builds the site with them executed.
 """
 
 import os
+import re
 import pathlib
 import subprocess
 import sys
@@ -51,3 +52,40 @@ def test_example_motor_files_are_current(name):
     """docs/examples/NAME.toml is what `pmsmjax motor --export NAME` writes today."""
     assert (DOCS / "examples" / f"{name}.toml").read_text() == pj.motor_file_text(
         pj.preset(name))
+
+
+# Patterns that point outside the repository: the design folder of the project's
+# workspace, its conventions file, machine paths and references to the project's
+# tickets (built by
+# concatenation so that this file does not match itself).
+_OUTSIDE = [
+    re.compile("CONVEN" + "TIONS" + r"\.md"),
+    re.compile(r"\.\./" + "shared"),
+    re.compile("shared/" + "(design|papers)"),
+    re.compile("/" + "work/"),
+    re.compile(r"\bissue" + r"[ -]?(tracker|#?\d+)", re.I),
+]
+_TEXT = (".py", ".md", ".ipynb", ".toml", ".yml", ".yaml", ".cff", ".txt", ".cfg")
+
+
+def test_repository_is_self_contained():
+    """No file, docstring, preset note or notebook refers to anything outside the
+    repository (the workspace's design documents, machine paths, tickets)."""
+    bad = []
+    for base in ("pmsmjax", "tuning", "tests", "docs", "notebooks", "benchmarks"):
+        for path in sorted((ROOT / base).rglob("*")):
+            if path.suffix in _TEXT and path.is_file() and "__pycache__" not in path.parts:
+                bad += _matches(path)
+    for name in ("README.md", "BENCHMARKS.md", "mkdocs.yml", "CITATION.cff",
+                 "pyproject.toml", "Makefile"):
+        bad += _matches(ROOT / name)
+    for name in pj.PRESET_NAMES:
+        bad += [f"preset {name}: {p.pattern}" for p in _OUTSIDE
+                if p.search(pj.preset(name).notes)]
+    assert not bad, "\n".join(bad)
+
+
+def _matches(path: pathlib.Path) -> list[str]:
+    text = path.read_text(encoding="utf-8", errors="replace")
+    return [f"{path.relative_to(ROOT)}: {m.group(0)!r}" for p in _OUTSIDE
+            for m in p.finditer(text)]
