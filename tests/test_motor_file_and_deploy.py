@@ -135,6 +135,25 @@ def test_tuning_config_from_a_motor_file(tmp_path):
         tg.TuningConfig.quick(set_params=(("X", 1.0),))
 
 
+def test_tuner_command_line_motor_file_errors(tmp_path, capsys):
+    """`python -m tuning --motor-file`: a malformed file, or --motor with it, is a
+    one-line error with exit status 2 before anything runs."""
+    from tuning.__main__ import main as tuning_main
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text(_edit("L_q = 0.00268", "L_q = 0"))
+    assert tuning_main(["--motor-file", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "[motor] L_q = 0 (H): must be a finite number > 0" in capsys.readouterr().err
+    good = tmp_path / "good.toml"
+    good.write_text(_GOOD)
+    assert tuning_main(["--motor", "stumper_mt5", "--motor-file", str(good), "--out",
+                        str(tmp_path / "o")]) == 2
+    assert "give one of the two" in capsys.readouterr().err
+    assert tuning_main(["--set", "J=-1", "--out", str(tmp_path / "o")]) == 2
+    assert "`Mechanics(J=...)` (kg m^2) must be finite and > 0" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 # ---------------------------------------------------------------------------------------
 # Deploying a tuned design: gains table
 # ---------------------------------------------------------------------------------------

@@ -128,6 +128,9 @@ def config_from_args(args) -> TuningConfig:
         if v != tuple(getattr(d, field)):
             kw[field] = v
     if args.motor_file is not None:
+        if args.motor != d.motor:
+            raise ValueError(f"--motor {args.motor} and --motor-file {args.motor_file}: give "
+                             f"one of the two")
         kw["motor_file"] = args.motor_file
     if args.set_params:
         kw["set_params"] = tuple(args.set_params)
