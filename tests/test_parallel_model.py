@@ -18,7 +18,7 @@ from pmsmjax.observers._parallel_model import (
     polar,
     position_estimate,
     position_estimate_printed,
-    steady_state_offset,
+    parallel_model_offset,
 )
 
 from .helpers import rot
@@ -131,7 +131,7 @@ def test_which_single_inductance_is_exact_on_the_salient_machine(runs):
         # the raw estimate (16)-(17), before the tracking filter, which settles slowly
         th = est.extras["theta_raw_hat"]
         off = -np.asarray(pj.angle_error(tr.theta, th))[last].mean()  # estimate - true
-        want = float(steady_state_offset(m, 0.0, L_hat - float(m.L_q), 300 * RPM, i_rot))
+        want = float(parallel_model_offset(m, 0.0, L_hat - float(m.L_q), 300 * RPM, i_rot))
         assert abs(want) > math.radians(0.05)
         assert off == pytest.approx(want, rel=0.02, abs=math.radians(0.005))
 

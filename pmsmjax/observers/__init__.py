@@ -36,6 +36,8 @@ from ._eso_design import (
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
+    d_current_feedforward as d_current_feedforward,
+    parallel_model_offset as parallel_model_offset,
 )
 from ._registry import (
     make_observer as make_observer,

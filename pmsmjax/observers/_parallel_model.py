@@ -114,7 +114,7 @@ RHO_MIN = 1e-9
 #: Below this back-EMF magnitude (V) the raw angle is undefined and the filter coasts.
 E_MIN = 1e-9
 #: Newton steps for the algebraic loop of the error dynamics.
-_N_NEWTON = 8
+_N_NEWTON = 4
 
 
 def polar(i_ab, phi_hold=0.0):
@@ -183,7 +183,7 @@ def d_current_feedforward(i_q_ref, dw_ref_dt, v1, i_d0=0.0):
     return i_d0 - jnp.tan(dw_ref_dt / v1) * i_q_ref
 
 
-def steady_state_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor",
+def parallel_model_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor",
                         dpsi=0.0):
     r"""Closed-form steady-state angle offset $\hat\theta - \theta$ (rad, estimate minus
     true, as stumper (21)) of the raw estimator (16)-(17) under model errors.
@@ -224,19 +224,19 @@ def steady_state_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor",
         num = dR * i_d - dL * w * i_q
         x = jnp.zeros_like(num * w)
         for _ in range(8):
-            i_d_rot = i_d * jnp.cos(x) + i_q * jnp.sin(x)  # e^{x J}... rotor-frame i_d
+            i_d_rot = i_d * jnp.cos(x) - i_q * jnp.sin(x)  # rotor frame: e^{x J} i_dq
             psi_ext = plant.psi_f + (plant.L_d - plant.L_q) * i_d_rot
             sn = num / (w * psi_ext)
             x = jnp.where(jnp.abs(sn) <= 1.0, jnp.arcsin(jnp.clip(sn, -1.0, 1.0)), jnp.nan)
         return x
-    raise ValueError(f"`steady_state_offset(frame=...)` must be 'rotor' or 'estimated'; "
+    raise ValueError(f"`parallel_model_offset(frame=...)` must be 'rotor' or 'estimated'; "
                      f"got {frame!r}.")
 
 
 def printed_offsets(plant: PMSMParams, dR, dL, w_m, i_dq):
     """stumper (31) and (32) as printed (rad): `(dtheta_L, dtheta_R)`, with
     `n_p phi_M - phi = -atan2(i_q, i_d)` and the paper's K = `psi_f`, omega_M = w_m/n_p.
-    Kept to show the errata (see `steady_state_offset` for the derivation)."""
+    Kept to show the errata (see `parallel_model_offset` for the derivation)."""
     i_dq = jnp.asarray(i_dq)
     i_d, i_q = i_dq[..., 0], i_dq[..., 1]
     n_p, K = plant.n_p, plant.psi_f
@@ -472,39 +472,144 @@ class ParallelModelObserver(AbstractObserver):
         z = w - x_w
         s = jnp.where(z >= 0, 1.0, -1.0).astype(x.dtype)
         i_ab = rotate(i0, th_t)  # = rotor-frame current (rotor at angle 0)
-        rho, phi = polar(i_ab, th_t)
+        # the current's angle in the estimated frame, gamma = phi - theta_tilde (held at
+        # 0 without current)
+        rho, gamma = polar(i0)
+        c_g, s_g = jnp.cos(gamma), jnp.sin(gamma)
         rho_dot_f = -x_rho
         phi_dot_f = w - x_phi
         Ld, Lq = plant.L_d, plant.L_q
+        m = self.motor
+
+        # the voltage the true machine needs, affine in the rate p the current turns at
+        # (rotor-frame current derivative (p - w) J i; the rotor is at angle 0):
+        # u(p) = u0 + p u1, u1 = L J i
+        Ji = jnp.stack([-i_ab[1], i_ab[0]])
+        LJi = jnp.stack([Ld * Ji[0], Lq * Ji[1]])
+        psi = jnp.stack([Ld * i_ab[0] + plant.psi_f, Lq * i_ab[1]])
+        u0 = plant.R_s * i_ab - w * LJi + w * jnp.stack([-psi[1], psi[0]])
+        phi = th_t + gamma
+        P0, O0 = projections(u0, phi)
+        P1, O1 = projections(LJi, phi)
+        # (13)-(14): e_P = A_P + p B_P, e_O = A_O + p B_O
+        A_P, A_O = backemf_polar(P0, O0, rho, rho_dot_f, phi_dot_f, m.R_s, m.L_q)
+        B_P, B_O = P1, -O1
 
         def raw(p):
-            # rotor-frame current derivative: the current turns at p, the frame at w
-            di = (p - w) * jnp.stack([-i_ab[1], i_ab[0]])
-            psi = jnp.stack([Ld * i_ab[0] + plant.psi_f, Lq * i_ab[1]])
-            u = plant.R_s * i_ab + jnp.stack([Ld * di[0], Lq * di[1]]) \
-                + w * jnp.stack([-psi[1], psi[0]])
-            return self._raw(u, jnp.stack([rho, jnp.zeros_like(rho)]), rho, phi,
-                             rho_dot_f, phi_dot_f, s, th_t)
+            """(16)-(17) relative to the filter's angle, eps = theta_raw - theta_tilde
+            = gamma + atan2(y, x), as one atan2 of (x, y) turned by gamma; with the
+            Cartesian pair (X, Y) and the slope d eps / dp."""
+            y, x = -s * (A_P + p * B_P), s * (A_O + p * B_O)
+            dy, dx = -s * B_P, s * B_O
+            X, Y = c_g * x - s_g * y, s_g * x + c_g * y
+            r2 = jnp.maximum(x * x + y * y, E_MIN ** 2)
+            return jnp.arctan2(Y, X), r2, (x * dy - y * dx) / r2
 
-        def g(p):
-            return p - z - self.v2 * wrap_angle(raw(p)[0] - th_t)
-
-        p = z + self.v2 * wrap_angle(raw(phi_dot_f)[0] - th_t)
-
-        def newton(p, _):
-            gp, dg = jax.jvp(g, (p,), (jnp.ones_like(p),))
-            dg = jnp.where(jnp.abs(dg) > 1e-9, dg, 1e-9)
-            return p - gp / dg, None
-
-        p, _ = jax.lax.scan(newton, p, None, length=_N_NEWTON)
-        theta_raw, w_raw, _, _ = raw(p)
-        eps = wrap_angle(theta_raw - th_t)
+        # Newton steps on p - z - v2 eps(p) = 0 (unrolled: the loop is smooth and well
+        # conditioned where the error model is well posed, see the module docstring)
+        p = phi_dot_f
+        for _ in range(_N_NEWTON):
+            eps, _, deps = raw(p)
+            dg = 1.0 - self.v2 * deps
+            dg = jnp.where(jnp.abs(dg) > 1e-6, dg, 1e-6)
+            p = p - (p - z - self.v2 * eps) / dg
+        eps, r2, _ = raw(p)
+        # (18)-(19): |e| over the extended flux, i_d along the raw estimate's d axis
+        K_ext = m.psi_f + (m.L_d - m.L_q) * rho * jnp.cos(gamma - eps)
+        w_raw = s * jnp.sqrt(r2) / K_ext
         dx_th = w - p
         dx_w = -self.v1 * eps
         dx_phi = -(p - phi_dot_f) / self.T_LP
         dx_rho = -x_rho / self.T_LP
         dx_lp = -(w_raw - (w - x_lp)) / self.T_w
         return jnp.stack([dx_rho, dx_phi, dx_th, dx_w, dx_lp])
+
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint, n_grid=None):
+        r"""The equilibria in closed form (the route `analysis.equilibria` takes with
+        `method="auto"`; `test_parallel_model_sensitivity.py` checks it against the
+        generic route). At an equilibrium the filters are at rest ($\dot\rho_f = 0$,
+        $\dot\phi_f = z = \omega$) and the raw estimate equals the filter's angle, so the
+        estimated back-EMF $\hat e = \omega\psi_{ext}e^{-\Delta\theta J}e_2 - \Delta R\,i_0
+        - \Delta L\,\omega J i_0$ (estimated frame, $\Delta\theta = \hat\theta - \theta$)
+        lies on the estimated q axis with the sign of the speed:
+        $\omega\psi_{ext}\sin\Delta\theta = \Delta R\,i_{0d} - \Delta L\,\omega i_{0q}$ and
+        $s\,\hat e_q > 0$ (`parallel_model_offset(frame="estimated")`). Both branches of the
+        sine are tried (Newton steps for the salient machine's $\psi_{ext}$); the speed
+        low pass settles at the speed estimate's bias. Stability from the Jacobian of
+        `error_rhs` (Routh-Hurwitz). `n_grid` is not used."""
+        del n_grid
+        from ..analysis._equilibria import Equilibria
+        from ..analysis._linearize import charpoly, routh_hurwitz
+
+        dtype = jnp.result_type(op.w_m, float)
+        w = jnp.asarray(op.w_m, dtype)
+        i0 = jnp.asarray(op.i_dq, dtype)
+        m = self.motor
+        dR, dL = m.R_s - plant.R_s, m.L_q - plant.L_q
+        num = dR * i0[0] - dL * w * i0[1]
+        w_s = jnp.where(w != 0, w, 1.0)
+        s = jnp.where(w >= 0, 1.0, -1.0)
+
+        def psi_ext(x):
+            return plant.psi_f + (plant.L_d - plant.L_q) * (i0[0] * jnp.cos(x)
+                                                            - i0[1] * jnp.sin(x))
+
+        def branch(k):
+            sn = jnp.clip(num / (w_s * plant.psi_f), -1.0, 1.0)
+            x = jnp.arcsin(sn) if k == 0 else jnp.pi - jnp.arcsin(sn)
+            for _ in range(8):  # Newton on w psi_ext(x) sin x - num (exact if isotropic)
+                h = w_s * psi_ext(x) * jnp.sin(x) - num
+                dpsi = (plant.L_d - plant.L_q) * (-i0[0] * jnp.sin(x) - i0[1] * jnp.cos(x))
+                dh = w_s * (dpsi * jnp.sin(x) + psi_ext(x) * jnp.cos(x))
+                x = x - h / jnp.where(jnp.abs(dh) > 1e-12, dh, 1e-12)
+            e_q = w * psi_ext(x) * jnp.cos(x) - dR * i0[1] - dL * w * i0[0]
+            ok = (s * e_q > 0) & (jnp.abs(w_s * psi_ext(x) * jnp.sin(x) - num)
+                                  <= 1e-9 * (jnp.abs(w_s) * plant.psi_f + jnp.abs(num)))
+            return wrap_angle(-x), ok
+
+        th = []
+        oks = []
+        for k in (0, 1):
+            t, ok = branch(k)
+            th.append(t)
+            oks.append(ok)
+        th = jnp.stack(th)
+        ok = jnp.stack(oks) & (w != 0)
+        ok = ok.at[1].set(ok[1] & (jnp.abs(wrap_angle(th[1] - th[0])) > 1e-9))
+
+        def full(t):
+            x = jnp.stack([jnp.zeros_like(t), jnp.zeros_like(t), t, jnp.zeros_like(t),
+                           jnp.zeros_like(t)])
+            return x.at[4].set(self.T_w * self.error_rhs(x, op, plant)[4])
+
+        xs = jnp.stack([full(t) for t in th])
+        scale = self.error_scale(op, plant)
+        rate = jnp.where(jnp.abs(w) > 0, jnp.abs(w), 1.0)
+        res = jnp.stack([jnp.max(jnp.abs(self.error_rhs(x, op, plant) / (scale * rate)))
+                         for x in xs])
+        A = jnp.stack([jax.jacfwd(lambda v: self.error_rhs(v, op, plant))(x) for x in xs])
+        c = charpoly(A * rate ** -1)
+        tol = float(jnp.finfo(dtype).eps) ** 0.6
+        ok = ok & (res < 1e3 * tol)
+        tangent = jnp.zeros_like(ok)  # the equilibria are simple roots of the sine
+        stable = ok & routh_hurwitz(c)
+        R = 6
+        pad = lambda a, v: jnp.concatenate(  # noqa: E731
+            [a, jnp.full((R - 2,) + a.shape[1:], v, a.dtype)])
+        order = jnp.argsort(jnp.where(ok, th, jnp.inf))
+        th, xs, ok, stable, res, A = (a[order] for a in (th, xs, ok, stable, res, A))
+        tangent = tangent[order]
+        nan = jnp.nan
+        n = jnp.sum(ok)
+        return Equilibria(
+            theta=pad(jnp.where(ok, th, nan), nan),
+            x=pad(jnp.where(ok[:, None], xs, nan), nan),
+            valid=pad(ok, False), stable=pad(stable, False), tangent=pad(tangent, False),
+            residual=pad(jnp.where(ok, res, nan), nan),
+            principal=jnp.argmin(jnp.where(ok, jnp.abs(th), jnp.inf)).astype(jnp.int32),
+            n=n.astype(jnp.int32),
+            status=jnp.where(w == 0, -1, jnp.where(n == 0, 2, 0)).astype(jnp.int32),
+            jacobian=pad(jnp.where(ok[:, None, None], A, nan), nan))
 
     def error_scale(self, op: OperatingPoint, plant: PMSMParams):
         del plant
