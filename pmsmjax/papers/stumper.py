@@ -168,3 +168,197 @@ def sensitivity(n: int = 9, n_closed: int = 3, drive: Drive | None = None,
             simulated_closed=np.degrees([closed_loop(a, b) for a, b in zip(dRc, dLc)]),
         )
     return Sensitivity(rpm=FIG1_RPM, i_dq=FIG1_I_DQ_PU, axes=axes)
+
+
+# ---------------------------------------------------------------------------------------
+# The tracking filter's lag during a ramp, against (39)
+# ---------------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class RampLag:
+    """Mean angle lag (deg, true minus estimate) during constant-acceleration ramps,
+    measured after 7.5 filter time constants, against stumper (39) (`n_p c / v1` with
+    the mechanical acceleration c, i.e. the electrical acceleration over v1).
+    `acc_rpm_s`: accelerations (rpm/s); `lag_deg`, `lag39_deg`, `lag_max_deg`."""
+
+    acc_rpm_s: np.ndarray
+    lag_deg: np.ndarray
+    lag39_deg: np.ndarray
+    lag_max_deg: np.ndarray
+
+
+def ramp_lag(acc_rpm_s=(7875.0, 15750.0, 31500.0), drive: Drive | None = None,
+             t_ramp: float = 0.08, **design) -> RampLag:
+    """Speed ramps from 300 rpm at each acceleration (rpm/s) with the currents held at
+    (0.05, 0.5) p.u. by an encoder-based FOC (speed imposed), replayed through the
+    estimator (`design`: its design parameters, default stumper's)."""
+    drive = preset("stumper_mt5") if drive is None else drive
+    obs = ParallelModelObserver.from_drive(drive, **design)
+    Ib = float(drive.base.I_b)
+    i_dq = (0.05 * Ib, 0.5 * Ib)
+    t0, t1 = 0.01, 0.01 + t_ramp
+    out = []
+    for a in acc_rpm_s:
+        acc = a * RPM
+        sc = Scenario(t_end=t1, i_d_ref=Profile.constant(i_dq[0]),
+                      i_q_ref=Profile.constant(i_dq[1]),
+                      w_m_imposed=Profile.ramp(t0, t1, 300 * RPM, 300 * RPM + acc * t_ramp))
+        tr = simulate(drive, FOC.from_drive(drive), SensoredObserver(), sc, T_s=T_S,
+                      w_m0=300 * RPM, i_dq0=i_dq)
+        est = replay_estimates(obs, tr, theta0=float(tr.theta[0]), w0=float(tr.w_m[0]))
+        t = np.asarray(tr.t)
+        e = np.degrees(np.asarray(angle_error(tr.theta, est.theta_hat)))
+        settled = (t > t0 + 7.5 * 2.0 / float(obs.v2)) & (t < t1)
+        out.append((e[settled].mean(), math.degrees(acc / float(obs.v1)),
+                    np.abs(e).max()))
+    o = np.asarray(out)
+    return RampLag(np.asarray(acc_rpm_s, float), o[:, 0], o[:, 1], o[:, 2])
+
+
+# ---------------------------------------------------------------------------------------
+# Closed-loop encoderless FOC: Figs. 3-5
+# ---------------------------------------------------------------------------------------
+
+class FeedforwardFOCState(eqx.Module):
+    """`FOCState` plus the previous speed reference (rad/s) for the ramp slope."""
+
+    current: object
+    speed: object
+    w_ref_prev: jnp.ndarray
+
+
+class FeedforwardFOC(FOC):
+    """`FOC` with stumper's d-current feedforward (48), sign corrected
+    (`observers.d_current_feedforward`): $i_d^* = i_{d0} - \\tan(\\dot\\omega^*/v_1)
+    i_q^*$ with the slope of the speed reference (electrical, from two samples), then
+    $i_q^*$ limited to the current limit. `feedforward=False`: the plain FOC. `tau0`
+    (N m): the speed integrator's initial value (start in steady state under load).
+    Speed mode only. `printed_sign=True`: the printed (48), $+\tan$ (to show the
+    erratum)."""
+
+    v1: float = 16000.0
+    tau0: float = 0.0
+    feedforward: bool = eqx.field(static=True, default=True)
+    printed_sign: bool = eqx.field(static=True, default=False)
+
+    def init(self):
+        s = FOC.init(self)
+        return FeedforwardFOCState(current=s.current, speed=eqx.tree_at(
+            lambda x: x.x_I, s.speed, jnp.asarray(self.tau0, float)),
+            w_ref_prev=jnp.asarray(jnp.nan))
+
+    def step(self, state, i_dq, w_hat, w_ref, T_s, *, i_ref_override=None,
+             speed_mode=True):
+        del i_ref_override, speed_mode
+        s_state, tau_ref = self.speed.step(state.speed, w_ref, w_hat, T_s)
+        i_ref = self.refs(tau_ref, self.current.motor, self.k_tau)
+        if self.feedforward:
+            prev = state.w_ref_prev
+            c = jnp.where(jnp.isnan(prev), 0.0, (w_ref - jnp.where(jnp.isnan(prev), 0.0,
+                                                                    prev)) / T_s)
+            i_d = d_current_feedforward(i_ref[1], -c if self.printed_sign else c, self.v1,
+                                        i_ref[0])
+            i_max = self.refs.i_max
+            i_d = jnp.clip(i_d, -i_max, i_max)
+            q_max = jnp.sqrt(jnp.maximum(i_max ** 2 - i_d ** 2, 0.0))
+            i_ref = jnp.stack([i_d, jnp.clip(i_ref[1], -q_max, q_max)])
+        c_state, u = self.current.step(state.current, i_ref, i_dq, w_hat, T_s)
+        new = FeedforwardFOCState(current=c_state, speed=s_state,
+                                  w_ref_prev=jnp.asarray(w_ref, state.w_ref_prev.dtype))
+        return new, FOCOutput(u_dq=u, i_ref=i_ref, tau_ref=tau_ref)
+
+
+def _torque_limit(drive):
+    """Torque at the current limit with i_d0 (N m), what the speed loop can ask for."""
+    m = drive.three_phase_motor
+    i_d0 = 0.05 * float(drive.base.I_b)
+    i_q = math.sqrt(float(drive.i_max) ** 2 - i_d0 ** 2)
+    return float(drive.k_tau) * (float(m.psi_f) + (float(m.L_d) - float(m.L_q)) * i_d0) * i_q
+
+
+#: Fig. 3's load: 95 % of the current-limited torque (the printed 8.8 N m needs 8.3 A)
+LOAD_RATED = 0.95 * _torque_limit(preset("stumper_mt5"))
+LOAD_HALF = 4.4
+
+
+def _foc(drive, *, feedforward=False, tau0=0.0, v1=16000.0, printed_sign=False):
+    base = FOC.from_drive(drive, alpha_s=2 * math.pi * 10.0,
+                          i_d=0.05 * float(drive.base.I_b),
+                          tau_max=_torque_limit(drive))
+    return FeedforwardFOC(current=base.current, speed=base.speed, refs=base.refs,
+                          k_tau=base.k_tau, angle_advance=base.angle_advance,
+                          v1=v1, tau0=tau0, feedforward=feedforward,
+                          printed_sign=printed_sign)
+
+
+@dataclasses.dataclass
+class ClosedLoop:
+    """One encoderless closed-loop run and its numbers (published ones beside them in
+    `PUBLISHED`): `traj` (the `Trajectory`), `summary` (dict)."""
+
+    traj: object
+    summary: dict
+
+
+def steady_state(rpm: float, load: float = LOAD_RATED, *, t_end: float = 0.3,
+                 L_hat: float | None = 7e-3, drive: Drive | None = None) -> ClosedLoop:
+    """Fig. 3: encoderless speed control at `rpm` under `load` (N m), started in steady
+    state; the estimator with the paper's single inductance `L_hat` (H; None: the
+    model's L_q). Summary over the last 0.1 s: mean/peak angle error (deg), speed
+    ripple (rpm)."""
+    drive = preset("stumper_mt5") if drive is None else drive
+    w = rpm * RPM
+    obs = ParallelModelObserver.from_drive(drive, L_hat=L_hat)
+    m = drive.three_phase_motor
+    i_q0 = load / (float(drive.k_tau) * (float(m.psi_f) + (float(m.L_d) - float(m.L_q))
+                                        * 0.05 * float(drive.base.I_b)))
+    sc = Scenario(t_end=t_end, w_m_ref=Profile.constant(w), tau_L=Profile.constant(load))
+    tr = simulate(drive, _foc(drive, tau0=load), obs, sc, T_s=T_S, w_m0=w,
+                  i_dq0=(0.05 * float(drive.base.I_b), i_q0))
+    last = np.asarray(tr.t) > t_end - 0.1
+    e = np.degrees(np.asarray(tr.theta_err))[last]
+    wm = np.asarray(tr.w_m)[last] / RPM
+    return ClosedLoop(tr, {"rpm": rpm, "load_Nm": load, "theta_err_mean_deg": -e.mean(),
+                           "theta_err_peak_deg": np.abs(e).max(),
+                           "speed_ripple_rpm": np.ptp(wm), "ok": bool(tr.ok)})
+
+
+def acceleration(load: float, *, feedforward: bool, t_end: float = 0.4,
+                 L_hat: float | None = 7e-3, drive: Drive | None = None,
+                 printed_sign: bool = False) -> ClosedLoop:
+    """Figs. 4-5: 300 -> 3000 rpm under `load` (N m) with the speed reference ramped at
+    the current-limited acceleration (47) for that load, with or without the
+    d-current feedforward. Summary: time from the ramp's start to 3000 rpm within 2 %
+    of the step (s), mean acceleration between 10 % and 90 % (rpm/s), peak angle error
+    (deg, estimate minus true as the paper plots it), lowest d current (A).
+    `printed_sign`: the feedforward with the printed sign of (48)."""
+    drive = preset("stumper_mt5") if drive is None else drive
+    J = float(drive.mechanics.J)
+    acc = (_torque_limit(drive) - load) / J * float(drive.motor.n_p)  # electrical
+    w0, w1, t0 = 300 * RPM, 3000 * RPM, 0.02
+    t1 = t0 + (w1 - w0) / acc
+    obs = ParallelModelObserver.from_drive(drive, L_hat=L_hat)
+    m = drive.three_phase_motor
+    i_d0 = 0.05 * float(drive.base.I_b)
+    i_q0 = load / (float(drive.k_tau) * (float(m.psi_f) + (float(m.L_d) - float(m.L_q))
+                                        * i_d0))
+    sc = Scenario(t_end=t_end, w_m_ref=Profile.ramp(t0, t1, w0, w1),
+                  tau_L=Profile.constant(load))
+    tr = simulate(drive, _foc(drive, feedforward=feedforward, tau0=load,
+                              v1=float(obs.v1), printed_sign=printed_sign), obs, sc,
+                  T_s=T_S, w_m0=w0,
+                  i_dq0=(i_d0, i_q0))
+    t = np.asarray(tr.t)
+    wm = np.asarray(tr.w_m)
+    reach = np.nonzero(wm >= w1 - 0.02 * (w1 - w0))[0]
+    t_set = float(t[reach[0]] - t0) if reach.size else float("nan")
+    lo, hi = w0 + 0.1 * (w1 - w0), w0 + 0.9 * (w1 - w0)
+    ilo, ihi = np.argmax(wm >= lo), np.argmax(wm >= hi)
+    slope = 0.8 * (w1 - w0) / RPM / max(t[ihi] - t[ilo], 1e-9)
+    e = -np.degrees(np.asarray(tr.theta_err))
+    i_ref = np.asarray(tr.i_ref)
+    return ClosedLoop(tr, {
+        "load_Nm": load, "feedforward": feedforward, "ref_slope_rpm_s": acc / RPM,
+        "t_setpoint_s": t_set, "slope_rpm_s": slope,
+        "theta_err_max_deg": float(e[np.argmax(np.abs(e))]),
+        "i_d_ref_min_A": float(i_ref[:, 0].min()), "ok": bool(tr.ok)})
