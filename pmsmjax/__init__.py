@@ -110,6 +110,7 @@ from .observers import (  # noqa: E402
     Measurement as Measurement,
     SensoredObserver as SensoredObserver,
 )
+from .observers import ParallelModelObserver as ParallelModelObserver  # noqa: E402
 
 
 def astype(tree, dtype):

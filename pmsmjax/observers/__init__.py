@@ -33,6 +33,12 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
+from ._parallel_model import (
+    ParallelModelObserver as ParallelModelObserver,
+    ParallelModelState as ParallelModelState,
+    d_current_feedforward as d_current_feedforward,
+    parallel_model_offset as parallel_model_offset,
+)
 from ._registry import (
     make_observer as make_observer,
     observer_class as observer_class,
@@ -44,3 +50,4 @@ from ._registry import (
 register_observer("eso", ESOObserver)
 register_observer("leso", LESOObserver)
 register_observer("afo", AFOObserver)
+register_observer("parallel-model", ParallelModelObserver)

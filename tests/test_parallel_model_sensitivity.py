@@ -1,0 +1,98 @@
+"""stumper Fig. 1: the steady-state angle offsets of the parallel-model estimator under
+resistance and inductance errors by three routes -- closed form, the estimator run on
+simulated data, the equilibria of its error dynamics -- and the printed (31)-(32)
+against them; the command line's equilibria are the same numbers."""
+
+import json
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
+
+import pmsmjax as pj
+from pmsmjax import analysis
+from pmsmjax.papers import stumper
+
+
+@pytest.fixture(scope="module")
+def sens():
+    return stumper.sensitivity(n=5, n_closed=2)
+
+
+@pytest.mark.parametrize("axis", ["R", "L"])
+def test_formula_simulation_and_equilibria_agree(sens, axis):
+    a = sens.axes[axis]
+    # open loop (current in rotor coordinates): closed form = replayed estimator
+    np.testing.assert_allclose(a["simulated_open"], a["formula_open"], atol=2e-3)
+    # closed loop (current held in the estimated frame): closed form = equilibrium
+    # of the error dynamics = the sensorless closed-loop simulation
+    np.testing.assert_allclose(a["equilibria"], a["formula_closed"], atol=1e-9)
+    assert np.all(a["n_stable"] == 1)
+    xc = np.interp(a["x_closed"], a["x"], a["formula_closed"])
+    np.testing.assert_allclose(a["simulated_closed"], xc, atol=5e-3)
+    # the two closed forms differ (the paper's closed-loop crosses are off its line)
+    assert np.max(np.abs(a["formula_closed"] - a["formula_open"])) > 0.07
+    # the printed (32) / (31) disagree with the estimator they describe
+    assert np.max(np.abs(a["printed"] - a["simulated_open"])) > 1.0
+
+
+def test_fig1_magnitudes(sens):
+    """Fig. 1's ranges at 300 rpm, (0.05, 0.5) p.u.: R_hat = 0 .. 4 R gives -0.6 .. +3.3
+    deg, L_hat = 0 .. 3 L gives +5.3 .. -10.8 deg (open loop)."""
+    R, L = sens.axes["R"], sens.axes["L"]
+    assert R["formula_open"][0] == pytest.approx(-0.622, abs=1e-3)
+    assert R["formula_open"][-1] == pytest.approx(3.336, abs=1e-3)
+    assert L["formula_open"][0] == pytest.approx(5.289, abs=1e-3)
+    assert L["formula_open"][-1] == pytest.approx(-10.781, abs=1e-3)
+
+
+def test_plot(sens, tmp_path):
+    from pmsmjax.plotting_stumper import plot_sensitivity
+
+    fig = plot_sensitivity(sens)
+    assert isinstance(fig, Figure) and len(fig.axes) == 2
+    np.testing.assert_allclose(fig.axes[0].get_lines()[1].get_ydata(),
+                               sens.axes["R"]["simulated_open"])
+    fig.savefig(tmp_path / "fig1.png")
+
+
+@pytest.mark.slow  # the generic route compiles for minutes; the default tests compare
+# the closed-form route with the formulas and with simulation
+def test_fast_route_agrees_with_generic_route_at_one_point():
+    """The closed-form route against the generic root search, with a resistance and an
+    inductance error on the salient machine at negative speed (the generic route is
+    slow to compile: one point)."""
+    drive = pj.preset("stumper_mt5")
+    m = drive.three_phase_motor
+    obs = pj.ParallelModelObserver.from_drive(drive).with_motor(
+        pj.PMSMParams(R_s=1.5, L_d=4.0e-3, L_q=9.0e-3, psi_f=0.25, n_p=3.0))
+    w, i = -0.2 * drive.w_rated, jnp.array([0.3, -3.0])
+    fast = analysis.equilibria(obs, m, w, i)
+    gen = analysis.equilibria(obs, m, w, i, method="generic")
+    assert int(fast.status) == int(gen.status) == 0 and int(fast.n) == int(gen.n)
+    v = np.asarray(gen.valid)
+    np.testing.assert_allclose(np.asarray(fast.theta)[: int(fast.n)],
+                               np.asarray(gen.theta)[v], atol=1e-8)
+    np.testing.assert_allclose(np.asarray(fast.x)[0], np.asarray(gen.x)[v][0], rtol=1e-6,
+                               atol=1e-8)
+    assert list(np.asarray(fast.stable)[: int(fast.n)]) == list(np.asarray(gen.stable)[v])
+
+
+def test_cli_equilibria_give_the_closed_loop_offset(tmp_path):
+    from pmsmjax.cli.__main__ import main
+
+    m = stumper.fig1_drive().three_phase_motor
+    assert main(["equilibria", "--observer", "parallel-model", "--motor", "stumper_mt5",
+                 "--set", "L_d=7e-3", "--set", "L_q=7e-3", "--speed", "0.1", "--i-d",
+                 "0.05", "--i-q", "0.5", "--observer-set", "R_s=3.46", "--out",
+                 str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "equilibria.json").read_text())
+    want = -float(pj.observers.parallel_model_offset(
+        m, 2.6, 0.0, 300 * stumper.RPM, (0.315, 3.15), frame="estimated"))
+    assert res["n_equilibria"] == 1 and res["feasibility"]
+    eq = res["equilibria"][0]
+    assert eq["stable"] and math.degrees(want) == pytest.approx(-2.1102, abs=1e-4)
+    assert eq["theta_rad"] == pytest.approx(want, abs=1e-9)
+    assert max(e["re"] for e in eq["eigenvalues"]) < 0
