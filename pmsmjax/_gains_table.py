@@ -111,8 +111,11 @@ class TabulatedDesign(AbstractGainSchedule):
                 raise ValueError("`TabulatedDesign(w1=...)` (rad/s) must be >= 0.")
 
     def values(self, w0) -> dict:
-        """The design columns interpolated at electrical speed `w0` (rad/s)."""
-        return {n: jnp.interp(w0, self.w_m, getattr(self, n))
+        """The design columns interpolated at electrical speed `w0` (rad/s), in the dtype
+        of `w0` (a float32 observer stays float32)."""
+        w0 = jnp.asarray(w0)
+        dt = w0.dtype if jnp.issubdtype(w0.dtype, jnp.floating) else jnp.result_type(float)
+        return {n: jnp.interp(w0.astype(dt), self.w_m.astype(dt), getattr(self, n).astype(dt))
                 for n in ("zeta1", "w1", "zeta2", "w2", "nu2", "nu3")}
 
     def __call__(self, motor: PMSMParams, w0, i_dq):
