@@ -44,6 +44,17 @@ from ._frames import (  # noqa: E402
     vsd_matrix as vsd_matrix,
     wrap_angle as wrap_angle,
 )
+from ._gains_table import (  # noqa: E402
+    GAINS_TABLE_FILES as GAINS_TABLE_FILES,
+    TabulatedDesign as TabulatedDesign,
+    apply_gains_table as apply_gains_table,
+    check_gains_table as check_gains_table,
+    gains_speed_grid as gains_speed_grid,
+    gains_table_constant as gains_table_constant,
+    gains_table_scheduled as gains_table_scheduled,
+    load_gains_table as load_gains_table,
+    write_gains_table as write_gains_table,
+)
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
 from ._io import (  # noqa: E402
     RecordedData as RecordedData,
@@ -58,17 +69,6 @@ from ._metrics import (  # noqa: E402
     trajectory_metrics as trajectory_metrics,
 )
 from ._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
-from ._gains_table import (  # noqa: E402
-    FILES as GAINS_TABLE_FILES,
-    TabulatedDesign as TabulatedDesign,
-    apply_gains_table as apply_gains_table,
-    check_gains_table as check_gains_table,
-    constant_table as gains_table_constant,
-    load_gains_table as load_gains_table,
-    scheduled_table as gains_table_scheduled,
-    speed_grid as gains_speed_grid,
-    write_gains_table as write_gains_table,
-)
 from ._motorfile import (  # noqa: E402
     MOTOR_FILE_SCHEMA as MOTOR_FILE_SCHEMA,
     MotorFileError as MotorFileError,

@@ -57,7 +57,7 @@ from .observers import (
 FORMAT = "pmsmjax-gains"
 VERSION = 1
 #: File names of a gains table in a tuner output folder.
-FILES = {"json": "gains.json", "csv": "gains.csv", "c": "gains.h"}
+GAINS_TABLE_FILES = {"json": "gains.json", "csv": "gains.csv", "c": "gains.h"}
 
 INTERPOLATION = (
     "linear in the electrical speed estimate w_hat (rad/s) between neighbouring rows, "
@@ -111,8 +111,11 @@ class TabulatedDesign(AbstractGainSchedule):
                 raise ValueError("`TabulatedDesign(w1=...)` (rad/s) must be >= 0.")
 
     def values(self, w0) -> dict:
-        """The design columns interpolated at electrical speed `w0` (rad/s)."""
-        return {n: jnp.interp(w0, self.w_m, getattr(self, n))
+        """The design columns interpolated at electrical speed `w0` (rad/s), in the dtype
+        of `w0` (a float32 observer stays float32)."""
+        w0 = jnp.asarray(w0)
+        dt = w0.dtype if jnp.issubdtype(w0.dtype, jnp.floating) else jnp.result_type(float)
+        return {n: jnp.interp(w0.astype(dt), self.w_m.astype(dt), getattr(self, n).astype(dt))
                 for n in ("zeta1", "w1", "zeta2", "w2", "nu2", "nu3")}
 
     def __call__(self, motor: PMSMParams, w0, i_dq):
@@ -144,7 +147,7 @@ def gain_columns(schedule: AbstractGainSchedule, motor: PMSMParams, w_m) -> dict
     return {k: a[:, j] for j, k in enumerate(GAIN_COLUMNS)}
 
 
-def scheduled_table(observer: str, schedule: TabulatedDesign, motor: PMSMParams, *,
+def gains_table_scheduled(observer: str, schedule: TabulatedDesign, motor: PMSMParams, *,
                     drive: str = "", notes=()) -> dict:
     """The gains table (a JSON-ready dict) of a speed-scheduled design given as a
     `TabulatedDesign`, with the gain columns for the machine model `motor`."""
@@ -163,7 +166,7 @@ def scheduled_table(observer: str, schedule: TabulatedDesign, motor: PMSMParams,
     }
 
 
-def constant_table(observer: str, values: dict, units: dict, *, drive: str = "",
+def gains_table_constant(observer: str, values: dict, units: dict, *, drive: str = "",
                    notes=()) -> dict:
     """The gains table of a constant design: `values` `{name: value}` (SI, `units`)."""
     names = list(values)
@@ -210,12 +213,12 @@ def load_gains_table(path) -> dict:
     `tuned_schedule.eqx`) that holds one. Returns the validated dict."""
     p = pathlib.Path(path)
     if p.is_dir():
-        p = p / FILES["json"]
+        p = p / GAINS_TABLE_FILES["json"]
     elif p.suffix != ".json":
-        p = p.parent / FILES["json"]
+        p = p.parent / GAINS_TABLE_FILES["json"]
     if not p.is_file():
-        raise ValueError(f"{path}: no gains table there (expected {FILES['json']}, written "
-                         f"by `python -m tuning`)")
+        raise ValueError(f"{path}: no gains table there (expected "
+                         f"{GAINS_TABLE_FILES['json']}, written by `python -m tuning`)")
     try:
         table = json.loads(p.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
@@ -296,17 +299,17 @@ def write_gains_table(table: dict, folder) -> dict:
     folder = pathlib.Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     check_gains_table(table)
-    paths = {k: folder / v for k, v in FILES.items()}
+    paths = {k: folder / v for k, v in GAINS_TABLE_FILES.items()}
     paths["json"].write_text(json.dumps(table, indent=1, allow_nan=False) + "\n")
     paths["csv"].write_text(gains_csv(table))
     paths["c"].write_text(gains_c_header(table))
     return {k: os.fspath(v) for k, v in paths.items()}
 
 
-def speed_grid(w_rated: float, s_max: float, n_half: int) -> np.ndarray:
+def gains_speed_grid(w_rated: float, s_max: float, n_half: int) -> np.ndarray:
     """Signed electrical speeds `s w_rated` for `s` in `linspace(-s_max, s_max,
     2 n_half + 1)` (rad/s): the rows of a speed-scheduled table."""
     if not (math.isfinite(s_max) and s_max > 0 and n_half >= 1):
-        raise ValueError(f"`speed_grid`: s_max must be > 0 (p.u.) and n_half >= 1; got "
+        raise ValueError(f"`gains_speed_grid`: s_max must be > 0 (p.u.) and n_half >= 1; got "
                          f"{s_max!r}, {n_half!r}.")
     return np.linspace(-s_max, s_max, 2 * n_half + 1) * float(w_rated)

@@ -50,10 +50,15 @@ import dataclasses
 import json
 import math
 import os
-import tomllib
 
 import equinox as eqx
 import numpy as np
+
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10: the same parser as a package
+    import tomli as tomllib
 
 from ._params import (
     BaseValues,

@@ -7,8 +7,8 @@ notebook already, and `make docs` builds the site with them executed.
 """
 
 import os
-import re
 import pathlib
+import re
 import subprocess
 import sys
 

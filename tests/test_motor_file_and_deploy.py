@@ -198,6 +198,11 @@ def test_gains_table_gives_the_tuned_gains(tuned):
     np.testing.assert_allclose([cols["G1_11"][j], cols["G1_21"][j], cols["g3_2"][j]],
                                [g.G1[0, 0], g.G1[1, 0], g.g3[1]], rtol=1e-12)
     assert step / float(drive.w_rated) == pytest.approx(0.025)
+    # float32 works and stays float32
+    m32 = pj.astype(m, jnp.float32)
+    g32 = b.design(m32, jnp.float32(w[j]), jnp.zeros(2, jnp.float32))
+    assert g32.G1.dtype == g32.g3.dtype == jnp.float32
+    np.testing.assert_allclose(g32.G1, g.G1, rtol=1e-5, atol=1e-3)
 
 
 def test_gains_table_round_trip_estimates(tuned, tmp_path):

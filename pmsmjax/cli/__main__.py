@@ -31,7 +31,6 @@ COMMANDS: dict[str, Command] = {
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
 
 
-
 class _Parser(argparse.ArgumentParser):
     def error(self, message):
         raise CLIError(f"{self.prog}: error: {message} (see `{self.prog} --help`)")

@@ -36,10 +36,11 @@ def _summary(drive: pj.Drive) -> list[str]:
         f"  J {float(drive.mechanics.J):.4g} kg m^2, B {float(drive.mechanics.B):.4g} N m s/rad,"
         f" u_dc {float(drive.inverter.u_dc):.4g} V (voltage limit "
         f"{float(drive.inverter.u_lim):.4g} V peak)",
-        f"  rated: {float(drive.w_rated):.4g} rad/s electrical = {w_M * 60 / (2 * math.pi):.4g}"
-        f" rpm, {float(drive.tau_rated):.4g} N m, current limit {float(drive.i_max):.4g} A peak",
-        f"  back-EMF at rated speed {e_rated:.4g} V peak ({e_rated / float(drive.inverter.u_lim):.3g}"
-        f" of the voltage limit)",
+        f"  rated: {float(drive.w_rated):.4g} rad/s electrical = "
+        f"{w_M * 60 / (2 * math.pi):.4g} rpm, {float(drive.tau_rated):.4g} N m, current "
+        f"limit {float(drive.i_max):.4g} A peak",
+        f"  back-EMF at rated speed {e_rated:.4g} V peak "
+        f"({e_rated / float(drive.inverter.u_lim):.3g} of the voltage limit)",
         f"  base: U_b {float(drive.base.U_b):.4g} V, I_b {float(drive.base.I_b):.4g} A, w_b "
         f"{float(drive.base.w_b):.4g} rad/s, tau_b {float(drive.base.tau_b):.4g} N m",
     ]
