@@ -33,6 +33,10 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
+from ._rotor_flux import (
+    RotorFluxObserver as RotorFluxObserver,
+    RotorFluxState as RotorFluxState,
+)
 from ._registry import (
     make_observer as make_observer,
     observer_class as observer_class,
@@ -44,3 +48,4 @@ from ._registry import (
 register_observer("eso", ESOObserver)
 register_observer("leso", LESOObserver)
 register_observer("afo", AFOObserver)
+register_observer("rotor-flux", RotorFluxObserver)
