@@ -216,3 +216,47 @@ def test_bad_arguments_are_named():
         RotorFluxObserver.from_pu(DRIVE, c_beta=1.0)
     with pytest.raises(ValueError, match="gamma"):
         RotorFluxObserver.from_drive(DRIVE, gamma=-1.0)
+
+
+def test_contract_jacobian_equals_finite_differences():
+    """The averaged and the instantaneous linearisation (jacfwd of `error_rhs`) against
+    central differences, at a loaded operating point and off the origin."""
+    from pmsmjax.observers import OperatingPoint
+
+    obs = make_observer("rotor-flux", DRIVE)
+    w, i = 0.4 * W_R, jnp.array([-0.2, 0.6]) * I_B
+    x = jnp.array([0.05, -0.03, 0.1, 2.0])
+    D = obs.error_scale(OperatingPoint(w, i), M)
+    for theta in (None, 1.1):
+        op = OperatingPoint(w, i, theta)
+        A = np.asarray(analysis.linearization(obs, M, w, i, x=x, theta=theta))
+        f = lambda v: np.asarray(obs.error_rhs(jnp.asarray(v), op, M))  # noqa: E731
+        h = 1e-6 * np.asarray(D)
+        fd = np.stack([(f(x + h[j] * np.eye(4)[j]) - f(x - h[j] * np.eye(4)[j])) / (2 * h[j])
+                       for j in range(4)], 1)
+        np.testing.assert_allclose(A * np.asarray(D)[None, :], fd * np.asarray(D)[None, :],
+                                   rtol=1e-6, atol=1e-6 * np.max(np.abs(A * np.asarray(D))))
+
+
+def test_printed_matrix_35_and_the_exact_spectra_differ_as_documented():
+    from pmsmjax.papers import morawiec2023 as mp
+
+    # (35): the angle row decouples, so -c_theta is always an eigenvalue
+    A = np.asarray(mp.matrix35(0.3, 0.5, 3.0, 0.05, 0.5, 0.7, 1.0))
+    assert np.min(np.abs(np.linalg.eigvals(A) + 0.7)) < 1e-12
+    # Fig. 3: with c_theta = 0 (35) has a zero eigenvalue, with 0.1 it is stable; the
+    # observer's own linearisation at standstill keeps a zero eigenvalue either way
+    i = jnp.asarray(mp.working_point(1.0)) * I_B
+    for c_theta in (0.0, 0.1):
+        ev = np.linalg.eigvals(np.asarray(mp.matrix35(0.0, 1.0, 3.0, 0.05, 0.5, c_theta,
+                                                      2.0)))
+        assert (np.min(np.abs(ev)) < 1e-12) == (c_theta == 0.0)
+        assert np.max(ev.real) < 1e-12
+        obs = RotorFluxObserver.from_pu(DRIVE, c_lambda=0.05, k_c=0.5, c_theta=c_theta)
+        ex = np.linalg.eigvals(np.asarray(analysis.linearization(obs, M, 0.0, i)))
+        assert np.min(np.abs(ex)) < 1e-9
+    # Fig. 4(b): (35) goes unstable for k_c >~ 1 at 1 p.u.; the implemented observer
+    # (derived signs) is stable along the whole sweep (Floquet)
+    s4 = mp.spectrum_sweep("fig4b", n_floquet=16)
+    assert np.max(s4.printed.real[s4.values >= 1.2]) > 0
+    assert np.max(s4.floquet.real[s4.values <= 1.6]) < 0

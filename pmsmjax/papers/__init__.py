@@ -6,4 +6,4 @@ each figure: `zhang2022` (M. Zhang, B. Xia, J. Zhang, IEEE Trans. Energy Convers
 2022). Modules for `stumper`, `morawiec2023` and `li` will follow.
 """
 
-from . import zhang2022 as zhang2022
+from . import morawiec2023 as morawiec2023, zhang2022 as zhang2022
