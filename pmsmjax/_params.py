@@ -366,14 +366,43 @@ def _stumper_mt5() -> Drive:
     )
 
 
-def _morawiec_ipm3k5() -> Drive:
+#: The slot-harmonic amplitude the morawiec2023 experiments use when the slot harmonic is
+#: switched on (back-EMF of each of the orders -17 and +19 relative to the fundamental).
+#: The paper gives no number; its Fig. 8 shows a clearly visible but small slot ripple on
+#: the measured EMF, read here as a few per cent: 3 % each (an assumption).
+MORAWIEC_SLOT_HARMONIC = 0.03
+
+
+def _morawiec_ipm3k5(slot_harmonic: float = 0.0, trapezoid: float = 0.0) -> Drive:
+    """morawiec2023 Table I. `slot_harmonic`: back-EMF amplitude (-, relative to the
+    fundamental) of each of the two slot harmonics of a 36-slot, 2-pole-pair machine,
+    orders -17 and +19 (18 slots per pole pair: the phase EMF carries 18k -+ 1, which in
+    rotor coordinates is the 18th-order ripple the paper calls dominant); `trapezoid`:
+    amplitude of the -5/+7 pair of a flat-topped (trapezoidal) EMF. Both 0 by default (a
+    sinusoidal machine, as the paper's observer model)."""
     n_p, n_rpm = 2, 1500.0
     U_b, I_b, w_b = 285.0, 12.97, 2 * math.pi * 50.0
     base = BaseValues(U_b=U_b, I_b=I_b, w_b=w_b, n_p=float(n_p))
     Z_b, L_b, psi_b = U_b / I_b, U_b / I_b / w_b, U_b / w_b
+    check_positive("preset('morawiec_ipm3k5')", "slot_harmonic", slot_harmonic, "-",
+                   allow_zero=True)
+    check_positive("preset('morawiec_ipm3k5')", "trapezoid", trapezoid, "-",
+                   allow_zero=True)
+    orders, amps = [], []
+    if float(trapezoid) > 0:
+        # phase pi at theta = 0 for both: the 5th and 7th flatten the top of the EMF
+        orders += [-5, 7]
+        amps += [float(trapezoid)] * 2
+    if float(slot_harmonic) > 0:
+        orders += [-17, 19]
+        amps += [float(slot_harmonic)] * 2
+    harmonics = None
+    if orders:
+        phase = [math.pi if abs(h) in (5, 7) else 0.0 for h in orders]
+        harmonics = EMFHarmonics(order=orders, amplitude=amps, phase=phase)
     return Drive(
         motor=PMSMParams(R_s=0.035 * Z_b, L_d=0.28 * L_b, L_q=0.82 * L_b,
-                         psi_f=0.89 * psi_b, n_p=float(n_p)),
+                         psi_f=0.89 * psi_b, n_p=float(n_p), harmonics=harmonics),
         mechanics=Mechanics(J=0.012, B=0.0),
         inverter=Inverter(u_dc=560.0),
         base=base,
@@ -384,8 +413,9 @@ def _morawiec_ipm3k5() -> Drive:
         notes=(
             "morawiec2023 Table I in p.u. (R_s 0.035, L_d 0.28, L_q 0.82, psi_f 0.89) with "
             "U_b = 285 V, I_b = 12.97 A as the table gives, w_b = 2 pi 50 rad/s "
-            "(1500 rpm, 2 pole pairs). 36 slots: add the 18th-order slot harmonic with "
-            "`EMFHarmonics` (amplitude not given). Assumed: J = 0.012 kg m^2, "
+            "(1500 rpm, 2 pole pairs). 36 slots: the 18th-order slot harmonic (orders "
+            "-17/+19) with preset('morawiec_ipm3k5', slot_harmonic=a) (amplitude not "
+            "given; off by default). Assumed: J = 0.012 kg m^2, "
             "u_dc = 560 V, current limit sqrt(2) x 7.5 A."
         ),
     )
@@ -426,8 +456,12 @@ _PRESETS = {
 PRESET_NAMES = tuple(_PRESETS)
 
 
-def preset(name: str) -> Drive:
+def preset(name: str, **options) -> Drive:
     """One of the motor presets (`PRESET_NAMES`) as a `Drive`.
+
+    `options`: keyword options of the preset, where it has any:
+    `"morawiec_ipm3k5"` takes `slot_harmonic` and `trapezoid` (back-EMF harmonic
+    amplitudes relative to the fundamental, default 0).
 
     - `"zhang750"`: zhang2022 Table I, 750 W PMSM.
     - `"stumper_mt5"`: stumper Table I, MT5 IPMSM.
@@ -437,11 +471,21 @@ def preset(name: str) -> Drive:
     `Drive.notes` states every assumption made.
     """
     try:
-        return _PRESETS[name]()
+        factory = _PRESETS[name]
     except KeyError:
         raise ValueError(
             f"Unknown motor preset {name!r}; choose one of {', '.join(PRESET_NAMES)}."
         ) from None
+    if options:
+        import inspect
+
+        allowed = [k for k in inspect.signature(factory).parameters]
+        bad = sorted(set(options) - set(allowed))
+        if bad:
+            raise ValueError(
+                f"`preset({name!r}, ...)`: unknown option(s) {', '.join(bad)}; "
+                f"{'it has ' + ', '.join(allowed) if allowed else 'it has no options'}.")
+    return factory(**options)
 
 
 def replace_params(drive: Drive, **values) -> Drive:

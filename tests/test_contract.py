@@ -94,7 +94,8 @@ def test_discrete_step_jacobian_is_identity_plus_Ts_A(name):
     plant = SALIENT.three_phase_motor
     w, i = _op(SALIENT)
     n = obs.coordinates.n
-    A = analysis.linearization(obs, plant, w, i)
+    # at the rotor angle of the step (observers whose error dynamics depend on it)
+    A = analysis.linearization(obs, plant, w, i, theta=0.3)
     D = obs.error_scale(OperatingPoint(w, i), plant)
     scaled = lambda M: M / D[:, None] * D[None, :]  # noqa: E731
     rem = []
@@ -128,7 +129,9 @@ def test_closed_loop_run_follows_the_continuous_error_dynamics(name):
     xs = analysis.discrete_error_run(obs, plant, w, i, T_s, x0, N)
     op = OperatingPoint(w, i)
     ts = jnp.arange(N + 1) * T_s
-    sol = dfx.diffeqsolve(dfx.ODETerm(lambda t, x, args: obs.error_rhs(x, op, plant)),
+    # the rotor turns from angle 0 (read only by angle-dependent error dynamics)
+    rhs = lambda t, x, args: obs.error_rhs(x, OperatingPoint(w, i, w * t), plant)  # noqa: E731
+    sol = dfx.diffeqsolve(dfx.ODETerm(rhs),
                           dfx.Tsit5(), 0.0, float(ts[-1]), T_s, x0,
                           saveat=dfx.SaveAt(ts=ts),
                           stepsize_controller=dfx.PIDController(rtol=1e-9, atol=1e-12))

@@ -19,6 +19,7 @@ from ._feasibility import (
     design_map as design_map,
     feasibility_map as feasibility_map,
 )
+from ._floquet import Floquet as Floquet, floquet as floquet
 from ._generic import (
     STATUS_DEGENERATE as STATUS_DEGENERATE,
     STATUS_NONE as STATUS_NONE,

@@ -39,6 +39,10 @@ from ._parallel_model import (
     d_current_feedforward as d_current_feedforward,
     parallel_model_offset as parallel_model_offset,
 )
+from ._rotor_flux import (
+    RotorFluxObserver as RotorFluxObserver,
+    RotorFluxState as RotorFluxState,
+)
 from ._registry import (
     make_observer as make_observer,
     observer_class as observer_class,
@@ -51,3 +55,4 @@ register_observer("eso", ESOObserver)
 register_observer("leso", LESOObserver)
 register_observer("afo", AFOObserver)
 register_observer("parallel-model", ParallelModelObserver)
+register_observer("rotor-flux", RotorFluxObserver)

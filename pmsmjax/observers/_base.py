@@ -80,14 +80,23 @@ class OperatingPoint(eqx.Module):
     - `w_m`: electrical rotor speed (rad/s), constant.
     - `i_dq`: the current held by the current controller in the observer's estimated
       frame (A, `(2,)`): in rotor coordinates the current is $e^{-\\tilde\\theta J} i_{dq}$.
+    - `theta`: the true electrical rotor angle at this instant (rad), or None (default).
+      Only observers whose error dynamics depend on the rotor angle itself (not just on
+      the errors, e.g. gains applied per stationary-frame component) read it: with
+      `theta` they return the instantaneous error dynamics, without it their average
+      over one electrical period (what the generic equilibria and stability analysis
+      then use); `analysis.floquet` treats the periodic dynamics exactly. Every other
+      observer ignores it.
     """
 
     w_m: jnp.ndarray
     i_dq: jnp.ndarray
+    theta: jnp.ndarray | None = None
 
-    def __init__(self, w_m, i_dq=(0.0, 0.0)):
+    def __init__(self, w_m, i_dq=(0.0, 0.0), theta=None):
         self.w_m = jnp.asarray(w_m)
         self.i_dq = jnp.asarray(i_dq, dtype=jnp.result_type(self.w_m, float))
+        self.theta = None if theta is None else jnp.asarray(theta, self.i_dq.dtype)
 
 
 class PlantPoint(eqx.Module):

@@ -6,5 +6,8 @@ each figure: `zhang2022` (M. Zhang, B. Xia, J. Zhang, IEEE Trans. Energy Convers
 2022). Modules for `stumper`, `morawiec2023` and `li` will follow.
 """
 
-from . import zhang2022 as zhang2022
-from . import stumper as stumper
+from . import (
+    morawiec2023 as morawiec2023,
+    stumper as stumper,
+    zhang2022 as zhang2022,
+)

@@ -1,0 +1,162 @@
+r"""The analysis and experiments of morawiec2023 (Figs. 3-5, 7, 10-14, 16).
+
+M. Morawiec, A. Lewicki, I. C. Odeh, "Rotor-Flux Vector Based Observer of Interior
+Permanent Synchronous Machine", IEEE Trans. Ind. Electron. 70(12), 2023,
+doi:10.1109/TIE.2023.3250851.
+
+Machine: `preset("morawiec_ipm3k5")` (Table I in p.u., bases U_b 285 V, I_b 12.97 A,
+w_b = 2 pi 50 rad/s; inertia assumed). Per unit as the paper: speed as a fraction of
+`w_b`, current of `I_b`, torque of `base.tau_b` (= 1.5 n_p psi_b I_b, so that torque =
+psi x i in p.u.; Table I's T_eN = 0.81 p.u. is then 28.6 N m), time tau = w_b t.
+Observer: `RotorFluxObserver` with the paper's gains (c_alpha 3.0, c_lambda 0.001,
+k_c 0.1, c_theta 0.15 p.u.; gamma 2.0 p.u. assumed, not given) and the signs derived in
+`pmsmjax.observers._rotor_flux` (the printed ones are unstable).
+
+**Spectra (Figs. 3-5).** `spectrum_sweep(name)` evaluates, along each sweep of the
+figures, (i) the matrix (35) as printed (`matrix35`, p.u.), (ii) the exact Jacobian of
+the implemented observer's error dynamics (the contract's `error_rhs`), averaged over one
+electrical period, and (iii) its Floquet exponents (`analysis.floquet`), both converted
+to p.u. time. Where they differ, and why: (35) is written in the rotor frame with
+states $[\tilde i_d, \tilde i_q, \tilde\omega, \tilde\theta]$ and has no coupling from
+the angle error into the currents (its fourth column is $[0, 0, 0, -c_\theta]$), no
+dependence of the speed row on the flux (only on the currents $i^*$), and the
+$(1 + c_\alpha)$ damping on both axes; the observer's own linearisation has the angle
+error entering the current error through the back-EMF (the $\omega^2$ coupling that
+makes the angle observable), the speed row proportional to $\hat\lambda$, and the
+position correction acting through the saliency. So (35) has the eigenvalue
+$-c_\theta$ for any gains (with $c_\theta = 0$ a zero eigenvalue: Fig. 3(a)'s "open
+integrator"), and at $\omega = 0$ it is block triangular; the exact Jacobian at
+standstill has a zero eigenvalue whatever $c_\theta$ (no back-EMF: the angle is not
+observable, and $\tilde\theta_\lambda$, built from the current error, carries no angle
+information there), which no gain moves: Fig. 3(b)'s conclusion that $c_\theta > 0$
+stabilises standstill holds for (35) only.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import analysis
+from .._params import Drive, preset
+from ..observers import RotorFluxObserver
+
+
+#: The sweeps of Figs. 3-5: fixed p.u. settings and the swept parameter with its values.
+#: gamma is not given for Figs. 3, 4 and 5(a): the default 2.0 p.u. is used there.
+SWEEPS = {
+    "fig3a": ({"c_alpha": 3.0, "c_lambda": 0.05, "k_c": 0.5, "T_L": 1.0, "w": 0.0,
+               "c_theta": 0.0}, "c_theta", (0.0,)),
+    "fig3b": ({"c_alpha": 3.0, "c_lambda": 0.05, "k_c": 0.5, "T_L": 1.0, "w": 0.0,
+               "c_theta": 0.1}, "c_theta", (0.1,)),
+    "fig4a": ({"c_alpha": 3.0, "c_lambda": 0.05, "k_c": 0.5, "T_L": 1.0, "c_theta": 1.0},
+              "w", tuple(np.linspace(-1.0, 1.0, 21))),
+    "fig4b": ({"c_alpha": 3.0, "c_lambda": 0.05, "T_L": 1.0, "c_theta": 1.0, "w": 1.0},
+              "k_c", tuple(np.linspace(0.0, 2.0, 11))),
+    "fig5a": ({"c_lambda": 0.05, "k_c": 0.5, "T_L": 1.0, "w": 1.0, "c_theta": 1.0},
+              "c_alpha", tuple(np.linspace(0.0, 10.0, 11))),
+    "fig5b": ({"c_lambda": 0.05, "k_c": 0.5, "T_L": 1.0, "w": 1.0, "c_theta": 1.0,
+               "c_alpha": 3.0}, "gamma", tuple(np.linspace(0.01, 2.0, 11))),
+}
+#: d-current of the working point of (35) ("It is assumed i*_sd = -0.05 p.u.").
+I_SD = -0.05
+GAMMA_DEFAULT = 2.0
+
+
+def _pu(drive: Drive):
+    m, b = drive.three_phase_motor, drive.base
+    return dict(R=m.R_s / b.Z_b, L_d=m.L_d / b.L_b, L_q=m.L_q / b.L_b,
+                psi_f=m.psi_f / b.psi_b)
+
+
+def working_point(T_L, drive: Drive | None = None, i_sd=I_SD):
+    """`(i_sd, i_sq)` in p.u. of the working point of (35): $i_{sq}^* = T_L/(\\psi_f +
+    (L_d - L_q) i_{sd}^*)$ with torque `T_L` in p.u."""
+    p = _pu(preset("morawiec_ipm3k5") if drive is None else drive)
+    return i_sd, T_L / (p["psi_f"] + (p["L_d"] - p["L_q"]) * i_sd)
+
+
+def matrix35(w, T_L, c_alpha, c_lambda, k_c, c_theta, gamma, drive: Drive | None = None,
+             i_sd=I_SD):
+    """morawiec2023 (35) as printed, p.u. (time tau = w_b t), states
+    $[\\tilde i_{sd}, \\tilde i_{sq}, \\tilde\\omega_r, \\tilde\\theta_r]$; `w` the speed
+    and `T_L` the load in p.u. Vectorises over any argument."""
+    p = _pu(preset("morawiec_ipm3k5") if drive is None else drive)
+    a1, a2 = p["R"] / p["L_d"], p["L_q"] / p["L_d"]
+    a3, a4 = p["L_d"] / p["L_q"], p["R"] / p["L_q"]
+    i_d, i_q = working_point(T_L, drive, i_sd)
+    w, c_alpha, c_lambda, k_c, c_theta, gamma = jnp.broadcast_arrays(
+        *map(lambda v: jnp.asarray(v, float), (w, c_alpha, c_lambda, k_c, c_theta, gamma)))
+    i_d = jnp.broadcast_to(jnp.asarray(i_d, float), w.shape)
+    i_q = jnp.broadcast_to(jnp.asarray(i_q, float), w.shape)
+    z, one = jnp.zeros_like(w), jnp.ones_like(w)
+    rows = [
+        [-a1 * (1 + c_alpha), a2 * w * (1 + c_lambda), a2 * i_q, z],
+        [-a3 * w * (1 + c_lambda), -a4 * (1 + c_alpha), -a3 * i_d, z],
+        [-gamma * a2 * (i_q - k_c * i_q), gamma * a3 * (i_d + k_c * i_q), z, z],
+        [z, z, one, -c_theta],
+    ]
+    return jnp.stack([jnp.stack(r, -1) for r in rows], -2)
+
+
+def _observer(drive, s):
+    return RotorFluxObserver.from_pu(drive, c_alpha=s["c_alpha"], c_lambda=s["c_lambda"],
+                                     k_c=s["k_c"], c_theta=s["c_theta"], gamma=s["gamma"])
+
+
+@dataclasses.dataclass(frozen=True)
+class Spectra:
+    """Eigenvalues along one sweep of Figs. 3-5 (all in p.u., 1/tau).
+
+    - `name`, `parameter`, `values`: the sweep.
+    - `printed`: eigenvalues of (35) as printed, `(N, 4)` complex.
+    - `averaged`: eigenvalues of the implemented observer's exact Jacobian averaged over
+      one electrical period, `(N, 4)`.
+    - `floquet`: its Floquet exponents, `(N, 4)` (at standstill: the frozen Jacobian at
+      rotor angle 0).
+    - `settings`: the fixed p.u. settings.
+    """
+
+    name: str
+    parameter: str
+    values: np.ndarray
+    printed: np.ndarray
+    averaged: np.ndarray
+    floquet: np.ndarray
+    settings: dict
+
+
+def spectrum_sweep(name: str, drive: Drive | None = None, *, n_floquet: int = 64
+                   ) -> Spectra:
+    """The printed (35) and the exact spectra along sweep `name` (`SWEEPS`)."""
+    if name not in SWEEPS:
+        raise ValueError(f"Unknown sweep {name!r}; choose one of {', '.join(SWEEPS)}.")
+    drive = preset("morawiec_ipm3k5") if drive is None else drive
+    fixed, par, values = SWEEPS[name]
+    base = {"gamma": GAMMA_DEFAULT, "k_c": 0.5, "c_alpha": 3.0, **fixed}
+    vals = np.asarray(values, float)
+    base.setdefault(par, float(vals[0]))
+    settings = [{**base, par: v} for v in vals]
+    stack = {k: jnp.asarray([s[k] for s in settings]) for k in base}
+    A35 = matrix35(stack["w"], stack["T_L"], stack["c_alpha"], stack["c_lambda"],
+                   stack["k_c"], stack["c_theta"], stack["gamma"], drive)
+    printed = np.linalg.eigvals(np.asarray(A35))
+    m = drive.three_phase_motor
+    w_b, I_b = drive.base.w_b, drive.base.I_b
+
+    @jax.jit
+    def exact(s):
+        obs = _observer(drive, s)
+        i_d, i_q = working_point(s["T_L"], drive)
+        i = jnp.stack([jnp.asarray(i_d, float), i_q]) * I_b
+        w = s["w"] * w_b
+        A = analysis.linearization(obs, m, w, i)
+        F = analysis.floquet(obs, m, w, i, n_steps=n_floquet)
+        return jnp.linalg.eigvals(A) / w_b, F.exponents / w_b
+
+    av, fl = jax.vmap(exact)(stack)
+    return Spectra(name=name, parameter=par, values=vals, printed=printed,
+                   averaged=np.asarray(av), floquet=np.asarray(fl), settings=base)
