@@ -245,15 +245,15 @@ def _make_scaled(observer, plant, op, angle_weight):
 def linearization(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
                   x=None):
     """Jacobian $\\partial f/\\partial x$ of `observer.error_rhs` at state `x` (default:
-    the origin, the designed equilibrium), operating point `w_m` (rad/s, electrical),
-    `i_dq` (A, estimated frame), true machine `plant`. SI units, time in s; `(n, n)`.
+    the designed equilibrium `observer.designed_error`, the origin for most), operating
+    point `w_m` (rad/s, electrical), `i_dq` (A, estimated frame), true machine `plant`. SI units, time in s; `(n, n)`.
     Pure: vmap it over operating points or designs."""
     check_observer("linearization", observer)
     check_plant("linearization", plant)
     dtype = jnp.result_type(w_m, float)
     op = _op(w_m, i_dq, dtype)
-    n = observer.coordinates.n
-    x = jnp.zeros(n, dtype) if x is None else jnp.asarray(x, dtype)
+    x = (jnp.asarray(observer.designed_error(op, plant), dtype) if x is None
+         else jnp.asarray(x, dtype))
     return jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x)
 
 

@@ -33,6 +33,14 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
+from ._leso import (
+    AbstractBackEMFLESO as AbstractBackEMFLESO,
+    CLESOObserver as CLESOObserver,
+    FALESOObserver as FALESOObserver,
+    GILESOObserver as GILESOObserver,
+    LESOState as LESOState,
+)
+from ._pll import QuadraturePLL as QuadraturePLL
 from ._registry import (
     make_observer as make_observer,
     observer_class as observer_class,
@@ -44,3 +52,6 @@ from ._registry import (
 register_observer("eso", ESOObserver)
 register_observer("leso", LESOObserver)
 register_observer("afo", AFOObserver)
+register_observer("c-leso", CLESOObserver)
+register_observer("gi-leso", GILESOObserver)
+register_observer("fa-leso", FALESOObserver)
