@@ -19,6 +19,7 @@ import sys
 import pmsmjax as pj
 
 from . import _cache, _certify, _equilibria, _feasibility, _plant, _replay, _simulate
+from . import _response
 from ._options import CLIError, Command, out_dir_transaction
 
 
@@ -26,6 +27,7 @@ from ._options import CLIError, Command, out_dir_transaction
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
     for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
+    + (_response,)
 }
 
 

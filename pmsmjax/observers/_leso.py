@@ -264,6 +264,9 @@ class AbstractBackEMFLESO(AbstractObserver):
                 f"`{type(self).__name__}.with_design`: unknown design parameter(s) "
                 f"{', '.join(bad)}; {type(self).__name__} has "
                 f"{', '.join(self.design_units)}.")
+        for k, v in values.items():  # every design parameter here is a positive rate
+            check_positive(f"{type(self).__name__}.with_design", k, v,
+                           self.design_units[k].split(",")[0])
         pll_values = {k: values.pop(k) for k in list(values) if k in PLL_UNITS}
         obs = self._with_own(**values) if values else self
         if pll_values:
