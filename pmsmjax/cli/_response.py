@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 
 import numpy as np
 
@@ -16,12 +17,15 @@ from ._options import (
     add_json_option,
     add_observer_options,
     add_operating_point_options,
+    add_output_options,
     current_from_args,
     drive_from_args,
     dumps_json,
     header,
     observer_from_args,
     positive_float,
+    prepare_out_dir,
+    write_json,
 )
 
 
@@ -49,7 +53,10 @@ def _arguments(p: argparse.ArgumentParser) -> None:
                         "sequence 7th (default: 1,-5,7)")
     p.add_argument("--T-s", dest="T_s", type=positive_float, default=1e-4, metavar="S",
                    help="sampling period of the discrete observer (s) (default: %(default)s)")
-    add_json_option(p.add_argument_group("output"))
+    g = add_output_options(p, None, plot=False,
+                           out_help="also write the JSON to DIR/response.json (created if "
+                                    "missing)")
+    add_json_option(g)
 
 
 def response_report(choice, drive, speed_pu: float, i_pu, orders, T_s: float) -> dict:
@@ -101,6 +108,8 @@ def response_command(args: argparse.Namespace) -> int:
     except ValueError as e:
         raise CLIError(f"{choice.describe()}: {e}") from None
     report = {**header("response", drive, args), **report}
+    if args.out:
+        write_json(os.path.join(prepare_out_dir(args.out), "response.json"), report)
     if args.json:
         print(dumps_json(report))
         return 0
