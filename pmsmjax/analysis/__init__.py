@@ -20,6 +20,15 @@ from ._feasibility import (
     feasibility_map as feasibility_map,
 )
 from ._floquet import Floquet as Floquet, floquet as floquet
+from ._frequency import (
+    bemf_response as bemf_response,
+    bode_data as bode_data,
+    discrete_bemf_system as discrete_bemf_system,
+    g_c_leso as g_c_leso,
+    g_fa_leso as g_fa_leso,
+    g_gi_leso as g_gi_leso,
+    routh_complex2 as routh_complex2,
+)
 from ._generic import (
     STATUS_DEGENERATE as STATUS_DEGENERATE,
     STATUS_NONE as STATUS_NONE,

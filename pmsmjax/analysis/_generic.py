@@ -245,10 +245,11 @@ def _make_scaled(observer, plant, op, angle_weight):
 def linearization(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
                   x=None, theta=None):
     """Jacobian $\\partial f/\\partial x$ of `observer.error_rhs` at state `x` (default:
-    the origin, the designed equilibrium), operating point `w_m` (rad/s, electrical),
-    `i_dq` (A, estimated frame), true machine `plant`. SI units, time in s; `(n, n)`.
-    `theta`: the true rotor angle (rad) for observers whose error dynamics depend on it
-    (`OperatingPoint.theta`; default None: their average over one period).
+    the designed equilibrium `observer.designed_error`, the origin for most), operating
+    point `w_m` (rad/s, electrical), `i_dq` (A, estimated frame), true machine `plant`.
+    SI units, time in s; `(n, n)`. `theta`: the true rotor angle (rad) for observers
+    whose error dynamics depend on it (`OperatingPoint.theta`; default None: their
+    average over one period).
     Pure: vmap it over operating points or designs."""
     check_observer("linearization", observer)
     check_plant("linearization", plant)
@@ -256,8 +257,8 @@ def linearization(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0,
     op = _op(w_m, i_dq, dtype)
     if theta is not None:
         op = OperatingPoint(op.w_m, op.i_dq, theta)
-    n = observer.coordinates.n
-    x = jnp.zeros(n, dtype) if x is None else jnp.asarray(x, dtype)
+    x = (jnp.asarray(observer.designed_error(op, plant), dtype) if x is None
+         else jnp.asarray(x, dtype))
     return jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x)
 
 

@@ -18,8 +18,17 @@ import sys
 
 import pmsmjax as pj
 
-from . import _cache, _certify, _equilibria, _feasibility, _plant, _replay, _simulate
-from . import _motor
+from . import (
+    _cache,
+    _certify,
+    _equilibria,
+    _feasibility,
+    _motor,
+    _plant,
+    _replay,
+    _response,
+    _simulate,
+)
 from ._options import CLIError, Command, out_dir_transaction
 
 
@@ -27,6 +36,7 @@ from ._options import CLIError, Command, out_dir_transaction
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
     for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
+    + (_response,)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
 

@@ -33,12 +33,20 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
+from ._leso import (
+    AbstractBackEMFLESO as AbstractBackEMFLESO,
+    CLESOObserver as CLESOObserver,
+    FALESOObserver as FALESOObserver,
+    GILESOObserver as GILESOObserver,
+    LESOState as LESOState,
+)
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
     d_current_feedforward as d_current_feedforward,
     parallel_model_offset as parallel_model_offset,
 )
+from ._pll import QuadraturePLL as QuadraturePLL
 from ._rotor_flux import (
     RotorFluxObserver as RotorFluxObserver,
     RotorFluxState as RotorFluxState,
@@ -56,3 +64,6 @@ register_observer("leso", LESOObserver)
 register_observer("afo", AFOObserver)
 register_observer("parallel-model", ParallelModelObserver)
 register_observer("rotor-flux", RotorFluxObserver)
+register_observer("c-leso", CLESOObserver)
+register_observer("gi-leso", GILESOObserver)
+register_observer("fa-leso", FALESOObserver)

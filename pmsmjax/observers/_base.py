@@ -215,6 +215,14 @@ class AbstractObserver(eqx.Module):
         """The observer state at t_k (as after a step) whose error coordinates against
         `truth` are `x`: the inverse of `error_state`."""
 
+    def designed_error(self, op: OperatingPoint, plant: PMSMParams):
+        """The designed equilibrium of `error_rhs` at `op` (in `coordinates`): the
+        origin (the default), or, for an observer with a deliberate steady-state error
+        (e.g. the phase lag of a low-pass back-EMF observer), that point. The contract
+        tests and `analysis.linearization`'s default start from it."""
+        del plant
+        return jnp.zeros(self.coordinates.n, jnp.result_type(op.w_m, float))
+
     def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint, n_grid=None):
         """The equilibria by a family-specific route (`analysis.Equilibria`), where the
         family has one that is preferable to the generic route, else None (the

@@ -1,0 +1,644 @@
+r"""Back-EMF linear extended-state observers of li-fa-leso: C-LESO, GI-LESO and FA-LESO.
+
+Reference: Y. Li, Y. Hu, X. Ma, L. Liu, "Sensorless Control of Dual Three-Phase IPMSM
+Based on Frequency Adaptive Linear Extended State Observer" (li-fa-leso).
+
+**Model.** The equivalent back-EMF model li-fa-leso (4)-(6) in the stationary frame (for a
+dual three-phase machine: its alpha-beta subspace),
+$L_q\,di_{ab}/dt = u_{ab} - R_s i_{ab} - e_{ab}$, $e_{ab} = \omega[\psi_f + (L_d - L_q)
+i_d][-\sin\theta, \cos\theta]^T$, with $x_1 = i_{ab}$, $x_2 = -e_{ab}/L_q$ (7)-(8). The
+LESO with gain functions $l_1(t)$, $l_2(t)$ (9) estimates $\hat e_{ab} = -\hat L_q\hat x_2$
+(10); its transfer function is li-fa-leso (14),
+$\hat e/e = L_2(s)/(s^2 + (\mu + L_1(s))s + L_2(s))$. Every observer here is that LESO
+with $\hat x_1$ written as
+
+$$\dot{\hat x}_1 = \frac{\dot\lambda}{\hat L_q} + \hat x_2 + D_1\varepsilon_1,\qquad
+\dot\lambda = u_{ab} - \hat R_s i_{ab},\qquad \varepsilon_1 = \hat x_1 - i_{ab},$$
+
+and the rest of its state $s$ linear in $\varepsilon_1$: $\dot s = A_s s + B_s\varepsilon_1$,
+$\hat x_2 = C_s s + D_x\varepsilon_1$ (the $-\mu\hat x_1$ of (9) is $-\mu i - \mu
+\varepsilon_1$; its $-\mu\varepsilon_1$ is in $D_1$). Every matrix is made of $2\times2$
+blocks $aI + bJ$ (complex coefficients $a + jb$ acting on the space vector), so the
+observers are rotation invariant and their transfer functions are complex functions of
+$s$: `transfer_function`.
+
+- C-LESO (15)-(17): $l_1 = 2\omega_0 - \mu$, $l_2 = \omega_0^2$: $s = \hat x_2$,
+  $\dot{\hat x}_2 = -\omega_0^2\varepsilon_1$, $D_1 = -2\omega_0$.
+- GI-LESO (29)-(30): $L_2(s) = \omega_0^2 + G(s)$, $G(s) = 2K_r\omega_c s/(s^2 +
+  2\omega_c s + \omega_r^2)$: $s = (\hat x_2, r, q)$ with $\dot r = q$, $\dot q = \varepsilon_1 -
+  \omega_r^2 r - 2\omega_c q$, $\dot{\hat x}_2 = -\omega_0^2\varepsilon_1 - 2K_r\omega_c q$;
+  $\omega_r$ is the estimated speed (`resonance="estimated"`, the default) or fixed
+  (`"fixed"`, Table II's $\hat\omega_e = 100\pi$ on `li_dtp`).
+- FA-LESO (25)-(28): $L_1 = -j\hat\omega - \mu$, $L_2 = k_1 + k_2 s$: $s = z$ with
+  $\hat x_2 = -k_2\varepsilon_1 - z$, $\dot z = k_1\varepsilon_1$, $D_1 = \hat\omega J$.
+
+A `QuadraturePLL` (`_pll.py`) turns $\hat e_{ab}$ into $\hat\theta$, $\hat\omega$; the
+FA-LESO (and the GI-LESO with `resonance="estimated"`) adapt to that $\hat\omega$.
+
+**Discretisation** (at $t_k$ with $i_k$ and the voltage held over $[t_{k-1}, t_k)$):
+
+- $\Delta\lambda = T_s u - \tfrac12 T_s\hat R_s(i_{k-1} + i_k)$: the voltage exactly (ZOH),
+  the resistive drop by the trapezoid rule (as zhang2022's flux observers);
+- the internal dynamics ($s$ and the rest of $\dot{\hat x}_1$) are integrated *exactly*
+  with $\varepsilon_1$ held constant in the frame that turns at the speed estimate
+  $\hat\omega_{k-1}$ over the interval, $\varepsilon_1(t) = e^{\hat\omega(t - t_{k-1})J}
+  \varepsilon_{1,k-1}$ (one matrix exponential of the augmented system
+  $[[A_s, 0, B_s], [C_s, 0, D_x + D_1], [0, 0, \hat\omega J]]$). This is explicit in the
+  $\varepsilon_1$ feedback (stable for $2\omega_0 T_s < 2$).
+
+In steady state at constant speed every signal turns at $\omega = \hat\omega$, and then
+the rotating hold is exact: the discrete observer has exactly the continuous steady state,
+so its gain and phase at the fundamental are those of the continuous transfer functions
+(17), (26), (29) with no discretisation error; at harmonics $h\omega$ the hold is not
+exact and the discrete response departs from them by $O((h - 1)\omega T_s)$
+(`pmsmjax.analysis.bemf_response` computes it from this step).
+
+**Error coordinates** (`error_rhs`): $\varepsilon_1$ and $s$ in the true rotor frame minus
+their designed steady state at the true speed and current (`steady_state`), then
+$\tilde\theta = \theta - \hat\theta$ and $\tilde\omega = \omega - \hat\omega$. The designed
+equilibrium is $\varepsilon_1 = s = 0$, $\tilde\omega = 0$ and $\tilde\theta = $ the
+observer's phase lag at the fundamental plus the parameter-mismatch offset
+(`designed_error`): zero for the FA-LESO with a matched model, $-\arg G(j\omega)$
+otherwise.
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.scipy.linalg as jsl
+
+from .._frames import park, rotate, wrap_angle
+from .._params import Drive, PMSMParams
+from .._validate import check_positive
+from ._base import (
+    AbstractObserver,
+    ErrorCoordinates,
+    Estimate,
+    Measurement,
+    OperatingPoint,
+    PlantPoint,
+)
+from ._pll import PLL_UNITS, QuadraturePLL
+
+
+#: Table II of li-fa-leso is given for `li_dtp`, whose rated electrical speed is 100 pi
+#: rad/s; `from_drive` scales every rate by w_rated / (100 pi) on other machines.
+_W_REF = 100.0 * math.pi
+
+
+def _blk(a, b=0.0):
+    """The 2x2 block a I + b J."""
+    a = jnp.asarray(a)
+    b = jnp.asarray(b, a.dtype) + 0.0 * a
+    return jnp.stack([jnp.stack([a, -b]), jnp.stack([b, a])])
+
+
+def _rot_blocks(x, theta):
+    """Rotate each consecutive 2-vector of `x` (shape (2m,)) by `theta`."""
+    return rotate(x.reshape(-1, 2), theta).reshape(-1)
+
+
+def _to_complex(M):
+    """A real matrix of aI + bJ blocks -> the complex matrix of a + jb."""
+    return M[0::2, 0::2] + 1j * M[1::2, 0::2]
+
+
+def _balanced_expm(M, n_sweeps: int = 4):
+    """`expm(M)` after a diagonal similarity that equalises row and column norms (as
+    LAPACK's balancing does): the observer's states differ in size by orders of
+    magnitude (A vs A/s), and unbalanced scaling-and-squaring loses digits. The
+    similarity is exact for any diagonal, so it is held constant for differentiation."""
+    d = jnp.ones(M.shape[0], M.dtype)
+    off = jnp.abs(M) * (1.0 - jnp.eye(M.shape[0], dtype=M.dtype))
+    for _ in range(n_sweeps):
+        Mb = off * d[None, :] / d[:, None]
+        r, c = jnp.sum(Mb, 1), jnp.sum(Mb, 0)
+        ok = (r > 0) & (c > 0)
+        d = d * jnp.where(ok, jnp.sqrt(jnp.where(ok, r / jnp.where(ok, c, 1.0), 1.0)), 1.0)
+    d = jax.lax.stop_gradient(d)
+    return jsl.expm(M * d[None, :] / d[:, None]) * d[:, None] / d[None, :]
+
+
+class LESOState(eqx.Module):
+    """State of the li-fa-leso observers.
+
+    - `s`: internal states (C-LESO: $\\hat x_2$ (A/s); GI-LESO: $\\hat x_2$, $r$ (A s^2),
+      $q$ (A s); FA-LESO: $z$ (A/s)), stationary frame, `(n_s,)`.
+    - `x1`: estimated current $\\hat x_1$ (A, stationary frame).
+    - `theta`: PLL angle (rad, wrapped); `w`: PLL speed (rad/s, electrical).
+    - `i_prev`: current sampled at the previous instant (A).
+    - `started`: False until the first sample has been seen.
+    """
+
+    s: jnp.ndarray
+    x1: jnp.ndarray
+    theta: jnp.ndarray
+    w: jnp.ndarray
+    i_prev: jnp.ndarray
+    started: jnp.ndarray
+
+
+_EXTRAS = {"e_ab_hat": "V, estimated equivalent back-EMF li-fa-leso (10), stationary "
+                       "frame (2,)"}
+
+
+class AbstractBackEMFLESO(AbstractObserver):
+    """Shared machinery of the li-fa-leso observers (see the module docstring).
+
+    Subclasses give `_matrices(w_hat) -> (A_s, B_s, C_s, D_x, D_1)`, the design
+    (`_own_design`, `_with_own`) and the names of their internal states.
+    """
+
+    motor: eqx.AbstractVar[PMSMParams]
+    pll: eqx.AbstractVar[QuadraturePLL]
+    n_s: ClassVar[int] = 2
+    extras: ClassVar[dict[str, str]] = _EXTRAS
+
+    # --- the model --------------------------------------------------------------------
+    @abc.abstractmethod
+    def _matrices(self, w_hat):
+        """`(A_s, B_s, C_s, D_x, D_1)` at speed estimate `w_hat` (rad/s)."""
+
+    @abc.abstractmethod
+    def _own_design(self) -> dict:
+        ...
+
+    @abc.abstractmethod
+    def _with_own(self, **values):
+        ...
+
+    def transfer_function(self, s, w_hat):
+        r"""The continuous-time transfer function $\hat e_{ab}/e_{ab}$ (complex) at the
+        complex frequency(ies) `s` (rad/s) for the speed estimate `w_hat` (rad/s), from the
+        observer's own matrices: $G = H/(H + D_1 - s)$ with
+        $H(s) = C_s(sI - A_s)^{-1}B_s + D_x$ (li-fa-leso (14) in this realisation)."""
+        A, B, C, Dx, D1 = (_to_complex(M) for M in self._matrices(jnp.asarray(w_hat, float)))
+        s = jnp.asarray(s, complex)
+
+        def one(sv):
+            n = A.shape[0]
+            H = C @ jnp.linalg.solve(sv * jnp.eye(n, dtype=complex) - A, B) + Dx
+            return (H / (H + D1 - sv))[0, 0]
+
+        return jax.vmap(one)(s.reshape(-1)).reshape(s.shape)
+
+    def _psi_ex(self, i_ab, theta):
+        """Model extended flux $\\hat\\psi_f + (\\hat L_d - \\hat L_q)\\hat i_d$ (V s)."""
+        m = self.motor
+        return m.psi_f + (m.L_d - m.L_q) * park(i_ab, theta)[..., 0]
+
+    # --- running ----------------------------------------------------------------------
+    def init(self, theta0=0.0, w0=0.0) -> LESOState:
+        theta0, w0 = jnp.asarray(theta0), jnp.asarray(w0)
+        dtype = jnp.result_type(theta0, w0, float)
+        return LESOState(s=jnp.zeros(self.n_s, dtype), x1=jnp.zeros(2, dtype),
+                         theta=wrap_angle(theta0.astype(dtype)), w=w0.astype(dtype),
+                         i_prev=jnp.zeros(2, dtype), started=jnp.asarray(False))
+
+    def _propagator(self, w_hat, T_s):
+        r"""The exact transition matrix over one period of the observer driven by the
+        current $i(t) = e^{\hat\omega tJ}(i_{k-1} + t\,\delta)$ and the voltage-integral
+        rate held in the frame turning at `w_hat`: state `[x1, s, i, delta, c]` (see the
+        module docstring); rows of `[x1, s]` only."""
+        A, B, C, Dx, D1 = self._matrices(w_hat)
+        n = self.n_s
+        dtype = A.dtype
+        K = Dx + D1
+        I2 = jnp.eye(2, dtype=dtype)
+        wJ = _blk(0.0 * w_hat, w_hat).astype(dtype)
+        i_, d_, c_ = n + 2, n + 4, n + 6
+        M = jnp.zeros((n + 8, n + 8), dtype)
+        M = M.at[:2, :2].set(K).at[:2, 2:i_].set(C).at[:2, i_:d_].set(-K)
+        M = M.at[:2, c_:].set(I2 / self.motor.L_q)
+        M = M.at[2:i_, :2].set(B).at[2:i_, 2:i_].set(A).at[2:i_, i_:d_].set(-B)
+        M = M.at[i_:d_, i_:d_].set(wJ).at[i_:d_, d_:c_].set(I2)
+        M = M.at[d_:c_, d_:c_].set(wJ).at[c_:, c_:].set(wJ)
+        return _balanced_expm(M * T_s)[:i_], C, Dx
+
+    def step(self, state: LESOState, meas: Measurement, T_s):
+        m = self.motor
+        i_k = jnp.asarray(meas.i_ab).astype(state.x1.dtype)
+        u = jnp.asarray(meas.u_ab).astype(state.x1.dtype)
+        w_hat = state.w
+        E, C, Dx = self._propagator(w_hat, T_s)
+        d_lam = T_s * u - (0.5 * T_s * m.R_s) * (state.i_prev + i_k)
+        # the rate of lambda held in the turning frame, with the same integral d_lam:
+        # int_0^T exp(w t J) c dt = T sinc(w T / 2) exp(w T J / 2) c
+        half = 0.5 * T_s * w_hat
+        c = rotate(d_lam, -half) / (T_s * jnp.sinc(half / jnp.pi))
+        # the current between the samples: turning at w_hat, linear in that frame
+        delta = (rotate(i_k, -2.0 * half) - state.i_prev) / T_s
+        z = E @ jnp.concatenate([state.x1, state.s, state.i_prev, delta, c])
+        x1_new, s_new = z[:2], z[2:]
+        go = state.started
+        # first sample: the estimated current starts at the measured one, the extended
+        # states at zero (no back-EMF assumed)
+        s_new = jnp.where(go, s_new, jnp.zeros_like(s_new)).astype(state.s.dtype)
+        x1_new = jnp.where(go, x1_new, i_k).astype(state.x1.dtype)
+        eps_k = x1_new - i_k
+        e_hat = -m.L_q * (C @ s_new + Dx @ eps_k)
+        theta, w = self.pll.step(state.theta, state.w, e_hat,
+                                 lambda th: self._psi_ex(i_k, th), T_s)
+        theta = jnp.where(go, theta, state.theta).astype(state.theta.dtype)
+        w = jnp.where(go, w, state.w).astype(state.w.dtype)
+        new = LESOState(s=s_new, x1=x1_new, theta=theta, w=w, i_prev=i_k,
+                        started=jnp.ones_like(state.started))
+        return new, Estimate(theta_hat=theta, w_hat=w,
+                             extras={"e_ab_hat": e_hat.astype(state.x1.dtype)})
+
+    # --- design -----------------------------------------------------------------------
+    def design_parameters(self) -> dict:
+        return {**self._own_design(), "w_pll": self.pll.w_pll,
+                "zeta_pll": self.pll.zeta_pll, "w_min": self.pll.w_min}
+
+    def with_design(self, **values):
+        bad = sorted(set(values) - set(self.design_units))
+        if bad:
+            raise ValueError(
+                f"`{type(self).__name__}.with_design`: unknown design parameter(s) "
+                f"{', '.join(bad)}; {type(self).__name__} has "
+                f"{', '.join(self.design_units)}.")
+        for k, v in values.items():  # every design parameter here is a positive rate
+            check_positive(f"{type(self).__name__}.with_design", k, v,
+                           self.design_units[k].split(",")[0])
+        pll_values = {k: values.pop(k) for k in list(values) if k in PLL_UNITS}
+        obs = self._with_own(**values) if values else self
+        if pll_values:
+            obs = eqx.tree_at(lambda o: [getattr(o.pll, k) for k in pll_values], obs,
+                              list(pll_values.values()))
+        return obs
+
+    # --- analysis ---------------------------------------------------------------------
+    def steady_state(self, w, rho_dq):
+        r"""The designed steady state $(\varepsilon_1, s)$ in the frame turning at `w`
+        (rad/s) with $\hat\omega = \omega$, for the model back-EMF signal
+        $\rho = (\dot\lambda - \hat L_q\,di/dt)/\hat L_q$ (A/s; $= e/L_q = -x_2$ with a
+        matched model) given in that frame: solves
+        $0 = \rho + C_s s + (D_x + D_1 - \omega J)\varepsilon_1$,
+        $0 = (A_s - \omega J)s + B_s\varepsilon_1$."""
+        A, B, C, Dx, D1 = self._matrices(w)
+        n = self.n_s
+        dtype = A.dtype
+        wJ1 = _blk(0.0 * w, w).astype(dtype)
+        wJn = jnp.kron(jnp.eye(n // 2, dtype=dtype), wJ1)
+        K = jnp.block([[Dx + D1 - wJ1, C], [B, A - wJn]])
+        rhs = jnp.concatenate([-rho_dq, jnp.zeros(n, dtype)])
+        sol = jnp.linalg.solve(K, rhs)
+        return sol[:2], sol[2:]
+
+    def _rho_steady(self, plant: PMSMParams, w, i_dq):
+        """$\\rho$ in the rotor frame at constant speed `w` and rotor-frame current `i_dq`."""
+        m = self.motor
+        psi = jnp.stack([plant.L_d * i_dq[0] + plant.psi_f, plant.L_q * i_dq[1]])
+        J = lambda v: jnp.stack([-v[1], v[0]])  # noqa: E731
+        return (w * J(psi) + (plant.R_s - m.R_s) * i_dq - m.L_q * w * J(i_dq)) / m.L_q
+
+    def _steady_truth(self, plant, w, i_dq):
+        return self.steady_state(w, self._rho_steady(plant, w, i_dq))
+
+    def error_rhs(self, x, op: OperatingPoint, plant: PMSMParams):
+        m = self.motor
+        n = self.n_s
+        x = jnp.asarray(x)
+        a = 2 + n
+        w = jnp.asarray(op.w_m, x.dtype)
+        i0 = jnp.asarray(op.i_dq, x.dtype)
+        th = x[a]  # true angle; the estimated frame is at 0 (rotation invariance)
+        w_hat = w - x[a + 1]
+        i_ab = i0
+        i_dq = rotate(i0, -th)
+        eps_s, s_s = self._steady_truth(plant, w, i_dq)
+        eps = rotate(x[:2] + eps_s, th)
+        s = _rot_blocks(x[2:a] + s_s, th)
+        A, B, C, Dx, D1 = self._matrices(w_hat)
+        x2_hat = C @ s + Dx @ eps
+        e_hat = -m.L_q * x2_hat
+        eps_pll = self.pll.error(e_hat, jnp.zeros_like(w), w_hat,
+                                 m.psi_f + (m.L_d - m.L_q) * i0[0])
+        th_hat_dot, w_hat_dot = self.pll.rates(w_hat, eps_pll)
+        J = lambda v: jnp.stack([-v[1], v[0]])  # noqa: E731
+        di_ab = th_hat_dot * J(i_ab)
+        psi_ab = rotate(jnp.stack([plant.L_d * i_dq[0] + plant.psi_f,
+                                   plant.L_q * i_dq[1]]), th)
+        di_rel = rotate(di_ab - w * J(i_ab), -th)  # = d i_dq / dt in the rotor frame
+        dpsi = w * J(psi_ab) + rotate(jnp.stack([plant.L_d * di_rel[0],
+                                                 plant.L_q * di_rel[1]]), th)
+        rho = (dpsi + (plant.R_s - m.R_s) * i_ab - m.L_q * di_ab) / m.L_q
+        d_eps = rho + x2_hat + D1 @ eps
+        d_s = A @ s + B @ eps
+        _, (d_eps_s, d_s_s) = jax.jvp(lambda v: self._steady_truth(plant, w, v), (i_dq,),
+                                      (di_rel,))
+        dx_eps = rotate(d_eps - w * J(eps), -th) - d_eps_s
+        d_s_rot = d_s - w * jnp.stack([-s[1::2], s[0::2]], -1).reshape(-1)
+        dx_s = _rot_blocks(d_s_rot, -th) - d_s_s
+        return jnp.concatenate([dx_eps, dx_s, jnp.stack([w - th_hat_dot, -w_hat_dot])])
+
+    def error_scale(self, op: OperatingPoint, plant: PMSMParams):
+        m = self.motor
+        w = jnp.asarray(op.w_m, float)
+        aw = jnp.abs(w)
+        i_mag = jnp.sqrt(jnp.sum(jnp.asarray(op.i_dq) ** 2))
+        psi_ref = jnp.abs(m.psi_f) + jnp.abs(m.L_d - m.L_q) * i_mag + m.L_q * i_mag
+        w_ref = jnp.maximum(aw, self.pll.w_min)
+        rho_ref = jnp.stack([0.0 * w, w_ref * psi_ref / m.L_q])
+        eps_s, s_s = self.steady_state(w, rho_ref)
+        blocks = jnp.concatenate([eps_s, s_s]).reshape(-1, 2)
+        mag = jnp.sqrt(jnp.sum(blocks ** 2, -1))
+        mag = jnp.where(mag > 0, mag, 1.0)
+        del plant
+        return jnp.concatenate([jnp.repeat(mag, 2),
+                                jnp.stack([jnp.ones_like(w), jnp.where(aw > 0, aw, 1.0)])])
+
+    def error_state(self, state: LESOState, truth: PlantPoint, plant: PMSMParams):
+        th = truth.theta
+        i_dq = rotate(truth.i_ab, -th)
+        eps_s, s_s = self._steady_truth(plant, truth.w_m, i_dq)
+        x_eps = rotate(state.x1 - truth.i_ab, -th) - eps_s
+        x_s = _rot_blocks(state.s, -th) - s_s
+        return jnp.concatenate([x_eps, x_s, jnp.stack([wrap_angle(th - state.theta),
+                                                       truth.w_m - state.w])])
+
+    def observer_state(self, x, truth: PlantPoint, plant: PMSMParams) -> LESOState:
+        x = jnp.asarray(x)
+        n = self.n_s
+        th = truth.theta
+        i_ab = jnp.asarray(truth.i_ab, x.dtype)
+        i_dq = rotate(i_ab, -th)
+        eps_s, s_s = self._steady_truth(plant, truth.w_m, i_dq)
+        x1 = i_ab + rotate(x[:2] + eps_s, th)
+        s = _rot_blocks(x[2:2 + n] + s_s, th)
+        return LESOState(s=s, x1=x1, theta=wrap_angle(th - x[2 + n]),
+                         w=truth.w_m - x[3 + n], i_prev=i_ab, started=jnp.asarray(True))
+
+    def designed_error(self, op: OperatingPoint, plant: PMSMParams, n_iter: int = 12):
+        r"""The equilibrium of `error_rhs` on the designed branch ($\hat\omega = \omega$,
+        $\varepsilon_1$, $s$ at their steady state): the angle error $\tilde\theta$ at
+        which the PLL's phase detector is zero, $\tilde\theta = \mathrm{atan2}(\sigma\hat
+        e_d, \sigma\hat e_q)$ with $\hat e_{dq}$ the steady-state estimate in the rotor
+        frame and $\sigma = \mathrm{sign}\,\omega$. The rotor-frame current
+        $e^{-\tilde\theta J}i_0$ depends on $\tilde\theta$ when the model is mismatched,
+        so this is iterated (`n_iter` fixed-point steps; exact after one step with a
+        matched model)."""
+        m = self.motor
+        n = self.n_s
+        w = jnp.asarray(op.w_m, float)
+        i0 = jnp.asarray(op.i_dq, w.dtype)
+        sg = jnp.sign(w)
+        _, _, C, Dx, _ = self._matrices(w)
+
+        def body(th, _):
+            eps_s, s_s = self._steady_truth(plant, w, rotate(i0, -th))
+            e_dq = -m.L_q * (C @ s_s + Dx @ eps_s)
+            return jnp.arctan2(sg * e_dq[0], sg * e_dq[1]), None
+
+        th, _ = jax.lax.scan(body, jnp.zeros((), w.dtype), None, length=n_iter)
+        return jnp.zeros(n + 4, w.dtype).at[2 + n].set(th)
+
+
+def _coords(s_names, s_units, s_doc):
+    return ErrorCoordinates(
+        names=("eps_d", "eps_q", *s_names, "theta", "w"),
+        units=("A", "A", *s_units, "rad", "rad/s"), angle=2 + len(s_names),
+        doc=("current-estimate error x1_hat - i, rotor frame d axis, minus its designed "
+             "steady state", "the same, q axis", *s_doc,
+             "angle error theta - theta_hat", "speed error w - w_hat (PLL speed)"))
+
+
+def _check_motor(owner, motor):
+    if not isinstance(motor, PMSMParams):
+        raise ValueError(f"`{owner}(motor=...)` must be a `PMSMParams` (the observer's "
+                         f"machine model, alpha-beta subspace); got {type(motor).__name__}.")
+
+
+def _check_pll(owner, pll):
+    if not isinstance(pll, QuadraturePLL):
+        raise ValueError(f"`{owner}(pll=...)` must be a `QuadraturePLL`; got "
+                         f"{type(pll).__name__}.")
+
+
+def _scale(drive: Drive) -> float:
+    return float(drive.w_rated) / _W_REF
+
+
+class CLESOObserver(AbstractBackEMFLESO):
+    r"""Conventional LESO, li-fa-leso (9), (15)-(17), with a quadrature PLL.
+
+    $l_1 = 2\omega_0 - \mu$, $l_2 = \omega_0^2$ (16): $\hat e/e = \omega_0^2/(s^2 +
+    2\omega_0 s + \omega_0^2)$ (17), a low-pass whose phase lag
+    $2\arctan(\omega/\omega_0)$ becomes the steady-state angle error.
+
+    **Arguments:**
+
+    - `motor`: the observer's machine model (`PMSMParams`; uses $R_s$, $L_q$, and $L_d$,
+      $\psi_f$ in the PLL's normalisation).
+    - `w0`: observer bandwidth $\omega_0$ (rad/s), > 0.
+    - `pll`: `QuadraturePLL`.
+    """
+
+    motor: PMSMParams
+    w0: float
+    pll: QuadraturePLL
+
+    coordinates: ClassVar[ErrorCoordinates] = _coords(
+        ("x2_d", "x2_q"), ("A/s", "A/s"),
+        ("extended state x2_hat (= -e_hat/L_q) minus its steady state, rotor frame d",
+         "the same, q"))
+    design_units: ClassVar[dict[str, str]] = {
+        "w0": "rad/s, C-LESO bandwidth li-fa-leso (16)", **PLL_UNITS}
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "w0": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
+
+    def __init__(self, motor: PMSMParams, w0, pll: QuadraturePLL):
+        _check_motor("CLESOObserver", motor)
+        _check_pll("CLESOObserver", pll)
+        self.motor, self.w0, self.pll = motor, w0, pll
+
+    def __check_init__(self):
+        check_positive("CLESOObserver", "w0", self.w0, "rad/s")
+
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None, **design):
+        """Table II of li-fa-leso on `li_dtp` ($\\omega_0 = 500\\pi$), scaled by
+        `w_rated / (100 pi)` elsewhere; PLL `QuadraturePLL.for_speed(w_rated)`."""
+        motor = drive.three_phase_motor if motor is None else motor
+        obs = cls(motor, 500.0 * math.pi * _scale(drive),
+                  QuadraturePLL.for_speed(float(drive.w_rated)))
+        return obs.with_design(**design) if design else obs
+
+    def _own_design(self):
+        return {"w0": self.w0}
+
+    def _with_own(self, **values):
+        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
+                           list(values.values()))
+
+    def _matrices(self, w_hat):
+        w0 = jnp.asarray(self.w0) + 0.0 * w_hat
+        z = 0.0 * w0
+        return (_blk(z), _blk(-w0 ** 2), _blk(1.0 + z), _blk(z), _blk(-2.0 * w0))
+
+
+class GILESOObserver(AbstractBackEMFLESO):
+    r"""LESO with a generalised integrator, li-fa-leso (29)-(30), with a quadrature PLL.
+
+    $L_1 = 2\omega_0 - \mu$, $L_2(s) = \omega_0^2 + G(s)$,
+    $G(s) = 2K_r\omega_c s/(s^2 + 2\omega_c s + \omega_r^2)$ (30): $\hat e/e =
+    (G + \omega_0^2)/(s^2 + 2\omega_0 s + G + \omega_0^2)$ (29), order 4 per axis.
+    At $s = j\omega_r$ the integrator's gain is $K_r$, finite: (37)'s
+    "$|G(j\hat\omega_e)| \to \infty$" does not hold, and with Table II's
+    $K_r = 2\omega_0^2$ the GI-LESO keeps a lag $\arg(3\omega_0^2/(3\omega_0^2 - \omega^2 +
+    2j\omega_0\omega))$ at its resonance.
+
+    **Arguments:**
+
+    - `motor`, `pll`: as `CLESOObserver`.
+    - `w0`: bandwidth $\omega_0$ (rad/s); `K_r`: integrator gain (rad^2/s^2);
+      `w_c`: its attenuation coefficient $\omega_c$ (rad/s); all > 0.
+    - `w_r`: fixed resonant frequency (rad/s, used when `resonance="fixed"`), > 0.
+    - `resonance`: `"estimated"` ($\omega_r = |\hat\omega|$, the PLL's speed; default)
+      or `"fixed"` ($\omega_r$ = `w_r`). The resonance is floored at $\omega_c$ so that
+      the integrator stays a damped band-pass at standstill.
+    """
+
+    motor: PMSMParams
+    w0: float
+    K_r: float
+    w_c: float
+    w_r: float
+    pll: QuadraturePLL
+    resonance: str = eqx.field(static=True)
+
+    n_s: ClassVar[int] = 6
+    coordinates: ClassVar[ErrorCoordinates] = _coords(
+        ("x2_d", "x2_q", "r_d", "r_q", "q_d", "q_q"),
+        ("A/s", "A/s", "A s^2", "A s^2", "A s", "A s"),
+        ("extended state x2_hat minus its steady state, rotor frame d", "the same, q",
+         "generalised-integrator state r (dr/dt = q) minus steady state, d", "same, q",
+         "generalised-integrator state q minus steady state, d", "same, q"))
+    design_units: ClassVar[dict[str, str]] = {
+        "w0": "rad/s, LESO bandwidth li-fa-leso (16), (29)",
+        "K_r": "rad^2/s^2, generalised-integrator gain li-fa-leso (30)",
+        "w_c": "rad/s, generalised-integrator attenuation coefficient li-fa-leso (30)",
+        "w_r": "rad/s, fixed resonant frequency (resonance='fixed'; Table II 100 pi)",
+        **PLL_UNITS}
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "w0": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
+
+    def __init__(self, motor: PMSMParams, w0, K_r, w_c, w_r, pll: QuadraturePLL,
+                 resonance: str = "estimated"):
+        _check_motor("GILESOObserver", motor)
+        _check_pll("GILESOObserver", pll)
+        if resonance not in ("estimated", "fixed"):
+            raise ValueError(f"`GILESOObserver(resonance=...)` must be 'estimated' or "
+                             f"'fixed'; got {resonance!r}.")
+        self.motor, self.w0, self.K_r, self.w_c, self.w_r = motor, w0, K_r, w_c, w_r
+        self.pll, self.resonance = pll, resonance
+
+    def __check_init__(self):
+        for k, u in (("w0", "rad/s"), ("K_r", "rad^2/s^2"), ("w_c", "rad/s"),
+                     ("w_r", "rad/s")):
+            check_positive("GILESOObserver", k, getattr(self, k), u)
+
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None,
+                   resonance: str = "estimated", **design):
+        """Table II on `li_dtp`: $\\omega_0 = 500\\pi$, $K_r = 2\\omega_0^2$,
+        $\\omega_c = \\pi$, $\\omega_r = 100\\pi$ (used with `resonance="fixed"`); every
+        rate scaled by `w_rated / (100 pi)` on other machines."""
+        motor = drive.three_phase_motor if motor is None else motor
+        a = _scale(drive)
+        w0 = 500.0 * math.pi * a
+        obs = cls(motor, w0, 2.0 * w0 ** 2, math.pi * a, 100.0 * math.pi * a,
+                  QuadraturePLL.for_speed(float(drive.w_rated)), resonance=resonance)
+        return obs.with_design(**design) if design else obs
+
+    def _own_design(self):
+        return {"w0": self.w0, "K_r": self.K_r, "w_c": self.w_c, "w_r": self.w_r}
+
+    def _with_own(self, **values):
+        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
+                           list(values.values()))
+
+    def _matrices(self, w_hat):
+        w0 = jnp.asarray(self.w0) + 0.0 * w_hat
+        z = 0.0 * w0
+        wr = (jnp.abs(w_hat) if self.resonance == "estimated"
+              else jnp.asarray(self.w_r) + z)
+        wr2 = jnp.maximum(wr ** 2, jnp.asarray(self.w_c) ** 2)
+        O, I2 = _blk(z), _blk(1.0 + z)
+        A = jnp.block([[O, O, _blk(-2.0 * self.K_r * self.w_c + z)],
+                       [O, O, I2],
+                       [O, _blk(-wr2), _blk(-2.0 * self.w_c + z)]])
+        B = jnp.concatenate([_blk(-w0 ** 2), O, I2], 0)
+        C = jnp.concatenate([I2, O, O], 1)
+        return A, B, C, O, _blk(-2.0 * w0)
+
+
+class FALESOObserver(AbstractBackEMFLESO):
+    r"""Frequency-adaptive LESO, li-fa-leso (25)-(28), with a quadrature PLL.
+
+    $L_1(s) = -j\hat\omega - \mu$, $L_2(s) = k_1 + k_2 s$ (25): $\hat e/e = (k_1 + k_2 s)/
+    (s^2 - j\hat\omega s + k_1 + k_2 s)$ (26), unity gain and zero phase at
+    $s = j\hat\omega$ (19): no steady-state angle error at any constant speed, of either
+    sign, with a matched model. Stable for $k_1, k_2 > 0$ at every $\hat\omega$ (22)-(24);
+    the generalised Routh array's last entry is $a_2^{(2)} = k_1k_2^2$ (the printed
+    (23) drops a factor $k_2$, the sign is the same: `pmsmjax.analysis.routh_complex2`).
+
+    **Arguments:**
+
+    - `motor`, `pll`: as `CLESOObserver`.
+    - `k1` (1/s^2), `k2` (1/s): the gains of (25), > 0.
+    """
+
+    motor: PMSMParams
+    k1: float
+    k2: float
+    pll: QuadraturePLL
+
+    coordinates: ClassVar[ErrorCoordinates] = _coords(
+        ("z_d", "z_q"), ("A/s", "A/s"),
+        ("integral state z (x2_hat = -k2 eps - z) minus its steady state, rotor frame d",
+         "the same, q"))
+    design_units: ClassVar[dict[str, str]] = {
+        "k1": "1/s^2, FA-LESO gain k1 li-fa-leso (25)",
+        "k2": "1/s, FA-LESO gain k2 li-fa-leso (25)", **PLL_UNITS}
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "k1": (0.1, 10.0), "k2": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
+
+    def __init__(self, motor: PMSMParams, k1, k2, pll: QuadraturePLL):
+        _check_motor("FALESOObserver", motor)
+        _check_pll("FALESOObserver", pll)
+        self.motor, self.k1, self.k2, self.pll = motor, k1, k2, pll
+
+    def __check_init__(self):
+        check_positive("FALESOObserver", "k1", self.k1, "1/s^2")
+        check_positive("FALESOObserver", "k2", self.k2, "1/s")
+
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None, **design):
+        """Table II on `li_dtp`: $k_1 = 10\\pi$, $k_2 = 100\\pi$; scaled as time is
+        ($k_1$ by the square, $k_2$ by the ratio `w_rated / (100 pi)`) elsewhere."""
+        motor = drive.three_phase_motor if motor is None else motor
+        a = _scale(drive)
+        obs = cls(motor, 10.0 * math.pi * a ** 2, 100.0 * math.pi * a,
+                  QuadraturePLL.for_speed(float(drive.w_rated)))
+        return obs.with_design(**design) if design else obs
+
+    def _own_design(self):
+        return {"k1": self.k1, "k2": self.k2}
+
+    def _with_own(self, **values):
+        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
+                           list(values.values()))
+
+    def _matrices(self, w_hat):
+        w_hat = jnp.asarray(w_hat)
+        z = 0.0 * w_hat
+        return (_blk(z), _blk(self.k1 + z), _blk(-1.0 + z), _blk(-self.k2 + z),
+                _blk(z, w_hat))

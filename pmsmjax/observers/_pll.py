@@ -1,0 +1,126 @@
+r"""Quadrature phase-locked loop: rotor angle and speed from an estimated back-EMF.
+
+Shared by the back-EMF observer families (li-fa-leso's C-LESO, GI-LESO and FA-LESO; any
+observer whose output is an equivalent back-EMF
+$\hat e_{ab} \approx \omega\psi_{ex}[-\sin\theta, \cos\theta]^T$, li-fa-leso (5)).
+li-fa-leso names a PLL in its Fig. 3 but its section IV (the PLL and the gain design) is
+missing from the available text, so this is a standard design, documented here.
+
+**Phase detector.** The component of $\hat e$ along the estimated d axis,
+
+$$\hat e_\perp = -\hat e_\alpha\cos\hat\theta - \hat e_\beta\sin\hat\theta
+= \omega\psi_{ex}\sin(\theta - \hat\theta)\quad(\text{for } \hat e = e),$$
+
+is normalised by the model back-EMF amplitude at the estimated speed,
+
+$$\varepsilon = \frac{\hat e_\perp\,\hat\omega}{\hat\psi_{ex}\max(\hat\omega^2,
+\omega_{min}^2)},\qquad \hat\psi_{ex} = \hat\psi_f + (\hat L_d - \hat L_q)\hat i_d,$$
+
+so that $\varepsilon = (\omega/\hat\omega)\sin\tilde\theta \approx \tilde\theta$ above
+$\omega_{min}$ at either sign of speed (the factor $\hat\omega$ carries the sign of the
+back-EMF, so the loop is stable in both directions).
+
+**Loop.** A PI law on $\varepsilon$:
+
+$$\dot{\hat\theta} = \hat\omega + k_p\varepsilon,\qquad \dot{\hat\omega} = k_i\varepsilon,
+\qquad k_p = 2\zeta_{pll}\omega_{pll},\quad k_i = \omega_{pll}^2,$$
+
+so that for a fast observer ($\hat e = e$) the angle error obeys
+$\ddot{\tilde\theta} + k_p\dot{\tilde\theta} + k_i\tilde\theta = \dot\omega$: natural
+frequency `w_pll`, damping `zeta_pll`; a constant speed gives no steady-state angle
+error and a speed ramp $a$ an error $a/k_i$. The speed estimate is the integral state
+$\hat\omega$ (not the PI output, which carries the observer's noise).
+
+**Low speed and zero speed.** Below $\omega_{min}$ the normaliser is frozen at
+$\hat\psi_{ex}\omega_{min}^2$: the loop gain falls as $|\omega\hat\omega|/\omega_{min}^2$,
+so at standstill (no back-EMF, the angle is not observable from it) the PLL coasts on
+its integral state instead of amplifying noise by $1/\hat\omega$; passing through zero
+speed, the angle is integrated open loop from $\hat\omega$ until the back-EMF is large
+enough again. The lock at $\tilde\theta = \pi$ is the other equilibrium of any
+back-EMF PLL (the back-EMF of $-\omega$ at $\theta + \pi$ is the same): it is unstable
+while $\hat\omega$ and $\omega$ have the same sign.
+
+**Discretisation** (at $t_k$, from the state at $t_{k-1}$): the angle is predicted with
+the speed estimate, $\hat\theta^- = \hat\theta_{k-1} + T_s\hat\omega_{k-1}$, the phase
+detector is evaluated at $\hat\theta^-$ with $\hat e_k$, and both integrators take a
+forward step: $\hat\theta_k = \hat\theta^- + T_s k_p\varepsilon_k$,
+$\hat\omega_k = \hat\omega_{k-1} + T_s k_i\varepsilon_k$. At constant speed with
+$\hat e_k$ on the true back-EMF direction this is exact ($\varepsilon_k = 0$).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+
+from .._frames import wrap_angle
+from .._validate import check_positive
+
+
+#: Design parameters of the PLL (names shared by every observer that uses it).
+PLL_UNITS = {
+    "w_pll": "rad/s, PLL natural frequency (k_i = w_pll^2)",
+    "zeta_pll": "-, PLL damping (k_p = 2 zeta_pll w_pll)",
+    "w_min": "rad/s, speed below which the PLL's normalisation is frozen (low-speed "
+             "fade-out of the loop gain)",
+}
+
+
+class QuadraturePLL(eqx.Module):
+    """Quadrature PLL on an estimated back-EMF (see the module docstring).
+
+    **Arguments:**
+
+    - `w_pll`: natural frequency (rad/s), > 0.
+    - `zeta_pll`: damping (-), > 0.
+    - `w_min`: normalisation floor (rad/s, electrical), > 0.
+    """
+
+    w_pll: float
+    zeta_pll: float = 1.0
+    w_min: float = 10.0
+
+    def __check_init__(self):
+        check_positive("QuadraturePLL", "w_pll", self.w_pll, "rad/s")
+        check_positive("QuadraturePLL", "zeta_pll", self.zeta_pll, "-")
+        check_positive("QuadraturePLL", "w_min", self.w_min, "rad/s")
+
+    @classmethod
+    def for_speed(cls, w_rated, w_pll_pu=0.4, zeta_pll=1.0, w_min_pu=0.05):
+        """The default design for a drive of rated electrical speed `w_rated` (rad/s):
+        `w_pll = 0.4 w_rated` (126 rad/s = 20 Hz on `li_dtp`, well below the observers'
+        bandwidths there), critically damped, `w_min = 0.05 w_rated`."""
+        return cls(w_pll_pu * w_rated, zeta_pll, w_min_pu * w_rated)
+
+    def gains(self):
+        """`(k_p, k_i)` (rad/s, rad/s^2)."""
+        return 2.0 * self.zeta_pll * self.w_pll, self.w_pll ** 2
+
+    def error(self, e_ab_hat, theta_hat, w_hat, psi_ex_hat):
+        """Normalised phase-detector output (rad, ~ sin of the angle error) for the
+        estimated back-EMF `e_ab_hat` (V), angle `theta_hat` (rad), speed `w_hat` (rad/s)
+        and model extended flux `psi_ex_hat` (V s)."""
+        e_perp = -(e_ab_hat[..., 0] * jnp.cos(theta_hat)
+                   + e_ab_hat[..., 1] * jnp.sin(theta_hat))
+        psi = jnp.where(jnp.abs(psi_ex_hat) > 1e-12, psi_ex_hat, 1e-12)
+        return e_perp * w_hat / (psi * jnp.maximum(w_hat ** 2, self.w_min ** 2))
+
+    def rates(self, w_hat, eps):
+        """Continuous-time `(d theta_hat/dt, d w_hat/dt)` for phase error `eps`."""
+        k_p, k_i = self.gains()
+        return w_hat + k_p * eps, k_i * eps
+
+    def step(self, theta_prev, w_prev, e_ab_hat, psi_ex_fn, T_s):
+        """One sampling period (see "Discretisation"): `psi_ex_fn(theta)` gives the model
+        extended flux at the predicted angle. Returns `(theta_k, w_k)`."""
+        k_p, k_i = self.gains()
+        theta_pred = theta_prev + T_s * w_prev
+        eps = self.error(e_ab_hat, theta_pred, w_prev, psi_ex_fn(theta_pred))
+        return wrap_angle(theta_pred + T_s * k_p * eps), w_prev + T_s * k_i * eps
+
+
+def default_pll_design(w_rated) -> dict:
+    """`{w_pll, zeta_pll, w_min}` of `QuadraturePLL.for_speed(w_rated)` (SI)."""
+    p = QuadraturePLL.for_speed(float(w_rated))
+    return {"w_pll": p.w_pll, "zeta_pll": p.zeta_pll, "w_min": p.w_min}
+

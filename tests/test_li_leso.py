@@ -1,0 +1,221 @@
+"""li-fa-leso's back-EMF observers (C-LESO, GI-LESO, FA-LESO with a quadrature PLL):
+Table II defaults, transfer functions (17), (26), (29)-(30) against the observers' own
+realisation and the discrete response of the running step, the generalised Routh test
+(Table I, corrected) against eigenvalues, FA-LESO's zero steady-state lag in closed loop at
+both signs of speed, the C-LESO's lag as its designed equilibrium, replay = in-loop."""
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax import analysis
+from pmsmjax.observers import OperatingPoint, make_observer
+
+
+DTP = pj.preset("li_dtp")
+W = DTP.w_rated  # 600 rpm = 50 Hz electrical
+NAMES = ("c-leso", "gi-leso", "fa-leso")
+
+
+def test_from_drive_gives_table_ii_on_li_dtp_and_scales_elsewhere():
+    pi = math.pi
+    c = make_observer("c-leso", DTP).design_parameters()
+    g = make_observer("gi-leso", DTP).design_parameters()
+    f = make_observer("fa-leso", DTP).design_parameters()
+    assert c["w0"] == pytest.approx(500 * pi, rel=1e-15)
+    assert g["w0"] == pytest.approx(500 * pi, rel=1e-15)
+    assert g["K_r"] == pytest.approx(2 * (500 * pi) ** 2, rel=1e-15)
+    assert g["w_c"] == pytest.approx(pi, rel=1e-15)
+    assert g["w_r"] == pytest.approx(100 * pi, rel=1e-15)
+    assert f["k1"] == pytest.approx(10 * pi, rel=1e-15)
+    assert f["k2"] == pytest.approx(100 * pi, rel=1e-15)
+    # time scaling on a faster machine: rates by a, k1 and K_r by a^2
+    z = pj.preset("zhang750")
+    a = z.w_rated / (100 * pi)
+    fz = make_observer("fa-leso", z).design_parameters()
+    assert fz["k2"] == pytest.approx(100 * pi * a) and fz["k1"] == pytest.approx(10 * pi * a * a)
+    with pytest.raises(ValueError, match="resonance"):
+        make_observer("gi-leso", DTP, resonance="adaptive")
+    with pytest.raises(ValueError, match="k1.*> 0"):
+        make_observer("fa-leso", DTP, k1=-1.0)
+
+
+@pytest.mark.parametrize("w_hat", [0.5 * W, -1.4 * W])
+def test_transfer_functions_are_the_printed_ones(w_hat):
+    s = 1j * W * np.array([0.3, 1.0, -1.0, -5.0, 7.0, 11.0]) + np.array([0, 0, 5, 0, -3, 0])
+    c = make_observer("c-leso", DTP)
+    g = make_observer("gi-leso", DTP)
+    gf = make_observer("gi-leso", DTP, resonance="fixed")
+    f = make_observer("fa-leso", DTP)
+    np.testing.assert_allclose(np.asarray(c.transfer_function(s, w_hat)),
+                               analysis.g_c_leso(s, c.w0), rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(g.transfer_function(s, w_hat)),
+                               analysis.g_gi_leso(s, g.w0, g.K_r, g.w_c, abs(w_hat)),
+                               rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(gf.transfer_function(s, w_hat)),
+                               analysis.g_gi_leso(s, g.w0, g.K_r, g.w_c, g.w_r), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(f.transfer_function(s, w_hat)),
+                               analysis.g_fa_leso(s, f.k1, f.k2, w_hat), rtol=1e-10)
+    # (19)/(38): unity gain, zero phase at the estimated speed; (37) does not hold: the GI
+    # is finite (gain K_r) at its resonance, so the GI-LESO keeps a lag there
+    assert complex(f.transfer_function(1j * w_hat, w_hat)) == pytest.approx(1.0, abs=1e-12)
+    G = complex(g.transfer_function(1j * w_hat, w_hat))
+    w0, wa = g.w0, abs(w_hat)
+    want = 3 * w0 ** 2 / (3 * w0 ** 2 - wa ** 2 + 2j * w0 * w_hat)
+    assert G == pytest.approx(want, rel=1e-9)
+
+
+def test_generalised_routh_array_against_eigenvalues():
+    """Table I: s^2 + c1 s + c2 (complex) is Hurwitz iff a1 > 0 and a2^(2) > 0, with
+    a2^(2) = a1^2 a2 + a1 b1 b2 - b2^2; for the FA-LESO (22) a2^(2) = k1 k2^2 (the printed
+    (23) has k1 k2)."""
+    rng = np.random.default_rng(3)
+    c1 = rng.normal(size=4000) + 1j * rng.normal(size=4000)
+    c2 = rng.normal(size=4000) + 1j * rng.normal(size=4000)
+    a1, a22 = analysis.routh_complex2(c1, c2)
+    roots = np.array([np.roots([1.0, x, y]) for x, y in zip(c1, c2)])
+    hurwitz = np.max(roots.real, 1) < 0
+    margin = np.min(np.abs(roots.real), 1) > 1e-9
+    np.testing.assert_array_equal(((a1 > 0) & (a22 > 0))[margin], hurwitz[margin])
+    assert 0.1 < hurwitz.mean() < 0.9
+    k1, k2, w = 10 * np.pi, 100 * np.pi, -314.0
+    a1, a22 = analysis.routh_complex2(k2 - 1j * w, k1)
+    assert a1 == k2 and a22 == pytest.approx(k1 * k2 ** 2)
+    # the FA-LESO's continuous error dynamics (with its PLL) are stable at both signs of
+    # speed, also with its own eigenvalues
+    obs = make_observer("fa-leso", DTP)
+    for w0 in (-W, 0.2 * W, W):
+        A = analysis.linearization(obs, DTP.three_phase_motor, w0, (0.0, 4.0))
+        assert np.max(np.linalg.eigvals(np.asarray(A)).real) < 0
+
+
+@pytest.fixture(scope="module")
+def harmonic_replay():
+    """The three observers replayed on the sampled current that a back-EMF with a
+    fundamental, a negative-sequence 5th and a positive-sequence 7th drives through the
+    model (4) with zero voltage (u = 0), at 50 Hz, T_s = 100 us. The GI-LESO's resonance
+    is fixed at the speed (its lightly damped mode, rate about w_c, would otherwise follow
+    the PLL's ripple); the amplitudes are fitted over the last 0.2 s of 1 s."""
+    T_s, n = 1e-4, 10000
+    m = DTP.three_phase_motor
+    k = np.arange(n)
+    comps = {1: 50.0, -5: 3.0, 7: 2.0}  # V
+    i_c = sum(-E * np.exp(1j * h * W * k * T_s) / (m.R_s + 1j * h * W * m.L_q)
+              for h, E in comps.items())
+    i_ab = jnp.asarray(np.stack([i_c.real, i_c.imag], -1))
+    u_ab = jnp.zeros_like(i_ab)
+    out = {}
+    for name in NAMES:
+        obs = make_observer(name, DTP)
+        if name == "gi-leso":
+            obs = make_observer(name, DTP, resonance="fixed", w_r=W)
+        est = pj.replay_estimates(obs, u_ab=u_ab, i_ab=i_ab, T_s=T_s, theta0=-math.pi / 2,
+                                  w0=W)
+        e = np.asarray(est.extras["e_ab_hat"])[-2000:]
+        kk = k[-2000:]
+        # least-squares complex amplitudes at the three orders (exact frequencies)
+        basis = np.stack([np.exp(1j * h * W * kk * T_s) for h in comps], 1)
+        amp = np.linalg.lstsq(basis, e[:, 0] + 1j * e[:, 1], rcond=None)[0]
+        out[name] = (obs, {h: a / E for (h, E), a in zip(comps.items(), amp)},
+                     np.asarray(est.w_hat)[-2000:])
+    return T_s, out
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_discrete_response_matches_the_simulated_steady_state(name, harmonic_replay):
+    T_s, out = harmonic_replay
+    obs, sim, w_hat = out[name]
+    assert np.max(np.abs(w_hat / W - 1)) < 2e-3  # the PLL is locked on the fundamental
+    orders = (1, -5, 7)
+    Gd = analysis.bemf_response(obs, W, orders, T_s)
+    Gc = np.asarray(obs.transfer_function(1j * W * np.asarray(orders, float), W))
+    for k, h in enumerate(orders):
+        assert abs(sim[h] - Gd[k]) < 2e-3 * abs(Gd[k]) + 2e-4, (h, sim[h], Gd[k])
+    # the discretisation: exact at the fundamental (up to the trapezoid rule of the
+    # resistive drop), O((h - 1) w T_s) at the harmonics
+    assert abs(Gd[0] - Gc[0]) < 1e-4
+    assert np.all(np.abs(Gd[1:] - Gc[1:]) < 0.01)
+    assert np.any(np.abs(Gd[1:] - Gc[1:]) > 1e-4)
+
+
+def test_harmonic_attenuation_ranks_as_the_paper_says(harmonic_replay):
+    _, out = harmonic_replay
+    mag = {name: (abs(out[name][1][-5]), abs(out[name][1][7])) for name in NAMES}
+    assert mag["fa-leso"][0] < mag["gi-leso"][0] and mag["fa-leso"][1] < mag["gi-leso"][1]
+    assert mag["fa-leso"][0] < 0.5 * mag["c-leso"][0]
+    assert mag["fa-leso"][1] < 0.5 * mag["c-leso"][1]
+
+
+@pytest.fixture(scope="module")
+def closed_loop_runs():
+    """Sensorless current control on li_dtp at imposed +-600 rpm, i_q = 0.5 p.u."""
+    runs = {}
+    foc = pj.FOC.from_drive(DTP)
+    for name in ("fa-leso", "c-leso"):
+        obs = make_observer(name, DTP)
+        for sign in (1.0, -1.0):
+            sc = pj.Scenario(t_end=0.3, w_m_imposed=pj.Profile.constant(sign * W),
+                             i_d_ref=pj.Profile.constant(0.0),
+                             i_q_ref=pj.Profile.constant(0.5 * DTP.base.I_b))
+            runs[name, sign] = (obs, pj.simulate(DTP, foc, obs, sc, T_s=1e-4,
+                                                 w_m0=sign * W))
+    return runs
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_fa_leso_has_no_steady_state_lag_in_either_direction(sign, closed_loop_runs):
+    _, traj = closed_loop_runs["fa-leso", sign]
+    err = np.asarray(traj.theta_err)[-500:]
+    assert abs(math.degrees(float(np.mean(err)))) < 0.02
+    assert np.max(np.abs(np.asarray(traj.w_hat)[-500:] / (sign * W) - 1)) < 1e-3
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_c_leso_lag_is_its_designed_equilibrium(sign, closed_loop_runs):
+    """The C-LESO's steady-state angle error is -arg (17) at the speed, the designed
+    equilibrium of its error dynamics, which `analysis.equilibria` finds stable."""
+    obs, traj = closed_loop_runs["c-leso", sign]
+    w = sign * W
+    lag = -np.angle(analysis.g_c_leso(1j * w, obs.w0))
+    assert math.degrees(abs(lag)) == pytest.approx(2 * math.degrees(math.atan(W / obs.w0)))
+    sim = float(np.mean(np.asarray(traj.theta_err)[-500:]))
+    assert sim == pytest.approx(lag, abs=math.radians(0.05))
+    i_dq = np.mean(np.asarray(traj.i_ref)[-500:], 0)
+    x_star = obs.designed_error(OperatingPoint(w, i_dq), DTP.three_phase_motor)
+    assert float(x_star[obs.coordinates.angle]) == pytest.approx(lag, abs=1e-9)
+    eq = analysis.equilibria(obs, DTP.three_phase_motor, w, i_dq)
+    th = np.asarray(eq.theta)[np.asarray(eq.valid) & np.asarray(eq.stable)]
+    assert np.min(np.abs(th - lag)) < 1e-7
+
+
+def test_replay_equals_in_loop(closed_loop_runs):
+    obs, traj = closed_loop_runs["fa-leso", 1.0]
+    est = pj.replay_estimates(obs, traj, theta0=0.0, w0=W)
+    np.testing.assert_allclose(np.asarray(est.theta_hat), np.asarray(traj.theta_hat),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.asarray(est.w_hat), np.asarray(traj.w_hat), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(est.extras["e_ab_hat"]),
+                               np.asarray(traj.extras["e_ab_hat"]), atol=1e-9)
+
+
+def test_response_command_json(capsys):
+    import json
+
+    from pmsmjax.cli.__main__ import main
+
+    assert main(["response", "--motor", "li_dtp", "--observer", "c-leso", "--speed", "1",
+                 "--orders", "1,-5,7", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    obs = make_observer("c-leso", DTP)
+    Gd = analysis.bemf_response(obs, W, (1, -5, 7), 1e-4)
+    assert [o["order"] for o in rep["orders"]] == [1, -5, 7]
+    for o, g in zip(rep["orders"], Gd):
+        assert o["frequency_hz"] == pytest.approx(o["order"] * 50.0)
+        assert o["bemf_gain"]["mag"] == pytest.approx(abs(g), rel=1e-9)
+        assert o["bemf_gain"]["phase_deg"] == pytest.approx(math.degrees(np.angle(g)),
+                                                            abs=1e-7)
+    assert main(["response", "--motor", "li_dtp", "--observer", "eso"]) == 2
+    assert "no back-EMF estimate" in capsys.readouterr().err
