@@ -140,7 +140,7 @@ def test_cli_help_and_bad_arguments(tmp_path, capsys):
     assert e.value.code == 0
     out = capsys.readouterr().out
     for opt in ("--out", "--motor", "--quick", "--optimiser", "--mismatch", "--steps",
-                "--seed", "--tune"):
+                "--seed", "--tune", "--objective", "--regression-tol"):
         assert opt in out
     for action in build_parser()._actions:
         assert action.help, action.option_strings
@@ -236,7 +236,12 @@ def test_quick_tuning_beats_paper_design_is_feasible_and_reloads(tmp_path):
     assert L["tuned"]["heldout"] < 0.95 * L["paper"]["heldout"]
     assert report.results["tuned"].stats["steps"] == cfg.steps
     hist = report.results["tuned"].stats["best"]
-    assert np.all(np.diff(hist) <= 0) and hist[-1] == pytest.approx(L["tuned"]["train"])
+    ref = report.metrics["paper"]["train"].loss
+    assert np.all(np.diff(hist) <= 0) and hist[-1] == pytest.approx(float(
+        tg.objective_value(report.metrics["tuned"]["train"].loss, cfg, ref)))
+    # the default objective: no training scenario worse than the tolerance
+    assert cfg.objective == "no_regression"
+    assert tg.within_tolerance(report.metrics["tuned"]["train"].loss, ref, cfg.regression_tol)
     # feasible on every scenario (the report's exact check and an independent one)
     assert report.all_feasible("tuned")
     for scen in (report.train, report.heldout):
@@ -267,7 +272,8 @@ def test_quick_tuning_beats_paper_design_is_feasible_and_reloads(tmp_path):
     assert len(saved["scenarios"]["train"]) == report.train.n
     # per-scenario accounting: counts add up, the worst regression is the largest change,
     # and a scenario's numbers equal a direct evaluation of that scenario alone
-    for split, scen in (("train", report.train), ("heldout", report.heldout)):
+    for split, scen in (("train", report.train), ("heldout", report.heldout),
+                        ("validation", report.validation)):
         acc = saved["accounting"][split]
         assert acc["improved"] + acc["worse"] + acc["unchanged"] == acc["n"] == scen.n
         ch = np.array([r["change_pct"] for r in acc["scenarios"]])
@@ -280,7 +286,10 @@ def test_quick_tuning_beats_paper_design_is_feasible_and_reloads(tmp_path):
         j = int(np.argmax(ch))
         one = jax.tree_util.tree_map(lambda a: a[j:j + 1], scen)
         for name, key in (("paper", "baseline"), ("tuned", "tuned")):
-            _, m = tg.evaluate(report.designs[name], cfg, one)
+            if split == "validation":
+                m = tg.validate(report.designs[name], cfg, one)
+            else:
+                _, m = tg.evaluate(report.designs[name], cfg, one)
             row = acc["scenarios"][j]
             assert float(m.loss[0]) == pytest.approx(row[f"{key}_loss"], rel=1e-9)
             assert float(m.pos_rms_deg[0]) == pytest.approx(row[f"{key}_rms_deg"], rel=1e-9)
@@ -300,6 +309,36 @@ def test_quick_tuning_beats_paper_design_is_feasible_and_reloads(tmp_path):
     # and the reloaded design gives the same loss
     again, _ = tg.evaluate(back, cfg, report.train)
     assert float(again) == L["tuned"]["train"]
+
+
+def test_no_regression_objective_keeps_every_training_scenario_within_tolerance():
+    """On a small problem (two speeds, so that the schedule trades one against the other)
+    the "no_regression" objective ends with no training scenario worse than its tolerance
+    against the starting design and a lower robust loss, every optimiser's best iterate
+    being within it; its penalty is the documented hinge."""
+    cfg = tg.TuningConfig.quick(speeds_pu=(0.2, 1.0), n_mismatch=2, steps=10, patience=0,
+                                regression_tol=0.01)
+    scen = tg.training_scenarios(cfg)
+    init = cfg.initial_schedule()
+    base_robust, base = tg.evaluate(init, cfg, scen, objective="robust")
+    r = tg.adam(init, cfg, scen, progress=False)
+    _, m = tg.evaluate(r.value, cfg, scen, objective="robust")
+    change = tg.relative_change(m.loss, base.loss)
+    assert np.all(change <= cfg.regression_tol), change
+    assert float(tg.aggregate(m.loss, "robust", cfg.temperature)) < float(base_robust)
+    # the best iterate is the lowest objective among those within the tolerance
+    st = r.stats
+    ok = st["within_tolerance"]
+    assert ok[0] and r.loss == pytest.approx(np.min(st["loss"][ok]))
+    # the penalty: w sum softplus(4 (r - tol/2) / tol) / 4
+    x = jnp.asarray([1.0, 2.0, 4.0])
+    ref = jnp.asarray([1.0, 1.0, 2.0])
+    want = cfg.w_regression * sum(math.log1p(math.exp(4 * (c - 0.005) / 0.01)) / 4
+                                  for c in (0.0, 1.0, 1.0))
+    got = float(tg.regression_penalty(x, ref, 0.01, cfg.w_regression))
+    assert got == pytest.approx(want, rel=1e-12)
+    with pytest.raises(ValueError, match="reference"):
+        tg.aggregate(x, "no_regression", 0.5)
 
 
 @pytest.mark.parametrize("method, objective, steps",

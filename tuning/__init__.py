@@ -1,7 +1,8 @@
 """Gradient-based tuning of sensorless-observer designs under inductance mismatch.
 
 `python -m tuning` runs the whole job (see `tuning.__main__`); the pieces are public:
-`TuningConfig` and the scenario grids (`tuning.scenarios`), the tunable designs
+`TuningConfig` and the scenario grids (`tuning.scenarios`), the closed-loop validation
+runs the tuner never sees (`tuning.validation`), the tunable designs
 (`AbstractDesign`: the speed-scheduled zhang2022 `GainSchedule` and the generic
 `ConstantDesign` for any registered observer that declares `tunable` design parameters;
 unconstrained <-> physical, `filter_spec`), the objective (`tuning.objectives`), the
@@ -47,12 +48,17 @@ from .objectives import (
     evaluate as evaluate,
     feasibility as feasibility,
     loss as loss,
+    objective_value as objective_value,
+    regression_penalty as regression_penalty,
+    relative_change as relative_change,
+    report_objective as report_objective,
     residuals as residuals,
     routh_margins as routh_margins,
     sampling_penalty as sampling_penalty,
     scenario_losses as scenario_losses,
     stability_penalty as stability_penalty,
     trajectory_metrics as trajectory_metrics,
+    within_tolerance as within_tolerance,
 )
 from .optimise import (
     TuningResult as TuningResult,
@@ -64,6 +70,7 @@ from .optimise import (
     random_search as random_search,
 )
 from .scenarios import (
+    OBJECTIVES as OBJECTIVES,
     PARAMETRISATIONS as PARAMETRISATIONS,
     ScenarioSet as ScenarioSet,
     TuningConfig as TuningConfig,
@@ -76,4 +83,12 @@ from .scenarios import (
     parametrisation_of as parametrisation_of,
     simulate_scenarios as simulate_scenarios,
     training_scenarios as training_scenarios,
+)
+from .validation import (
+    ValidationSet as ValidationSet,
+    simulate_validation as simulate_validation,
+    validate as validate,
+    validation_metrics as validation_metrics,
+    validation_scenario as validation_scenario,
+    validation_scenarios as validation_scenarios,
 )

@@ -11,7 +11,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .objectives import Metrics, evaluate, feasibility
+from .objectives import Metrics, evaluate, feasibility, objective_value, report_objective
 from .optimise import TuningResult, adam, local_search, optimise, random_search
 from .scenarios import (
     ScenarioSet,
@@ -20,6 +20,7 @@ from .scenarios import (
     simulate_scenarios,
     training_scenarios,
 )
+from .validation import ValidationSet, validate, validation_scenarios
 
 
 #: Names of the designs in a report, in the order they are reported ("paper": the
@@ -50,11 +51,15 @@ def descriptions(design) -> dict:
 class TuningReport:
     """Everything `run_tuning` computed (see `tuning._report.summary` for the JSON).
 
-    - `config`, `train`, `heldout`: the problem.
+    - `config`, `train`, `heldout`: the problem; `validation`: the closed-loop validation
+      runs (`tuning.validation`), never used in tuning.
     - `designs`: `{name: design}` for the names of `DESIGNS` that were run ("paper" is
       the observer's paper design, the tuner's starting point).
-    - `losses`: `{name: {"train": float, "heldout": float}}` (objective `config.objective`).
-    - `metrics`: `{name: {"train": Metrics, "heldout": Metrics}}` per scenario.
+    - `losses`: `{name: {"train": float, "heldout": float, "validation": float}}`
+      (objective `report_objective(config)`: the robust aggregate for the
+      "no_regression" objective, so that both report the same quantity).
+    - `metrics`: `{name: {"train": Metrics, "heldout": Metrics, "validation": Metrics}}`
+      per scenario.
     - `feasibility`: `{name: {"train": dict, "heldout": dict}}` (`objectives.feasibility`).
     - `results`: `{name: TuningResult}` of the optimisers.
     - `traces`: time traces of the hardest training scenario of the baseline.
@@ -64,6 +69,7 @@ class TuningReport:
     config: TuningConfig
     train: ScenarioSet
     heldout: ScenarioSet
+    validation: ValidationSet
     designs: dict
     losses: dict
     metrics: dict
@@ -110,7 +116,10 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     4. (`random`) two gradient-free searches with the same number of simulations:
        uniform random search over the box, and a local (1+1) evolution strategy;
     5. every design on the held-out grid, the exact feasibility check on both grids, and
-       time traces of the hardest training scenario (for the paper's design).
+       time traces of the hardest training scenario (for the paper's design);
+    6. every design on the validation set (`tuning.validation`: closed-loop,
+       speed-controlled runs with a ramp and a load step at other speeds, with mismatch
+       in every machine parameter and more noise).
     """
     t_start = time.perf_counter()
     timings = {}
@@ -127,8 +136,10 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     designs = {"paper": init}
     losses, metrics, results = {}, {}, {}
 
+    rep = report_objective(config)
+
     def score(name, split, scen):
-        value, m = evaluate(designs[name], config, scen, chunk=n)
+        value, m = evaluate(designs[name], config, scen, chunk=n, objective=rep)
         losses.setdefault(name, {})[split] = float(value)
         metrics.setdefault(name, {})[split] = m
 
@@ -136,12 +147,14 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     _say(log, f"evaluating the paper's design {label} (compiling the batch) ...")
     score("paper", "train", train)
     timings["baseline_s"] = time.perf_counter() - t
-    _say(log, f"  {label}: {config.objective} loss {losses['paper']['train']:.4f}")
+    _say(log, f"  {label}: {rep} loss {losses['paper']['train']:.4f}")
+    # the "no_regression" objective keeps every training loss near the paper design's
+    ref = metrics["paper"]["train"].loss
 
     t = time.perf_counter()
     _say(log, f"tuning with {config.optimiser} ({config.steps} steps; the first step "
               f"compiles the gradient) ...")
-    res = optimise(init, config, train, progress=progress)
+    res = optimise(init, config, train, progress=progress, reference=ref)
     results["tuned"], designs["tuned"] = res, res.value
     timings["tuning_s"] = time.perf_counter() - t
     _say(log, f"  {res.result}; best loss {res.loss:.4f}")
@@ -152,7 +165,7 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
         if restricted and restricted != config.tuned:
             t = time.perf_counter()
             _say(log, f"ablation: {about} ...")
-            r = adam(init, config, train, tuned=restricted, progress=progress)
+            r = adam(init, config, train, tuned=restricted, progress=progress, reference=ref)
             results[name], designs[name] = r, r.value
             timings[f"{name}_s"] = time.perf_counter() - t
             _say(log, f"  {r.result}; best loss {r.loss:.4f}")
@@ -162,13 +175,15 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
         n_designs = int(res.stats["steps"])
         _say(log, f"random search with the same budget ({n_designs} designs = "
                   f"{n_designs * n} simulations) ...")
-        r = random_search(init, config, train, n_designs=n_designs, progress=progress)
+        r = random_search(init, config, train, n_designs=n_designs, progress=progress,
+                          reference=ref)
         results["random_search"], designs["random_search"] = r, r.value
         timings["random_search_s"] = time.perf_counter() - t
         _say(log, f"  best loss {r.loss:.4f}")
         t = time.perf_counter()
         _say(log, "local (1+1) random search with the same budget ...")
-        r = local_search(init, config, train, n_designs=n_designs, progress=progress)
+        r = local_search(init, config, train, n_designs=n_designs, progress=progress,
+                         reference=ref)
         results["local_search"], designs["local_search"] = r, r.value
         timings["local_search_s"] = time.perf_counter() - t
         _say(log, f"  best loss {r.loss:.4f}")
@@ -185,10 +200,22 @@ def run_tuning(config: TuningConfig, *, progress: bool = True, log=print,
     timings["evaluation_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    val = validation_scenarios(config)
+    _say(log, f"validating on {val.n} closed-loop speed-controlled runs (ramp, load step, "
+              f"speeds +-{', '.join(f'{v:g}' for v in config.val_speeds_pu)} p.u., "
+              f"{len(config.val_cases)} mismatch/noise cases) ...")
+    for name, d in designs.items():
+        m = validate(d, config, val)
+        metrics[name]["validation"] = m
+        losses[name]["validation"] = float(objective_value(m.loss, config, objective=rep))
+    timings["validation_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
     traces = time_traces(designs, config, train, metrics["paper"]["train"])
     timings["traces_s"] = time.perf_counter() - t
     wall = time.perf_counter() - t_start
-    return TuningReport(config=config, train=train, heldout=held, designs=designs,
+    return TuningReport(config=config, train=train, heldout=held, validation=val,
+                        designs=designs,
                         losses=losses, metrics=metrics, feasibility=feas, results=results,
                         traces=traces, wall_time_s=wall, timings=timings)
 

@@ -25,6 +25,27 @@ $T\log\big(\frac1n\sum_j e^{\ell_j/T}\big)$ (log-mean-exp at temperature $T$, in
 units), which lies between the average and the maximum and tends to the maximum as
 $T \to 0$.
 
+**No regression** (`"no_regression"`, the main job's default). The robust aggregate is
+dominated by the hardest scenarios, so minimising it alone buys their improvement with
+regressions elsewhere (other speeds, other mismatch). The default objective minimises
+it subject to every training scenario's loss staying within a relative tolerance
+$\tau$ (`regression_tol`) of the baseline's $\ell_j^{b}$ (the paper's design, the
+tuner's start):
+$$L_{robust} + w\sum_j \mathrm{sp}_4\Big(\frac{r_j - \tau/2}{\tau}\Big),\qquad
+r_j = \frac{\ell_j - \ell_j^{b}}{\ell_j^{b}},\qquad
+\mathrm{sp}_4(x) = \tfrac14\log(1 + e^{4x})$$
+with $w$ = `w_regression` (loss units). A smooth penalty rather than a hard constraint
+because the optimisers (Adam, BFGS, Levenberg-Marquardt, the gradient-free searches) are
+unconstrained and work on unconstrained variables already; the hinge sits at $\tau/2$
+and rises over a fraction of $\tau$, so the iterates stay inside the tolerance with a
+margin, and far inside it the penalty is nearly flat (at $r_j = 0$ its slope is a tenth
+of that at the boundary: a mild pull towards improving every scenario, not a second
+objective). The constraint itself is enforced exactly by the optimisers' selection: for
+this objective a design becomes the best iterate only if no training scenario's loss
+exceeds the baseline's by more than $\tau$ (`within_tolerance`). The start (the
+baseline) satisfies it, so the returned design never has a training regression above
+$\tau$. Held-out and validation scenarios are not constrained: the report checks them.
+
 **Stability/feasibility penalty** (generic over the observer contract,
 `pmsmjax.observers.AbstractObserver`). At each scenario's operating point
 `OperatingPoint(w_0, i_0 = (0, i_q))`, with the observer's mismatched model
@@ -498,46 +519,99 @@ def scenario_losses(design, config: TuningConfig, scenarios: ScenarioSet,
                    ok=m["ok"], loss=loss)
 
 
-def aggregate(losses, objective: str, temperature: float):
-    """`"average"`: mean; `"robust"`: log-mean-exp at `temperature` (smooth maximum)."""
+_REG_SHARP = 4.0  # sharpness of the regression hinge (per tolerance)
+
+
+def regression_penalty(losses, reference, tol: float, weight: float):
+    r"""The no-regression penalty (module docstring): $w\sum_j \mathrm{sp}_4((r_j -
+    \tau/2)/\tau)$ with $r_j = (\ell_j - \ell_j^{ref})/\ell_j^{ref}$ the relative change
+    of scenario $j$'s loss against the reference design's, $\tau$ = `tol` and $w$ =
+    `weight` (loss units); $\mathrm{sp}_4(x) = \log(1 + e^{4x})/4$."""
+    ref = jnp.maximum(jnp.abs(reference), _EPS)
+    r = (losses - reference) / ref
+    return weight * jnp.sum(jax.nn.softplus(_REG_SHARP * (r - 0.5 * tol) / tol)) / _REG_SHARP
+
+
+def aggregate(losses, objective: str, temperature: float, *, reference=None,
+              tol: float = 0.01, weight: float = 0.2):
+    """`"average"`: mean; `"robust"`: log-mean-exp at `temperature` (smooth maximum);
+    `"no_regression"`: the robust value plus `regression_penalty` against the per-scenario
+    losses `reference` (of the baseline design; required) with `tol` and `weight`."""
     if objective == "average":
         return jnp.mean(losses)
-    if objective == "robust":
+    if objective in ("robust", "no_regression"):
         n = losses.shape[-1]
-        return temperature * (jax.scipy.special.logsumexp(losses / temperature, axis=-1)
-                              - math.log(n))
-    raise ValueError(f"unknown objective {objective!r}; choose 'robust' or 'average'.")
+        value = temperature * (jax.scipy.special.logsumexp(losses / temperature, axis=-1)
+                               - math.log(n))
+        if objective == "robust":
+            return value
+        if reference is None:
+            raise ValueError("the objective 'no_regression' needs the baseline's "
+                             "per-scenario losses (`reference=...`).")
+        return value + regression_penalty(losses, reference, tol, weight)
+    raise ValueError(f"unknown objective {objective!r}; choose 'no_regression', 'robust' "
+                     "or 'average'.")
+
+
+def objective_value(losses, config: TuningConfig, reference=None, *,
+                    objective: str | None = None):
+    """`aggregate` with `config`'s objective (or `objective`), temperature, tolerance
+    `regression_tol` and weight `w_regression`."""
+    obj = config.objective if objective is None else objective
+    return aggregate(losses, obj, config.temperature, reference=reference,
+                     tol=config.regression_tol, weight=config.w_regression)
+
+
+def report_objective(config: TuningConfig) -> str:
+    """The aggregate reports compare designs with: the objective without the
+    no-regression penalty ("robust" for "no_regression"), so that runs with either
+    objective report the same quantity."""
+    return "robust" if config.objective == "no_regression" else config.objective
+
+
+def relative_change(losses, reference):
+    """Relative change of each scenario's loss against `reference` (numpy)."""
+    lb = np.asarray(reference, dtype=float)
+    return (np.asarray(losses, dtype=float) - lb) / np.maximum(np.abs(lb), 1e-12)
+
+
+def within_tolerance(losses, reference, tol: float) -> bool:
+    """No scenario's loss exceeds its reference by more than `tol` (relative)."""
+    return bool(np.all(relative_change(losses, reference) <= tol))
 
 
 def loss(design, config: TuningConfig, scenarios: ScenarioSet,
          eqs: EquilibriumSet | None = None, *, objective: str | None = None,
-         kind: str | None = None):
+         kind: str | None = None, reference=None):
     """The tuning objective of `design` on `scenarios`: `(value, Metrics)`.
 
     `eqs`: equilibria for the stability penalty (`equilibria(design, config, scenarios)`);
-    pass them, or the penalty is left out."""
+    pass them, or the penalty is left out. `reference`: the baseline's per-scenario
+    losses (needed by the "no_regression" objective)."""
     m = scenario_losses(design, config, scenarios, eqs, kind=kind)
-    obj = config.objective if objective is None else objective
-    return aggregate(m.loss, obj, config.temperature), m
+    return objective_value(m.loss, config, reference, objective=objective), m
 
 
 def evaluate(design, config: TuningConfig, scenarios: ScenarioSet, *,
              objective: str | None = None, kind: str | None = None,
-             chunk: int | None = None):
+             chunk: int | None = None, reference=None):
     """`loss` with the penalty's equilibria computed for `design` first (not
     differentiable; use `loss` with `eqs` under `jax.grad`). Returns `(value, Metrics)`.
 
     `chunk`: evaluate the scenarios in batches of this size (the last one padded by
     repeating its final scenario), so that grids of other sizes reuse the compilation
-    for `chunk` scenarios; the result is the same as one batch.
+    for `chunk` scenarios; the result is the same as one batch. `reference`: as in
+    `loss`; without it the "no_regression" objective has nothing to compare with, and
+    the value is the robust aggregate the reports use (`report_objective`).
     """
-    obj = config.objective if objective is None else objective
+    if objective is None and reference is None:
+        objective = report_objective(config)
     ms = []
     for part in _chunks(scenarios, chunk):
         eqs = equilibria(design, config, part, kind) if config.w_stab > 0 else None
         ms.append(_metrics_jit(design, config, part, eqs, kind))
     m = jax.tree_util.tree_map(lambda *a: jnp.concatenate(a)[:scenarios.n], *ms)
-    return aggregate(m.loss, obj, config.temperature), m
+    return objective_value(m.loss, config, reference, objective=objective), m
 
 
 @eqx.filter_jit
@@ -546,11 +620,12 @@ def _metrics_jit(design, config, scenarios, eqs, kind):
 
 
 def residuals(design, config: TuningConfig, scenarios: ScenarioSet,
-              eqs: EquilibriumSet | None = None):
+              eqs: EquilibriumSet | None = None, reference=None):
     """Residuals for least squares, `(r, Metrics)`: $r_j = \\sqrt{\\ell_j/n}$ (so
     $\\|r\\|^2$ is the average objective) for `objective="average"`, and the single
-    residual $\\sqrt{L}$ of the smooth maximum $L$ for `"robust"`."""
+    residual $\\sqrt{L}$ of the smooth maximum $L$ for `"robust"` (with the regression
+    penalty for `"no_regression"`; `reference` as in `loss`)."""
     m = scenario_losses(design, config, scenarios, eqs)
     if config.objective == "average":
         return _safe_sqrt(m.loss / m.loss.shape[0]), m
-    return _safe_sqrt(aggregate(m.loss, "robust", config.temperature))[None], m
+    return _safe_sqrt(objective_value(m.loss, config, reference))[None], m

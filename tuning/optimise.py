@@ -12,7 +12,10 @@ speed-scheduled `GainSchedule` or the generic `ConstantDesign`; `eqx.partition` 
   that start the stability penalty's Newton steps (`objectives.equilibria`);
 - shows a tqdm progress bar with the current and best loss;
 - keeps the best iterate and stops early when the best loss improved by less than
-  `min_improvement` (relative) over the last `patience` steps;
+  `min_improvement` (relative) over the last `patience` steps; for the "no_regression"
+  objective only iterates whose training losses all stay within `regression_tol` of the
+  reference (the starting design's, unless `reference` is given) can be the best, so
+  the result never regresses a training scenario beyond the tolerance;
 - is deterministic: the noise keys come from `config.seed`, the random search draws from
   `jax.random.PRNGKey(seed)`, and nothing else is random.
 
@@ -37,7 +40,15 @@ import optimistix as optx
 from tqdm import tqdm
 
 from ._parametrise import AbstractDesign, filter_spec
-from .objectives import Metrics, equilibria, evaluate, loss, residuals
+from .objectives import (
+    Metrics,
+    equilibria,
+    evaluate,
+    loss,
+    objective_value,
+    residuals,
+    within_tolerance,
+)
 from .scenarios import ScenarioSet, TuningConfig
 
 
@@ -67,8 +78,11 @@ class TuningResult(eqx.Module):
 class _Tracker:
     """Best iterate, histories, progress bar and early stopping, shared by the loops."""
 
-    def __init__(self, method, steps, n_scen, config: TuningConfig, progress: bool):
+    def __init__(self, method, steps, n_scen, config: TuningConfig, progress: bool,
+                 reference=None):
         self.method, self.n_scen, self.config = method, n_scen, config
+        self.reference = None if reference is None else np.asarray(reference)
+        self.within = []
         self.best, self.best_value, self.best_metrics = None, np.inf, None
         self.losses, self.bests, self.sims, self.times = [], [], [], []
         self.t0 = time.perf_counter()
@@ -82,7 +96,9 @@ class _Tracker:
         self.losses.append(value)
         self.sims.append((len(self.sims) + 1) * self.n_scen)
         self.times.append(time.perf_counter() - self.t0)
-        if np.isfinite(value) and value < self.best_value:
+        ok = self.admissible(metrics)
+        self.within.append(ok)
+        if np.isfinite(value) and value < self.best_value and ok:
             self.best, self.best_value, self.best_metrics = params, value, metrics
         self.bests.append(self.best_value)
         self.bar.update(1)
@@ -95,11 +111,22 @@ class _Tracker:
             return False
         return before - now < self.config.min_improvement * abs(now)
 
+    def admissible(self, metrics) -> bool:
+        """Whether an iterate may be the best: always, except for the "no_regression"
+        objective, where every training loss must stay within `regression_tol` of the
+        reference."""
+        if self.reference is None or self.config.objective != "no_regression":
+            return True
+        return within_tolerance(metrics.loss, self.reference, self.config.regression_tol)
+
     def finish(self, static, message, compile_time, stopped_early) -> TuningResult:
         self.bar.close()
         if self.best is None:
-            raise RuntimeError(f"{self.method}: no finite loss was evaluated; the "
-                               "configuration makes every run diverge.")
+            raise RuntimeError(f"{self.method}: no admissible design was evaluated: every "
+                               "loss was non-finite (the configuration makes every run "
+                               "diverge) or, for the 'no_regression' objective, every "
+                               "design regressed a scenario beyond the tolerance against "
+                               "the given reference.")
         times = np.asarray(self.times)
         steps = np.diff(times, prepend=0.0)
         if steps.size > 1:  # the first evaluation's compilation replaced by a typical step
@@ -107,10 +134,21 @@ class _Tracker:
         stats = dict(loss=np.asarray(self.losses), best=np.asarray(self.bests),
                      n_simulations=np.asarray(self.sims), wall_time_s=times,
                      wall_time_warm_s=np.cumsum(steps),
+                     within_tolerance=np.asarray(self.within, dtype=bool),
                      compile_time_s=float(compile_time), steps=len(self.losses),
                      method=self.method, stopped_early=bool(stopped_early))
         return TuningResult(value=eqx.combine(self.best, static), loss=self.best_value,
                             metrics=self.best_metrics, result=message, stats=stats)
+
+
+def _reference(schedule, config, scenarios, reference):
+    """The per-scenario losses the "no_regression" objective compares with: `reference`
+    if given, else the starting design's (None for the other objectives)."""
+    if config.objective != "no_regression":
+        return None
+    if reference is None:
+        reference = evaluate(schedule, config, scenarios, objective="robust")[1].loss
+    return jnp.asarray(reference)
 
 
 def _eqs(schedule, config, scenarios):
@@ -142,9 +180,9 @@ def _adam_step(config: TuningConfig, diff, n_scen: int):
     if key not in _ADAM_STEPS:
         @eqx.filter_jit
         @eqx.debug.assert_max_traces(max_traces=1)
-        def step(diff, static, scenarios, opt_state, eqs, mask, lr):
+        def step(diff, static, scenarios, opt_state, eqs, mask, lr, ref):
             def f(d):
-                return loss(eqx.combine(d, static), config, scenarios, eqs)
+                return loss(eqx.combine(d, static), config, scenarios, eqs, reference=ref)
 
             (value, metrics), grads = eqx.filter_value_and_grad(f, has_aux=True)(diff)
             updates, opt_state = _optimiser(lr).update(grads, opt_state, diff)
@@ -158,14 +196,15 @@ def _adam_step(config: TuningConfig, diff, n_scen: int):
 
 def adam(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
          steps: int | None = None, learning_rate: float | None = None,
-         tuned=None, progress: bool = True) -> TuningResult:
+         tuned=None, progress: bool = True, reference=None) -> TuningResult:
     """Adam (optax) on the unconstrained tuned leaves, `config.steps` steps.
 
     The schedule is partitioned with `filter_spec(schedule, config.tuned)`; `tuned` (a
     subset of `config.tuned`, default all of it) restricts which of those leaves move
     (the others are masked by a PyTree built from `filter_spec(schedule, tuned)`), so a
     restricted run reuses the same compiled step. Non-finite gradient entries (a
-    diverged run's branch) are zeroed (`optax.zero_nans`).
+    diverged run's branch) are zeroed (`optax.zero_nans`). `reference`: the per-scenario
+    losses of the "no_regression" objective (default: the starting design's).
     """
     _check_schedule(schedule)
     steps = config.steps if steps is None else steps
@@ -184,14 +223,15 @@ def adam(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet,
     lr = jnp.asarray(lr, jnp.float64)
 
     name = "adam" if tuned == config.tuned else "adam*"
-    tr = _Tracker(name, steps, scenarios.n, config, progress)
+    ref = _reference(schedule, config, scenarios, reference)
+    tr = _Tracker(name, steps, scenarios.n, config, progress, ref)
     compile_time, stopped = 0.0, False
     message = f"finished {steps} steps"
     for k in range(steps):
         eqs = _eqs(eqx.combine(diff, static), config, scenarios)
         t = time.perf_counter()
         new_diff, opt_state, value, metrics = step(diff, static, scenarios, opt_state, eqs,
-                                                   mask, lr)
+                                                   mask, lr, ref)
         value = float(value)
         if k == 0:
             compile_time = time.perf_counter() - t
@@ -207,7 +247,7 @@ def adam(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet,
 _OPTX_FNS: dict = {}
 
 
-def _optx_fns(name, solver, fn, config, static, diff, scenarios, eqs, f_struct):
+def _optx_fns(name, solver, fn, config, static, diff, scenarios, eqs, ref, f_struct):
     """Compiled `init` and `step` of an optimistix solver for this problem (cached per
     configuration and problem shape, like the Adam step)."""
     key = (name, config, _signature(diff), _signature(static), scenarios.n)
@@ -215,10 +255,10 @@ def _optx_fns(name, solver, fn, config, static, diff, scenarios, eqs, f_struct):
         return _OPTX_FNS[key]
 
     def wrapped(d, args):
-        scen, eqs_ = args
-        return fn(eqx.combine(d, static), config, scen, eqs_)
+        scen, eqs_, ref_ = args
+        return fn(eqx.combine(d, static), config, scen, eqs_, reference=ref_)
 
-    aux_struct = eqx.filter_eval_shape(wrapped, diff, (scenarios, eqs))[1]
+    aux_struct = eqx.filter_eval_shape(wrapped, diff, (scenarios, eqs, ref))[1]
     options, tags = {}, frozenset()
 
     @eqx.filter_jit
@@ -239,21 +279,22 @@ def _optx_fns(name, solver, fn, config, static, diff, scenarios, eqs, f_struct):
 
 
 def _optx_loop(name, solver, fn, schedule, config, scenarios, steps, progress, f_struct,
-               tuned):
+               tuned, reference):
     tuned = config.tuned if tuned is None else tuple(tuned)
     spec = filter_spec(schedule, tuned)
     diff, static = eqx.partition(schedule, spec)
     eqs = _eqs(schedule, config, scenarios)
-    init, step = _optx_fns(name, solver, fn, config, static, diff, scenarios, eqs,
+    ref = _reference(schedule, config, scenarios, reference)
+    init, step = _optx_fns(name, solver, fn, config, static, diff, scenarios, eqs, ref,
                            f_struct)
-    tr = _Tracker(name, steps, scenarios.n, config, progress)
-    state = init(diff, (scenarios, eqs))
+    tr = _Tracker(name, steps, scenarios.n, config, progress, ref)
+    state = init(diff, (scenarios, eqs, ref))
     y = diff
     compile_time, stopped, message = 0.0, False, f"finished {steps} steps"
     for k in range(steps):
         t = time.perf_counter()
-        y_new, state, aux, done, result = step(y, state, (scenarios, eqs))
-        value = float(_objective_from_aux(aux, config))  # at the accepted point y_new
+        y_new, state, aux, done, result = step(y, state, (scenarios, eqs, ref))
+        value = float(objective_value(aux.loss, config, ref))  # at the accepted point y_new
         if k == 0:
             compile_time = time.perf_counter() - t
         early = tr.record(y_new, value, aux)
@@ -274,26 +315,21 @@ def _optx_loop(name, solver, fn, schedule, config, scenarios, steps, progress, f
     return tr.finish(static, message, compile_time, stopped)
 
 
-def _objective_from_aux(metrics: Metrics, config):
-    from .objectives import aggregate
-
-    return aggregate(metrics.loss, config.objective, config.temperature)
-
-
 def bfgs(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
-         steps: int | None = None, tuned=None, progress: bool = True) -> TuningResult:
+         steps: int | None = None, tuned=None, progress: bool = True,
+         reference=None) -> TuningResult:
     """BFGS (optimistix) on the objective, stepped manually for progress and history."""
     _check_schedule(schedule)
     steps = config.steps if steps is None else steps
     solver = optx.BFGS(rtol=1e-6, atol=1e-8)
     f_struct = jax.ShapeDtypeStruct((), jnp.float64)
     return _optx_loop("bfgs", solver, loss, schedule, config, scenarios, steps, progress,
-                      f_struct, tuned)
+                      f_struct, tuned, reference)
 
 
 def levenberg_marquardt(schedule: AbstractDesign, config: TuningConfig,
                         scenarios: ScenarioSet, *, steps: int | None = None, tuned=None,
-                        progress: bool = True) -> TuningResult:
+                        progress: bool = True, reference=None) -> TuningResult:
     """Levenberg-Marquardt (optimistix) on `objectives.residuals` (forward-mode
     Jacobian: one column per tuned variable)."""
     _check_schedule(schedule)
@@ -302,12 +338,12 @@ def levenberg_marquardt(schedule: AbstractDesign, config: TuningConfig,
     n_res = scenarios.n if config.objective == "average" else 1
     f_struct = jax.ShapeDtypeStruct((n_res,), jnp.float64)
     return _optx_loop("lm", solver, residuals, schedule, config, scenarios, steps, progress,
-                      f_struct, tuned)
+                      f_struct, tuned, reference)
 
 
 def random_search(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
                   n_designs: int, box: float = 3.0, seed: int | None = None, tuned=None,
-                  progress: bool = True) -> TuningResult:
+                  progress: bool = True, reference=None) -> TuningResult:
     """Gradient-free baseline: `n_designs` designs, the first one `schedule` itself, the
     others uniform in the unconstrained box `[-box, box]` of every tuned variable (the
     whole physical box but its outer 5% in the logistic map for `box = 3`), drawn from
@@ -323,12 +359,13 @@ def random_search(schedule: AbstractDesign, config: TuningConfig, scenarios: Sce
     key = jr.PRNGKey(config.seed if seed is None else seed)
     z = jr.uniform(key, (n_designs, flat.shape[0]), flat.dtype, -box, box)
     z = z.at[0].set(flat)
-    tr = _Tracker("random", n_designs, scenarios.n, config, progress)
+    ref = _reference(schedule, config, scenarios, reference)
+    tr = _Tracker("random", n_designs, scenarios.n, config, progress, ref)
     compile_time, stopped, message = 0.0, False, f"evaluated {n_designs} designs"
     for k in range(n_designs):
         d = unravel(z[k])
         t = time.perf_counter()
-        value, metrics = evaluate(eqx.combine(d, static), config, scenarios)
+        value, metrics = evaluate(eqx.combine(d, static), config, scenarios, reference=ref)
         value = float(value)
         if k == 0:
             compile_time = time.perf_counter() - t
@@ -338,7 +375,7 @@ def random_search(schedule: AbstractDesign, config: TuningConfig, scenarios: Sce
 
 def local_search(schedule: AbstractDesign, config: TuningConfig, scenarios: ScenarioSet, *,
                  n_designs: int, sigma: float = 0.3, seed: int | None = None, tuned=None,
-                 progress: bool = True) -> TuningResult:
+                 progress: bool = True, reference=None) -> TuningResult:
     """Gradient-free (1+1) evolution strategy: start at `schedule`; each evaluation
     perturbs the best point so far by `sigma` times a standard normal vector in the
     unconstrained variables, keeps it if it is better, and adapts `sigma` by the 1/5th
@@ -354,19 +391,21 @@ def local_search(schedule: AbstractDesign, config: TuningConfig, scenarios: Scen
     flat, unravel = jax.flatten_util.ravel_pytree(diff)
     noise = jr.normal(jr.PRNGKey(config.seed if seed is None else seed),
                       (n_designs, flat.shape[0]), flat.dtype)
-    tr = _Tracker("local", n_designs, scenarios.n, config, progress)
+    ref = _reference(schedule, config, scenarios, reference)
+    tr = _Tracker("local", n_designs, scenarios.n, config, progress, ref)
     z_best, f_best, compile_time = flat, np.inf, 0.0
     for k in range(n_designs):
         z = flat if k == 0 else z_best + sigma * noise[k]
         d = unravel(z)
         t = time.perf_counter()
-        value, metrics = evaluate(eqx.combine(d, static), config, scenarios)
+        value, metrics = evaluate(eqx.combine(d, static), config, scenarios, reference=ref)
         value = float(value)
         if k == 0:
             compile_time = time.perf_counter() - t
+        better = value < f_best and tr.admissible(metrics)
         if k > 0:
-            sigma *= 1.5 if value < f_best else 0.9
-        if value < f_best:
+            sigma *= 1.5 if better else 0.9
+        if better:
             z_best, f_best = z, value
         tr.record(d, value, metrics)
     return tr.finish(static, f"evaluated {n_designs} designs", compile_time, False)

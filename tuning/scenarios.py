@@ -53,11 +53,29 @@ from ._parametrise import (
 )
 
 
-OBJECTIVES = ("robust", "average")
+OBJECTIVES = ("no_regression", "robust", "average")
 OPTIMISERS = ("adam", "bfgs", "lm")
 #: How the design is parametrised: "auto" follows the observer's declaration
 #: (`speed_scheduled` -> "scheduled", else "constant").
 PARAMETRISATIONS = ("auto", "scheduled", "constant")
+
+#: Default validation cases `(k_d, k_q, k_R, k_psi, k_noise)` (observer / plant; noise in
+#: units of `noise_std`): matched; both inductances low, high, crossed; R_s high (hot
+#: winding) and low; psi_f high and low (hot magnet); all at once with more noise; more
+#: noise alone.
+VALIDATION_CASES = (
+    (1.0, 1.0, 1.0, 1.0, 1.0),
+    (0.7, 0.7, 1.0, 1.0, 1.0),
+    (1.3, 1.3, 1.0, 1.0, 1.0),
+    (0.7, 1.3, 1.0, 1.0, 1.0),
+    (1.3, 0.7, 1.0, 1.0, 1.0),
+    (1.0, 1.0, 1.5, 1.0, 1.0),
+    (1.0, 1.0, 0.7, 1.0, 1.0),
+    (1.0, 1.0, 1.0, 1.1, 1.0),
+    (1.0, 1.0, 1.0, 0.85, 1.0),
+    (1.2, 1.2, 1.3, 0.9, 2.5),
+    (1.0, 1.0, 1.0, 1.0, 3.0),
+)
 
 #: The design parameter (`design_units`) behind each quantity of `GainSchedule`.
 SCHEDULE_PARAMETERS = {"zeta1": "zeta1", "ratio": "ratio", "zeta2": "zeta2", "w2": "w2",
@@ -181,8 +199,14 @@ class TuningConfig:
       the transient (per `theta_unit_deg`), the settling-time surrogate (per
       `settle_unit_s`), the speed-estimate noise (per `noise_unit_rad_s`) and the
       stability/feasibility penalty.
-    - `objective`: `"robust"` (smooth maximum over scenarios with `temperature`, in loss
-      units) or `"average"`.
+    - `objective`: `"no_regression"` (the default: the robust objective subject to no
+      training scenario's loss exceeding the paper design's by more than
+      `regression_tol`, relative; a smooth penalty of weight `w_regression`, loss units,
+      plus the optimisers keeping only designs within the tolerance; see
+      `tuning.objectives`), `"robust"` (smooth maximum over scenarios with
+      `temperature`, in loss units) or `"average"`.
+    - `regression_tol`: also the tolerance of the report's per-scenario accounting
+      (a scenario changed by more than it counts as improved or worse).
     - `hurwitz_margin` (rad/s): required decay rate of the linearised error dynamics at
       the designed equilibrium; `n_grid`: grid of the equilibrium search.
     - `diverged_loss`: the loss of a run that diverged (finite, large).
@@ -194,6 +218,17 @@ class TuningConfig:
       the best loss improved by less than `min_improvement`, relative, over the last
       `patience` steps), `seed` (noise keys and random search).
     - `save_every`: samples kept per run (every n-th), bounds memory.
+
+    **Validation** (`tuning.validation`: closed-loop, speed-controlled sensorless runs
+    the tuner never sees)
+
+    - `val_speeds_pu`: final speeds (p.u., each run with both signs), nonzero.
+    - `val_cases`: rows `(k_d, k_q, k_R, k_psi, k_noise)`: observer value / plant value
+      of $L_d$, $L_q$, $R_s$, $\\psi_f$ and the current noise in units of `noise_std`;
+      every case runs at every speed.
+    - `val_t_end` (s): run length; `val_start_frac`: the run starts at this fraction of
+      its final speed and ramps to it; `val_load_pu`: the load step (p.u. of rated
+      torque).
     """
 
     motor: str = "zhang750"
@@ -223,8 +258,10 @@ class TuningConfig:
     theta_unit_deg: float = 1.0
     settle_unit_s: float = 0.01
     noise_unit_rad_s: float = 0.1
-    objective: str = "robust"
+    objective: str = "no_regression"
     temperature: float = 0.5
+    regression_tol: float = 0.01
+    w_regression: float = 0.2
     hurwitz_margin: float = 20.0
     n_grid: int = 64
     diverged_loss: float = 1e3
@@ -235,6 +272,11 @@ class TuningConfig:
     min_improvement: float = 1e-3
     seed: int = 0
     save_every: int = 4
+    val_speeds_pu: tuple = (0.1, 0.4, 0.5, 0.8)
+    val_cases: tuple = VALIDATION_CASES
+    val_t_end: float = 0.5
+    val_start_frac: float = 0.6
+    val_load_pu: float = 0.4
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -265,13 +307,14 @@ class TuningConfig:
                 raise ValueError(f"`TuningConfig({name}=...)` must be one of "
                                  f"{', '.join(allowed)}; got {getattr(self, name)!r}.")
         for name, unit in (("T_s", "s"), ("t_end", "s"), ("theta_unit_deg", "deg"),
+                           ("regression_tol", "relative"),
                            ("settle_unit_s", "s"), ("noise_unit_rad_s", "rad/s"),
                            ("temperature", "loss units"), ("diverged_loss", "loss units")):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"`TuningConfig({name}=...)` ({unit}) must be a finite "
                                  f"number > 0; got {v!r}.")
-        for name in ("noise_std", "w_pos", "w_settle", "w_noise", "w_stab",
+        for name in ("noise_std", "w_pos", "w_settle", "w_noise", "w_stab", "w_regression",
                      "hurwitz_margin", "learning_rate", "min_improvement"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
@@ -342,6 +385,7 @@ class TuningConfig:
         if not self.training_mismatch():
             raise ValueError("The mismatch grid is empty: set `n_mismatch` >= 1 (or give "
                              "`mismatch_values`).")
+        self._check_validation(drive)
         if self.n_heldout < 1:
             raise ValueError("The held-out mismatch grid is empty: set `n_heldout` >= 1.")
         common = set(np.round(self.training_mismatch(), 12)) & set(
@@ -355,6 +399,39 @@ class TuningConfig:
             self._check_constant()
         # the starting design must lie inside the bounds (raises a clear ValueError)
         self.initial_schedule()
+
+    def _check_validation(self, drive):
+        set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
+        sp = _tuple(self.val_speeds_pu)
+        if not sp or any(not (math.isfinite(x) and 0 < abs(x) <= 2) for x in sp):
+            raise ValueError("`TuningConfig(val_speeds_pu=...)` must be nonzero speeds "
+                             f"within +-2 p.u. (at least one); got {self.val_speeds_pu!r}.")
+        set_("val_speeds_pu", sp)
+        try:
+            cases = np.asarray(self.val_cases, dtype=float).reshape(-1, 5)
+        except ValueError:
+            raise ValueError("`TuningConfig(val_cases=...)` must be rows (k_d, k_q, k_R, "
+                             f"k_psi, k_noise); got {self.val_cases!r}.") from None
+        if cases.shape[0] == 0 or np.any(~np.isfinite(cases)) or np.any(cases[:, :4] <= 0) \
+                or np.any(cases[:, 4] < 0):
+            raise ValueError("`TuningConfig(val_cases=...)` needs at least one row of "
+                             "factors > 0 (noise factor >= 0); got "
+                             f"{self.val_cases!r}.")
+        set_("val_cases", tuple(tuple(float(x) for x in r) for r in cases))
+        n = int(round(self.val_t_end / self.T_s)) if self.val_t_end > 0 else 0
+        if n < 8 or n % self.save_every or abs(n * self.T_s - self.val_t_end) > 1e-9:
+            raise ValueError(f"`TuningConfig(val_t_end=...)` (s) must be a whole number of "
+                             f"save_every x T_s periods (>= 8 steps); got "
+                             f"{self.val_t_end!r}.")
+        if not 0 <= self.val_start_frac <= 2:
+            raise ValueError("`TuningConfig(val_start_frac=...)` must lie in [0, 2]; got "
+                             f"{self.val_start_frac!r}.")
+        i_q = abs(self.val_load_pu) * float(drive.tau_rated) / (
+            float(drive.k_tau) * float(drive.three_phase_motor.psi_f))
+        if not math.isfinite(i_q) or i_q >= float(drive.i_max):
+            raise ValueError(f"`TuningConfig(val_load_pu=...)` {self.val_load_pu!r} needs "
+                             f"i_q {i_q:.3g} A, above the drive's limit "
+                             f"{float(drive.i_max):.3g} A.")
 
     def _check_scheduled(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -502,10 +579,14 @@ class TuningConfig:
     @classmethod
     def quick(cls, **changes) -> TuningConfig:
         """A tiny configuration (tests, smoke runs): 2 x 2 mismatch grid at one speed and
-        one load, 0.1 s runs at 4 kHz, a two-node schedule, 12 Adam steps."""
+        one load, 0.1 s runs at 4 kHz, a two-node schedule, 12 Adam steps; validation:
+        three cases at +-0.5 p.u., 0.3 s runs."""
         kw = dict(T_s=250e-6, t_end=0.1, t_transient=0.05, speeds_pu=(0.4,),
                   loads_pu=(0.5,), n_mismatch=2, n_heldout=3, nodes_pu=(0.2, 0.6),
-                  steps=12, patience=6, learning_rate=0.15, save_every=2)
+                  steps=12, patience=6, learning_rate=0.15, save_every=2,
+                  val_speeds_pu=(0.5,), val_t_end=0.3,
+                  val_cases=((1.0, 1.0, 1.0, 1.0, 1.0), (0.7, 1.3, 1.0, 1.0, 1.0),
+                             (1.2, 1.2, 1.3, 0.9, 2.5)))
         kw.update(changes)
         return cls(**kw)
 
