@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 
 import pmsmjax as pj
 
@@ -46,4 +47,8 @@ def observer_with_design(args, drive: pj.Drive, *, default: str) -> ObserverChoi
         raise CLIError(f"--design {args.design} sets the whole design; the design options "
                        f"({', '.join(choice.gains)}) are not allowed with it")
     observer = pj.apply_gains_table(table, choice.observer)
+    if table.get("drive") and table["drive"] != drive.name:
+        print(f"note: --design {args.design} was tuned for drive {table['drive']!r}; this "
+              f"run uses {drive.name!r} (pass its motor file with --motor-file)",
+              file=sys.stderr)
     return dataclasses.replace(choice, observer=observer)
