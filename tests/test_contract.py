@@ -142,7 +142,7 @@ def test_closed_loop_run_follows_the_continuous_error_dynamics(name):
     rhs = lambda t, x, args: obs.error_rhs(x, OperatingPoint(w, i, w * t), plant)  # noqa: E731
     sol = dfx.diffeqsolve(dfx.ODETerm(rhs),
                           dfx.Tsit5(), 0.0, float(ts[-1]), T_s, x0,
-                          saveat=dfx.SaveAt(ts=ts),
+                          saveat=dfx.SaveAt(ts=ts), max_steps=max(4096, 4 * N),
                           stepsize_controller=dfx.PIDController(rtol=1e-9, atol=1e-12))
     D = obs.error_scale(op, plant)
     dev = jnp.max(jnp.abs((xs - sol.ys) / D))
