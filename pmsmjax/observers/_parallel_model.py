@@ -315,8 +315,9 @@ class ParallelModelObserver(AbstractObserver):
         "e_ab_hat": "V, estimated (extended) back-EMF, stationary frame (2,), at "
                     "t_{k-1/2}",
     }
+    # T_LP >= 0.5 x 0.5 ms keeps the forward-Euler filters stable down to 4 kHz
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
-        "v1": (0.1, 10.0), "v2": (0.2, 5.0), "T_LP": (0.2, 5.0)}
+        "v1": (0.1, 10.0), "v2": (0.2, 5.0), "T_LP": (0.5, 4.0)}
 
     def __init__(self, motor: PMSMParams, v1=16000.0, v2=253.0, T_LP=0.5e-3, T_w=2e-3):
         if not isinstance(motor, PMSMParams):
