@@ -16,8 +16,8 @@ from pmsmjax.observers import Measurement, make_observer
 from pmsmjax.observers._parallel_model import (
     d_current_feedforward,
     polar,
-    position_estimate,
-    position_estimate_printed,
+    parallel_model_angle,
+    parallel_model_angle_printed,
     parallel_model_offset,
 )
 
@@ -46,9 +46,9 @@ def test_case_rule_17_corrected_and_printed(w):
     th, ph = jnp.asarray(th), jnp.asarray(ph)
     e_P, e_O = -psi * w * jnp.sin(th - ph), psi * w * jnp.cos(th - ph)
     s = 1.0 if w > 0 else -1.0
-    err = pj.angle_error(th, position_estimate(e_P, e_O, ph, s))
+    err = pj.angle_error(th, parallel_model_angle(e_P, e_O, ph, s))
     assert float(jnp.max(jnp.abs(err))) < 1e-12
-    printed = np.abs(np.asarray(pj.angle_error(th, position_estimate_printed(e_P, e_O, ph))))
+    printed = np.abs(np.asarray(pj.angle_error(th, parallel_model_angle_printed(e_P, e_O, ph))))
     ok = np.abs(np.cos(np.asarray(th - ph))) > 1e-6  # (16) divides by cos(theta - phi)
     if w > 0:
         assert printed[ok].max() < 1e-12

@@ -76,6 +76,16 @@ VALIDATION_CASES = (
     (1.2, 1.2, 1.3, 0.9, 2.5),
     (1.0, 1.0, 1.0, 1.0, 3.0),
 )
+#: Per-motor defaults of `python -m tuning` (`TuningConfig` fields by preset name), applied
+#: for `--motor NAME` unless an option sets the field (not with `--quick`). One entry per
+#: preset; add yours without touching the others.
+MOTOR_DEFAULTS: dict[str, dict] = {}
+
+# stumper_mt5: Fig. 1's speed (300 rpm = 0.1 p.u.) to rated; loads up to half rated (the
+# 6.3 A limit carries 0.76 p.u. of the printed 8.8 N m); inductance model errors over
+# 0.5 .. 2 L (Fig. 1 spans 0 .. 3 L); 16 kHz as the paper's drive
+MOTOR_DEFAULTS["stumper_mt5"] = dict(T_s=62.5e-6, speeds_pu=(0.1, 0.5, 1.0),
+                                     loads_pu=(0.0, 0.5), mismatch=(0.5, 2.0))
 
 #: The design parameter (`design_units`) behind each quantity of `GainSchedule`.
 SCHEDULE_PARAMETERS = {"zeta1": "zeta1", "ratio": "ratio", "zeta2": "zeta2", "w2": "w2",

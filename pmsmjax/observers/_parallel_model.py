@@ -151,13 +151,13 @@ def _safe_atan2(y, x, fallback):
                      fallback), ok
 
 
-def position_estimate(e_P, e_O, phi, s):
+def parallel_model_angle(e_P, e_O, phi, s):
     r"""stumper (16)-(17), corrected: $\hat\theta = \phi + \mathrm{atan2}(-s e_P, s e_O)$
     (rad, not wrapped) for the rotation direction `s` (+1 or -1)."""
     return phi + jnp.arctan2(-s * e_P, s * e_O)
 
 
-def position_estimate_printed(e_P, e_O, phi):
+def parallel_model_angle_printed(e_P, e_O, phi):
     """stumper (16)-(17) as printed: `-arctan((L rho_dot + R rho - u_P)/(L rho phi_dot +
     u_O)) + phi`, plus pi where `-L rho phi_dot - u_O < 0`. Correct only for positive
     speed (kept to show the erratum)."""
@@ -233,7 +233,7 @@ def parallel_model_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor"
                      f"got {frame!r}.")
 
 
-def printed_offsets(plant: PMSMParams, dR, dL, w_m, i_dq):
+def parallel_model_offsets_printed(plant: PMSMParams, dR, dL, w_m, i_dq):
     """stumper (31) and (32) as printed (rad): `(dtheta_L, dtheta_R)`, with
     `n_p phi_M - phi = -atan2(i_q, i_d)` and the paper's K = `psi_f`, omega_M = w_m/n_p.
     Kept to show the errata (see `parallel_model_offset` for the derivation)."""
@@ -315,8 +315,9 @@ class ParallelModelObserver(AbstractObserver):
         "e_ab_hat": "V, estimated (extended) back-EMF, stationary frame (2,), at "
                     "t_{k-1/2}",
     }
+    # T_LP >= 0.5 x 0.5 ms keeps the forward-Euler filters stable down to 4 kHz
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
-        "v1": (0.1, 10.0), "v2": (0.2, 5.0), "T_LP": (0.2, 5.0)}
+        "v1": (0.1, 10.0), "v2": (0.2, 5.0), "T_LP": (0.5, 4.0)}
 
     def __init__(self, motor: PMSMParams, v1=16000.0, v2=253.0, T_LP=0.5e-3, T_w=2e-3):
         if not isinstance(motor, PMSMParams):

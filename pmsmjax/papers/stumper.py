@@ -36,11 +36,13 @@ from .._replay import replay_estimates
 from .._scenario import Profile, Scenario
 from .._simulate import simulate
 from ..analysis import equilibria_traced
-from ..observers import OperatingPoint, ParallelModelObserver, SensoredObserver
-from ..observers._parallel_model import (
+from ..observers import (
+    OperatingPoint,
+    ParallelModelObserver,
+    SensoredObserver,
     d_current_feedforward,
     parallel_model_offset,
-    printed_offsets,
+    parallel_model_offsets_printed,
 )
 
 
@@ -155,7 +157,7 @@ def sensitivity(n: int = 9, n_closed: int = 3, drive: Drive | None = None,
         dRc, dLc = (xc, 0 * xc) if name == "R" else (0 * xc, xc)
         sim = jax.vmap(open_loop)(jnp.asarray(dR), jnp.asarray(dL))
         eq, n_stable = jax.vmap(equilibrium)(jnp.asarray(dR), jnp.asarray(dL))
-        pr_L, pr_R = printed_offsets(m, dR, dL, w, jnp.asarray(i_dq))
+        pr_L, pr_R = parallel_model_offsets_printed(m, dR, dL, w, jnp.asarray(i_dq))
         deg = lambda a: np.degrees(np.asarray(a))  # noqa: E731
         axes[name] = dict(
             x=x, x_closed=xc,
