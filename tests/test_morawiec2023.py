@@ -70,3 +70,19 @@ def test_experiments_meet_the_published_bounds_where_the_paper_gives_them(name):
 def test_unknown_experiment_is_named():
     with pytest.raises(ValueError, match="Unknown experiment 'fig99'.*fig7a"):
         mp.experiment("fig99")
+
+
+def test_tuning_has_a_default_grid_for_the_motor_and_leaves_others_alone():
+    import tuning
+    from tuning.__main__ import build_parser, config_from_args
+
+    c = config_from_args(build_parser().parse_args(
+        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5"]))
+    assert c.T_s == pytest.approx(1 / 6600) and c.mismatch == (0.7, 1.5)
+    assert c.observer == "rotor-flux" and c.speeds_pu == (0.2, 0.5, 1.0)
+    z = config_from_args(build_parser().parse_args(["--motor", "zhang750"]))
+    assert z == tuning.TuningConfig()
+    # an explicit option still wins over the motor's default
+    c2 = config_from_args(build_parser().parse_args(
+        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5", "--speeds", "0.3"]))
+    assert c2.speeds_pu == (0.3,) and c2.T_s == pytest.approx(1 / 6600)

@@ -63,6 +63,7 @@ from .optimise import (
     random_search as random_search,
 )
 from .scenarios import (
+    MOTOR_DEFAULTS as MOTOR_DEFAULTS,
     PARAMETRISATIONS as PARAMETRISATIONS,
     ScenarioSet as ScenarioSet,
     TuningConfig as TuningConfig,
