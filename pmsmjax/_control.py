@@ -60,24 +60,41 @@ class CurrentRefs(eqx.Module):
 
     **Arguments:**
 
-    - `strategy`: `"id_const"` (constant `i_d`) or `"mtpa"`.
+    - `strategy`: `"id_const"` (constant `i_d`), `"mtpa"`, or `"mtpa_fw"`: MTPA below
+      the voltage limit and field weakening above it (`field_weakening`; needs the
+      speed and the voltage limit, which `FOC.step` passes).
     - `i_d`: the constant d-current reference for `"id_const"` (A).
     - `i_max`: current-vector limit (A); `i_q` is reduced to respect it.
+    - `u_margin`: for `"mtpa_fw"`, the fraction of the voltage limit the steady-state
+      flux may use (-, default 0.9: headroom for the resistive drop and the current
+      controller).
     """
 
     strategy: str = eqx.field(static=True)
     i_d: float
     i_max: float
+    u_margin: float = 0.9
 
     def __check_init__(self):
-        if self.strategy not in ("id_const", "mtpa"):
+        if self.strategy not in ("id_const", "mtpa", "mtpa_fw"):
             raise ValueError(
-                f"`CurrentRefs(strategy=...)` must be 'id_const' or 'mtpa'; got "
-                f"{self.strategy!r}."
+                f"`CurrentRefs(strategy=...)` must be 'id_const', 'mtpa' or 'mtpa_fw'; "
+                f"got {self.strategy!r}."
             )
         check_positive("CurrentRefs", "i_max", self.i_max, "A")
+        check_positive("CurrentRefs", "u_margin", self.u_margin, "-")
 
-    def __call__(self, tau_ref, motor: PMSMParams, k_tau):
+    def __call__(self, tau_ref, motor: PMSMParams, k_tau, w=None, u_max=None):
+        """Current references (A) for torque `tau_ref` (N m); `w` (rad/s, electrical)
+        and `u_max` (V) are used by `"mtpa_fw"` only."""
+        if self.strategy == "mtpa_fw":
+            if w is None or u_max is None:
+                raise ValueError("`CurrentRefs(strategy='mtpa_fw')` needs the speed `w` "
+                                 "(rad/s) and the voltage limit `u_max` (V).")
+            mtpa = CurrentRefs("mtpa", self.i_d, self.i_max, self.u_margin)
+            i_mtpa = mtpa(tau_ref, motor, k_tau)
+            return field_weakening(i_mtpa, tau_ref, motor, k_tau, w,
+                                   self.u_margin * u_max, self.i_max)
         dL = motor.L_d - motor.L_q
         if self.strategy == "id_const":
             i_d = self.i_d + 0.0 * tau_ref
@@ -98,6 +115,41 @@ class CurrentRefs(eqx.Module):
         i_q_max = jnp.sqrt(jnp.maximum(self.i_max ** 2 - i_d ** 2, 0.0))
         i_q = jnp.clip(i_q, -i_q_max, i_q_max)
         return jnp.stack([i_d, i_q], -1)
+
+
+def _safe_sqrt(x):
+    """sqrt(max(x, 0)) with a finite derivative (0) where x <= 0."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)
+
+
+def field_weakening(i_dq, tau_ref, motor: PMSMParams, k_tau, w, u_lim, i_max):
+    r"""Voltage-limit-aware current references (A) from references `i_dq` (A, e.g. MTPA).
+
+    In steady state and neglecting the resistance the voltage is $|\omega|\,|\psi|$,
+    $\psi = [L_d i_d + \psi_f, L_q i_q]$; with $\psi_{max} = u_{lim}/|\omega|$ the d-current
+    is lowered where needed to $i_d = (-\psi_f + \sqrt{\psi_{max}^2 - (L_q i_q)^2})/L_d$
+    (at most to $-\psi_f/L_d$, the centre of the voltage ellipse), the q-current is then
+    recomputed for the torque `tau_ref` (N m) and limited to the voltage ellipse and the
+    current circle `i_max` (A). A fixed number (8) of these passes (a contraction
+    towards the intersection of the torque curve and the voltage ellipse): differentiable
+    and vmappable. `w` electrical speed (rad/s), `u_lim` usable voltage amplitude (V).
+    """
+    dL = motor.L_d - motor.L_q
+    psi_max = u_lim / jnp.maximum(jnp.abs(w), 1e-9)
+    i_d_floor = jnp.maximum(-motor.psi_f / motor.L_d, -i_max)
+    i_d, i_q = i_dq[..., 0], i_dq[..., 1]
+    for _ in range(8):
+        room = psi_max ** 2 - (motor.L_q * i_q) ** 2
+        i_d_v = (-motor.psi_f + _safe_sqrt(room)) / motor.L_d
+        i_d_v = jnp.where(room > 0, i_d_v, i_d_floor)
+        i_d = jnp.clip(jnp.minimum(i_dq[..., 0], i_d_v), i_d_floor, None)
+        i_q = tau_ref / (k_tau * (motor.psi_f + dL * i_d))
+        q_v = _safe_sqrt(psi_max ** 2 - (motor.L_d * i_d + motor.psi_f) ** 2) / motor.L_q
+        q_i = _safe_sqrt(i_max ** 2 - i_d ** 2)
+        q_lim = jnp.minimum(q_v, q_i)
+        i_q = jnp.clip(i_q, -q_lim, q_lim)
+    return jnp.stack([i_d, i_q], -1)
 
 
 class CurrentControllerState(eqx.Module):
@@ -254,7 +306,8 @@ class FOC(eqx.Module):
         """
         if speed_mode:
             s_state, tau_ref = self.speed.step(state.speed, w_ref, w_hat, T_s)
-            i_ref = self.refs(tau_ref, self.current.motor, self.k_tau)
+            i_ref = self.refs(tau_ref, self.current.motor, self.k_tau, w=w_hat,
+                              u_max=self.current.u_max)
         else:
             s_state = state.speed
             i_ref = i_ref_override

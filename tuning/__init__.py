@@ -71,6 +71,7 @@ from .optimise import (
 )
 from .scenarios import (
     OBJECTIVES as OBJECTIVES,
+    MOTOR_DEFAULTS as MOTOR_DEFAULTS,
     PARAMETRISATIONS as PARAMETRISATIONS,
     ScenarioSet as ScenarioSet,
     TuningConfig as TuningConfig,

@@ -114,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args) -> TuningConfig:
     d = TuningConfig()
-    base = TuningConfig.quick() if args.quick else d
+    base = TuningConfig.quick() if args.quick else TuningConfig.for_motor(args.motor)
     kw = {}
     # an option changes the configuration only if it differs from the CLI default, so
     # that --quick keeps its own values unless an option overrides them

@@ -587,6 +587,12 @@ class TuningConfig:
         return d
 
     @classmethod
+    def for_motor(cls, motor: str, **changes) -> TuningConfig:
+        """The default configuration with the motor's own defaults (`MOTOR_DEFAULTS`,
+        where the motor has any) and then `changes`."""
+        return cls(**{"motor": motor, **MOTOR_DEFAULTS.get(motor, {}), **changes})
+
+    @classmethod
     def quick(cls, **changes) -> TuningConfig:
         """A tiny configuration (tests, smoke runs): 2 x 2 mismatch grid at one speed and
         one load, 0.1 s runs at 4 kHz, a two-node schedule, 12 Adam steps; validation:
@@ -599,6 +605,14 @@ class TuningConfig:
                              (1.2, 1.2, 1.3, 0.9, 2.5)))
         kw.update(changes)
         return cls(**kw)
+
+
+#: morawiec2023: its drive samples at 6.6 kHz; Figs. 12-16 run at 0.2-0.5 p.u. (Fig. 7 to
+#: 1 p.u. and above) under load; Fig. 16 changes L_d up to 2 L_dN and L_q from 0.3 to
+#: 1.5 L_qN (1.5 is "the verge of stability"): the training range 0.7-1.5 on both.
+MOTOR_DEFAULTS["morawiec_ipm3k5"] = dict(
+    T_s=1.0 / 6600.0, t_end=0.2, t_transient=0.1, speeds_pu=(0.2, 0.5, 1.0),
+    loads_pu=(0.0, 0.5), mismatch=(0.7, 1.5), save_every=4)
 
 
 class ScenarioSet(eqx.Module):

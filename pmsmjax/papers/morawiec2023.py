@@ -160,3 +160,162 @@ def spectrum_sweep(name: str, drive: Drive | None = None, *, n_floquet: int = 64
     av, fl = jax.vmap(exact)(stack)
     return Spectra(name=name, parameter=par, values=vals, printed=printed,
                    averaged=np.asarray(av), floquet=np.asarray(fl), settings=base)
+
+
+# ---------------------------------------------------------------------------------------
+# Closed-loop experiments (Sec. III end and Sec. IV)
+# ---------------------------------------------------------------------------------------
+
+#: The experiments; `experiment(name)` builds each.
+EXPERIMENTS = ("fig7a", "fig7b", "fig10b", "fig11a", "fig12", "fig13_kc0", "fig13_kc15",
+               "fig14a", "fig16a", "fig16b")
+
+#: Numbers the paper prints (speed errors in p.u. of w_b; "position error" in the p.u. of
+#: its figures, read here as rad; i_sq in p.u. of I_b). Experiments on the real drive
+#: except Fig. 7 (simulation).
+PUBLISHED = {
+    "fig7a": {"note": "start-up to 2.0 p.u., field weakened: stable"},
+    "fig7b": {"theta_lambda_max": 0.1, "note": "standstill 0.1 -> 0 -> -0.2 p.u.: stable"},
+    "fig10b": {"note": "no-load reversal -0.1 -> 0.1 p.u.: oscillations from the slot "
+                       "harmonics, stable"},
+    "fig11a": {"w_err_max": 0.05, "theta_err_at_zero": 0.2},
+    "fig12": {"w_err_steady": 0.01, "theta_err_mean": 0.015},
+    "fig13_kc0": {"i_sq": -0.65, "note": "k_c = 0: stable but poor, i_sq -0.65 instead "
+                                         "of -0.75 p.u. (position error)"},
+    "fig13_kc15": {"i_sq": -0.75, "theta_err_max": 0.03},
+    "fig14a": {"theta_err_max": 0.2},
+    "fig16a": {"w_err_max": 0.05, "theta_err_max": 0.2},
+    "fig16b": {"theta_err_max_at_1.5": 0.35, "note": "L_q = 1.5 L_qN: verge of stability"},
+}
+
+T_S = 1.0 / 6600.0  #: sampling period of the paper's drive (150 us ~ 6.6 kHz)
+
+
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """One closed-loop experiment: `simulate(drive, **kwargs)` runs it.
+
+    - `name`, `title`; `drive` (the plant, with the slot harmonic); `kwargs` (every
+      argument of `simulate` but the drive); `window`: `(t0, t1)` (s) where errors are
+      measured; `published`: `PUBLISHED[name]`.
+    """
+
+    name: str
+    title: str
+    drive: Drive
+    kwargs: dict
+    window: tuple
+    published: dict
+
+    def run(self) -> dict:
+        """Simulate and measure: the mean true speed (p.u.), max and mean |speed error|
+        (p.u.), max and mean |angle
+        error| (rad), mean i_sq (p.u.), max |theta_lambda| (rad) in `window`, whether
+        the run stayed bounded (`ok`), and the trajectory (`traj`)."""
+        from .._simulate import simulate
+
+        traj = simulate(self.drive, **self.kwargs)
+        t = np.asarray(traj.t)
+        sel = (t >= self.window[0]) & (t < self.window[1])
+        b = self.drive.base
+        we = np.abs(np.asarray(traj.w_m - traj.w_hat))[sel] / b.w_b
+        te = np.abs(np.asarray(traj.theta_err))[sel]
+        iq = np.asarray(traj.i_dq)[sel, 1] / b.I_b
+        tl = np.abs(np.asarray(traj.extras["theta_lambda"]))[sel]
+        ok = bool(traj.ok) and bool(np.all(np.isfinite(we)))
+        if not ok:  # diverged: the numbers are meaningless
+            return {"ok": False, "w_mean": np.nan, "w_err_max": np.nan, "w_err_mean": np.nan,
+                    "theta_err_max": np.nan, "theta_err_mean": np.nan,
+                    "i_sq_mean": np.nan, "theta_lambda_max": np.nan, "traj": traj}
+        return {"ok": True, "w_mean": float(np.mean(np.asarray(traj.w_m)[sel]) / b.w_b),
+                "w_err_max": float(we.max()), "w_err_mean": float(we.mean()),
+                "theta_err_max": float(te.max()), "theta_err_mean": float(te.mean()),
+                "i_sq_mean": float(iq.mean()), "theta_lambda_max": float(tl.max()),
+                "traj": traj}
+
+
+def experiment(name: str, *, slot_harmonic: float | None = None, T_s: float = T_S,
+               t_scale: float = 1.0) -> Experiment:
+    """Experiment `name` (`EXPERIMENTS`). `slot_harmonic`: back-EMF slot-harmonic
+    amplitude of the plant (default `MORAWIEC_SLOT_HARMONIC`, the assumed 3 %);
+    `t_scale` shortens every time in the scenario (for quick checks).
+
+    Common settings (assumed where the paper is silent): FOC with MTPA and field
+    weakening (`CurrentRefs("mtpa_fw")`), current bandwidth 2 pi 200 rad/s, speed
+    bandwidth 2 pi 5 rad/s, torque limit 2 x rated; the observer as in the module
+    docstring, started with the true angle and speed; no sensor noise, no inverter
+    non-linearity.
+    """
+    from .._control import FOC
+    from .._params import MORAWIEC_SLOT_HARMONIC
+    from .._scenario import Profile, Scenario
+
+    if name not in EXPERIMENTS:
+        raise ValueError(f"Unknown experiment {name!r}; choose one of "
+                         f"{', '.join(EXPERIMENTS)}.")
+    a = MORAWIEC_SLOT_HARMONIC if slot_harmonic is None else slot_harmonic
+    drive = preset("morawiec_ipm3k5", slot_harmonic=a)
+    b = drive.base
+    W, TQ = b.w_b, b.tau_b
+    s = float(t_scale)
+    obs_kw = {}
+    scale = None
+    w0 = 0.0
+    if name == "fig7a":
+        title = "start-up to 2.0 p.u. with field weakening (T_L = 0.02 p.u.)"
+        w_ref = Profile([0.0, 0.1 * s, 1.1 * s], [0.0, 0.0, 2.0 * W])
+        tau = Profile.constant(0.02 * TQ)
+        t_end, window = 1.6 * s, (1.2 * s, 1.6 * s)
+    elif name == "fig7b":
+        title = "standstill: 0.1 -> 0 (1 s) -> -0.2 p.u. (2 s), T_L = 0.02 p.u."
+        w_ref = Profile.steps([1.0 * s, 2.0 * s], [0.0, -0.2 * W], initial=0.1 * W)
+        tau = Profile.constant(0.02 * TQ)
+        t_end, window, w0 = 3.0 * s, (1.2 * s, 2.0 * s), 0.1 * W
+    elif name == "fig10b":
+        title = "no-load reversal -0.1 -> 0.1 p.u."
+        w_ref = Profile([0.0, 0.5 * s, 1.5 * s], [-0.1 * W, -0.1 * W, 0.1 * W])
+        tau = Profile.constant(0.0)
+        t_end, window, w0 = 2.0 * s, (0.3 * s, 2.0 * s), -0.1 * W
+    elif name == "fig11a":
+        title = "reversal 0.1 -> -0.1 p.u. (ramp 2 s) at T_L = 0.5 p.u."
+        w_ref = Profile([0.0, 0.5 * s, 2.5 * s], [0.1 * W, 0.1 * W, -0.1 * W])
+        tau = Profile.constant(0.5 * TQ)
+        t_end, window, w0 = 3.0 * s, (0.3 * s, 3.0 * s), 0.1 * W
+    elif name == "fig12":
+        title = "0.5 p.u., load step to 0.85 p.u. at 0.2 s"
+        w_ref = Profile.constant(0.5 * W)
+        tau = Profile.steps([0.2 * s], [0.85 * TQ])
+        t_end, window, w0 = 1.2 * s, (0.8 * s, 1.2 * s), 0.5 * W
+    elif name in ("fig13_kc0", "fig13_kc15"):
+        kc = 0.0 if name == "fig13_kc0" else 1.5
+        title = f"regenerating at 0.025 p.u., T_L = -0.75 p.u., k_c = {kc}"
+        obs_kw = {"k_c": kc}
+        w_ref = Profile.constant(0.025 * W)
+        tau = Profile([0.0, 0.3 * s], [0.0, -0.75 * TQ])
+        t_end, window, w0 = 2.0 * s, (1.5 * s, 2.0 * s), 0.025 * W
+    elif name == "fig14a":
+        title = "0.2 p.u., load -0.85 -> 0.85 p.u. (ramp 0.5 s from 1 s)"
+        w_ref = Profile.constant(0.2 * W)
+        tau = Profile([0.0, 1.0 * s, 1.5 * s], [-0.85 * TQ, -0.85 * TQ, 0.85 * TQ])
+        t_end, window, w0 = 2.0 * s, (0.5 * s, 2.0 * s), 0.2 * W
+    elif name == "fig16a":
+        title = "0.2 p.u., T_L = 0.3 p.u., observer L_d = 2 L_dN from 2 s"
+        w_ref = Profile.constant(0.2 * W)
+        tau = Profile.constant(0.3 * TQ)
+        scale = {"L_d": Profile.steps([2.0 * s], [2.0], initial=1.0)}
+        t_end, window, w0 = 3.5 * s, (3.0 * s, 3.5 * s), 0.2 * W
+    else:  # fig16b
+        title = ("0.2 p.u., T_L = 0.3 p.u., observer L_q = 0.3 -> 1.0 (0.5 s) -> 1.5 L_qN "
+                 "(2.5 s)")
+        w_ref = Profile.constant(0.2 * W)
+        tau = Profile.constant(0.3 * TQ)
+        scale = {"L_q": Profile.steps([0.5 * s, 2.5 * s], [1.0, 1.5], initial=0.3)}
+        t_end, window, w0 = 3.5 * s, (3.0 * s, 3.5 * s), 0.2 * W
+    obs = RotorFluxObserver.from_pu(drive, **obs_kw)
+    foc = FOC.from_drive(drive, alpha_c=2 * np.pi * 200.0, alpha_s=2 * np.pi * 5.0,
+                         strategy="mtpa_fw")
+    sc = Scenario(t_end=t_end, w_m_ref=w_ref, tau_L=tau, observer_scale=scale)
+    kwargs = dict(controller=foc, observer=obs, scenario=sc, T_s=T_s, w_m0=w0,
+                  theta_hat0=0.0, w_hat0=w0, throw=False)
+    return Experiment(name=name, title=title, drive=drive, kwargs=kwargs, window=window,
+                      published=PUBLISHED[name])

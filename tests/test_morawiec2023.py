@@ -1,0 +1,88 @@
+"""morawiec2023's experiments module and the field-weakening current reference."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax._control import field_weakening
+from pmsmjax.papers import morawiec2023 as mp
+
+
+DRIVE = pj.preset("morawiec_ipm3k5")
+M = DRIVE.three_phase_motor
+
+
+def test_field_weakening_respects_the_voltage_limit_and_equals_mtpa_below_it():
+    refs = pj.CurrentRefs("mtpa_fw", 0.0, DRIVE.i_max)
+    mtpa = pj.CurrentRefs("mtpa", 0.0, DRIVE.i_max)
+    k = DRIVE.k_tau
+    u = DRIVE.inverter.u_lim
+    tau = jnp.linspace(-1.0, 1.0, 9) * DRIVE.tau_rated
+    # below base speed: MTPA unchanged
+    low = refs(tau, M, k, w=0.3 * DRIVE.w_rated, u_max=u)
+    np.testing.assert_allclose(np.asarray(low), np.asarray(mtpa(tau, M, k)), atol=1e-12)
+    for w in (1.2, 1.5):
+        i = np.asarray(refs(tau, M, k, w=w * DRIVE.w_rated, u_max=u))
+        psi = np.hypot(M.L_d * i[:, 0] + M.psi_f, M.L_q * i[:, 1])
+        assert np.all(w * DRIVE.w_rated * psi <= 0.9 * u * (1 + 1e-9))
+        assert np.all(np.hypot(i[:, 0], i[:, 1]) <= DRIVE.i_max * (1 + 1e-9))
+        # never more torque than asked, same sign; at 1.5 p.u. 0.1 p.u. load is reached
+        tq = k * i[:, 1] * (M.psi_f + (M.L_d - M.L_q) * i[:, 0])
+        t_ = np.asarray(tau)
+        assert np.all(np.abs(tq) <= np.abs(t_) * (1 + 1e-9) + 1e-12)
+        assert np.all(tq * t_ >= 0)
+        if w == 1.5:
+            small = np.abs(t_) <= 0.1 * DRIVE.tau_rated
+            np.testing.assert_allclose(tq[small], t_[small], rtol=1e-9, atol=1e-9)
+    # 2 p.u. is beyond this preset's reach (assumed u_dc 560 V, i_max 10.6 A): even
+    # i_d = -i_max leaves |w psi| above the limit, so the references go to the floor
+    i = np.asarray(refs(tau, M, k, w=2.0 * DRIVE.w_rated, u_max=u))
+    np.testing.assert_allclose(i[:, 0], -DRIVE.i_max)
+    np.testing.assert_allclose(i[:, 1], 0.0, atol=1e-12)
+    with pytest.raises(ValueError, match="mtpa_fw.*speed"):
+        refs(tau, M, k)
+    with pytest.raises(ValueError, match="'id_const', 'mtpa' or 'mtpa_fw'"):
+        pj.CurrentRefs("fw", 0.0, 1.0)
+    # the function itself is differentiable in the speed
+    import jax
+    g = jax.grad(lambda w: field_weakening(jnp.array([0.0, 5.0]), 10.0, M, k, w, 0.9 * u,
+                                           DRIVE.i_max)[0])(1.3 * DRIVE.w_rated)
+    assert np.isfinite(float(g)) and float(g) < 0  # faster -> more negative i_d
+
+
+@pytest.mark.parametrize("name", ["fig12", "fig13_kc15"])
+def test_experiments_meet_the_published_bounds_where_the_paper_gives_them(name):
+    """Fig. 12 (load step at 0.5 p.u.) and Fig. 13(b) (regenerating at 0.025 p.u., k_c =
+    1.5) with the 3 % slot harmonic in the plant: stable, and the errors are within the
+    published ones (simulation without noise or inverter non-linearity is easier than
+    the paper's drive)."""
+    r = mp.experiment(name).run()
+    pub = mp.PUBLISHED[name]
+    assert r["ok"]
+    if name == "fig12":
+        assert r["w_err_max"] < pub["w_err_steady"]
+        assert r["theta_err_mean"] < pub["theta_err_mean"]
+    else:
+        assert r["theta_err_max"] < pub["theta_err_max"]
+
+
+def test_unknown_experiment_is_named():
+    with pytest.raises(ValueError, match="Unknown experiment 'fig99'.*fig7a"):
+        mp.experiment("fig99")
+
+
+def test_tuning_has_a_default_grid_for_the_motor_and_leaves_others_alone():
+    import tuning
+    from tuning.__main__ import build_parser, config_from_args
+
+    c = config_from_args(build_parser().parse_args(
+        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5"]))
+    assert c.T_s == pytest.approx(1 / 6600) and c.mismatch == (0.7, 1.5)
+    assert c.observer == "rotor-flux" and c.speeds_pu == (0.2, 0.5, 1.0)
+    z = config_from_args(build_parser().parse_args(["--motor", "zhang750"]))
+    assert z == tuning.TuningConfig()
+    # an explicit option still wins over the motor's default
+    c2 = config_from_args(build_parser().parse_args(
+        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5", "--speeds", "0.3"]))
+    assert c2.speeds_pu == (0.3,) and c2.T_s == pytest.approx(1 / 6600)
