@@ -7,3 +7,4 @@ each figure: `zhang2022` (M. Zhang, B. Xia, J. Zhang, IEEE Trans. Energy Convers
 """
 
 from . import zhang2022 as zhang2022
+from . import li as li  # noqa: E402
