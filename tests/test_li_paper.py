@@ -50,7 +50,7 @@ def test_mismatch_offset_exact_vs_equilibrium_vs_simulation(param, ratio, i_pu):
     assert np.min(np.abs(th - exact)) < 1e-7
     # closed loop (current control at an imposed speed, i_d = -0.5 p.u.)
     foc = pj.FOC.from_drive(DTP)
-    sc = pj.Scenario(t_end=0.5, w_m_imposed=pj.Profile.constant(w),
+    sc = pj.Scenario(t_end=0.3, w_m_imposed=pj.Profile.constant(w),
                      i_d_ref=pj.Profile.constant(i[0]), i_q_ref=pj.Profile.constant(i[1]))
     traj = pj.simulate(DTP, foc, obs, sc, T_s=li.T_S, w_m0=w)
     sim = float(np.mean(np.asarray(traj.theta_err)[-1000:]))
