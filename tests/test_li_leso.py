@@ -222,3 +222,18 @@ def test_response_command_json(capsys):
                                                             abs=1e-7)
     assert main(["response", "--motor", "li_dtp", "--observer", "eso"]) == 2
     assert "no back-EMF estimate" in capsys.readouterr().err
+
+
+def test_tuning_defaults_for_li_dtp_and_the_tunable_design():
+    from tuning.__main__ import build_parser, config_from_args
+
+    cfg = config_from_args(build_parser().parse_args(["--motor", "li_dtp", "--observer",
+                                                      "fa-leso"]))
+    assert cfg.speeds_pu == (0.5, 1.0, 1.4) and cfg.T_s == 1e-4
+    # an option still wins over the motor's default
+    cfg = config_from_args(build_parser().parse_args(["--motor", "li_dtp", "--observer",
+                                                      "fa-leso", "--speeds", "0.7"]))
+    assert cfg.speeds_pu == (0.7,)
+    from tuning.scenarios import design_quantities
+
+    assert set(design_quantities("fa-leso")) == {"k1", "k2", "w_pll", "zeta_pll"}

@@ -20,6 +20,7 @@ from pmsmjax.cli._options import out_dir_transaction
 from pmsmjax.observers import observer_names
 
 from .scenarios import OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
+from .scenarios import MOTOR_DEFAULTS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -120,6 +121,8 @@ def config_from_args(args) -> TuningConfig:
             kw[field] = v
     if args.tune is not None:
         kw["tuned"] = tuple(s.strip() for s in args.tune.split(",") if s.strip())
+    if not args.quick:  # the motor's own defaults (scenarios.MOTOR_DEFAULTS), then the options
+        base = base.replace(**MOTOR_DEFAULTS.get(kw.get("motor", base.motor), {}))
     return base.replace(**kw)
 
 

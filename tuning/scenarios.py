@@ -57,6 +57,14 @@ OPTIMISERS = ("adam", "bfgs", "lm")
 #: (`speed_scheduled` -> "scheduled", else "constant").
 PARAMETRISATIONS = ("auto", "scheduled", "constant")
 
+#: Per-motor defaults of the full tuning problem (`python -m tuning --motor NAME`), applied
+#: before the command-line options; one entry per preset that needs its own.
+MOTOR_DEFAULTS: dict[str, dict] = {}
+#: li-fa-leso's machine: its test speeds 300 / 600 / 840 rpm (0.5, 1.0, 1.4 p.u.), no load
+#: and half load, 10 kHz sampling.
+MOTOR_DEFAULTS["li_dtp"] = dict(T_s=1e-4, speeds_pu=(0.5, 1.0, 1.4), loads_pu=(0.0, 0.5),
+                                nodes_pu=(0.5, 1.0, 1.4))
+
 #: The design parameter (`design_units`) behind each quantity of `GainSchedule`.
 SCHEDULE_PARAMETERS = {"zeta1": "zeta1", "ratio": "ratio", "zeta2": "zeta2", "w2": "w2",
                        "nu2": "n2", "nu3": "n3"}
