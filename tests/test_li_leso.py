@@ -98,20 +98,23 @@ def harmonic_replay():
     fundamental, a negative-sequence 5th and a positive-sequence 7th drives through the
     model (4) with zero voltage (u = 0), at 50 Hz, T_s = 100 us. The GI-LESO's resonance
     is fixed at the speed (its lightly damped mode, rate about w_c, would otherwise follow
-    the PLL's ripple); the amplitudes are fitted over the last 0.2 s of 1 s."""
-    T_s, n = 1e-4, 10000
+    the PLL's ripple, and needs 1 s to settle); the amplitudes are fitted over the last
+    0.2 s."""
+    T_s = 1e-4
     m = DTP.three_phase_motor
-    k = np.arange(n)
     comps = {1: 50.0, -5: 3.0, 7: 2.0}  # V
-    i_c = sum(-E * np.exp(1j * h * W * k * T_s) / (m.R_s + 1j * h * W * m.L_q)
-              for h, E in comps.items())
-    i_ab = jnp.asarray(np.stack([i_c.real, i_c.imag], -1))
-    u_ab = jnp.zeros_like(i_ab)
     out = {}
     for name in NAMES:
         obs = make_observer(name, DTP)
+        n = 4000
         if name == "gi-leso":
             obs = make_observer(name, DTP, resonance="fixed", w_r=W)
+            n = 10000
+        k = np.arange(n)
+        i_c = sum(-E * np.exp(1j * h * W * k * T_s) / (m.R_s + 1j * h * W * m.L_q)
+                  for h, E in comps.items())
+        i_ab = jnp.asarray(np.stack([i_c.real, i_c.imag], -1))
+        u_ab = jnp.zeros_like(i_ab)
         est = pj.replay_estimates(obs, u_ab=u_ab, i_ab=i_ab, T_s=T_s, theta0=-math.pi / 2,
                                   w0=W)
         e = np.asarray(est.extras["e_ab_hat"])[-2000:]
@@ -157,7 +160,7 @@ def closed_loop_runs():
     for name in ("fa-leso", "c-leso"):
         obs = make_observer(name, DTP)
         for sign in (1.0, -1.0):
-            sc = pj.Scenario(t_end=0.3, w_m_imposed=pj.Profile.constant(sign * W),
+            sc = pj.Scenario(t_end=0.2, w_m_imposed=pj.Profile.constant(sign * W),
                              i_d_ref=pj.Profile.constant(0.0),
                              i_q_ref=pj.Profile.constant(0.5 * DTP.base.I_b))
             runs[name, sign] = (obs, pj.simulate(DTP, foc, obs, sc, T_s=1e-4,
@@ -219,3 +222,18 @@ def test_response_command_json(capsys):
                                                             abs=1e-7)
     assert main(["response", "--motor", "li_dtp", "--observer", "eso"]) == 2
     assert "no back-EMF estimate" in capsys.readouterr().err
+
+
+def test_tuning_defaults_for_li_dtp_and_the_tunable_design():
+    from tuning.__main__ import build_parser, config_from_args
+
+    cfg = config_from_args(build_parser().parse_args(["--motor", "li_dtp", "--observer",
+                                                      "fa-leso"]))
+    assert cfg.speeds_pu == (0.5, 1.0, 1.4) and cfg.T_s == 1e-4
+    # an option still wins over the motor's default
+    cfg = config_from_args(build_parser().parse_args(["--motor", "li_dtp", "--observer",
+                                                      "fa-leso", "--speeds", "0.7"]))
+    assert cfg.speeds_pu == (0.7,)
+    from tuning.scenarios import design_quantities
+
+    assert set(design_quantities("fa-leso")) == {"k1", "k2", "w_pll", "zeta_pll"}

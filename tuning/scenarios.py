@@ -86,6 +86,10 @@ MOTOR_DEFAULTS: dict[str, dict] = {}
 # 0.5 .. 2 L (Fig. 1 spans 0 .. 3 L); 16 kHz as the paper's drive
 MOTOR_DEFAULTS["stumper_mt5"] = dict(T_s=62.5e-6, speeds_pu=(0.1, 0.5, 1.0),
                                      loads_pu=(0.0, 0.5), mismatch=(0.5, 2.0))
+#: li-fa-leso's machine: its test speeds 300 / 600 / 840 rpm (0.5, 1.0, 1.4 p.u.), no load
+#: and half load, 10 kHz sampling.
+MOTOR_DEFAULTS["li_dtp"] = dict(T_s=1e-4, speeds_pu=(0.5, 1.0, 1.4), loads_pu=(0.0, 0.5),
+                                nodes_pu=(0.5, 1.0, 1.4))
 
 #: The design parameter (`design_units`) behind each quantity of `GainSchedule`.
 SCHEDULE_PARAMETERS = {"zeta1": "zeta1", "ratio": "ratio", "zeta2": "zeta2", "w2": "w2",

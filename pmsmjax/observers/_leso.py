@@ -39,12 +39,16 @@ FA-LESO (and the GI-LESO with `resonance="estimated"`) adapt to that $\hat\omega
 
 - $\Delta\lambda = T_s u - \tfrac12 T_s\hat R_s(i_{k-1} + i_k)$: the voltage exactly (ZOH),
   the resistive drop by the trapezoid rule (as zhang2022's flux observers);
-- the internal dynamics ($s$ and the rest of $\dot{\hat x}_1$) are integrated *exactly*
-  with $\varepsilon_1$ held constant in the frame that turns at the speed estimate
-  $\hat\omega_{k-1}$ over the interval, $\varepsilon_1(t) = e^{\hat\omega(t - t_{k-1})J}
-  \varepsilon_{1,k-1}$ (one matrix exponential of the augmented system
-  $[[A_s, 0, B_s], [C_s, 0, D_x + D_1], [0, 0, \hat\omega J]]$). This is explicit in the
-  $\varepsilon_1$ feedback (stable for $2\omega_0 T_s < 2$).
+- the whole observer ($\hat x_1$ and $s$, a linear system driven by the current and by
+  $\dot\lambda$) is integrated *exactly* over the interval with its inputs described in
+  the frame that turns at the speed estimate $\hat\omega_{k-1}$: the current as
+  $i(t) = e^{\hat\omega tJ}(i_{k-1} + t\delta)$ with $\delta$ chosen so that it ends at
+  $i_k$ (a first-order hold in the turning frame), $\dot\lambda$ as
+  $e^{\hat\omega tJ}c$ with $c$ chosen so that its integral is $\Delta\lambda$: one matrix
+  exponential of the augmented system (`_propagator`, balanced before `expm`). The observer's
+  own dynamics (at a given speed estimate) are integrated exactly, so they stay stable for
+  any bandwidth and $T_s$ (only the PLL's update is explicit); the
+  one-step Jacobian in error coordinates is $I + T_sA + O(T_s^2)$ (the contract test).
 
 In steady state at constant speed every signal turns at $\omega = \hat\omega$, and then
 the rotating hold is exact: the discrete observer has exactly the continuous steady state,
