@@ -4,8 +4,9 @@ Each module rebuilds one paper's experiments (scenarios, settings, published num
 the public API only, so that tests, notebooks and the command line share one definition of
 each figure: `zhang2022` (M. Zhang, B. Xia, J. Zhang, IEEE Trans. Energy Convers. 37(4),
 2022), `stumper` (J.-F. Stumper, D. Paulus, R. Kennel: the inverse parallel-model
-estimator), `morawiec2023` (M. Morawiec et al., 2023: the rotor-flux-vector observer for
-IPMSMs) and `li` (li-fa-leso: the back-EMF LESOs on a dual three-phase IPMSM). The
+estimator), `morawiec2023` (M. Morawiec, A. Lewicki, I. C. Odeh, 2023: the rotor-flux-vector
+observer for IPMSMs) and `li` (Y. Li, Y. Hu, X. Ma, L. Liu: the back-EMF LESOs on a dual
+three-phase IPMSM). The
 documentation's papers page gives the full references.
 """
 
