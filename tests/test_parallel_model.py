@@ -185,18 +185,15 @@ def test_zero_current_no_nan_in_values_or_gradients():
     their gradients are finite; at zero current phi is held (its increment is 0)."""
     obs = make_observer("parallel-model", DRIVE)
     u = jnp.array([-20.0, 15.0])
+
+    def f(i, u):
+        est = _one_step(obs, i, u)
+        return jnp.stack([est.theta_hat, est.w_hat, est.extras["theta_raw_hat"]])
+
+    f_all = jax.jit(lambda i, u: (f(i, u), *jax.jacrev(f, argnums=(0, 1))(i, u),
+                                  jax.jacfwd(lambda v: jnp.stack(polar(v, 0.2)))(i)))
     for i_ab in (jnp.zeros(2), jnp.array([3e-10, -2e-10]), jnp.array([1e-8, 0.0])):
-        rho, phi = polar(i_ab, 0.2)
-        g = jax.jacfwd(lambda i: jnp.stack(polar(i, 0.2)))(i_ab)
-        assert np.all(np.isfinite(np.asarray(g))) and np.isfinite(float(rho + phi))
-
-        def f(i, u):
-            est = _one_step(obs, i, u)
-            return jnp.stack([est.theta_hat, est.w_hat, est.extras["theta_raw_hat"]])
-
-        val = f(i_ab, u)
-        gi, gu = jax.jacrev(f, argnums=(0, 1))(i_ab, u)
-        for a in (val, gi, gu):
+        for a in f_all(i_ab, u):
             assert np.all(np.isfinite(np.asarray(a)))
     rho, phi = polar(jnp.zeros(2), 0.2)
     assert float(rho) == 0.0 and float(phi) == 0.2

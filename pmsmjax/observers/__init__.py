@@ -36,11 +36,13 @@ from ._eso_design import (
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
+    backemf_polar as backemf_polar,
     d_current_feedforward as d_current_feedforward,
     parallel_model_angle as parallel_model_angle,
     parallel_model_angle_printed as parallel_model_angle_printed,
     parallel_model_offset as parallel_model_offset,
     parallel_model_offsets_printed as parallel_model_offsets_printed,
+    parallel_model_sensitivity as parallel_model_sensitivity,
 )
 from ._registry import (
     make_observer as make_observer,

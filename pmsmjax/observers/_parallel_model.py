@@ -233,6 +233,35 @@ def parallel_model_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor"
                      f"got {frame!r}.")
 
 
+def parallel_model_sensitivity(u_P, u_O, rho, rho_dot, phi_dot, R, L, dR=0.0, dL=0.0,
+                                *, printed=False):
+    r"""The angle offsets (rad, estimate minus true, stumper (21) in electrical angle)
+    of the raw estimate (16) at one instant, for an inductance error `dL` (H) alone,
+    stumper (22)-(25), and for a resistance error `dR` (Ohm) alone, stumper (27)-(30);
+    `R` (Ohm), `L` (H): the true values; `u_P`, `u_O` (V), `rho` (A), `rho_dot` (A/s),
+    `phi_dot` (rad/s) as in (11)-(14). Positive speed (the rule of (16) without the
+    half-turn of (17)). Returns `(offset_L, offset_R)`.
+
+    Derivation: with $a = L\dot\rho + R\rho - u_P$ and $b = -(L\rho\dot\phi + u_O)$ the
+    exact angle is that of $(b, a)$; the estimator's is that of $(b - \Delta L\rho\dot
+    \phi, a + \Delta L\dot\rho + \Delta R\rho)$, and the angle between two vectors is
+    $\mathrm{atan}(v\times\hat v / v\cdot\hat v)$. For $\Delta L$ this is (22)-(25) as
+    printed; for $\Delta R$ it is $\mathrm{atan}(-\Delta R\,c_{R1}/(\Delta R\,c_{R2} +
+    c_{R3}))$: the printed (27) lacks the minus sign in the numerator (`printed=True`
+    returns the printed form).
+    """
+    a = L * rho_dot + R * rho - u_P
+    c3 = (L * rho * phi_dot + u_O) ** 2 + a ** 2
+    c_L1 = -u_O * rho_dot + rho * phi_dot * (R * rho - u_P)
+    c_L2 = rho * phi_dot * (L * rho * phi_dot + u_O) + rho_dot * a
+    c_R1 = rho * (L * rho * phi_dot + u_O)
+    c_R2 = rho * a
+    off_L = jnp.arctan(dL * c_L1 / (dL * c_L2 + c3))
+    sign = 1.0 if printed else -1.0
+    off_R = jnp.arctan(sign * dR * c_R1 / (dR * c_R2 + c3))
+    return off_L, off_R
+
+
 def parallel_model_offsets_printed(plant: PMSMParams, dR, dL, w_m, i_dq):
     """stumper (31) and (32) as printed (rad): `(dtheta_L, dtheta_R)`, with
     `n_p phi_M - phi = -atan2(i_q, i_d)` and the paper's K = `psi_f`, omega_M = w_m/n_p.
