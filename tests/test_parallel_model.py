@@ -274,3 +274,15 @@ def test_cli_replay_on_every_preset(preset, tmp_path):
     e = np.asarray(pj.angle_error(rec.theta, est.theta_hat))
     # from theta_hat = 0, w_hat = 0 (the replay default): locked within 0.15 s
     assert np.max(np.abs(e[-40:])) < math.radians(0.5), np.degrees(np.abs(e[-40:]).max())
+
+
+def test_float32_replay(runs):
+    """The estimator in single precision (model and data cast): same steady state."""
+    tr = runs[300]
+    obs = pj.astype(make_observer("parallel-model", DRIVE), jnp.float32)
+    th, w = pj.replay(obs, u_ab=jnp.asarray(tr.u_ab, jnp.float32),
+                      i_ab=jnp.asarray(tr.i_meas_ab, jnp.float32), T_s=T_S,
+                      theta0=float(tr.theta[0]), w0=float(tr.w_m[0]))
+    assert th.dtype == jnp.float32 and w.dtype == jnp.float32
+    e = np.asarray(pj.angle_error(np.asarray(tr.theta, np.float32), th))[-160:]
+    assert np.max(np.abs(e)) < math.radians(0.02)
