@@ -449,7 +449,8 @@ class ParallelModelObserver(AbstractObserver):
             started=jnp.asarray(False))
 
     def step(self, state: ParallelModelState, meas: Measurement, T_s):
-        if is_concrete((T_s, self.T_LP, self.T_w)) and not float(T_s) < 2.0 * float(min(self.T_LP, self.T_w)):
+        if is_concrete((T_s, self.T_LP, self.T_w)) and \
+                not float(T_s) < 2.0 * float(min(self.T_LP, self.T_w)):
             raise ValueError(
                 f"`ParallelModelObserver.step(T_s=...)` must be below 2 min(T_LP, T_w) = "
                 f"{2.0 * float(min(self.T_LP, self.T_w))!r} s (forward-Euler filters); got "
