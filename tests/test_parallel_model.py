@@ -286,3 +286,16 @@ def test_float32_replay(runs):
     assert th.dtype == jnp.float32 and w.dtype == jnp.float32
     e = np.asarray(pj.angle_error(np.asarray(tr.theta, np.float32), th))[-160:]
     assert np.max(np.abs(e)) < math.radians(0.02)
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="motor=.*PMSMParams"):
+        pj.ParallelModelObserver(DRIVE)
+    with pytest.raises(ValueError, match="v1"):
+        pj.ParallelModelObserver(DRIVE.motor, v1=-1.0)
+    with pytest.raises(ValueError, match="L_hat"):
+        pj.ParallelModelObserver.from_drive(DRIVE, L_hat=0.0)
+    obs = make_observer("parallel-model", DRIVE)
+    meas = Measurement(i_ab=jnp.zeros(2), u_ab=jnp.zeros(2), theta=jnp.nan, w_m=jnp.nan)
+    with pytest.raises(ValueError, match="T_s.*2 min\\(T_LP, T_w\\)"):
+        obs.step(obs.init(), meas, 2e-3)
