@@ -185,18 +185,15 @@ def test_zero_current_no_nan_in_values_or_gradients():
     their gradients are finite; at zero current phi is held (its increment is 0)."""
     obs = make_observer("parallel-model", DRIVE)
     u = jnp.array([-20.0, 15.0])
+
+    def f(i, u):
+        est = _one_step(obs, i, u)
+        return jnp.stack([est.theta_hat, est.w_hat, est.extras["theta_raw_hat"]])
+
+    f_all = jax.jit(lambda i, u: (f(i, u), *jax.jacrev(f, argnums=(0, 1))(i, u),
+                                  jax.jacfwd(lambda v: jnp.stack(polar(v, 0.2)))(i)))
     for i_ab in (jnp.zeros(2), jnp.array([3e-10, -2e-10]), jnp.array([1e-8, 0.0])):
-        rho, phi = polar(i_ab, 0.2)
-        g = jax.jacfwd(lambda i: jnp.stack(polar(i, 0.2)))(i_ab)
-        assert np.all(np.isfinite(np.asarray(g))) and np.isfinite(float(rho + phi))
-
-        def f(i, u):
-            est = _one_step(obs, i, u)
-            return jnp.stack([est.theta_hat, est.w_hat, est.extras["theta_raw_hat"]])
-
-        val = f(i_ab, u)
-        gi, gu = jax.jacrev(f, argnums=(0, 1))(i_ab, u)
-        for a in (val, gi, gu):
+        for a in f_all(i_ab, u):
             assert np.all(np.isfinite(np.asarray(a)))
     rho, phi = polar(jnp.zeros(2), 0.2)
     assert float(rho) == 0.0 and float(phi) == 0.2
@@ -248,3 +245,57 @@ def test_replay_gradients_wrt_design_and_model_match_finite_differences(runs):
     g = np.asarray(jax.grad(loss)(p))
     fd = _fd(loss, p, 1e-5)
     np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(g).max())
+
+
+@pytest.mark.parametrize("preset", pj.PRESET_NAMES)
+def test_cli_replay_on_every_preset(preset, tmp_path):
+    """`pmsmjax replay --observer parallel-model --motor P` on a sensored recording at
+    0.3 p.u. of each preset: the estimates and extras are those of `replay_estimates`,
+    and the angle settles (the sensored drive holds i_q at 0.3 p.u.)."""
+    from pmsmjax.cli.__main__ import main
+
+    drive = pj.preset(preset)
+    w = 0.3 * float(drive.w_rated)
+    Ib = float(drive.base.I_b)
+    sc = pj.Scenario(t_end=0.15, w_m_imposed=pj.Profile.constant(w),
+                     i_d_ref=pj.Profile.constant(0.05 * Ib),
+                     i_q_ref=pj.Profile.constant(0.3 * Ib))
+    tr = pj.simulate(drive, pj.FOC.from_drive(drive), pj.SensoredObserver(), sc,
+                     T_s=125e-6, w_m0=w, i_dq0=(0.05 * Ib, 0.3 * Ib))
+    pj.save_recording(tmp_path / "rec.npz", pj.RecordedData.from_trajectory(tr))
+    out = tmp_path / "out"
+    assert main(["replay", "--observer", "parallel-model", "--motor", preset, "--data",
+                 str(tmp_path / "rec.npz"), "--no-plot", "--out", str(out)]) == 0
+    rec = pj.load_recording(tmp_path / "rec.npz")
+    est = pj.replay_estimates(make_observer("parallel-model", drive), rec)
+    with np.load(out / "replay.npz", allow_pickle=False) as f:
+        np.testing.assert_array_equal(f["theta_hat"], np.asarray(est.theta_hat))
+        assert set(type(make_observer("parallel-model", drive)).extras) <= set(f.files)
+    e = np.asarray(pj.angle_error(rec.theta, est.theta_hat))
+    # from theta_hat = 0, w_hat = 0 (the replay default): locked within 0.15 s
+    assert np.max(np.abs(e[-40:])) < math.radians(0.5), np.degrees(np.abs(e[-40:]).max())
+
+
+def test_float32_replay(runs):
+    """The estimator in single precision (model and data cast): same steady state."""
+    tr = runs[300]
+    obs = pj.astype(make_observer("parallel-model", DRIVE), jnp.float32)
+    th, w = pj.replay(obs, u_ab=jnp.asarray(tr.u_ab, jnp.float32),
+                      i_ab=jnp.asarray(tr.i_meas_ab, jnp.float32), T_s=T_S,
+                      theta0=float(tr.theta[0]), w0=float(tr.w_m[0]))
+    assert th.dtype == jnp.float32 and w.dtype == jnp.float32
+    e = np.asarray(pj.angle_error(np.asarray(tr.theta, np.float32), th))[-160:]
+    assert np.max(np.abs(e)) < math.radians(0.02)
+
+
+def test_bad_arguments_are_named():
+    with pytest.raises(ValueError, match="motor=.*PMSMParams"):
+        pj.ParallelModelObserver(DRIVE)
+    with pytest.raises(ValueError, match="v1"):
+        pj.ParallelModelObserver(DRIVE.motor, v1=-1.0)
+    with pytest.raises(ValueError, match="L_hat"):
+        pj.ParallelModelObserver.from_drive(DRIVE, L_hat=0.0)
+    obs = make_observer("parallel-model", DRIVE)
+    meas = Measurement(i_ab=jnp.zeros(2), u_ab=jnp.zeros(2), theta=jnp.nan, w_m=jnp.nan)
+    with pytest.raises(ValueError, match="T_s.*2 min\\(T_LP, T_w\\)"):
+        obs.step(obs.init(), meas, 2e-3)

@@ -96,3 +96,35 @@ def test_cli_equilibria_give_the_closed_loop_offset(tmp_path):
     assert eq["stable"] and math.degrees(want) == pytest.approx(-2.1102, abs=1e-4)
     assert eq["theta_rad"] == pytest.approx(want, abs=1e-9)
     assert max(e["re"] for e in eq["eigenvalues"]) < 0
+
+
+def test_instantaneous_sensitivities_22_and_27():
+    """stumper (22) and (27) at random instants (transients included: rho_dot, phi_dot
+    arbitrary) against the estimator itself with the erroneous parameter: (22) holds as
+    printed, (27) with the sign of its numerator corrected (the printed one fails)."""
+    from pmsmjax.observers import backemf_polar, parallel_model_angle
+
+    rng = np.random.default_rng(3)
+    n = 200
+    th, ph = rng.uniform(-3, 3, n), rng.uniform(-3, 3, n)
+    w, rho = rng.uniform(50, 900, n), rng.uniform(0.3, 6.0, n)
+    rho_dot, phi_dot = rng.uniform(-500, 500, n), rng.uniform(-200, 1200, n)
+    R, L, psi = 0.86, 7e-3, 0.236
+    dR, dL = rng.uniform(-0.8, 2.6, n), rng.uniform(-6e-3, 14e-3, n)
+    # the model (13)-(14) solved for the voltages
+    u_P = L * rho_dot + R * rho - psi * w * np.sin(th - ph)
+    u_O = -L * rho * phi_dot - psi * w * np.cos(th - ph)
+
+    def offset(dR_, dL_):
+        e_P, e_O = backemf_polar(u_P, u_O, rho, rho_dot, phi_dot, R + dR_, L + dL_)
+        return np.asarray(pj.angle_error(parallel_model_angle(e_P, e_O, ph, 1.0), th))
+
+    oL, oR = pj.observers.parallel_model_sensitivity(u_P, u_O, rho, rho_dot, phi_dot, R,
+                                                     L, dR, dL)
+    ok = np.abs(offset(0.0, dL)) < 1.4  # atan's range
+    np.testing.assert_allclose(np.asarray(oL)[ok], offset(0.0, dL)[ok], atol=1e-10)
+    ok = np.abs(offset(dR, 0.0)) < 1.4
+    np.testing.assert_allclose(np.asarray(oR)[ok], offset(dR, 0.0)[ok], atol=1e-10)
+    _, pR = pj.observers.parallel_model_sensitivity(u_P, u_O, rho, rho_dot, phi_dot, R, L,
+                                                    dR, dL, printed=True)
+    assert np.max(np.abs(np.asarray(pR)[ok] - offset(dR, 0.0)[ok])) > 0.01

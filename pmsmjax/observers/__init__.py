@@ -43,11 +43,13 @@ from ._leso import (
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
+    backemf_polar as backemf_polar,
     d_current_feedforward as d_current_feedforward,
     parallel_model_angle as parallel_model_angle,
     parallel_model_angle_printed as parallel_model_angle_printed,
     parallel_model_offset as parallel_model_offset,
     parallel_model_offsets_printed as parallel_model_offsets_printed,
+    parallel_model_sensitivity as parallel_model_sensitivity,
 )
 from ._pll import QuadraturePLL as QuadraturePLL
 from ._rotor_flux import (

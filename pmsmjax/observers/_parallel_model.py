@@ -50,18 +50,26 @@ its state as $\rho_{k-1}, \phi_{k-1}$), $i_k$ and the voltage $u$ held over
 $[t_{k-1}, t_k)$.
 
 - Derivative filters stumper (35)-(36), $s/(T_{LP}s + 1)$: the backward difference
-  $(\rho_k - \rho_{k-1})/T_s$ (and $\mathrm{wrap}(\phi_k - \phi_{k-1})/T_s$), the exact mean
-  slope over the interval, followed by the step-invariant first-order low pass
-  $y_k = a y_{k-1} + (1 - a)\,\Delta/T_s$, $a = e^{-T_s/T_{LP}}$. For the signals of the
-  steady state ($\rho$ constant, $\phi$ a ramp of slope $\omega$) the output is exactly
-  the slope: gain 1, no phase error. For a sinusoid of frequency $\Omega$ the response is
-  $\frac{1 - e^{-j\Omega T_s}}{T_s}\frac{1 - a}{1 - a e^{-j\Omega T_s}}$: the derivative
-  delayed by $T_{LP} + T_s/2$ at low frequency.
-- All quantities of (16)-(19) are taken at the interval's midpoint $t_{k-1/2}$, where the
-  mean slope is the derivative and the held voltage is the mean voltage:
-  $\rho_m = (\rho_{k-1} + \rho_k)/2$, $\phi_m = \phi_{k-1} + \mathrm{wrap}(\phi_k -
-  \phi_{k-1})/2$, $u_P$, $u_O$ by (11)-(12) at $\phi_m$. The raw estimate
-  $\hat\theta_m$ is the angle at $t_{k-1/2}$.
+  $\Delta/T_s$ with $\Delta = \rho_k - \rho_{k-1}$ (and $\mathrm{wrap}(\phi_k -
+  \phi_{k-1})$), the exact mean slope over the interval, into the forward-Euler low pass
+  $y_k = y_{k-1} + (T_s/T_{LP})(\Delta/T_s - y_{k-1})$, i.e. $y_k = a y_{k-1} + (1 - a)
+  \Delta/T_s$ with $a = 1 - T_s/T_{LP}$ (stable for $T_s < 2T_{LP}$, checked; 0.875 at the
+  paper's 16 kHz and 0.5 ms). For the signals of the steady state ($\rho$ constant,
+  $\phi$ a ramp of slope $\omega$) the output is exactly the slope: gain 1, no phase
+  error. For a sinusoid of frequency $\Omega$ the response is $\frac{1 - e^{-j\Omega
+  T_s}}{T_s}\frac{1 - a}{1 - a e^{-j\Omega T_s}}$: the derivative delayed by about
+  $T_{LP} + T_s/2$ at low frequency. (The Euler form keeps the discrete step's Jacobian
+  within $O(T_s^2)$ of $I + T_sA$ even at $T_s/T_{LP}$ = 0.2.)
+- All quantities of (16)-(19) are taken at the interval's midpoint $t_{k-1/2}$ and with
+  the exact chords of the sampled vectors, so that the estimate is exact in steady state
+  for a voltage that moves the flux between samples with a trapezoidal resistive drop:
+  with $h = \mathrm{wrap}(\phi_k - \phi_{k-1})/2$, $\phi_m = \phi_{k-1} + h$,
+  $\rho_m = (\rho_{k-1} + \rho_k)/2$, $u_P$, $u_O$ by (11)-(12) at $\phi_m$, the mean
+  current $[\rho_m\cos h, \tfrac12(\rho_k - \rho_{k-1})\sin h]$ in the $\phi_m$ frame for
+  the resistive drop, and the current's chord rate $[\dot\rho_f\cos h,
+  \rho_m\tfrac{2}{T_s}\sin(\dot\phi_f T_s/2)]$ for the inductive one. The raw estimate
+  $\hat\theta_m$ is the angle at $t_{k-1/2}$; the speed (18) inverts the back-EMF's
+  chord, $\tfrac{2}{T_s}\arcsin(|\hat e|T_s/(2\hat K))$.
 - Tracking filter stumper (37)-(38), $\dot z = v_1\varepsilon$, $\dot{\tilde\theta} = z +
   v_2\varepsilon$, $\varepsilon = \hat\theta - \tilde\theta$: the input error is taken at
   the midpoint against the filter's own prediction, $\varepsilon = \mathrm{wrap}(\hat\theta_m
@@ -70,7 +78,7 @@ $[t_{k-1}, t_k)$.
   acceleration $c$ (electrical) it lags by $c/v_1$ (stumper (39) with $c = n_p\dot
   \omega_M$). Poles: $s^2 + v_2 s + v_1$ (the paper's $v_1 = 16000$, $v_2 = 253$ give
   real poles at -125 and -128 1/s, the "8 ms" time constants).
-- Speed: (18) at the midpoint, then the step-invariant first-order low pass with time
+- Speed: (18) at the midpoint, then the forward-Euler first-order low pass with time
   constant $T_\omega$ (stumper: 2 ms).
 
 The estimate returned at $t_k$ is the tracking filter's angle $\tilde\theta_k$ and the
@@ -85,7 +93,9 @@ $\dot{\tilde\theta}$ by Newton steps inside `error_rhs`. Its gain is about
 $v_2\hat L\rho/(\psi_f\omega)$ (motoring); it reaches 1 at low speed and high current
 (for `stumper_mt5` with rated current near 150 rpm), where ideal current control in the
 estimated frame is no longer a well-posed model of the loop (a real current controller
-with finite bandwidth breaks the loop).
+with finite bandwidth breaks the loop). The equilibria have a closed form
+(`fast_equilibria`, the default route of `analysis.equilibria`, tested against the
+generic route).
 """
 
 from __future__ import annotations
@@ -231,6 +241,35 @@ def parallel_model_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor"
         return x
     raise ValueError(f"`parallel_model_offset(frame=...)` must be 'rotor' or 'estimated'; "
                      f"got {frame!r}.")
+
+
+def parallel_model_sensitivity(u_P, u_O, rho, rho_dot, phi_dot, R, L, dR=0.0, dL=0.0,
+                                *, printed=False):
+    r"""The angle offsets (rad, estimate minus true, stumper (21) in electrical angle)
+    of the raw estimate (16) at one instant, for an inductance error `dL` (H) alone,
+    stumper (22)-(25), and for a resistance error `dR` (Ohm) alone, stumper (27)-(30);
+    `R` (Ohm), `L` (H): the true values; `u_P`, `u_O` (V), `rho` (A), `rho_dot` (A/s),
+    `phi_dot` (rad/s) as in (11)-(14). Positive speed (the rule of (16) without the
+    half-turn of (17)). Returns `(offset_L, offset_R)`.
+
+    Derivation: with $a = L\dot\rho + R\rho - u_P$ and $b = -(L\rho\dot\phi + u_O)$ the
+    exact angle is that of $(b, a)$; the estimator's is that of $(b - \Delta L\rho\dot
+    \phi, a + \Delta L\dot\rho + \Delta R\rho)$, and the angle between two vectors is
+    $\mathrm{atan}(v\times\hat v / v\cdot\hat v)$. For $\Delta L$ this is (22)-(25) as
+    printed; for $\Delta R$ it is $\mathrm{atan}(-\Delta R\,c_{R1}/(\Delta R\,c_{R2} +
+    c_{R3}))$: the printed (27) lacks the minus sign in the numerator (`printed=True`
+    returns the printed form).
+    """
+    a = L * rho_dot + R * rho - u_P
+    c3 = (L * rho * phi_dot + u_O) ** 2 + a ** 2
+    c_L1 = -u_O * rho_dot + rho * phi_dot * (R * rho - u_P)
+    c_L2 = rho * phi_dot * (L * rho * phi_dot + u_O) + rho_dot * a
+    c_R1 = rho * (L * rho * phi_dot + u_O)
+    c_R2 = rho * a
+    off_L = jnp.arctan(dL * c_L1 / (dL * c_L2 + c3))
+    sign = 1.0 if printed else -1.0
+    off_R = jnp.arctan(sign * dR * c_R1 / (dR * c_R2 + c3))
+    return off_L, off_R
 
 
 def parallel_model_offsets_printed(plant: PMSMParams, dR, dL, w_m, i_dq):
@@ -410,7 +449,8 @@ class ParallelModelObserver(AbstractObserver):
             started=jnp.asarray(False))
 
     def step(self, state: ParallelModelState, meas: Measurement, T_s):
-        if is_concrete((T_s, self.T_LP, self.T_w)) and not float(T_s) < 2.0 * float(min(self.T_LP, self.T_w)):
+        if is_concrete((T_s, self.T_LP, self.T_w)) and \
+                not float(T_s) < 2.0 * float(min(self.T_LP, self.T_w)):
             raise ValueError(
                 f"`ParallelModelObserver.step(T_s=...)` must be below 2 min(T_LP, T_w) = "
                 f"{2.0 * float(min(self.T_LP, self.T_w))!r} s (forward-Euler filters); got "

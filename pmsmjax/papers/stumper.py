@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._control import FOC, FOCOutput, FOCState
+from .._control import FOC, FOCOutput
 from .._frames import angle_error
 from .._params import Drive, preset, replace_params
 from .._replay import replay_estimates
