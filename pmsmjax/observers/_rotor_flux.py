@@ -477,9 +477,11 @@ class RotorFluxObserver(AbstractObserver):
         i_hat_c = i_hat  # the correction uses the observer's current estimate
         dpsi_h = dpsi + (plant.R_s - self.motor.R_s) * i_ab + \
             self._flux_correction(th_h, i_hat_c, i_ab, v_ab, v_th)
-        # i_hat = current_from_flux(theta_hat, psi_hat): its rate by a JVP
-        _, di_hat = jax.jvp(lambda t, p: current_from_flux_ab(self.motor, t, p),
-                            (th_h, psi_h), (dth_h, dpsi_h))
+        # i_hat = current_from_flux(theta_hat, psi_hat): its rate
+        # L(theta_hat)^-1 (dpsi_hat/dt - dtheta_hat/dt d psi_hat/d theta_hat at const i_hat)
+        L1, L3, L4 = l_functions(self.motor, th_h)
+        r = dpsi_h - dth_h * _dflux_dtheta(self.motor, th_h, i_hat)
+        di_hat = jnp.stack([L1 * r[0] + L3 * r[1], L3 * r[0] + L4 * r[1]])
         # e_dq = i0 - exp(-theta_hat J) i_hat
         ih_dq = rotate(i_hat, -th_h)
         de = dth_h * jnp.stack([-ih_dq[1], ih_dq[0]]) - rotate(di_hat, -th_h)
