@@ -88,6 +88,7 @@ def test_tuning_has_a_default_grid_for_the_motor_and_leaves_others_alone():
         ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5"]))
     assert c.T_s == pytest.approx(1 / 6600) and c.mismatch == (0.7, 1.5)
     assert c.observer == "rotor-flux" and c.speeds_pu == (0.2, 0.5, 1.0)
+    assert c.theta_err0_deg == 3.0
     z = config_from_args(build_parser().parse_args(["--motor", "zhang750"]))
     assert z == tuning.TuningConfig()
     # an explicit option still wins over the motor's default
