@@ -89,6 +89,7 @@ from .observers import (  # noqa: E402
     FixedGains as FixedGains,
     LESOObserver as LESOObserver,
     Measurement as Measurement,
+    RotorFluxObserver as RotorFluxObserver,
     SensoredObserver as SensoredObserver,
 )
 

@@ -35,18 +35,26 @@ stabilises standstill holds for (35) only.
 1 p.u. current limit, window as in `experiment`; errors as max |.| in the window: speed
 in p.u., angle in rad; the paper's "p.u." position errors are read as rad):
 
-| figure | simulated | published |
-|---|---|---|
-| 7(a) start-up to 2 p.u. | reaches 1.46 p.u. only (voltage limit with the assumed u_dc 560 V); speed err 4e-4, angle err 3e-4 | 2.0 p.u., stable |
-| 7(b) standstill | stable; speed err 0.05, angle err 0.069, theta_lambda 0.061 | stable, theta_lambda < 0.1 |
-| 10(b) no-load reversal +-0.1 | stable; speed err 0.062, angle err 0.042 | stable, oscillating |
-| 11(a) reversal at 0.5 p.u. load | speed err 0.036, angle err 0.023 | speed err < 0.05, angle err ~0.2 at zero speed |
-| 12 load step 0.85 p.u. at 0.5 p.u. | speed err 0.0046, mean angle err 3e-4 | speed err ~0.01, mean angle err < 0.015 |
-| 13(a) k_c = 0, 0.025 p.u., -0.75 p.u. | stable; angle err 0.0043; i_sq -0.72 | stable but poor; i_sq -0.65 |
-| 13(b) k_c = 1.5 | stable; angle err 0.035; speed err 0.096; i_sq -0.72 | angle err < 0.03; i_sq -0.75 |
-| 14(a) load -0.85 -> 0.85 at 0.2 p.u. | loses the speed (mean -0.01 p.u.), angle err 0.61 | stable, angle err ~0.2 at zero torque |
-| 16(a) observer L_d = 2 L_dN | loses the speed (mean 0.02 p.u.), angle err 0.53 | stable, speed err 0.05, angle err 0.2 |
-| 16(b) observer L_q = 0.3 L_qN first | diverges within 0.5 s | stable; L_q = 1.5 L_qN at the verge |
+- 7(a) start-up to 2 p.u.: reaches 1.46 p.u. only (voltage limit with the assumed
+  u_dc 560 V); speed err 4e-4, angle err 3e-4. Published: 2.0 p.u., stable.
+- 7(b) standstill: stable; speed err 0.05, angle err 0.069, theta_lambda 0.061.
+  Published: stable, theta_lambda < 0.1.
+- 10(b) no-load reversal -0.1 -> 0.1: stable; speed err 0.062, angle err 0.042.
+  Published: stable, oscillating.
+- 11(a) reversal at 0.5 p.u. load: speed err 0.036, angle err 0.023. Published: speed
+  err < 0.05, angle err about 0.2 at zero speed.
+- 12 load step to 0.85 p.u. at 0.5 p.u.: speed err 0.0046, mean angle err 3e-4.
+  Published: speed err about 0.01, mean angle err < 0.015.
+- 13(a) k_c = 0 at 0.025 p.u., -0.75 p.u.: stable; angle err 0.0043; i_sq -0.72.
+  Published: stable but poor; i_sq -0.65.
+- 13(b) k_c = 1.5: stable; angle err 0.035, speed err 0.096; i_sq -0.72. Published:
+  angle err < 0.03; i_sq -0.75.
+- 14(a) load -0.85 -> 0.85 p.u. at 0.2 p.u.: loses the speed (mean -0.01 p.u.), angle
+  err 0.61. Published: stable, angle err about 0.2 at zero torque.
+- 16(a) observer L_d = 2 L_dN: loses the speed (mean 0.02 p.u.), angle err 0.53.
+  Published: stable, speed err 0.05, angle err 0.2.
+- 16(b) observer L_q = 0.3 L_qN first: diverges within 0.5 s. Published: stable;
+  L_q = 1.5 L_qN at the verge of stability.
 
 The simulation is noise-free and has no inverter non-linearity, which explains the
 smaller errors where both are stable; the losses of 14(a), 16(a), 16(b) are real
