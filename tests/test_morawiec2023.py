@@ -95,3 +95,20 @@ def test_tuning_has_a_default_grid_for_the_motor_and_leaves_others_alone():
     c2 = config_from_args(build_parser().parse_args(
         ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5", "--speeds", "0.3"]))
     assert c2.speeds_pu == (0.3,) and c2.T_s == pytest.approx(1 / 6600)
+
+
+def test_cli_simulates_and_replays_the_rotor_flux_observer(tmp_path):
+    import json
+
+    from pmsmjax.cli.__main__ import main
+
+    sim, rep = tmp_path / "sim", tmp_path / "rep"
+    assert main(["simulate", "--motor", "morawiec_ipm3k5", "--observer", "rotor-flux",
+                 "--t-end", "0.05", "--out", str(sim)]) == 0
+    assert main(["replay", "--data", str(sim / "recording.npz"), "--motor",
+                 "morawiec_ipm3k5", "--observer", "rotor-flux", "--out", str(rep)]) == 0
+    out = np.load(rep / "replay.npz")
+    traj = np.load(sim / "trajectory.npz")
+    np.testing.assert_allclose(out["theta_hat"], traj["theta_hat"], atol=1e-9)
+    assert {"s_omega", "theta_lambda"} <= set(out.files)
+    assert json.loads((rep / "stats.json").read_text())
