@@ -108,6 +108,7 @@ from .observers import (  # noqa: E402
     FixedGains as FixedGains,
     LESOObserver as LESOObserver,
     Measurement as Measurement,
+    RotorFluxObserver as RotorFluxObserver,
     SensoredObserver as SensoredObserver,
 )
 from .observers import ParallelModelObserver as ParallelModelObserver  # noqa: E402

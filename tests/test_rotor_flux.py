@@ -260,3 +260,16 @@ def test_printed_matrix_35_and_the_exact_spectra_differ_as_documented():
     s4 = mp.spectrum_sweep("fig4b", n_floquet=16)
     assert np.max(s4.printed.real[s4.values >= 1.2]) > 0
     assert np.max(s4.floquet.real[s4.values <= 1.6]) < 0
+
+
+def test_period_average_is_exact_with_eight_angles():
+    from pmsmjax.observers import OperatingPoint
+
+    obs = make_observer("rotor-flux", DRIVE)
+    x = jnp.array([0.3, -0.2, 0.4, 20.0])
+    op = OperatingPoint(0.4 * W_R, jnp.array([-2.0, 6.0]))
+    th = jnp.arange(64) * 2 * np.pi / 64
+    f64 = jnp.mean(jax.vmap(lambda t: obs.error_rhs(
+        x, OperatingPoint(op.w_m, op.i_dq, t), M))(th), 0)
+    np.testing.assert_allclose(np.asarray(obs.error_rhs(x, op, M)), np.asarray(f64),
+                               rtol=1e-12)

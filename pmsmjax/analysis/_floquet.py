@@ -49,7 +49,8 @@ def floquet(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
     origin, at electrical speed `w_m` (rad/s) and current `i_dq` (A, estimated frame),
     true machine `plant`, over one electrical period from rotor angle `theta0` (rad);
     `n_steps` exponential-midpoint steps per period (static; error
-    O((2 pi / n_steps)^2) in the angle dependence, stable for any stiffness). Pure: vmap over any argument."""
+    O((2 pi / n_steps)^2) in the angle dependence, stable for any stiffness).
+    Pure: vmap over any argument."""
     check_observer("floquet", observer)
     check_plant("floquet", plant)
     if not isinstance(n_steps, int) or n_steps < 4:
