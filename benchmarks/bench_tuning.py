@@ -95,9 +95,11 @@ def main():
     ap.add_argument("--out", default=str(HERE / "out" / "bench_tuning.json"),
                     help="JSON output file")
     args = ap.parse_args()
-    # a fixed budget: no early stopping, so every method gets the same evaluations
+    # a fixed budget: no early stopping, so every method gets the same evaluations; the
+    # robust objective (the targets are robust losses; the main job's default adds the
+    # no-regression constraint)
     cfg = (tg.TuningConfig.quick() if args.quick else tg.TuningConfig()).replace(
-        patience=0, observer=args.observer)
+        patience=0, observer=args.observer, objective="robust")
     steps = cfg.steps if args.steps is None else args.steps
     scen = tg.training_scenarios(cfg)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]

@@ -182,9 +182,13 @@ def test_gradient_matches_central_differences():
     flat = flat + 0.3 * jnp.sin(jnp.arange(flat.size) + 1.0)
     point = eqx.combine(unravel(flat), static)
     eqs = tg.equilibria(point, cfg, scen)
+    # the default objective, "no_regression", against the paper design's losses: its
+    # hinge is active for some scenarios at this point
+    assert cfg.objective == "no_regression"
+    ref = tg.evaluate(sched, cfg, scen, objective="robust")[1].loss
 
     def f(z):
-        return tg.loss(eqx.combine(unravel(z), static), cfg, scen, eqs)[0]
+        return tg.loss(eqx.combine(unravel(z), static), cfg, scen, eqs, reference=ref)[0]
 
     value, grad = jax.jit(jax.value_and_grad(f))(flat)
     f_jit = jax.jit(f)
@@ -312,12 +316,12 @@ def test_quick_tuning_beats_paper_design_is_feasible_and_reloads(tmp_path):
 
 
 def test_no_regression_objective_keeps_every_training_scenario_within_tolerance():
-    """On a small problem (two speeds, so that the schedule trades one against the other)
-    the "no_regression" objective ends with no training scenario worse than its tolerance
-    against the starting design and a lower robust loss, every optimiser's best iterate
-    being within it; its penalty is the documented hinge."""
-    cfg = tg.TuningConfig.quick(speeds_pu=(0.2, 1.0), n_mismatch=2, steps=10, patience=0,
-                                regression_tol=0.01)
+    """On the small problem (`TuningConfig.quick`: the compiled step is reused) the
+    "no_regression" objective ends with no training scenario worse than its tolerance
+    against the starting design and a lower robust loss, the best iterate being the
+    lowest objective among those within it; its penalty is the documented hinge."""
+    cfg = QUICK
+    assert cfg.objective == "no_regression" and cfg.regression_tol == 0.01
     scen = tg.training_scenarios(cfg)
     init = cfg.initial_schedule()
     base_robust, base = tg.evaluate(init, cfg, scen, objective="robust")
@@ -531,7 +535,11 @@ def test_quick_generic_tuning_of_an_unknown_observer(registered, tmp_path):
     constant factors on its paper design, penalties and feasibility from the generic
     analysis): Adam beats the paper's design, the report names the observer and its
     tuned parameters, and the tuned design reloads bit-identically."""
-    cfg = tg.TuningConfig.quick(observer="test-constant-leso", steps=5, patience=0)
+    # the robust objective: with the default "no_regression" these 5 steps keep the
+    # paper design (no iterate with a lower objective keeps every training run within
+    # 1 % of it), which is the constraint working, not what this test is about
+    cfg = tg.TuningConfig.quick(observer="test-constant-leso", steps=5, patience=0,
+                                objective="robust")
     report = tg.run_tuning(cfg, progress=False, log=None, random=False)
     L = report.losses
     assert set(report.designs) == {"paper", "tuned"}  # no ablation for constant factors

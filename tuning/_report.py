@@ -16,6 +16,7 @@ import pmsmjax as pj
 from ._export import gains_table
 from ._parametrise import AbstractDesign, GainSchedule
 from ._pipeline import TuningReport, descriptions, targets_reached
+from .objectives import report_objective
 from .scenarios import TuningConfig
 
 
@@ -148,15 +149,15 @@ def where(row: dict) -> str:
     return out + ", " + ", ".join(factors)
 
 
-def verdict(acc: dict, beats: dict) -> dict:
-    """Whether the tuned design beats the baseline: a lower objective on the training,
-    held-out and validation scenarios and no scenario of any of them worse beyond the
-    accounting's tolerance. `acc`: `{split: accounting}`; `beats`: `{split: bool}` (lower
-    objective). Returns `{"holds": bool, "where_not": [str, ...]}`."""
+def verdict(acc: dict, beats: dict, what: str = "robust loss") -> dict:
+    """Whether the tuned design beats the baseline: a lower aggregate loss (`what`) on the
+    training, held-out and validation scenarios and no scenario of any of them worse
+    beyond the accounting's tolerance. `acc`: `{split: accounting}`; `beats`:
+    `{split: bool}` (lower aggregate). Returns `{"holds": bool, "where_not": [str, ...]}`."""
     out = []
     for split, a in acc.items():
         if not beats[split]:
-            out.append(f"{split}: the objective is not lower")
+            out.append(f"{split}: the {what} is not lower")
         if a["worse"]:
             w = a["worst_regression"]
             out.append(f"{split}: {a['worse']} of {a['n']} scenarios worse by more than "
@@ -186,7 +187,7 @@ def summary(report: TuningReport) -> dict:
         validation_tuned_loss=L["tuned"]["validation"],
         improvement_pct={k: report.improvement_pct(k) for k in SPLITS},
         beats_baseline=beats,
-        verdict=verdict(acc, beats),
+        verdict=verdict(acc, beats, f"{report_objective(cfg)} loss"),
         feasible=feas_all,
         feasible_per_scenario=dict(
             train=report.feasibility["tuned"]["train"]["feasible"],
