@@ -606,6 +606,13 @@ class FALESOObserver(AbstractBackEMFLESO):
     the generalised Routh array's last entry is $a_2^{(2)} = k_1k_2^2$ (the printed
     (23) drops a factor $k_2$, the sign is the same: `pmsmjax.analysis.routh_complex2`).
 
+    The price of (26) passing DC ($G(0) = 1$): one root of (22) sits near
+    $s \approx -k_1/(k_2 - j\hat\omega)$, real part $-k_1k_2/(k_2^2 + \hat\omega^2)$, about
+    $-0.08$ 1/s at 25 Hz with Table II's gains: a constant (stationary-frame) error in the
+    estimate, e.g. left by a start-up transient, decays with a time constant of about
+    10 s. It shows in the linearised error dynamics as a pair at $-0.08 \pm j\omega$
+    (`pmsmjax equilibria`), and the tuner's Hurwitz margin penalises it.
+
     **Arguments:**
 
     - `motor`, `pll`: as `CLESOObserver`.
