@@ -108,10 +108,10 @@ from .observers import (  # noqa: E402
     FixedGains as FixedGains,
     LESOObserver as LESOObserver,
     Measurement as Measurement,
+    ParallelModelObserver as ParallelModelObserver,  # noqa: E402
     RotorFluxObserver as RotorFluxObserver,
     SensoredObserver as SensoredObserver,
 )
-from .observers import ParallelModelObserver as ParallelModelObserver  # noqa: E402
 
 
 def astype(tree, dtype):

@@ -15,10 +15,10 @@ import pmsmjax as pj
 from pmsmjax.observers import Measurement, make_observer
 from pmsmjax.observers._parallel_model import (
     d_current_feedforward,
-    polar,
     parallel_model_angle,
     parallel_model_angle_printed,
     parallel_model_offset,
+    polar,
 )
 
 from .helpers import rot

@@ -70,8 +70,8 @@ from .optimise import (
     random_search as random_search,
 )
 from .scenarios import (
-    OBJECTIVES as OBJECTIVES,
     MOTOR_DEFAULTS as MOTOR_DEFAULTS,
+    OBJECTIVES as OBJECTIVES,
     PARAMETRISATIONS as PARAMETRISATIONS,
     ScenarioSet as ScenarioSet,
     TuningConfig as TuningConfig,

@@ -22,8 +22,7 @@ import pmsmjax as pj
 from pmsmjax.cli._options import name_value, out_dir_transaction
 from pmsmjax.observers import observer_names
 
-from .scenarios import OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
-from .scenarios import MOTOR_DEFAULTS
+from .scenarios import MOTOR_DEFAULTS, OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
 
 
 def build_parser() -> argparse.ArgumentParser:

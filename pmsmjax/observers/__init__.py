@@ -52,15 +52,15 @@ from ._parallel_model import (
     parallel_model_sensitivity as parallel_model_sensitivity,
 )
 from ._pll import QuadraturePLL as QuadraturePLL
-from ._rotor_flux import (
-    RotorFluxObserver as RotorFluxObserver,
-    RotorFluxState as RotorFluxState,
-)
 from ._registry import (
     make_observer as make_observer,
     observer_class as observer_class,
     observer_names as observer_names,
     register_observer as register_observer,
+)
+from ._rotor_flux import (
+    RotorFluxObserver as RotorFluxObserver,
+    RotorFluxState as RotorFluxState,
 )
 
 
