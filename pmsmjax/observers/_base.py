@@ -188,6 +188,16 @@ class AbstractObserver(eqx.Module):
         """A copy with the named design parameters replaced (values may be traced, so
         that `vmap` over a grid of designs works)."""
 
+    def _check_design_names(self, values: dict, owner: str | None = None) -> None:
+        """`ValueError` naming the unknown design parameters among `values` and the ones
+        this class has (`design_units`); `owner` names the calling function."""
+        owner = owner or f"{type(self).__name__}.with_design"
+        bad = sorted(set(values) - set(self.design_units))
+        if bad:
+            raise ValueError(
+                f"`{owner}`: unknown design parameter(s) {', '.join(bad)}; "
+                f"{type(self).__name__} has {', '.join(self.design_units)}.")
+
     def with_motor(self, motor: PMSMParams):
         """A copy whose machine model is `motor` (observer-model mismatch)."""
         if not isinstance(motor, PMSMParams):

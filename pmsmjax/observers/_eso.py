@@ -393,11 +393,7 @@ class _AbstractFluxObserver(AbstractObserver):
 
     def with_design(self, **values):
         owner = f"{type(self).__name__}.with_design"
-        bad = sorted(set(values) - set(self.design_units))
-        if bad:
-            raise ValueError(
-                f"`{owner}`: unknown design parameter(s) {', '.join(bad)}; "
-                f"{type(self).__name__} has {', '.join(self.design_units)}.")
+        self._check_design_names(values, owner)
         fal_values = {k: values.pop(k) for k in list(values) if k in _FAL_UNITS}
         obs = self
         if values:

@@ -274,12 +274,7 @@ class AbstractBackEMFLESO(AbstractObserver):
                 "zeta_pll": self.pll.zeta_pll, "w_min": self.pll.w_min}
 
     def with_design(self, **values):
-        bad = sorted(set(values) - set(self.design_units))
-        if bad:
-            raise ValueError(
-                f"`{type(self).__name__}.with_design`: unknown design parameter(s) "
-                f"{', '.join(bad)}; {type(self).__name__} has "
-                f"{', '.join(self.design_units)}.")
+        self._check_design_names(values)
         for k, v in values.items():  # every design parameter here is a positive rate
             check_positive(f"{type(self).__name__}.with_design", k, v,
                            self.design_units[k].split(",")[0])

@@ -399,12 +399,7 @@ class ParallelModelObserver(AbstractObserver):
         return {"v1": self.v1, "v2": self.v2, "T_LP": self.T_LP, "T_w": self.T_w}
 
     def with_design(self, **values):
-        bad = sorted(set(values) - set(self.design_units))
-        if bad:
-            raise ValueError(
-                f"`ParallelModelObserver.with_design`: unknown design parameter(s) "
-                f"{', '.join(bad)}; ParallelModelObserver has "
-                f"{', '.join(self.design_units)}.")
+        self._check_design_names(values)
         if not values:
             return self
         new = eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,

@@ -375,11 +375,7 @@ class RotorFluxObserver(AbstractObserver):
         return {k: getattr(self, k) for k in _DESIGN_UNITS}
 
     def with_design(self, **values):
-        bad = sorted(set(values) - set(_DESIGN_UNITS))
-        if bad:
-            raise ValueError(
-                f"`RotorFluxObserver.with_design`: unknown design parameter(s) "
-                f"{', '.join(bad)}; RotorFluxObserver has {', '.join(_DESIGN_UNITS)}.")
+        self._check_design_names(values)
         if not values:
             return self
         for k, v in values.items():
