@@ -19,13 +19,20 @@ import argparse
 import json
 import math
 import platform
+import sys
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 import pmsmjax as pj
-from pmsmjax.observers import make_observer
+
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_observers import _best_time  # noqa: E402
+
+from pmsmjax.observers import make_observer  # noqa: E402
 
 
 T_S = 1e-4
@@ -45,12 +52,8 @@ def _record(n_steps: int, batch: int):
 
 
 def _best(fn, repeats=3):
-    best = math.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return best
+    """Best wall time of one call of `fn` over `repeats` calls."""
+    return _best_time(fn, repeats, 0.0)
 
 
 def main(argv=None):

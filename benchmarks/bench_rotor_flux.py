@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -25,16 +27,16 @@ import numpy as np
 import pmsmjax as pj
 
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_observers import _best_time  # noqa: E402
+
+
 NAMES = ("rotor-flux", "eso", "leso", "afo")
 
 
 def _best(fn, repeats=3):
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - t0)
-    return best
+    """Best wall time of one call of `fn` over `repeats` calls."""
+    return _best_time(fn, repeats, 0.0)
 
 
 def main(argv=None):
