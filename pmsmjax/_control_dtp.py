@@ -29,7 +29,9 @@ $6\hat\omega$ in the anti-synchronous frame, but tied to the angle, so exact at 
 speed. The output rotations use the advanced angle (as for alpha-beta), which also
 compensates the delay at the 5th and 7th. Each harmonic integrator converges at about
 $\alpha_r\alpha_{xy}/|\alpha_{xy} + j6\omega|$ (phase margin $90° -
-\arctan(6\omega/\alpha_{xy})$).
+\arctan(6\omega/\alpha_{xy})$): on `li_dtp` at rated speed with the defaults
+($\alpha_{xy} = 2\pi\,500$, $\alpha_r = \alpha_{xy}/10$) 270 rad/s predicted, about 330
+rad/s simulated (the x-y rms falls 27-fold per 10 ms).
 
 **Individual sets** (`mode="individual"`, li-fa-leso [6]): each set in its own rotor
 frame (set 2's own Clarke transform at $\hat\theta - \gamma$ is the common-frame vector at
