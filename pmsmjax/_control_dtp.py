@@ -1,54 +1,6 @@
 r"""Current control of a dual three-phase machine (VSD or two individual sets).
 
-The plant is in vector-space-decomposition (VSD) coordinates (`pmsmjax.PMSM`): the
-alpha-beta subspace makes the torque, the x-y subspace is an R-L circuit
-$L_{xy}\,di_{xy}/dt = u_{xy} - R_s i_{xy} - e_{xy}$ driven by the 5th and 7th PM-flux
-harmonics. With the sets' space vectors $i_1$, $i_2$ (each over its own three phases, in
-the common stationary frame, amplitude invariant) the `vsd_matrix` gives
-
-$$i_{\alpha\beta} = \tfrac12 (i_1 + i_2), \qquad i_{xy} = \tfrac12\,\overline{(i_1 - i_2)},
-\qquad i_{1,2} = i_{\alpha\beta} \pm \overline{i_{xy}}$$
-
-(the x-y row of a set-1 phase is the conjugate of its alpha-beta row; for set 2 the
-conjugate times $e^{j6\gamma} = -1$ at $\gamma = 30°$; tested against `vsd_matrix`), and
-the same for the voltages.
-
-**Which frame for x-y.** A balanced fundamental of different amplitude or phase in the
-two sets, $i_k = i_{dq,k} e^{j\theta}$, gives $i_{xy} = \tfrac12\overline{(i_{dq,1} -
-i_{dq,2})}\,e^{-j\theta}$: constant in the *anti-synchronous* frame, at $-\theta$. The
-back-EMF harmonics of orders $-5$ and $+7$ (alpha-beta convention $e^{jh\theta}$) enter
-x-y conjugated, as $e^{+j5\theta}$ and $e^{-j7\theta}$, i.e. at $e^{\pm j6\theta}$ in the
-anti-synchronous frame: no frame makes both constant, and a PI in the stationary or the
-anti-synchronous frame leaves them (its gain at $\pm 6\omega$ is finite). Hence
-(`XYCurrentController`): a PI with decoupling in the anti-synchronous frame at
-$-\hat\theta$ (constant references, bandwidth $\alpha_{xy}$:
-$K_p = \alpha_{xy} L_{xy}$, $K_i = \alpha_{xy} R_s$) plus two integrators in the harmonic
-frames $\pm 6\hat\theta$ of the anti-synchronous frame (the 5th and 7th synchronous frames
-of the stationary x-y plane), gain $K_r = \alpha_r K_p$ — the same as a resonant term at
-$6\hat\omega$ in the anti-synchronous frame, but tied to the angle, so exact at any
-speed. The output rotations use the advanced angle (as for alpha-beta), which also
-compensates the delay at the 5th and 7th. Each harmonic integrator converges at about
-$\alpha_r\alpha_{xy}/|\alpha_{xy} + j6\omega|$ (phase margin $90° -
-\arctan(6\omega/\alpha_{xy})$): on `li_dtp` at rated speed with the defaults
-($\alpha_{xy} = 2\pi\,500$, $\alpha_r = \alpha_{xy}/10$) 270 rad/s predicted, about 330
-rad/s simulated (the x-y rms falls 27-fold per 10 ms).
-
-**Individual sets** (`mode="individual"`, li-fa-leso [6]): each set in its own rotor
-frame (set 2's own Clarke transform at $\hat\theta - \gamma$ is the common-frame vector at
-$\hat\theta$), each with `FOC.current` (its model should be the per-set one: self
-inductance $(L_{d,q} + L_{xy})/2$, see `FOC.from_drive`), both sets the same references;
-the common mode sees $L_{d,q}$ and the differential mode $L_{xy}$, so a gain that gives
-the bandwidth $\alpha_c$ with the self inductance gives $\alpha_c (L_{d,q}+L_{xy})/(2
-L_{xy})$ (3.5 to 5.5 times more on `li_dtp`) to the differential mode. Its discrete
-loop $z - 1 + k$ (or $z(z-1) + k$ with the computational delay), $k = K_p T_s/L_{xy}$,
-needs $k < 2$ ($k < 1$ with the delay): on `li_dtp` at $T_s = 100$ us the default
-$\alpha_c = 2\pi\,500$ gives $k = 1.7$ (stable without the delay, but oscillatory). The
-5th and 7th currents are left in each set, divided by the differential loop (x-y rms
-0.69 A at $\alpha_c = 2\pi\,100$, 0.20 A at $2\pi\,500$, 1.27 A without control, at
-rated speed).
-
-Simplifications: the x-y voltage has its own limit circle `u_max` and does not reduce
-the alpha-beta limit (VSD mode); the x-y current is sampled without the `Sensing` chain.
+The derivation (frames, set vectors, gains) is in `DualCurrentControl`'s docstring.
 """
 
 from __future__ import annotations
@@ -56,7 +8,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._control import CurrentControllerState, _limit_scale
+from ._control import _limit_scale
 from ._validate import check_positive
 
 
@@ -70,7 +22,7 @@ class XYCurrentControllerState(eqx.Module):
 
 
 class XYCurrentController(eqx.Module):
-    """x-y current control of a dual three-phase machine (see the module docstring).
+    """x-y current control of a dual three-phase machine (see `DualCurrentControl`).
 
     **Arguments:**
 
@@ -129,7 +81,57 @@ class XYCurrentController(eqx.Module):
 
 
 class DualCurrentControl(eqx.Module):
-    """Current control of a dual three-phase machine, an option of `FOC` (`FOC.dual`).
+    r"""Current control of a dual three-phase machine, an option of `FOC` (`FOC.dual`).
+
+    The plant is in vector-space-decomposition (VSD) coordinates (`pmsmjax.PMSM`): the
+    alpha-beta subspace makes the torque, the x-y subspace is an R-L circuit
+    $L_{xy}\,di_{xy}/dt = u_{xy} - R_s i_{xy} - e_{xy}$ driven by the 5th and 7th PM-flux
+    harmonics. With the sets' space vectors $i_1$, $i_2$ (each over its own three phases, in
+    the common stationary frame, amplitude invariant) the `vsd_matrix` gives
+
+    $$i_{\alpha\beta} = \tfrac12 (i_1 + i_2), \qquad i_{xy} = \tfrac12\,\overline{(i_1 - i_2)},
+    \qquad i_{1,2} = i_{\alpha\beta} \pm \overline{i_{xy}}$$
+
+    (the x-y row of a set-1 phase is the conjugate of its alpha-beta row; for set 2 the
+    conjugate times $e^{j6\gamma} = -1$ at $\gamma = 30°$; tested against `vsd_matrix`), and
+    the same for the voltages.
+
+    **Which frame for x-y.** A balanced fundamental of different amplitude or phase in the
+    two sets, $i_k = i_{dq,k} e^{j\theta}$, gives $i_{xy} = \tfrac12\overline{(i_{dq,1} -
+    i_{dq,2})}\,e^{-j\theta}$: constant in the *anti-synchronous* frame, at $-\theta$. The
+    back-EMF harmonics of orders $-5$ and $+7$ (alpha-beta convention $e^{jh\theta}$) enter
+    x-y conjugated, as $e^{+j5\theta}$ and $e^{-j7\theta}$, i.e. at $e^{\pm j6\theta}$ in the
+    anti-synchronous frame: no frame makes both constant, and a PI in the stationary or the
+    anti-synchronous frame leaves them (its gain at $\pm 6\omega$ is finite). Hence
+    (`XYCurrentController`): a PI with decoupling in the anti-synchronous frame at
+    $-\hat\theta$ (constant references, bandwidth $\alpha_{xy}$:
+    $K_p = \alpha_{xy} L_{xy}$, $K_i = \alpha_{xy} R_s$) plus two integrators in the harmonic
+    frames $\pm 6\hat\theta$ of the anti-synchronous frame (the 5th and 7th synchronous frames
+    of the stationary x-y plane), gain $K_r = \alpha_r K_p$ — the same as a resonant term at
+    $6\hat\omega$ in the anti-synchronous frame, but tied to the angle, so exact at any
+    speed. The output rotations use the advanced angle (as for alpha-beta), which also
+    compensates the delay at the 5th and 7th. Each harmonic integrator converges at about
+    $\alpha_r\alpha_{xy}/|\alpha_{xy} + j6\omega|$ (phase margin $90° -
+    \arctan(6\omega/\alpha_{xy})$): on `li_dtp` at rated speed with the defaults
+    ($\alpha_{xy} = 2\pi\,500$, $\alpha_r = \alpha_{xy}/10$) 270 rad/s predicted, about 330
+    rad/s simulated (the x-y rms falls 27-fold per 10 ms).
+
+    **Individual sets** (`mode="individual"`, li-fa-leso [6]): each set in its own rotor
+    frame (set 2's own Clarke transform at $\hat\theta - \gamma$ is the common-frame vector at
+    $\hat\theta$), each with `FOC.current` (its model should be the per-set one: self
+    inductance $(L_{d,q} + L_{xy})/2$, see `FOC.from_drive`), both sets the same references;
+    the common mode sees $L_{d,q}$ and the differential mode $L_{xy}$, so a gain that gives
+    the bandwidth $\alpha_c$ with the self inductance gives $\alpha_c (L_{d,q}+L_{xy})/(2
+    L_{xy})$ (3.5 to 5.5 times more on `li_dtp`) to the differential mode. Its discrete
+    loop $z - 1 + k$ (or $z(z-1) + k$ with the computational delay), $k = K_p T_s/L_{xy}$,
+    needs $k < 2$ ($k < 1$ with the delay): on `li_dtp` at $T_s = 100$ us the default
+    $\alpha_c = 2\pi\,500$ gives $k = 1.7$ (stable without the delay, but oscillatory). The
+    5th and 7th currents are left in each set, divided by the differential loop (x-y rms
+    0.69 A at $\alpha_c = 2\pi\,100$, 0.20 A at $2\pi\,500$, 1.27 A without control, at
+    rated speed).
+
+    Simplifications: the x-y voltage has its own limit circle `u_max` and does not reduce
+    the alpha-beta limit (VSD mode); the x-y current is sampled without the `Sensing` chain.
 
     **Arguments:**
 
