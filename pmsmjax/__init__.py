@@ -28,6 +28,10 @@ from ._control import (  # noqa: E402
     limit_vector as limit_vector,
     mtpa_i_d as mtpa_i_d,
 )
+from ._control_dtp import (  # noqa: E402
+    DualCurrentControl as DualCurrentControl,
+    XYCurrentController as XYCurrentController,
+)
 from ._frames import (  # noqa: E402
     J as J,
     angle_error as angle_error,

@@ -238,6 +238,7 @@ class SpeedController(eqx.Module):
 class FOCState(eqx.Module):
     current: CurrentControllerState
     speed: SpeedControllerState
+    dual: object = None  # state of `FOC.dual` (dual three-phase control), if any
 
 
 class FOCOutput(eqx.Module):
@@ -260,6 +261,9 @@ class FOC(eqx.Module):
     - `angle_advance`: if `True`, the voltage is transformed to the stationary frame at
       `theta_hat + (0.5 + d) w_hat T_s` (d = 1 with computational delay) to compensate the
       rotation during the hold interval(s).
+    - `dual`: `DualCurrentControl` for a dual three-phase machine: VSD control with the
+      x-y currents regulated, or two individual sets (default None: alpha-beta control
+      only, zero x-y voltage).
 
     Use `FOC.from_drive(drive, ...)` for the usual bandwidth-based design.
     """
@@ -269,16 +273,49 @@ class FOC(eqx.Module):
     refs: CurrentRefs
     k_tau: float
     angle_advance: bool = eqx.field(static=True, default=True)
+    dual: DualCurrentControl | None = None
 
     @classmethod
     def from_drive(cls, drive: Drive, *, alpha_c: float = 2 * math.pi * 500.0,
                    alpha_s: float = 2 * math.pi * 5.0, strategy: str = "id_const",
                    i_d: float = 0.0, tau_max: float | None = None,
-                   motor: PMSMParams | None = None, angle_advance: bool = True) -> FOC:
+                   motor: PMSMParams | None = None, angle_advance: bool = True,
+                   dual: str | None = None, alpha_xy: float | None = None,
+                   alpha_r: float | None = None, i_xy_ref=(0.0, 0.0)) -> FOC:
         """Design from a `Drive`: bandwidths `alpha_c`, `alpha_s` (rad/s), d-current
         `strategy` ("id_const" with `i_d` in A, or "mtpa"), torque limit `tau_max` (N m;
         default 2x rated torque), controller machine model `motor` (default the drive's).
+
+        Dual three-phase drives: `dual="vsd"` regulates the x-y currents to `i_xy_ref`
+        (A, anti-synchronous frame) with bandwidth `alpha_xy` (rad/s, default `alpha_c`)
+        and harmonic gain `alpha_r` (rad/s, default `alpha_xy / 10`); `dual="individual"`
+        controls the two sets each in its own frame, with the per-set model (self
+        inductances $(L_{d,q} + L_{xy})/2$) unless `motor` is given (see
+        `pmsmjax.DualCurrentControl`; `alpha_c` also sets the differential mode's
+        bandwidth, several times higher).
         """
+        dual_ctrl = None
+        if dual is not None:
+            from ._control_dtp import DualCurrentControl, XYCurrentController
+
+            if not drive.dual:
+                raise ValueError(f"`FOC.from_drive(dual={dual!r})` needs a dual "
+                                 f"three-phase drive; {drive.name!r} is three-phase.")
+            if dual not in ("vsd", "individual"):
+                raise ValueError(f"`FOC.from_drive(dual=...)` must be None, 'vsd' or "
+                                 f"'individual'; got {dual!r}.")
+            ab, L_xy = drive.motor.ab, drive.motor.L_xy
+            if dual == "individual":
+                if motor is None:
+                    motor = eqx.tree_at(lambda m: (m.L_d, m.L_q), ab,
+                                        (0.5 * (ab.L_d + L_xy), 0.5 * (ab.L_q + L_xy)))
+                dual_ctrl = DualCurrentControl("individual")
+            else:
+                a_xy = alpha_c if alpha_xy is None else alpha_xy
+                a_r = 0.1 * a_xy if alpha_r is None else alpha_r
+                xy = XYCurrentController(L_xy=L_xy, R_s=ab.R_s, alpha_xy=a_xy,
+                                         alpha_r=a_r, u_max=drive.inverter.u_lim)
+                dual_ctrl = DualCurrentControl("vsd", xy=xy, i_xy_ref=i_xy_ref)
         motor = drive.three_phase_motor if motor is None else motor
         tau_max = 2.0 * drive.tau_rated if tau_max is None else tau_max
         return cls(
@@ -289,10 +326,27 @@ class FOC(eqx.Module):
             refs=CurrentRefs(strategy=strategy, i_d=i_d, i_max=drive.i_max),
             k_tau=drive.k_tau,
             angle_advance=angle_advance,
+            dual=dual_ctrl,
         )
 
     def init(self) -> FOCState:
-        return FOCState(current=self.current.init(), speed=self.speed.init())
+        return FOCState(current=self.current.init(), speed=self.speed.init(),
+                        dual=None if self.dual is None else self.dual.init(self))
+
+    def _references(self, state: FOCState, w_hat, w_ref, T_s, i_ref_override,
+                    speed_mode):
+        """Speed loop and current references: `(speed state, i_ref, tau_ref)`."""
+        if speed_mode:
+            s_state, tau_ref = self.speed.step(state.speed, w_ref, w_hat, T_s)
+            i_ref = self.refs(tau_ref, self.current.motor, self.k_tau, w=w_hat,
+                              u_max=self.current.u_max)
+        else:
+            s_state = state.speed
+            i_ref = i_ref_override
+            m = self.current.motor
+            tau_ref = self.k_tau * (
+                (m.psi_f + (m.L_d - m.L_q) * i_ref[..., 0]) * i_ref[..., 1])
+        return s_state, i_ref, tau_ref
 
     def step(self, state: FOCState, i_dq, w_hat, w_ref, T_s, *, i_ref_override=None,
              speed_mode=True):
@@ -315,5 +369,5 @@ class FOC(eqx.Module):
             tau_ref = self.k_tau * (
                 (m.psi_f + (m.L_d - m.L_q) * i_ref[..., 0]) * i_ref[..., 1])
         c_state, u = self.current.step(state.current, i_ref, i_dq, w_hat, T_s)
-        return FOCState(current=c_state, speed=s_state), FOCOutput(u_dq=u, i_ref=i_ref,
-                                                                   tau_ref=tau_ref)
+        return FOCState(current=c_state, speed=s_state, dual=state.dual), \
+            FOCOutput(u_dq=u, i_ref=i_ref, tau_ref=tau_ref)

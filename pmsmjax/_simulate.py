@@ -198,6 +198,10 @@ def simulate(
     if key is None and is_concrete(sensing.noise_std) and np.any(
             np.asarray(sensing.noise_std) > 0):
         raise ValueError("`Sensing(noise_std > 0)` needs a PRNG `key` in `simulate`.")
+    if getattr(controller, "dual", None) is not None and not drive.dual:
+        raise ValueError(
+            f"`controller.dual` ({controller.dual.mode!r} control) needs a dual three-phase "
+            f"drive; {drive.name!r} is three-phase.")
 
     return _simulate(arguments)
 
@@ -243,13 +247,14 @@ def _simulate(arguments: dict) -> Trajectory:
         y0 = eqx.tree_at(lambda y: y.w_m, y0, jnp.asarray(inputs0["w_m_imposed"], dtype))
     th_hat0 = y0.theta if theta_hat0 is None else jnp.asarray(theta_hat0, dtype)
     w_hat0_ = y0.w_m if w_hat0 is None else jnp.asarray(w_hat0, dtype)
-    u_zero = jnp.zeros(2, dtype)
+    dual_ctrl = getattr(controller, "dual", None)
+    u_zero = jnp.zeros(2 if dual_ctrl is None else 4, dtype)  # (+ x-y voltage)
     zero = jnp.zeros((), dtype)
     carry0 = dict(
         plant=split_state(y0),  # in component form (2-vectors as tuples)
         ctrl=_cast_floats(controller.init(), dtype),
         obs=_cast_floats(observer.init(theta0=th_hat0, w0=w_hat0_), dtype),
-        u_prev=u_zero,     # applied over [t_{k-1}, t_k)
+        u_prev=jnp.zeros(2, dtype),  # applied over [t_{k-1}, t_k)
         u_pending=u_zero,  # computed at k-1, applied over [t_k, t_{k+1}) if delayed
         i_hist=jnp.zeros((sensing.delay, 2), dtype),
         ok=jnp.array(True),
@@ -297,26 +302,42 @@ def _simulate(arguments: dict) -> Trajectory:
                               scale_motor(observer.motor, inp["observer_scale"]))
         obs_state, est = obs.step(carry["obs"], meas, T_s)
         # --- control in the estimated frame
-        c_hat, s_hat = cos_sin(est.theta_hat)
-        i_c = jnp.stack(_rotate(c_hat, -s_hat, i_a, i_b), -1)  # park(i_meas, theta_hat)
-        ctrl_state, out = controller.step(
-            carry["ctrl"], i_c, est.w_hat, inp["w_m_ref"], T_s,
-            i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
-            speed_mode=speed_mode,
-        )
         adv = (0.5 + (1.0 if drive.inverter.delay else 0.0)) * est.w_hat * T_s \
             if controller.angle_advance else 0.0
+        u_xy_cmd = None
+        if dual_ctrl is None:
+            c_hat, s_hat = cos_sin(est.theta_hat)
+            i_c = jnp.stack(_rotate(c_hat, -s_hat, i_a, i_b), -1)  # park(i_meas, th_hat)
+            ctrl_state, out = controller.step(
+                carry["ctrl"], i_c, est.w_hat, inp["w_m_ref"], T_s,
+                i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
+                speed_mode=speed_mode,
+            )
+        else:  # dual three-phase current control (x-y sampled without `sensing`)
+            ctrl_state, out, u_xy_cmd = dual_ctrl.step(
+                controller, carry["ctrl"], i_meas, jnp.stack(y.i_xy, -1), est.theta_hat,
+                est.theta_hat + adv, est.w_hat, inp["w_m_ref"], T_s,
+                i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
+                speed_mode=speed_mode,
+            )
         c_u, s_u = cos_sin(est.theta_hat + adv)
         u_cmd = jnp.stack(_rotate(c_u, s_u, out.u_dq[..., 0], out.u_dq[..., 1]), -1)
+        if u_xy_cmd is not None:  # the x-y voltage goes through the same inverter delay
+            u_cmd = jnp.concatenate([u_cmd, u_xy_cmd], -1)
         if drive.inverter.delay:
             u_apply, u_pending = carry["u_pending"], u_cmd
         else:
             u_apply, u_pending = u_cmd, carry["u_pending"]
+        u_xy_apply = None
+        if u_xy_cmd is not None:
+            u_apply, u_xy_apply = u_apply[..., :2], u_apply[..., 2:]
         # --- plant over [t_k, t_k+1)
         plant = plant0
         if inp["plant_scale"]:
             plant = PMSM(scale_motor(drive.motor, inp["plant_scale"]), drive.mechanics)
         args = PlantInput(u_ab=(u_apply[..., 0], u_apply[..., 1]), tau_L=inp["tau_L"],
+                          u_xy=None if u_xy_apply is None else
+                          (u_xy_apply[..., 0], u_xy_apply[..., 1]),
                           free=0.0 if imposed else 1.0)
         y_new = integrate(plant._rates, y, args, T_s, solver=solver, n_substeps=n_substeps)
         good = checkpoint_name(carry["ok"] & _finite_bounded(y_new, i_bound, w_bound),
@@ -342,6 +363,9 @@ def _simulate(arguments: dict) -> Trajectory:
                 i_ref=out.i_ref, tau_ref=out.tau_ref, tau_M=plant.torque(join_state(y)),
                 tau_L=inp["tau_L"], w_m_ref=inp["w_m_ref"], extras=est.extras,
             )
+            if drive.dual:
+                rec["i_xy"] = jnp.stack(y.i_xy, -1)
+                rec["u_xy"] = jnp.zeros_like(u_apply) if u_xy_apply is None else u_xy_apply
             return _cast_floats(rec, dtype)
 
         return new_carry, record

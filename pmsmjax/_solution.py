@@ -40,6 +40,8 @@ class Trajectory(eqx.Module):
       plant state after the last step, at t_N = N T_s (the samples stop at t_{N-1}).
     - `extras`: the observer's own estimates by name (`Estimate.extras`, units in the
       observer class's `extras`), e.g. `psi_ab_hat` (V s) for the zhang2022 observers.
+    - `i_xy`, `u_xy`: dual three-phase machines only (else None): the x-y subspace current
+      (A) at t_k and voltage (V) applied over [t_k, t_{k+1}), stationary x-y frame.
     """
 
     t: jnp.ndarray
@@ -67,6 +69,8 @@ class Trajectory(eqx.Module):
     theta_end: jnp.ndarray | None = None
     w_m_end: jnp.ndarray | None = None
     i_dq_end: jnp.ndarray | None = None
+    i_xy: jnp.ndarray | None = None
+    u_xy: jnp.ndarray | None = None
 
     @property
     def ok(self):

@@ -33,6 +33,9 @@ def test_vsd_control_keeps_the_5th_and_7th_out_of_the_alpha_beta_observer():
     """Fig. 15: with the dual machine the plant maps the 5th and 7th to the x-y subspace."""
     out = li.harmonics("c-leso", 600, 0.8, "vsd", t_end=0.3)
     assert max(out["simulated_pct"].values()) < 1e-3
+    # ... and the x-y currents, which the x-y controller regulates to zero (without it
+    # they are ~1 A rms here, see tests/test_dtp_control.py)
+    assert out["i_xy_rms"] < 1e-3
 
 
 @pytest.mark.parametrize("param, ratio, i_pu", [("L_q", 1.5, (-0.5, 1.0)),

@@ -21,8 +21,10 @@ Common settings (everything the paper does not state is an assumption):
   machine with li_dtp's per-set parameters, whose 5th and 7th back-EMF harmonics are in
   its alpha-beta plane (`individual_set_drive`). VSD control (Fig. 15): the dual machine,
   whose 5th and 7th harmonics the plant maps to the x-y subspace (see `pmsmjax.PMSM`), so
-  the alpha-beta observer does not see them. The x-y currents are not regulated here
-  (zero x-y voltage).
+  the alpha-beta observer does not see them; the x-y currents are regulated to zero
+  (`FOC.from_drive(drive, dual="vsd")`: PI in the anti-synchronous frame plus integrators
+  at the 5th and 7th, see `pmsmjax.DualCurrentControl`), which keeps the 5th and 7th out
+  of the phase currents too.
 
 **Mismatch (Fig. 18, (39)-(43)).** In steady state the observer's model signal is
 $\hat L_q\rho = \omega J(L i + \psi_f e_d) + (R_s - \hat R_s)i - \omega\hat L_qJi$ (true
@@ -99,17 +101,18 @@ def individual_set_drive(drive: pj.Drive | None = None) -> pj.Drive:
 
 
 def steady_run(name: str, rpm: float, load_pu: float = 0.0, *, drive=None, t_end=0.4,
-               motor=None, T_s=T_S, **design):
+               motor=None, T_s=T_S, dual=None, **design):
     """Current control at an imposed speed `rpm` with $i_q$ = `load_pu` p.u. of the rated
-    current, the observer `name` in the loop (its model `motor`, default the drive's).
-    Returns `(observer, Trajectory)`."""
+    current, the observer `name` in the loop (its model `motor`, default the drive's);
+    `dual` as in `FOC.from_drive` (dual three-phase drives). Returns `(observer,
+    Trajectory)`."""
     drive = pj.preset("li_dtp") if drive is None else drive
     w = rpm_to_w(drive, rpm)
     obs = make_observer(name, drive, motor=motor, **design)
     sc = pj.Scenario(t_end=t_end, w_m_imposed=pj.Profile.constant(w),
                      i_d_ref=pj.Profile.constant(0.0),
                      i_q_ref=pj.Profile.constant(load_pu * float(drive.base.I_b)))
-    foc = pj.FOC.from_drive(drive)
+    foc = pj.FOC.from_drive(drive, dual=dual)
     return obs, pj.simulate(drive, foc, obs, sc, T_s=T_s, w_m0=w)
 
 
@@ -147,18 +150,23 @@ def harmonic_content(e_alpha, w, T_s=T_S, orders=(5, 7)) -> dict:
 def harmonics(name: str, rpm: float, load_pu: float, mode: str = "sets", **kw) -> dict:
     """Figs. 13-15: the 5th and 7th harmonic of the estimated alpha back-EMF (%), with
     individual-set control (`mode="sets"`, the observer on set 1) or VSD control
-    (`mode="vsd"`), and the frequency-response prediction $|G_h| a_h$ (% of the
+    (`mode="vsd"`, x-y currents regulated to zero; `"i_xy_rms"`: their rms over the
+    analysed window, A), and the frequency-response prediction $|G_h| a_h$ (% of the
     fundamental estimate) where the harmonic reaches the observer."""
     if mode not in ("sets", "vsd"):
         raise ValueError(f"`harmonics(mode=...)` must be 'sets' or 'vsd'; got {mode!r}.")
     dtp = pj.preset("li_dtp")
     drive = individual_set_drive(dtp) if mode == "sets" else dtp
+    kw.setdefault("dual", "vsd" if mode == "vsd" else None)
     obs, traj = steady_run(name, rpm, load_pu, drive=drive, **kw)
     w = rpm_to_w(drive, rpm)
     n = int(round(0.2 / T_S))
     e_a = np.asarray(traj.extras["e_ab_hat"])[-n:, 0]
     sim = harmonic_content(e_a, w)
     out = {"simulated_pct": sim}
+    if mode == "vsd":
+        i_xy = np.asarray(traj.i_xy)[-n:]
+        out["i_xy_rms"] = float(np.sqrt(np.mean(np.sum(i_xy ** 2, -1))))
     if mode == "sets":
         harm = drive.three_phase_motor.harmonics
         G = pj.analysis.bemf_response(obs, w, (1, *harm.order), T_S)
