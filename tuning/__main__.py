@@ -175,11 +175,11 @@ def main(argv=None) -> int:
         s = write_report(report, out, plot=not args.no_plot)
     wall = time.perf_counter() - t0
     print()
-    print(f"{'design':<16}{'train loss':>12}{'held-out loss':>15}{'validation':>12}"
+    print(f"{'design':<16}{'train loss':>14}{'held-out loss':>15}{'validation':>14}"
           f"{'feasible':>10}")
-    for name, row in s["designs"].items():
-        print(f"{name:<16}{row['train_loss']:>12.4f}{row['heldout_loss']:>15.4f}"
-              f"{row['validation_loss']:>12.4f}{str(row['feasible']):>10}")
+    for name, row in s["designs"].items():  # 5 significant digits: columns stay apart
+        print(f"{name:<16}{row['train_loss']:>14.5g}{row['heldout_loss']:>15.5g}"
+              f"{row['validation_loss']:>14.5g}{str(row['feasible']):>10}")
     imp = s["improvement_pct"]
     v = s["verdict"]
     change = (f"{imp['train']:+.1f} % (training), {imp['heldout']:+.1f} % (held-out), "
