@@ -358,16 +358,8 @@ class FOC(eqx.Module):
         - `i_ref_override`: current references (A) used instead of the speed loop when
           `speed_mode` is False (current/torque-controlled operation).
         """
-        if speed_mode:
-            s_state, tau_ref = self.speed.step(state.speed, w_ref, w_hat, T_s)
-            i_ref = self.refs(tau_ref, self.current.motor, self.k_tau, w=w_hat,
-                              u_max=self.current.u_max)
-        else:
-            s_state = state.speed
-            i_ref = i_ref_override
-            m = self.current.motor
-            tau_ref = self.k_tau * (
-                (m.psi_f + (m.L_d - m.L_q) * i_ref[..., 0]) * i_ref[..., 1])
+        s_state, i_ref, tau_ref = self._references(state, w_hat, w_ref, T_s,
+                                                   i_ref_override, speed_mode)
         c_state, u = self.current.step(state.current, i_ref, i_dq, w_hat, T_s)
         return FOCState(current=c_state, speed=s_state, dual=state.dual), \
             FOCOutput(u_dq=u, i_ref=i_ref, tau_ref=tau_ref)
