@@ -21,12 +21,17 @@ $k_i = \alpha_s^2 J/n_p$ (critically damped for the rigid rotor $J/n_p\,\dot\ome
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax.numpy as jnp
 
 from ._params import Drive, PMSMParams
 from ._validate import check_positive
+
+
+if TYPE_CHECKING:  # _control_dtp imports this module
+    from ._control_dtp import DualCurrentControl
 
 
 def limit_vector(u, u_max):

@@ -56,7 +56,8 @@ def test_every_observer_has_a_default_design_on_every_preset(name, preset):
     assert again.design_parameters().keys() == params.keys()
     for k, v in params.items():
         assert float(again.design_parameters()[k]) == pytest.approx(float(v))
-    # its error dynamics are finite and the designed equilibrium is the origin
+    # its error dynamics are finite and vanish at its designed equilibrium
+    # (`designed_error`: the origin, or a deliberate lag such as the C-LESO's)
     w, i = _op(drive)
     plant = drive.three_phase_motor
     x_star = obs.designed_error(OperatingPoint(w, i), plant)

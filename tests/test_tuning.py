@@ -368,6 +368,8 @@ def test_random_search_is_seeded():
     # against the starting design's own per-scenario losses)
     _, m0 = tg.evaluate(s0, cfg, scen)
     base, _ = tg.evaluate(s0, cfg, scen, reference=m0.loss)
+    # approx: the search computes the reference inside its own evaluation (another
+    # compiled program), so the last bits of the penalty's sum may differ
     assert a.stats["loss"][0] == pytest.approx(float(base), rel=1e-12)
     assert a.stats["n_simulations"].tolist() == [scen.n, 2 * scen.n, 3 * scen.n]
     assert pj.PRESET_NAMES  # the CLI's motor choices come from here

@@ -22,7 +22,7 @@ import pmsmjax as pj
 from pmsmjax.cli._options import name_value, out_dir_transaction
 from pmsmjax.observers import observer_names
 
-from .scenarios import MOTOR_DEFAULTS, OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
+from .scenarios import OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -147,8 +147,7 @@ def config_from_args(args) -> TuningConfig:
         kw["set_params"] = tuple(args.set_params)
     if args.tune is not None:
         kw["tuned"] = tuple(s.strip() for s in args.tune.split(",") if s.strip())
-    if not args.quick:  # the motor's own defaults, below the options given
-        kw = {**MOTOR_DEFAULTS.get(args.motor, {}), **kw}
+    # the motor's own defaults (`MOTOR_DEFAULTS`) are in `base` (`TuningConfig.for_motor`)
     return base.replace(**kw)
 
 

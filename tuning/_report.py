@@ -16,7 +16,7 @@ import pmsmjax as pj
 from ._export import gains_table
 from ._parametrise import AbstractDesign, GainSchedule
 from ._pipeline import TuningReport, descriptions, targets_reached
-from .objectives import report_objective
+from .objectives import relative_change, report_objective
 from .scenarios import TuningConfig
 
 
@@ -96,7 +96,7 @@ def accounting(report: TuningReport, split: str, tol: float | None = None) -> di
     scen = _split_set(report, split)
     b, t = report.metrics["paper"][split], report.metrics["tuned"][split]
     lb, lt = np.asarray(b.loss, float), np.asarray(t.loss, float)
-    rel = (lt - lb) / np.maximum(np.abs(lb), 1e-12)
+    rel = relative_change(lt, lb)
     rows = scen.table()
     per = [dict(**row, baseline_loss=float(lb[j]), tuned_loss=float(lt[j]),
                 change_pct=100.0 * float(rel[j]),

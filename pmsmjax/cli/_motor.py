@@ -69,8 +69,7 @@ def motor_command(args: argparse.Namespace) -> int:
     folder = os.path.dirname(args.out_file)
     if folder:
         os.makedirs(folder, exist_ok=True)
-    with open(args.out_file, "w", encoding="utf-8") as f:
-        f.write(text)
+    pj.save_motor_file(drive, args.out_file)
     print("\n".join(_summary(drive)))
     print(f"wrote {args.out_file}")
     return 0

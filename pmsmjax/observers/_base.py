@@ -198,6 +198,11 @@ class AbstractObserver(eqx.Module):
                 f"`{owner}`: unknown design parameter(s) {', '.join(bad)}; "
                 f"{type(self).__name__} has {', '.join(self.design_units)}.")
 
+    def _replace(self, **values):
+        """A copy with the named fields replaced (no checks; values may be traced)."""
+        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
+                           list(values.values()))
+
     def with_motor(self, motor: PMSMParams):
         """A copy whose machine model is `motor` (observer-model mismatch)."""
         if not isinstance(motor, PMSMParams):

@@ -609,8 +609,7 @@ class ESOObserver(_AbstractESO):
         return {"a": self.a, "eta": self.eta}
 
     def _with_fal(self, **values):
-        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
-                           list(values.values()))
+        return self._replace(**values)
 
     def feedback_parameters(self):
         return self.a, self.eta

@@ -168,7 +168,7 @@ class AbstractBackEMFLESO(AbstractObserver):
     """Shared machinery of the li-fa-leso observers (see the module docstring).
 
     Subclasses give `_matrices(w_hat) -> (A_s, B_s, C_s, D_x, D_1)`, the design
-    (`_own_design`, `_with_own`) and the names of their internal states.
+    (`_own_design`) and the names of their internal states.
     """
 
     motor: eqx.AbstractVar[PMSMParams]
@@ -183,10 +183,6 @@ class AbstractBackEMFLESO(AbstractObserver):
 
     @abc.abstractmethod
     def _own_design(self) -> dict:
-        ...
-
-    @abc.abstractmethod
-    def _with_own(self, **values):
         ...
 
     def transfer_function(self, s, w_hat):
@@ -279,7 +275,7 @@ class AbstractBackEMFLESO(AbstractObserver):
             check_positive(f"{type(self).__name__}.with_design", k, v,
                            self.design_units[k].split(",")[0])
         pll_values = {k: values.pop(k) for k in list(values) if k in PLL_UNITS}
-        obs = self._with_own(**values) if values else self
+        obs = self._replace(**values) if values else self
         if pll_values:
             obs = eqx.tree_at(lambda o: [getattr(o.pll, k) for k in pll_values], obs,
                               list(pll_values.values()))
@@ -485,10 +481,6 @@ class CLESOObserver(AbstractBackEMFLESO):
     def _own_design(self):
         return {"w0": self.w0}
 
-    def _with_own(self, **values):
-        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
-                           list(values.values()))
-
     def _matrices(self, w_hat):
         w0 = jnp.asarray(self.w0) + 0.0 * w_hat
         z = 0.0 * w0
@@ -572,10 +564,6 @@ class GILESOObserver(AbstractBackEMFLESO):
     def _own_design(self):
         return {"w0": self.w0, "K_r": self.K_r, "w_c": self.w_c, "w_r": self.w_r}
 
-    def _with_own(self, **values):
-        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
-                           list(values.values()))
-
     def _matrices(self, w_hat):
         w0 = jnp.asarray(self.w0) + 0.0 * w_hat
         z = 0.0 * w0
@@ -650,10 +638,6 @@ class FALESOObserver(AbstractBackEMFLESO):
 
     def _own_design(self):
         return {"k1": self.k1, "k2": self.k2}
-
-    def _with_own(self, **values):
-        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
-                           list(values.values()))
 
     def _matrices(self, w_hat):
         w_hat = jnp.asarray(w_hat)

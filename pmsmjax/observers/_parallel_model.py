@@ -402,8 +402,7 @@ class ParallelModelObserver(AbstractObserver):
         self._check_design_names(values)
         if not values:
             return self
-        new = eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
-                          list(values.values()))
+        new = self._replace(**values)
         new.__check_init__()
         return new
 

@@ -381,8 +381,7 @@ class RotorFluxObserver(AbstractObserver):
         for k, v in values.items():
             check_positive("RotorFluxObserver.with_design", k, v,
                            _DESIGN_UNITS[k].split(",")[0], allow_zero=True)
-        return eqx.tree_at(lambda o: [getattr(o, k) for k in values], self,
-                           list(values.values()))
+        return self._replace(**values)
 
     # --- the observer's right-hand side -----------------------------------------------
     def _feedback(self, theta_h, w_h, psi_h, i_meas):
