@@ -1,7 +1,5 @@
 import os
 
-import os
-
 import jax
 import jax.random as jr
 import pytest
