@@ -25,8 +25,11 @@ from ._options import (
     grid_values,
     named_grid,
     observer_from_args,
+    json_safe,
+    keep_on_failure,
     prepare_out_dir,
 )
+from ._sweep_options import add_sweep_options, init_distributed, is_writer, sweep_settings
 
 
 #: `status` codes of the map (those of `pmsmjax.analysis.DesignClass`).
@@ -59,6 +62,7 @@ def _feasibility_arguments(p: argparse.ArgumentParser) -> None:
                    help="zhang2022 shorthand for --y ratio=LO:HI:N: w1 / |w0| (-, >= 0; 0 is "
                         "degenerate), or a single number (default 0:2:101, zhang2022 Fig. 1)")
     add_output_options(p, "results")
+    add_sweep_options(p)
 
 
 def _axes(args, choice) -> tuple[tuple[str, np.ndarray], tuple[str, np.ndarray]]:
@@ -164,58 +168,134 @@ def _zhang_shorthand(choice, xn: str, yn: str) -> dict | None:
     return kw
 
 
-def _map(choice, drive, speeds, x, y, i_pu):
-    """The `FeasibilityMap` over `speeds` (p.u.): `feasibility_map` when it applies (a
-    standstill speed gets status -1 there: w1 = ratio |w0| = 0), else `design_map`."""
-    from pmsmjax.analysis import FeasibilityMap, design_map, feasibility_map
+def _point_fn(choice, drive, x, y, i_pu):
+    """`(fn, method)`: the classification of one point `{"w_m": rad/s, "x", "y"}` of the
+    map, and the method's name. The same kernels as the in-memory maps: the zhang2022
+    shorthand (`feasibility_map`'s, through `classify_designs`: the closed form zhang2022
+    (34)-(36) when matched, the ESO-specific general route otherwise) when it computes
+    exactly this map, else `design_map`'s body. Every zhang2022 design is degenerate at
+    standstill (w1 = ratio |w0| = 0): status -1 there and nothing else, as before."""
+    import jax.numpy as jnp
 
+    from pmsmjax.analysis import DesignClass, classify_designs
+    from pmsmjax.analysis._feasibility import (
+        _design_map_setup,
+        _design_point,
+        _resolve_method,
+    )
+
+    i_si = jnp.asarray(np.asarray(i_pu, float) * float(drive.base.I_b))  # A
     kw = _zhang_shorthand(choice, x[0], y[0])
     if kw is None:
         # (plant only with mismatch: `design_map(plant=None)` allows the closed form)
         plant = choice.plant if choice.mismatched else None
-        return design_map(choice.observer, drive, speeds, x, y, i_dq=i_pu, plant=plant)
-    nonzero = [s for s in speeds if s != 0.0]
-    if len(nonzero) == len(speeds):
-        return feasibility_map(drive, speeds, x[1], y[1], i_dq=i_pu, **kw)
-    shape = (len(speeds), 1, len(x[1]), len(y[1]))
-    # every zhang2022 design is degenerate at standstill: status -1, nothing else
-    full = dict(status=np.full(shape, -1, np.int32), n_nonzero=np.zeros(shape, np.int32),
-                stable_theta_deg=np.full(shape, np.nan),
-                principal_stable=np.zeros(shape, bool),
-                principal_theta_deg=np.full(shape, np.nan))
-    method = "none (standstill only)"
-    if nonzero:
-        fm = feasibility_map(drive, nonzero, x[1], y[1], i_dq=i_pu, **kw)
-        idx = [i for i, s in enumerate(speeds) if s != 0.0]
-        for k in full:
-            full[k][idx] = np.asarray(getattr(fm, k))
-        method = fm.method
-    K = 1
-    return FeasibilityMap(
-        **full, theta_deg=np.full(shape + (K,), np.nan), stable=np.zeros(shape + (K,), bool),
-        speeds=np.asarray(speeds, float), i_dq=np.asarray([i_pu], float), x=x[1], y=y[1],
-        w_rated=float(drive.w_rated), I_b=float(drive.base.I_b), method=method,
-        frame="observer", x_name=x[0], y_name=y[0], observer=type(choice.observer).__name__)
+        speeds_probe = np.asarray([1.0])  # the method does not depend on the speed
+        obs, plant_in, method = _design_map_setup(
+            choice.observer, drive, speeds_probe, x, y, np.asarray([i_pu], float), plant,
+            "auto", jnp.float64)
+
+        def fn(p):
+            return _design_point(obs, plant_in, p["w_m"], i_si, p["x"], p["y"], x[0], y[0],
+                                 method, {})
+
+        return fn, method
+    motor = drive.three_phase_motor
+    method = _resolve_method("feasibility_map", "auto", kw["motor_hat"], kw.get("a", 1.0))
+
+    def fn(p):
+        w0 = p["w_m"]
+        res = classify_designs(motor, w0, i_si, p["x"], p["y"], method=method, **kw)
+        still = w0 == 0
+        nan = jnp.full_like(res.stable_theta, jnp.nan)
+        return DesignClass(
+            status=jnp.where(still, -1, res.status).astype(jnp.int32),
+            n_nonzero=jnp.where(still, 0, res.n_nonzero),
+            stable_theta=jnp.where(still, nan, res.stable_theta),
+            theta=jnp.where(still, jnp.nan, res.theta),
+            stable=res.stable & ~still,
+            principal_stable=res.principal_stable & ~still,
+            principal_theta=jnp.where(still, nan, res.principal_theta))
+
+    return fn, method
+
+
+def _map(choice, drive, speeds, x, y, i_pu, settings):
+    """The `FeasibilityMap` over `speeds` (p.u.), evaluated point by point by `run_sweep`
+    (chunked, resumable, sharded over every device of every process); `(map, chunk
+    infos)`. Only process 0 writes the sweep's files."""
+    import jax.numpy as jnp
+
+    from pmsmjax.analysis import FeasibilityMap, grid_product, run_sweep
+
+    fn, method = _point_fn(choice, drive, x, y, i_pu)
+    if all(s == 0.0 for s in speeds) and _zhang_shorthand(choice, x[0], y[0]) is not None:
+        method = "none (standstill only)"
+    w_r = float(drive.w_rated)
+
+    def point(p):
+        res = fn(p)
+        return {"design_status": res.status, "n_nonzero": res.n_nonzero,
+                "stable_theta": res.stable_theta, "theta": res.theta, "stable": res.stable,
+                "principal_stable": res.principal_stable,
+                "principal_theta": res.principal_theta}
+
+    grid = grid_product(w_m=np.asarray(speeds, float) * w_r, x=x[1], y=y[1])
+    metadata = json_safe({
+        "command": "pmsmjax feasibility", "motor": drive.name, "w_rated": w_r,
+        "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
+        "y_name": y[0], "method": method, "observer": choice.info()})
+    infos = []
+    out = run_sweep(point, grid, metadata=metadata, on_chunk_done=infos.append,
+                    **settings.run_sweep_kwargs(progress=is_writer()))
+    per = {k: v[:, None] for k, v in out.items()}  # (speed, load = 1, x, y, ...)
+    for k in ("stable_theta", "theta", "principal_theta"):  # rad -> deg
+        per[k + "_deg"] = np.asarray(jnp.degrees(per[k]))
+    fm = FeasibilityMap(
+        status=per["design_status"], n_nonzero=per["n_nonzero"],
+        stable_theta_deg=per["stable_theta_deg"], theta_deg=per["theta_deg"],
+        stable=per["stable"], principal_stable=per["principal_stable"],
+        principal_theta_deg=per["principal_theta_deg"], speeds=np.asarray(speeds, float),
+        i_dq=np.asarray([i_pu], float), x=x[1], y=y[1], w_rated=w_r,
+        I_b=float(drive.base.I_b), method=method, frame="observer", x_name=x[0],
+        y_name=y[0], observer=type(choice.observer).__name__)
+    return fm, infos
 
 
 def feasibility_command(args: argparse.Namespace) -> int:
+    settings = init_distributed(sweep_settings(args))  # before any JAX computation
     drive = drive_from_args(args)
     choice = observer_from_args(args, drive, skip=("zeta1", "ratio"))
     (xn, x), (yn, y) = _axes(args, choice)
     i_pu, _ = current_from_args(args, drive)
     speeds = [s for group in (args.speed or [[0.5]]) for s in group]
-    out = prepare_out_dir(args.out)
+    writer = is_writer()
+    out = prepare_out_dir(args.out) if writer else args.out
+    keep_on_failure(settings.sweep_dir)  # finished chunks survive an interruption
     S, NX, NY = len(speeds), len(x), len(y)
-    print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = ({i_pu[0]:g}, "
-          f"{i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} speed"
-          f"{'s' if S > 1 else ''}")
+    if writer:
+        print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = "
+              f"({i_pu[0]:g}, {i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} "
+              f"speed{'s' if S > 1 else ''}")
     t0 = time.perf_counter()
     try:
-        fm = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu)
+        fm, infos = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu, settings)
     except ValueError as e:
         raise CLIError(f"{choice.describe()}: {e}") from None
     status = np.asarray(fm.status)
     t_map = time.perf_counter() - t0
+    import jax
+
+    n_loaded = sum(i.loaded for i in infos)
+    sweep_line = (f"sweep: {len(infos)} chunk{'s' if len(infos) > 1 else ''} of up to "
+                  f"{settings.chunk_size} points on {jax.device_count()} device"
+                  f"{'s' if jax.device_count() > 1 else ''} in {jax.process_count()} "
+                  f"process{'es' if jax.process_count() > 1 else ''}"
+                  + (f", {n_loaded} reused from an earlier run" if n_loaded else "")
+                  + f"; files in {settings.sweep_dir}")
+    if not writer:
+        print(f"pmsmjax feasibility: process {jax.process_index()} of "
+              f"{jax.process_count()} done ({sweep_line}); process 0 writes the outputs")
+        return 0
 
     # FeasibilityMap arrays are (speed, load, x, y); the file's are (speed, y, x), so that
     # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
@@ -261,6 +341,7 @@ def feasibility_command(args: argparse.Namespace) -> int:
             _plot(fm, title, files["plot"])
 
     print(f"classified {S * NX * NY} designs in {t_map:.2f} s ({fm.method})")
+    print(sweep_line)
     for i, s in enumerate(speeds):
         st = status[i, 0]
         counts = ", ".join(f"{STATUS[c]} {int(np.sum(st == c))}" for c in (0, 1, 2, -1))

@@ -326,12 +326,13 @@ def out_dir_transaction(path: str | None):
         return out
 
     before = snapshot() if existed else {}
+    _KEEP.clear()
     try:
         yield
     except BaseException:
         if os.path.isdir(path):
             for q, sig in snapshot().items():
-                if before.get(q) != sig:
+                if before.get(q) != sig and not _kept(q):
                     with contextlib.suppress(OSError):
                         os.remove(q)
             for root, dirs, _ in os.walk(path, topdown=False):
@@ -342,6 +343,21 @@ def out_dir_transaction(path: str | None):
                 with contextlib.suppress(OSError):
                     os.rmdir(path)
         raise
+
+
+#: Folders whose files a failing `out_dir_transaction` keeps (`keep_on_failure`).
+_KEEP: set[str] = set()
+
+
+def keep_on_failure(path: str) -> None:
+    """Keep the files under `path` when the command fails or is interrupted inside
+    `out_dir_transaction`: a sweep's finished chunks, which the next run resumes from."""
+    _KEEP.add(os.path.abspath(path))
+
+
+def _kept(path: str) -> bool:
+    q = os.path.abspath(path)
+    return any(q == k or q.startswith(k + os.sep) for k in _KEEP)
 
 
 def prepare_out_dir(path: str) -> str:
