@@ -245,8 +245,15 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
         "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
         "y_name": y[0], "method": method, "observer": choice.info()})
     infos = []
-    out = run_sweep(point, grid, metadata=metadata, on_chunk_done=infos.append,
-                    **settings.run_sweep_kwargs(progress=is_writer()))
+    try:
+        out = run_sweep(point, grid, metadata=metadata, on_chunk_done=infos.append,
+                        **settings.run_sweep_kwargs(progress=is_writer()))
+    except ValueError as e:
+        if "holds a different sweep" not in str(e):
+            raise
+        raise CLIError(f"--sweep-dir {settings.sweep_dir}: {e} From the command line: give "
+                       f"another --sweep-dir (or --out), or --restart to discard its "
+                       f"chunks") from None
     per = {k: v[:, None] for k, v in out.items()}  # (speed, load = 1, x, y, ...)
     for k in ("stable_theta", "theta", "principal_theta"):  # rad -> deg
         per[k + "_deg"] = np.asarray(jnp.degrees(per[k]))
