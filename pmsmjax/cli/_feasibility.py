@@ -1,6 +1,8 @@
 """`pmsmjax feasibility`: feasibility maps of any observer over two of its design
-parameters (zhang2022 Fig. 1 for the ESO's (zeta1, w1/|w0|)), via
-`pmsmjax.analysis.design_map`."""
+parameters (zhang2022 Fig. 1 for the ESO's (zeta1, w1/|w0|)): the per-design body of
+`pmsmjax.analysis.design_map` (or of `feasibility_map` for the zhang2022 shorthand), run
+point by point by `pmsmjax.analysis.run_sweep` (chunked, resumable, sharded over every
+device and, with `jax.distributed`, over several processes or hosts)."""
 
 from __future__ import annotations
 
@@ -387,7 +389,12 @@ COMMAND = Command(
         "mismatch_psi_f (observer / plant), w_rated (rad/s), I_b (A), motor, method, "
         "status_codes. With several speeds every per-design array gets a leading speed "
         "axis (S, NY, NX) and speed has shape (S,). DIR/feasibility.png overlays the maps "
-        "of all speeds."
+        "of all speeds. The speeds x designs are evaluated in chunks by "
+        "pmsmjax.analysis.run_sweep, sharded over every device: each finished chunk is "
+        "written to --sweep-dir (default DIR/sweep, also the manifest sweep.json and "
+        "result.npz), and the same command run again after an interruption resumes from "
+        "there. With --coordinator the same command started in several processes or on "
+        "several hosts (jax.distributed) shares the work; process 0 writes the outputs."
     ),
     add_arguments=_feasibility_arguments,
     run=feasibility_command,
