@@ -1,5 +1,5 @@
 """`pmsmjax feasibility` through the sweep runner: an interrupted map resumes to the same
-files as an uninterrupted one, --restart and a changed map in the same --sweep-dir, and
+files as an uninterrupted one, --restart and another map in the same --sweep-dir, and
 the two-process example (`examples/distributed_feasibility.sh`, jax.distributed on one
 machine) gives the single-process map bit for bit."""
 
@@ -84,7 +84,15 @@ def test_interrupted_map_resumes_to_the_same_files(tmp_path, monkeypatch, capsys
     assert a["fingerprint"] == b["fingerprint"] and a["complete"] and b["complete"]
     assert a["metadata"]["command"] == "pmsmjax feasibility"
 
-    # another map in the same --sweep-dir is refused, naming the way out
+    # another map in the same --sweep-dir: a finished sweep there is replaced (as the
+    # command's outputs are), an unfinished one refused, naming the ways out
+    assert main(["feasibility", *MAP, "--ratio", "0:2:5", "--no-plot", "--out", str(cut)]) == 0
+    assert "replacing the finished sweep of other inputs" in capsys.readouterr().out
+    monkeypatch.setattr(analysis, "run_sweep", stop_after_two)
+    with pytest.raises(Interrupted):
+        main(["feasibility", *MAP, "--out", str(cut)])
+    monkeypatch.undo()
+    capsys.readouterr()
     assert main(["feasibility", *MAP, "--ratio", "0:2:5", "--out", str(cut)]) == 2
     err = capsys.readouterr().err
     assert "--sweep-dir" in err and "different sweep" in err and "--restart" in err

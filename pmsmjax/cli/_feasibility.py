@@ -31,7 +31,13 @@ from ._options import (
     keep_on_failure,
     prepare_out_dir,
 )
-from ._sweep_options import add_sweep_options, init_distributed, is_writer, sweep_settings
+from ._sweep_options import (
+    add_sweep_options,
+    init_distributed,
+    is_writer,
+    run_sweep_with,
+    sweep_settings,
+)
 
 
 #: `status` codes of the map (those of `pmsmjax.analysis.DesignClass`).
@@ -227,7 +233,7 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
     infos)`. Only process 0 writes the sweep's files."""
     import jax.numpy as jnp
 
-    from pmsmjax.analysis import FeasibilityMap, grid_product, run_sweep
+    from pmsmjax.analysis import FeasibilityMap, grid_product
 
     fn, method = _point_fn(choice, drive, x, y, i_pu)
     if all(s == 0.0 for s in speeds) and _zhang_shorthand(choice, x[0], y[0]) is not None:
@@ -247,15 +253,8 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
         "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
         "y_name": y[0], "method": method, "observer": choice.info()})
     infos = []
-    try:
-        out = run_sweep(point, grid, metadata=metadata, on_chunk_done=infos.append,
-                        **settings.run_sweep_kwargs(progress=is_writer()))
-    except ValueError as e:
-        if "holds a different sweep" not in str(e):
-            raise
-        raise CLIError(f"--sweep-dir {settings.sweep_dir}: {e} From the command line: give "
-                       f"another --sweep-dir (or --out), or --restart to discard its "
-                       f"chunks") from None
+    out = run_sweep_with(settings, point, grid, metadata=metadata,
+                         on_chunk_done=infos.append)
     per = {k: v[:, None] for k, v in out.items()}  # (speed, load = 1, x, y, ...)
     for k in ("stable_theta", "theta", "principal_theta"):  # rad -> deg
         per[k + "_deg"] = np.asarray(jnp.degrees(per[k]))

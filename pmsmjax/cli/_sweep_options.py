@@ -10,7 +10,8 @@ several processes or hosts with `jax.distributed`), defined once.
 A command adds them with `add_sweep_options(parser)`, reads them with
 `sweep_settings(args)` (every inconsistency is a `CLIError` naming the option), starts
 `jax.distributed` with `init_distributed(settings)` before any JAX computation (only when
-`--coordinator` is given), and passes `settings.run_sweep_kwargs()` to `run_sweep`.
+`--coordinator` is given), and runs the sweep with `run_sweep_with(settings, fn, grid)`
+(or passes `settings.run_sweep_kwargs()` to `run_sweep` itself).
 """
 
 from __future__ import annotations
@@ -215,6 +216,45 @@ def init_distributed(settings: SweepSettings) -> SweepSettings:
     except (RuntimeError, ValueError, TypeError) as e:
         raise CLIError(f"{spelled}: jax.distributed.initialize failed: {e}") from None
     return settings
+
+
+def run_sweep_with(settings: SweepSettings, fn, grid, *, metadata=None,
+                   on_chunk_done=None, progress: bool = True):
+    """`pmsmjax.analysis.run_sweep(fn, grid, ...)` with the options of `settings`; the
+    progress bar on process 0 only.
+
+    `--sweep-dir` holding another sweep: a *finished* one is replaced (its outputs are
+    the command's previous outputs, which the command overwrites anyway: running a
+    command again with other inputs keeps working as before), an *unfinished* one is a
+    `CLIError` naming `--restart` (resuming it was probably meant, with an option
+    changed by mistake).
+    """
+    import json
+
+    from pmsmjax.analysis import run_sweep
+
+    kw = dict(metadata=metadata, on_chunk_done=on_chunk_done,
+              **settings.run_sweep_kwargs(progress=progress and is_writer()))
+    try:
+        return run_sweep(fn, grid, **kw)
+    except ValueError as e:
+        text = str(e)
+        if "holds a different sweep" not in text and "refused to resume" not in text:
+            raise
+        error = e
+    try:
+        with open(os.path.join(settings.sweep_dir, "sweep.json")) as f:
+            complete = bool(json.load(f).get("complete"))
+    except (OSError, ValueError):
+        complete = False
+    if not complete:
+        raise CLIError(f"--sweep-dir {settings.sweep_dir}: {error} From the command line: "
+                       f"run the same command to resume it, give another --sweep-dir (or "
+                       f"--out), or --restart to discard its chunks") from None
+    if is_writer():
+        print(f"--sweep-dir {settings.sweep_dir}: replacing the finished sweep of other "
+              f"inputs there")
+    return run_sweep(fn, grid, **{**kw, "resume": False})
 
 
 def is_writer() -> bool:
