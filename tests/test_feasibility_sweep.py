@@ -135,3 +135,25 @@ def test_two_processes_give_the_single_process_map(tmp_path):
     assert_same_npz(two / "feasibility.npz", one / "feasibility.npz")
     st = npz(one / "feasibility.npz")["status"]
     assert {0, 1, -1} <= set(np.unique(st))  # feasible, infeasible and degenerate designs
+
+
+def test_a_map_reuses_only_its_own_compiled_function():
+    """Maps computed again in one process reuse their per-point function (and so its
+    compiled code) only when everything it closes over is the same."""
+    from pmsmjax.cli.__main__ import build_parser
+    from pmsmjax.cli._feasibility import _point_key
+    from pmsmjax.cli._options import current_from_args, drive_from_args, observer_from_args
+
+    def key(*argv):
+        args = build_parser().parse_args(["feasibility", *argv])
+        drive = drive_from_args(args)
+        choice = observer_from_args(args, drive, skip=("zeta1", "ratio"))
+        i_pu, _ = current_from_args(args, drive)
+        return _point_key(choice, drive, "zeta1", "ratio", i_pu)
+
+    base = key(*SALIENT)
+    assert key(*SALIENT, "--zeta1", "0:1:3", "--chunk-size", "7") == base  # grid, chunks
+    others = [key(*SALIENT[:-2], "--i-q", "1"), key("--i-q", "2"),
+              key(*SALIENT, "--set", "psi_f=0.05"), key(*SALIENT, "--zeta2", "0.8"),
+              key(*SALIENT, "--mismatch-R-s", "1.2"), key(*SALIENT, "--observer", "eso")]
+    assert len({base, *others}) == 1 + len(others)

@@ -227,6 +227,31 @@ def _point_fn(choice, drive, x, y, i_pu):
     return fn, method
 
 
+#: Per-point functions of earlier maps in this process, by everything they close over
+#: (`_point_key`): a map computed again in the same process (a resumed or repeated
+#: command, a notebook, the tests) hands `run_sweep` the same function object, so its
+#: compiled chunk function is reused instead of compiled again.
+_POINT_FNS: dict[str, tuple] = {}
+
+
+def _point_key(choice, drive, x_name, y_name, i_pu) -> str:
+    """A hash of what the per-point function closes over: the observer (design and
+    model), the plant, the drive's machine and bases, the axes' names and the current."""
+    import hashlib
+
+    import jax
+
+    leaves, treedef = jax.tree_util.tree_flatten(
+        (choice.observer, choice.plant, drive.three_phase_motor))
+    h = hashlib.sha256(repr((str(treedef), x_name, y_name, tuple(map(float, i_pu)),
+                             float(drive.w_rated), float(drive.base.I_b))).encode())
+    for leaf in leaves:
+        a = np.asarray(leaf)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes() if a.dtype.kind != "O" else repr(leaf).encode())
+    return h.hexdigest()
+
+
 def _map(choice, drive, speeds, x, y, i_pu, settings):
     """The `FeasibilityMap` over `speeds` (p.u.), evaluated point by point by `run_sweep`
     (chunked, resumable, sharded over every device of every process); `(map, chunk
@@ -235,17 +260,24 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
 
     from pmsmjax.analysis import FeasibilityMap, grid_product
 
-    fn, method = _point_fn(choice, drive, x, y, i_pu)
+    key = _point_key(choice, drive, x[0], y[0], i_pu)
+    if key not in _POINT_FNS:
+        fn, method = _point_fn(choice, drive, x, y, i_pu)
+
+        def point(p):
+            res = fn(p)
+            return {"design_status": res.status, "n_nonzero": res.n_nonzero,
+                    "stable_theta": res.stable_theta, "theta": res.theta,
+                    "stable": res.stable, "principal_stable": res.principal_stable,
+                    "principal_theta": res.principal_theta}
+
+        if len(_POINT_FNS) >= 16:
+            _POINT_FNS.clear()
+        _POINT_FNS[key] = point, method
+    point, method = _POINT_FNS[key]
     if all(s == 0.0 for s in speeds) and _zhang_shorthand(choice, x[0], y[0]) is not None:
         method = "none (standstill only)"
     w_r = float(drive.w_rated)
-
-    def point(p):
-        res = fn(p)
-        return {"design_status": res.status, "n_nonzero": res.n_nonzero,
-                "stable_theta": res.stable_theta, "theta": res.theta, "stable": res.stable,
-                "principal_stable": res.principal_stable,
-                "principal_theta": res.principal_theta}
 
     grid = grid_product(w_m=np.asarray(speeds, float) * w_r, x=x[1], y=y[1])
     metadata = json_safe({
