@@ -10,6 +10,7 @@ import argparse
 import os
 import time
 
+import jax
 import numpy as np
 
 from ._options import (
@@ -239,8 +240,6 @@ def _point_key(choice, drive, x_name, y_name, i_pu) -> str:
     model), the plant, the drive's machine and bases, the axes' names and the current."""
     import hashlib
 
-    import jax
-
     leaves, treedef = jax.tree_util.tree_flatten(
         (choice.observer, choice.plant, drive.three_phase_motor))
     h = hashlib.sha256(repr((str(treedef), x_name, y_name, tuple(map(float, i_pu)),
@@ -323,8 +322,6 @@ def feasibility_command(args: argparse.Namespace) -> int:
         raise CLIError(f"{choice.describe()}: {e}") from None
     status = np.asarray(fm.status)
     t_map = time.perf_counter() - t0
-    import jax
-
     n_loaded = sum(i.loaded for i in infos)
     sweep_line = (f"sweep: {len(infos)} chunk{'s' if len(infos) > 1 else ''} of up to "
                   f"{settings.chunk_size} points on {jax.device_count()} device"
