@@ -70,8 +70,8 @@ def add_sweep_options(parser: argparse.ArgumentParser, *,
                         "system that every host sees")
     g.add_argument("--restart", action="store_true",
                    help="discard the finished chunks in --sweep-dir and start over (default: "
-                        "resume a sweep with the same inputs; a different one in --sweep-dir "
-                        "is an error)")
+                        "resume a sweep with the same inputs; a finished sweep of other "
+                        "inputs there is replaced, an unfinished one refused)")
     d = parser.add_argument_group(
         "several processes or hosts (jax.distributed)",
         "Start the same command once per process, on one machine or on several hosts, "
