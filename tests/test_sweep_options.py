@@ -101,3 +101,13 @@ def test_sweep_dir_checks(tmp_path):
         settings("--sweep-dir", str(f))
     with pytest.raises(CLIError, match=r"--sweep-dir: needed .*--out"):
         settings(out=None)
+
+
+def test_distributed_must_start_before_any_computation():
+    import jax
+
+    jax.devices()  # the backend runs: jax.distributed cannot start any more
+    s = settings("--coordinator", "localhost:1", "--num-processes", "1", "--process-id", "0")
+    with pytest.raises(CLIError, match="--coordinator localhost:1: jax.distributed must "
+                                       "start before any JAX computation"):
+        init_distributed(s)
