@@ -29,7 +29,6 @@ from ._options import (
     named_grid,
     observer_from_args,
     json_safe,
-    keep_on_failure,
     prepare_out_dir,
 )
 from ._sweep_options import (
@@ -309,7 +308,6 @@ def feasibility_command(args: argparse.Namespace) -> int:
     speeds = [s for group in (args.speed or [[0.5]]) for s in group]
     writer = is_writer()
     out = prepare_out_dir(args.out) if writer else args.out
-    keep_on_failure(settings.sweep_dir)  # finished chunks survive an interruption
     S, NX, NY = len(speeds), len(x), len(y)
     if writer:
         print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = "

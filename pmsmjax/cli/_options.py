@@ -307,7 +307,8 @@ def out_dir_transaction(path: str | None):
     """Leave nothing half-written in the output folder `path` when the block fails: every
     file the block created or changed in it is removed again (and the folder itself if
     the block created it), then the exception propagates. Files that were there before and
-    that the block did not touch stay."""
+    that the block did not touch stay, and so do the files under the folders given to
+    `keep_on_failure` (a sweep's finished chunks)."""
     if not path:
         yield
         return

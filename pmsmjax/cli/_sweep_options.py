@@ -22,7 +22,7 @@ import os
 
 import jax
 
-from ._options import CLIError, positive_int
+from ._options import CLIError, keep_on_failure, positive_int
 
 
 #: Default points per chunk: a few seconds of work for the cheapest per-point functions on
@@ -221,7 +221,8 @@ def init_distributed(settings: SweepSettings) -> SweepSettings:
 def run_sweep_with(settings: SweepSettings, fn, grid, *, metadata=None,
                    on_chunk_done=None, progress: bool = True):
     """`pmsmjax.analysis.run_sweep(fn, grid, ...)` with the options of `settings`; the
-    progress bar on process 0 only.
+    progress bar on process 0 only. The finished chunks in `--sweep-dir` survive a
+    failing or interrupted command (`keep_on_failure`), so that running it again resumes.
 
     `--sweep-dir` holding another sweep: a *finished* one is replaced (its outputs are
     the command's previous outputs, which the command overwrites anyway: running a
@@ -233,6 +234,7 @@ def run_sweep_with(settings: SweepSettings, fn, grid, *, metadata=None,
 
     from pmsmjax.analysis import run_sweep
 
+    keep_on_failure(settings.sweep_dir)
     kw = dict(metadata=metadata, on_chunk_done=on_chunk_done,
               **settings.run_sweep_kwargs(progress=progress and is_writer()))
     try:
