@@ -25,11 +25,34 @@ T_S = 1e-4
 N_STEPS = 800
 
 
+def _with_harmonics(drive, amp):
+    return eqx.tree_at(lambda d: d.motor.harmonics, drive,
+                       pj.EMFHarmonics(order=ORDERS, amplitude=amp),
+                       is_leaf=lambda x: x is None)
+
+
+def _ripple(t, err, w):
+    """Peak (half peak-to-peak) and the amplitude at (h - 1) w (a DFT bin, exact for a
+    sinusoid over whole periods) of the angle error each harmonic adds, over the last
+    two electrical periods, in deg. Row 0 of `err` is the run without harmonics: it is
+    subtracted, so that what is left of the start-up transient cancels."""
+    n_per = int(round(2 * math.pi / abs(w) / T_S))
+    t = np.asarray(t)[-2 * n_per:]
+    err = np.asarray(err)[:, -2 * n_per:]
+    assert np.all(np.isfinite(err)) and np.max(np.abs(err)) < math.radians(5.0)
+    diff = err[1:] - err[:1]
+    om = (np.asarray(ORDERS)[:, None] - 1) * w
+    peak = np.degrees(np.ptp(diff, 1) / 2)
+    dft = np.degrees(np.abs(2 * np.mean(diff * np.exp(-1j * om * t[None, :]), 1)))
+    return peak, dft
+
+
+AMPS = 0.01 * jnp.concatenate([jnp.zeros((1, len(ORDERS))), jnp.eye(len(ORDERS))])
+
+
 def _simulated_ripple(name):
-    """Peak steady-state angle-error ripple (deg) per 1 % harmonic of each order in
-    `ORDERS`, from one `simulate` per order (vmapped over a one-hot amplitude): the
-    amplitude of theta_err at (h - 1) w over the last two electrical periods (a DFT bin:
-    exact for a sinusoid over whole periods, blind to the constant part)."""
+    """The closed loop with FOC (`simulate`, speed imposed, current control at
+    `I_DQ`), one run per order (vmapped over the harmonic amplitudes)."""
     obs = make_observer(name, DRIVE)
     x0 = obs.designed_error(OP, PLANT)
     foc = pj.FOC.from_drive(DRIVE)
@@ -38,20 +61,38 @@ def _simulated_ripple(name):
                      i_q_ref=pj.Profile.constant(I_DQ[1]))
 
     def one(amp):
-        drv = eqx.tree_at(lambda d: d.motor.harmonics, DRIVE,
-                          pj.EMFHarmonics(order=ORDERS, amplitude=amp),
-                          is_leaf=lambda x: x is None)
-        tr = pj.simulate(drv, foc, obs, sc, T_s=T_S, w_m0=W,
+        tr = pj.simulate(_with_harmonics(DRIVE, amp), foc, obs, sc, T_s=T_S, w_m0=W,
                          theta_hat0=-x0[obs.coordinates.angle], w_hat0=W,
                          i_dq0=tuple(I_DQ), throw=False)
         return tr.t, tr.theta_err
 
-    t, err = jax.vmap(one)(0.01 * jnp.eye(len(ORDERS)))
-    n_per = int(round(2 * math.pi / W / T_S))
-    t, err = np.asarray(t[0, -2 * n_per:]), np.asarray(err[:, -2 * n_per:])
-    assert np.all(np.isfinite(err)) and np.max(np.abs(err)) < math.radians(5.0)
-    om = (np.asarray(ORDERS)[:, None] - 1) * W
-    return np.degrees(np.abs(2 * np.mean(err * np.exp(-1j * om * t[None, :]), 1)))
+    t, err = jax.vmap(one)(AMPS)
+    return _ripple(t[0], err, W)
+
+
+def _ideal_current_ripple(obs, drive, w, n_steps):
+    """Exact ideal current control at zero current: the voltage that holds the plant's
+    current at zero is its PM back-EMF (harmonics included) averaged over each period;
+    `run_plant` (speed imposed) confirms the current stays at zero, and the observer
+    runs on the plant's voltage and current (`replay`)."""
+    plant = drive.three_phase_motor
+    x0 = obs.designed_error(analysis.OperatingPoint(w, jnp.zeros(2)), plant)
+    t = jnp.arange(n_steps) * T_S
+    th = w * jnp.arange(n_steps + 1) * T_S
+
+    def one(amp):
+        drv = _with_harmonics(drive, amp)
+        psi = jax.vmap(lambda q: pj.rotate(drv.motor.psi_pm_dq(q), q))(th)
+        u = (psi[1:] - psi[:-1]) / T_S
+        tr = pj.run_plant(drv, t, u, w_m_imposed=jnp.full(n_steps, w), w_m0=w)
+        th_hat, _ = pj.replay(obs, t, u, tr.i_ab, theta0=-x0[obs.coordinates.angle], w0=w)
+        return pj.wrap_angle(th[:-1] - th_hat), jnp.max(jnp.abs(tr.i_ab))
+
+    err, i_max = jax.vmap(one)(AMPS)
+    # the held voltage matches the flux increment, not the back-EMF within the period:
+    # the sampled current stays below 0.1 % of the base current
+    assert float(jnp.max(i_max)) < 1e-3 * float(drive.base.I_b)
+    return _ripple(t, err, w)
 
 
 def test_standstill_vmap_and_float32():
@@ -88,8 +129,32 @@ def test_bad_arguments():
 @pytest.mark.parametrize("name", ["leso"])
 def test_ripple_from_the_linearisation_matches_simulation(name):
     obs = make_observer(name, DRIVE)
-    sim = _simulated_ripple(name)
+    peak, dft = _simulated_ripple(name)
     disc = np.asarray(analysis.harmonic_ripple(obs, DRIVE, OP, ORDERS, T_s=T_S))
     cont = np.asarray(analysis.harmonic_ripple(obs, DRIVE, OP, ORDERS))
-    np.testing.assert_allclose(disc, sim, rtol=0.02)
-    np.testing.assert_allclose(cont, sim, rtol=0.1)
+    print(name, "simulated peak", peak, "dft", dft, "discrete", disc, "continuous", cont)
+    # the ripple is a sinusoid at (h - 1) w: its peak is its amplitude
+    np.testing.assert_allclose(peak, dft, rtol=0.02)
+    np.testing.assert_allclose(disc, peak, rtol=0.02)
+    np.testing.assert_allclose(cont, peak, rtol=0.1)
+
+
+@pytest.mark.parametrize("name, preset", [("parallel-model", "zhang750"),
+                                          ("fa-leso", "zhang750"),
+                                          ("rotor-flux", "morawiec_ipm3k5")])
+def test_ripple_matches_the_plant_under_ideal_current_control(name, preset):
+    drive = pj.preset(preset)
+    obs = make_observer(name, drive)
+    w = 0.5 * drive.w_rated
+    peak, dft = _ideal_current_ripple(obs, drive, w, 1600)
+    op = analysis.OperatingPoint(w, jnp.zeros(2))
+    disc = np.asarray(analysis.harmonic_ripple(obs, drive, op, ORDERS, T_s=T_S))
+    print(name, "simulated peak", peak, "dft", dft, "discrete", disc)
+    np.testing.assert_allclose(disc, dft, rtol=0.01)
+    if name == "rotor-flux":
+        # angle-dependent error dynamics: the averaged linearisation gives the component
+        # at (h - 1) w (above); the periodic coefficients add sidebands at (h - 1 +- 2) w
+        # that the peak includes (measured: 1.3 to 1.6 times that component)
+        assert np.all(peak > 1.1 * dft) and np.all(peak < 2.0 * dft)
+    else:
+        np.testing.assert_allclose(disc, peak, rtol=0.02)
