@@ -103,9 +103,6 @@ def test_standstill_vmap_and_float32():
     assert r.shape == (3, 3) and bool(jnp.all(jnp.isfinite(r)))
     np.testing.assert_array_equal(np.asarray(r[0]), 0.0)  # no back-EMF at standstill
     assert bool(jnp.all(r[1:] > 0))
-    # each row is the unbatched call
-    one = analysis.harmonic_ripple(obs, DRIVE, analysis.OperatingPoint(ws[1], I_DQ), (1, -5, 7))
-    np.testing.assert_allclose(np.asarray(r[1]), np.asarray(one), rtol=1e-10)
     # float32 follows the operating point's dtype and agrees
     d32, o32 = pj.astype(DRIVE, jnp.float32), pj.astype(obs, jnp.float32)
     op32 = analysis.OperatingPoint(jnp.float32(ws[1]), jnp.asarray(I_DQ, jnp.float32))
@@ -158,3 +155,35 @@ def test_ripple_matches_the_plant_under_ideal_current_control(name, preset):
         assert np.all(peak > 1.1 * dft) and np.all(peak < 2.0 * dft)
     else:
         np.testing.assert_allclose(disc, peak, rtol=0.02)
+
+
+def test_response_command_reports_the_ripple_for_every_observer(capsys):
+    import json
+
+    from pmsmjax.cli.__main__ import main
+
+    # a flux observer (no back-EMF estimate): the ripple only
+    assert main(["response", "--motor", "zhang750", "--observer", "eso", "--speed", "0.5",
+                 "--i-d", "0", "--i-q", "0.3", "--orders", "1,-5,7", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    want = analysis.harmonic_ripple(make_observer("eso", DRIVE), DRIVE, OP, (1, -5, 7))
+    assert [o["order"] for o in rep["orders"]] == [1, -5, 7]
+    for o, r in zip(rep["orders"], np.asarray(want)):
+        assert o["angle_ripple_deg_per_pct"] == pytest.approx(float(r), rel=1e-9)
+        assert "bemf_gain" not in o
+        assert o["rotor_frame_frequency_hz"] == pytest.approx(
+            (o["order"] - 1) * W / (2 * math.pi))
+    # a back-EMF observer: the ripple next to the back-EMF gain, in the table too
+    assert main(["response", "--motor", "zhang750", "--observer", "fa-leso", "--speed",
+                 "0.5", "--i-d", "0", "--i-q", "0", "--orders", "-5,7,13"]) == 0
+    out = capsys.readouterr().out
+    assert "ripple (deg/%)" in out and "|G|" in out
+    obs = make_observer("fa-leso", DRIVE)
+    want = analysis.harmonic_ripple(obs, DRIVE, analysis.OperatingPoint(W, jnp.zeros(2)),
+                                    ORDERS)
+    gains = analysis.bemf_response(obs, W, ORDERS, 1e-4)
+    rows = [line.split() for line in out.splitlines()[2:]]
+    assert [int(r[0]) for r in rows] == list(ORDERS)
+    for r, rip, g in zip(rows, np.asarray(want), gains):
+        assert float(r[2]) == pytest.approx(float(rip), abs=1e-5)
+        assert float(r[3]) == pytest.approx(abs(g), abs=1e-5)
