@@ -25,9 +25,10 @@ T_S = 1e-4
 N_STEPS = 800
 
 
-def _with_harmonics(drive, amp):
+def _with_harmonics(drive, amp, phase=0.0):
     return eqx.tree_at(lambda d: d.motor.harmonics, drive,
-                       pj.EMFHarmonics(order=ORDERS, amplitude=amp),
+                       pj.EMFHarmonics(order=ORDERS, amplitude=amp,
+                                       phase=phase * jnp.ones(len(ORDERS))),
                        is_leaf=lambda x: x is None)
 
 
@@ -35,13 +36,14 @@ def _ripple(t, err, w):
     """Peak (half peak-to-peak) and the amplitude at (h - 1) w (a DFT bin, exact for a
     sinusoid over whole periods) of the angle error each harmonic adds, over the last
     two electrical periods, in deg. Row 0 of `err` is the run without harmonics: it is
-    subtracted, so that what is left of the start-up transient cancels."""
+    subtracted, so that what is left of the start-up transient cancels; the other rows
+    cycle through `ORDERS`."""
     n_per = int(round(2 * math.pi / abs(w) / T_S))
     t = np.asarray(t)[-2 * n_per:]
     err = np.asarray(err)[:, -2 * n_per:]
     assert np.all(np.isfinite(err)) and np.max(np.abs(err)) < math.radians(5.0)
     diff = err[1:] - err[:1]
-    om = (np.asarray(ORDERS)[:, None] - 1) * w
+    om = np.resize((np.asarray(ORDERS) - 1) * w, diff.shape[0])[:, None]
     peak = np.degrees(np.ptp(diff, 1) / 2)
     dft = np.degrees(np.abs(2 * np.mean(diff * np.exp(-1j * om * t[None, :]), 1)))
     return peak, dft
@@ -70,29 +72,34 @@ def _simulated_ripple(name):
     return _ripple(t[0], err, W)
 
 
-def _ideal_current_ripple(obs, drive, w, n_steps):
+def _ideal_current_ripple(obs, drive, w, n_steps, phases=(0.0,)):
     """Exact ideal current control at zero current: the voltage that holds the plant's
     current at zero is its PM back-EMF (harmonics included) averaged over each period;
     `run_plant` (speed imposed) confirms the current stays at zero, and the observer
-    runs on the plant's voltage and current (`replay`)."""
+    runs on the plant's voltage and current (`replay`). One run per order and harmonic
+    phase (rad, `phases`), vmapped."""
     plant = drive.three_phase_motor
     x0 = obs.designed_error(analysis.OperatingPoint(w, jnp.zeros(2)), plant)
     t = jnp.arange(n_steps) * T_S
     th = w * jnp.arange(n_steps + 1) * T_S
+    n_ph = len(phases)
+    amps = jnp.concatenate([AMPS[:1], jnp.tile(AMPS[1:], (n_ph, 1))])
+    phs = jnp.concatenate([jnp.zeros(1), jnp.repeat(jnp.asarray(phases), len(ORDERS))])
 
-    def one(amp):
-        drv = _with_harmonics(drive, amp)
+    def one(amp, phase):
+        drv = _with_harmonics(drive, amp, phase)
         psi = jax.vmap(lambda q: pj.rotate(drv.motor.psi_pm_dq(q), q))(th)
         u = (psi[1:] - psi[:-1]) / T_S
         tr = pj.run_plant(drv, t, u, w_m_imposed=jnp.full(n_steps, w), w_m0=w)
         th_hat, _ = pj.replay(obs, t, u, tr.i_ab, theta0=-x0[obs.coordinates.angle], w0=w)
         return pj.wrap_angle(th[:-1] - th_hat), jnp.max(jnp.abs(tr.i_ab))
 
-    err, i_max = jax.vmap(one)(AMPS)
+    err, i_max = jax.vmap(one)(amps, phs)
     # the held voltage matches the flux increment, not the back-EMF within the period:
     # the sampled current stays below 0.1 % of the base current
     assert float(jnp.max(i_max)) < 1e-3 * float(drive.base.I_b)
-    return _ripple(t, err, w)
+    peak, dft = _ripple(t, err, w)
+    return peak.reshape(n_ph, len(ORDERS)), dft.reshape(n_ph, len(ORDERS))
 
 
 def test_standstill_vmap_and_float32():
@@ -125,6 +132,10 @@ def test_bad_arguments():
 
 @pytest.mark.parametrize("name", ["leso"])
 def test_ripple_from_the_linearisation_matches_simulation(name):
+    """Closed loop with FOC at load. Tolerances: the discrete variant at the run's T_s
+    within 2 % (1 % harmonics: the second-order terms are ~1 % of the first-order ones;
+    the current loop is not ideal); the continuous linearisation within 10 % (the
+    sampled observer differs by O(Omega T_s / 2), ~3 % at 6 w here)."""
     obs = make_observer(name, DRIVE)
     peak, dft = _simulated_ripple(name)
     disc = np.asarray(analysis.harmonic_ripple(obs, DRIVE, OP, ORDERS, T_s=T_S))
@@ -136,25 +147,35 @@ def test_ripple_from_the_linearisation_matches_simulation(name):
     np.testing.assert_allclose(cont, peak, rtol=0.1)
 
 
-@pytest.mark.parametrize("name, preset", [("parallel-model", "zhang750"),
-                                          ("fa-leso", "zhang750"),
-                                          ("rotor-flux", "morawiec_ipm3k5")])
-def test_ripple_matches_the_plant_under_ideal_current_control(name, preset):
-    drive = pj.preset(preset)
-    obs = make_observer(name, drive)
-    w = 0.5 * drive.w_rated
-    peak, dft = _ideal_current_ripple(obs, drive, w, 1600)
-    op = analysis.OperatingPoint(w, jnp.zeros(2))
-    disc = np.asarray(analysis.harmonic_ripple(obs, drive, op, ORDERS, T_s=T_S))
+@pytest.mark.parametrize("name", ["parallel-model", "fa-leso"])
+def test_ripple_matches_the_plant_under_ideal_current_control(name):
+    obs = make_observer(name, DRIVE)
+    peak, dft = (v[0] for v in _ideal_current_ripple(obs, DRIVE, W, 1600))
+    op = analysis.OperatingPoint(W, jnp.zeros(2))
+    disc = np.asarray(analysis.harmonic_ripple(obs, DRIVE, op, ORDERS, T_s=T_S))
     print(name, "simulated peak", peak, "dft", dft, "discrete", disc)
     np.testing.assert_allclose(disc, dft, rtol=0.01)
-    if name == "rotor-flux":
-        # angle-dependent error dynamics: the averaged linearisation gives the component
-        # at (h - 1) w (above); the periodic coefficients add sidebands at (h - 1 +- 2) w
-        # that the peak includes (measured: 1.3 to 1.6 times that component)
-        assert np.all(peak > 1.1 * dft) and np.all(peak < 2.0 * dft)
-    else:
-        np.testing.assert_allclose(disc, peak, rtol=0.02)
+    np.testing.assert_allclose(disc, peak, rtol=0.02)
+
+
+def test_rotor_flux_ripple_has_the_sidebands_of_its_periodic_error_dynamics():
+    """The rotor-flux observer's error dynamics depend on the rotor angle (a 4 theta
+    term in its linearisation): a harmonic at (h - 1) w also drives sidebands at
+    (h - 1 +- 4) w, and the peak depends on the harmonic's phase. The harmonic balance
+    of `harmonic_ripple` gives the worst case over that phase; the averaged
+    linearisation (`T_s` variant) only the component at (h - 1) w."""
+    drive = pj.preset("morawiec_ipm3k5")
+    obs = make_observer("rotor-flux", drive)
+    w = 0.5 * drive.w_rated
+    peak, dft = _ideal_current_ripple(obs, drive, w, 4000,
+                                      np.linspace(0.0, 2 * math.pi, 8, endpoint=False))
+    op = analysis.OperatingPoint(w, jnp.zeros(2))
+    worst = np.asarray(analysis.harmonic_ripple(obs, drive, op, ORDERS))
+    disc = np.asarray(analysis.harmonic_ripple(obs, drive, op, ORDERS, T_s=T_S))
+    print("rotor-flux simulated peak over phases", peak.max(0), "dft", dft.max(0),
+          "harmonic balance", worst, "averaged (discrete)", disc)
+    np.testing.assert_allclose(disc, dft.max(0), rtol=0.01)
+    np.testing.assert_allclose(worst, peak.max(0), rtol=0.03)
 
 
 def test_response_command_reports_the_ripple_for_every_observer(capsys):

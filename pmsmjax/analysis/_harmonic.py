@@ -47,14 +47,23 @@ $d = 0.01\,\psi_f\,\omega J[1,0]^T$, and the result is the static angle offset
 $|c^TA^{-1}Bd|$ (its phase is fixed, so it is not the rotating formula at
 $\Omega = 0$).
 
-**Angle-dependent observers** (the rotor-flux observer, gains per stationary-frame
-component): without `op.theta`, $A$ is `error_rhs`'s average over one electrical period
-and $B$ the average of the step's input matrix over 8 rotor angles (exact for
-periodic parts up to the 7th harmonic of the angle): the *averaged* linearisation. It
-omits the sidebands at $\Omega \pm 2\omega$ that the periodic coefficients mix in (and,
-where $\Omega$ coincides with a coefficient frequency, their interaction with the
-response), which a Floquet/harmonic-balance treatment would keep; the simulation tests
-measure how much that is. With `op.theta` both are frozen at that angle.
+**Angle-dependent observers** (the rotor-flux observer applies gains per
+stationary-frame component: its linearisation $A(\theta)$ has a $4\theta$ term). Without
+`op.theta` the continuous result is a *harmonic balance* of the periodic linearisation
+(what a Floquet treatment gives for a periodic input): $A(\theta)$ (`error_rhs` at
+`OperatingPoint.theta`) and $B(\theta)$ at 16 rotor angles give their Fourier
+coefficients $A_m$, $B_m$ ($|m| \le 6$; $A_0$ is `error_rhs`'s own average), and the
+response to $v e^{j\Omega t}$ with $\theta = \omega t$ is
+$x = \sum_{|k| \le 8} X_k e^{j(\Omega + k\omega)t}$ with
+$j(\Omega + k\omega)X_k - \sum_m A_m X_{k-m} = B_k v$. The harmonic now also drives
+sidebands at $\Omega + k\omega$ (for the rotor-flux observer at $\Omega \pm 4\omega$;
+where such a sideband falls on another order's frequency the two add), and the peak
+depends on the harmonic's phase relative to the rotor: the result is the worst case over
+that phase, $E\max_\theta|\sum_k c^TX_k e^{jk\theta}|$ (256 angles). For an observer
+whose error dynamics do not depend on the angle every $A_m, B_m$ with $m \ne 0$ vanish
+and this is the formula above. With `op.theta` the linearisation is frozen at that
+angle. The discrete variant uses the angle-averaged step (the component at $\Omega$
+only, no sidebands).
 
 **Discrete variant** (`T_s` given): $x_{k+1} = \Phi x_k + \Gamma d_k$ from one real
 step at the sampling period ($\Phi$, $\Gamma$ as above, averaged over 8 angles), the
@@ -80,7 +89,7 @@ from ..observers._base import AbstractObserver, Measurement, OperatingPoint, Pla
 from ._generic import _true_flux_ab, check_observer
 
 
-_N_ANGLES = 8
+_N_ANGLES = 16
 
 
 def _step_input_jacobians(observer, plant, op, x0, T_s, theta_k, dtype):
@@ -125,17 +134,41 @@ def _angles(op, dtype):
     return 2 * jnp.pi * jnp.arange(_N_ANGLES, dtype=dtype) / _N_ANGLES
 
 
-def _averaged_jacobians(observer, plant, op, x0, T_s, dtype):
-    """`(Phi, Gamma)` averaged over the rotor angle (`_angles`), for each of the step
-    lengths `T_s` (`(m,)`): `(m, n, n)`, `(m, n, 2)` (one traced step for all)."""
+def _jacobian_grid(observer, plant, op, x0, T_s, dtype):
+    """`(Phi, Gamma)` at each rotor angle (`_angles`) for each of the step lengths `T_s`
+    (`(m,)`): `(m, M, n, n)`, `(m, M, n, 2)` (one traced step for all)."""
     th = _angles(op, dtype)
     T = jnp.asarray(T_s, dtype).reshape(-1)
     TT, HH = jnp.broadcast_arrays(T[:, None], th[None, :])
     Phi, Gam = jax.vmap(lambda t, h: _step_input_jacobians(observer, plant, op, x0, t, h,
                                                            dtype))(TT.ravel(), HH.ravel())
     m, k = TT.shape
-    return (jnp.mean(Phi.reshape(m, k, *Phi.shape[1:]), 1),
-            jnp.mean(Gam.reshape(m, k, *Gam.shape[1:]), 1))
+    return Phi.reshape(m, k, *Phi.shape[1:]), Gam.reshape(m, k, *Gam.shape[1:])
+
+
+def _averaged_jacobians(observer, plant, op, x0, T_s, dtype):
+    """`(Phi, Gamma)` averaged over the rotor angle: `(m, n, n)`, `(m, n, 2)`."""
+    Phi, Gam = _jacobian_grid(observer, plant, op, x0, T_s, dtype)
+    return jnp.mean(Phi, 1), jnp.mean(Gam, 1)
+
+
+def _input_matrices(observer, plant, op, x0, dtype):
+    """`(A(theta), B(theta), A)`: at each rotor angle of `_angles` (`(M, n, n)`,
+    `(M, n, 2)`), `A` from `error_rhs` at that angle and `B` by Richardson extrapolation
+    of the step's input Jacobian; and `A` of `error_rhs` at `op` itself (its average
+    over the angle without `op.theta`)."""
+    th = _angles(op, dtype)
+    A = jax.vmap(lambda t: jax.jacfwd(lambda v: observer.error_rhs(
+        v, OperatingPoint(op.w_m, op.i_dq, t), plant))(x0))(th)
+    A_avg = jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x0)
+    scale = jnp.asarray(observer.error_scale(op, plant), dtype)
+    A_s = A_avg * scale[None, :] / scale[:, None]
+    rho = jnp.maximum(jnp.abs(op.w_m).astype(dtype), jnp.max(jnp.sum(jnp.abs(A_s), 1)))
+    rho = jnp.where(jnp.isfinite(rho) & (rho > 0), rho, 1.0)
+    tau = 1e-3 / rho
+    _, G = _jacobian_grid(observer, plant, op, x0, jnp.stack([tau, 2 * tau]), dtype)
+    B = (2.0 * G[0] / tau - G[1] / (2 * tau)).astype(dtype)
+    return A, B, A_avg
 
 
 def input_matrix(observer: AbstractObserver, drive: Drive, op: OperatingPoint, x=None):
@@ -144,19 +177,52 @@ def input_matrix(observer: AbstractObserver, drive: Drive, op: OperatingPoint, x
     the measured stator voltage) enters the continuous error dynamics at `op`, about `x`
     (default: the designed equilibrium). From the observer's own step by Richardson
     extrapolation (module docstring); averaged over the rotor angle unless `op.theta`
-    is given."""
+    is given. Returns `(B, A)` with `A` = `linearization` at the same point."""
     plant = drive.three_phase_motor
     dtype = jnp.result_type(op.w_m, float)
     x0 = (jnp.asarray(observer.designed_error(op, plant), dtype) if x is None
           else jnp.asarray(x, dtype))
-    A = jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x0)
-    scale = jnp.asarray(observer.error_scale(op, plant), dtype)
-    A_s = A * scale[None, :] / scale[:, None]
-    rho = jnp.maximum(jnp.abs(op.w_m).astype(dtype), jnp.max(jnp.sum(jnp.abs(A_s), 1)))
-    rho = jnp.where(jnp.isfinite(rho) & (rho > 0), rho, 1.0)
-    tau = 1e-3 / rho
-    _, G = _averaged_jacobians(observer, plant, op, x0, jnp.stack([tau, 2 * tau]), dtype)
-    return (2.0 * G[0] / tau - G[1] / (2 * tau)).astype(dtype), A
+    _, B, A = _input_matrices(observer, plant, op, x0, dtype)
+    return jnp.mean(B, 0), A
+
+
+_K_COEF = 6  # Fourier coefficients of the periodic linearisation used (16 angles)
+_K_SIDE = 8  # sidebands kept in the harmonic balance
+_N_PEAK = 256  # angle grid on which the peak of the periodic response is taken
+
+
+def _balance_peak(A_k, B_k, Om, w, a, u, real_input):
+    r"""Harmonic balance of $\dot x = A(\theta)x + B(\theta)u e^{j\Omega t}$,
+    $\theta = \omega t$, with $A, B$ given by their Fourier coefficients `A_k`, `B_k`
+    (`(2K_c+1, ...)`, k = -K_c..K_c, or one: time-invariant): the response is
+    $x = \sum_k X_k e^{j(\Omega + k\omega)t}$; returns the peak over one period of
+    $|\sum_k X_{k,a} e^{jk\theta}|$ (the worst case over the input's phase), or of
+    its real part for a real input (`real_input`: a fixed phase)."""
+    kc = (A_k.shape[0] - 1) // 2
+    K = _K_SIDE if kc > 0 else 0
+    n = A_k.shape[-1]
+    ks = jnp.arange(-K, K + 1)
+    eye = jnp.eye(n, dtype=A_k.dtype)
+    rows = []
+    for i in range(2 * K + 1):
+        blocks = []
+        for j in range(2 * K + 1):
+            m = i - j  # X_j feeds row i through A_{i-j}
+            blk = -A_k[m + kc] if abs(m) <= kc else jnp.zeros((n, n), A_k.dtype)
+            if i == j:
+                blk = blk + 1j * (Om + ks[i] * w) * eye
+            blocks.append(blk)
+        rows.append(jnp.concatenate(blocks, 1))
+    M = jnp.concatenate(rows, 0)
+    rhs = jnp.concatenate([B_k[k + kc] @ u if abs(k) <= kc else jnp.zeros(n, A_k.dtype)
+                           for k in range(-K, K + 1)])
+    X = jnp.linalg.solve(M, rhs).reshape(2 * K + 1, n)
+    Y = X[:, a]
+    if K == 0:
+        return jnp.where(real_input, jnp.abs(jnp.real(Y[0])), jnp.abs(Y[0]))
+    th = 2 * jnp.pi * jnp.arange(_N_PEAK) / _N_PEAK
+    y = jnp.exp(1j * th[:, None] * ks[None, :].astype(th.dtype)) @ Y
+    return jnp.where(real_input, jnp.max(jnp.abs(jnp.real(y))), jnp.max(jnp.abs(y)))
 
 
 def harmonic_ripple(observer: AbstractObserver, drive: Drive, op: OperatingPoint, orders,
@@ -180,8 +246,11 @@ def harmonic_ripple(observer: AbstractObserver, drive: Drive, op: OperatingPoint
     **Returns:** `(len(orders),)` array: the peak of the steady-state angle error
     $\tilde\theta$ (deg) for a harmonic of amplitude 1 % of the fundamental back-EMF,
     from the linearisation about the designed equilibrium (see the module docstring for
-    the derivation). 0 at standstill. Pure: jit it and `jax.vmap` it over operating
-    points (and designs); float32 works.
+    the derivation); for an observer with angle-dependent error dynamics the worst case
+    over the harmonic's phase, sidebands included. 0 at standstill (no back-EMF); `inf`
+    where $j\Omega$ is an eigenvalue. Meaningful where the linearisation is stable
+    (`analysis.stability(analysis.linearization(...))`). Pure: jit it and `jax.vmap` it
+    over operating points (and designs); float32 works. This signature is stable.
     """
     check_observer("harmonic_ripple", observer)
     if not isinstance(drive, Drive):
@@ -226,14 +295,24 @@ def _harmonic_ripple(observer, drive, op, h, T_s):
     n = observer.coordinates.n
     eye = jnp.eye(n, dtype=ctype)
     if T_s is None:
-        B, A = input_matrix(observer, drive, op_ev)
-        A, B = A.astype(ctype), B.astype(ctype)
-
-        def one(Om, is_one):
-            X = jnp.linalg.solve(1j * Om * eye - A, B @ jnp.where(is_one, d1, v))
-            return jnp.abs(X[a])
-
-        amp = jax.vmap(one)(Omega, h == 1)
+        x0 = jnp.asarray(observer.designed_error(op_ev, plant), dtype)
+        A_th, B_th, A_avg = _input_matrices(observer, plant, op_ev, x0, dtype)
+        if op.theta is None:
+            # Fourier coefficients of the periodic A(theta), B(theta) (k = -3..3 from 8
+            # angles; the average A from error_rhs itself), harmonic balance with
+            # sidebands k = -K..K
+            th = _angles(op_ev, dtype)
+            ks = jnp.arange(-_K_COEF, _K_COEF + 1)
+            ph = jnp.exp(-1j * ks[:, None] * th[None, :]).astype(ctype)  # (2Kc+1, M)
+            A_k = jnp.einsum("km,mij->kij", ph, A_th.astype(ctype)) / th.shape[0]
+            A_k = A_k.at[_K_COEF].set(A_avg.astype(ctype))
+            B_k = jnp.einsum("km,mij->kij", ph, B_th.astype(ctype)) / th.shape[0]
+        else:
+            A_k = A_avg.astype(ctype)[None]
+            B_k = B_th.astype(ctype)
+        amp = jax.vmap(lambda Om, is_one: _balance_peak(A_k, B_k, Om, w_ev, a,
+                                                        jnp.where(is_one, d1, v), is_one)
+                       )(Omega, h == 1)
     else:
         T = jnp.asarray(T_s, dtype)
         x0 = jnp.asarray(observer.designed_error(op_ev, plant), dtype)
