@@ -265,7 +265,8 @@ def harmonic_ripple(observer: AbstractObserver, drive: Drive, op: OperatingPoint
                          f"signed orders; got {orders!r}.")
     try:
         concrete = [int(v) for v in jax.device_get(h)]
-    except (jax.errors.ConcretizationTypeError, TypeError):
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+            TypeError):
         concrete = None
     if concrete is not None and 0 in concrete:
         raise ValueError(f"`harmonic_ripple(orders=...)`: order 0 is not a harmonic (a "
@@ -298,9 +299,9 @@ def _harmonic_ripple(observer, drive, op, h, T_s):
         x0 = jnp.asarray(observer.designed_error(op_ev, plant), dtype)
         A_th, B_th, A_avg = _input_matrices(observer, plant, op_ev, x0, dtype)
         if op.theta is None:
-            # Fourier coefficients of the periodic A(theta), B(theta) (k = -3..3 from 8
+            # Fourier coefficients of the periodic A(theta), B(theta) (k = -6..6 from 16
             # angles; the average A from error_rhs itself), harmonic balance with
-            # sidebands k = -K..K
+            # sidebands k = -8..8
             th = _angles(op_ev, dtype)
             ks = jnp.arange(-_K_COEF, _K_COEF + 1)
             ph = jnp.exp(-1j * ks[:, None] * th[None, :]).astype(ctype)  # (2Kc+1, M)
