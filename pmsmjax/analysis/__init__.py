@@ -50,6 +50,11 @@ from ._linearize import (
     max_real_eig as max_real_eig,
     routh_hurwitz as routh_hurwitz,
 )
+from ..observers._base import OperatingPoint as OperatingPoint
+from ._harmonic import (
+    harmonic_ripple as harmonic_ripple,
+    input_matrix as input_matrix,
+)
 from ._lyapunov import (
     LyapunovCertificate as LyapunovCertificate,
     RampRun as RampRun,

@@ -1,5 +1,7 @@
-"""`pmsmjax response`: the frequency response of a back-EMF observer at harmonic orders of
-the electrical speed, computed from the observer's own discrete step
+"""`pmsmjax response`: the response of any observer to back-EMF harmonics at signed orders
+of the electrical speed: the angle-error ripple per 1 % harmonic from the linearisation
+(`pmsmjax.analysis.harmonic_ripple`), and for a back-EMF observer the frequency response
+of its estimate, computed from the observer's own discrete step
 (`pmsmjax.analysis.bemf_response`), next to its continuous transfer function."""
 
 from __future__ import annotations
@@ -46,7 +48,8 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     add_operating_point_options(p, speed="one")
     add_observer_options(p, default="fa-leso", mismatch=True, flux=None, fixed_at=False,
-                         default_note=": li-fa-leso's frequency-adaptive LESO")
+                         default_note=": li-fa-leso's frequency-adaptive LESO; any "
+                                      "registered observer")
     p.add_argument("--orders", type=_orders, default=[1, -5, 7], metavar="H[,H...]",
                    help="signed harmonic orders of the electrical frequency: 1 the "
                         "fundamental, -5 the negative-sequence 5th, 7 the positive-"
@@ -60,24 +63,35 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 def response_report(choice, drive, speed_pu: float, i_pu, orders, T_s: float) -> dict:
-    """The JSON-ready report: for each order the discrete gain (`bemf_gain`) and, where
-    the observer has one, its continuous transfer function (`continuous_gain`)."""
-    from pmsmjax.analysis import bemf_response
+    """The JSON-ready report: for each order the angle-error ripple per 1 % harmonic
+    (`angle_ripple_deg_per_pct`, every observer) and, for a back-EMF observer, the
+    discrete gain (`bemf_gain`) and, where it has one, its continuous transfer function
+    (`continuous_gain`)."""
+    import jax.numpy as jnp
+
+    from pmsmjax.analysis import OperatingPoint, bemf_response, harmonic_ripple
 
     obs = choice.observer
     w = speed_pu * float(drive.w_rated)
     if w == 0.0:
         raise CLIError("pmsmjax response: --speed must be nonzero (the orders are "
                        "multiples of the electrical frequency)")
-    G = bemf_response(obs, w, orders, T_s)
+    i_a = np.asarray(i_pu, float) * float(drive.base.I_b)
+    ripple = np.asarray(harmonic_ripple(obs, drive, OperatingPoint(w, jnp.asarray(i_a)),
+                                        tuple(orders)))
+    has_bemf = "e_ab_hat" in type(obs).extras
+    G = bemf_response(obs, w, orders, T_s) if has_bemf else None
     tf = getattr(obs, "transfer_function", None)
     Gc = np.asarray(tf(1j * w * np.asarray(orders, float), w)) if tf else None
     items = []
     for k, h in enumerate(orders):
         item = {"order": int(h), "frequency_hz": h * w / (2 * math.pi),
-                "bemf_gain": {"mag": float(abs(G[k])),
-                              "phase_deg": math.degrees(float(np.angle(G[k]))),
-                              "re": float(G[k].real), "im": float(G[k].imag)}}
+                "rotor_frame_frequency_hz": (h - 1) * w / (2 * math.pi),
+                "angle_ripple_deg_per_pct": float(ripple[k])}
+        if G is not None:
+            item["bemf_gain"] = {"mag": float(abs(G[k])),
+                                 "phase_deg": math.degrees(float(np.angle(G[k]))),
+                                 "re": float(G[k].real), "im": float(G[k].imag)}
         if Gc is not None:
             item["continuous_gain"] = {"mag": float(abs(Gc[k])),
                                        "phase_deg": math.degrees(float(np.angle(Gc[k])))}
@@ -87,12 +101,20 @@ def response_report(choice, drive, speed_pu: float, i_pu, orders, T_s: float) ->
                             "f_electrical_hz": w / (2 * math.pi), "i_dq_pu": list(i_pu)},
         "observer": choice.info(),
         "T_s": T_s,
-        "method": "pmsmjax.analysis.bemf_response: the observer's step linearised at its "
+        "method": "angle_ripple_deg_per_pct: pmsmjax.analysis.harmonic_ripple, the peak "
+                  "steady-state angle error (deg) a back-EMF harmonic of 1 % of the "
+                  "fundamental causes, from the continuous linearisation of the error "
+                  "dynamics at the operating point (ideal current control; order 1: the "
+                  "static error of a 1 % PM-flux error). bemf_gain (back-EMF observers): "
+                  "pmsmjax.analysis.bemf_response, the observer's step linearised at its "
                   "zero state with the speed estimate at the operating speed, driven by "
                   "the sampled current of the back-EMF component through the observer's "
                   "model (4) with zero voltage; gain = estimate / back-EMF component "
                   "(positive-rotating part)",
         "units": {"frequency_hz": "Hz (signed: negative = negative sequence)",
+                  "rotor_frame_frequency_hz": "Hz, (h - 1) times the electrical "
+                                              "frequency: the ripple's frequency",
+                  "angle_ripple_deg_per_pct": "deg (peak) per 1 % harmonic",
                   "phase_deg": "deg, estimate relative to the true component"},
         "orders": items,
     }
@@ -116,27 +138,38 @@ def response_command(args: argparse.Namespace) -> int:
     op = report["operating_point"]
     print(f"pmsmjax response: {drive.name}, {choice.describe()}, speed {args.speed:g} p.u. "
           f"({op['f_electrical_hz']:.4g} Hz), T_s = {args.T_s:g} s")
-    print(f"{'order':>6} {'f (Hz)':>10} {'|G|':>9} {'phase (deg)':>12}   continuous")
+    bemf = "bemf_gain" in report["orders"][0]
+    print(f"{'order':>6} {'f (Hz)':>10} {'ripple (deg/%)':>15}"
+          + (f" {'|G|':>9} {'phase (deg)':>12}   continuous" if bemf else ""))
     for it in report["orders"]:
-        g = it["bemf_gain"]
-        c = it.get("continuous_gain")
-        tail = f"{c['mag']:9.5f} {c['phase_deg']:10.4f}" if c else ""
-        print(f"{it['order']:>6} {it['frequency_hz']:10.3f} {g['mag']:9.5f} "
-              f"{g['phase_deg']:12.4f}   {tail}")
+        line = (f"{it['order']:>6} {it['frequency_hz']:10.3f} "
+                f"{it['angle_ripple_deg_per_pct']:15.5f}")
+        if bemf:
+            g = it["bemf_gain"]
+            c = it.get("continuous_gain")
+            tail = f"{c['mag']:9.5f} {c['phase_deg']:10.4f}" if c else ""
+            line += f" {g['mag']:9.5f} {g['phase_deg']:12.4f}   {tail}"
+        print(line)
     return 0
 
 
 COMMAND = Command(
     name="response",
-    help="frequency response of a back-EMF observer at harmonic orders of the speed",
+    help="response of any observer to back-EMF harmonics at orders of the speed",
     description=(
-        "For each signed harmonic order h (--orders, e.g. 1,-5,7), the complex gain from "
-        "the plant's back-EMF component at h times the electrical frequency to the "
+        "For each signed harmonic order h (--orders, e.g. 1,-5,7), for every observer: "
+        "the peak angle-error ripple (deg) that a back-EMF harmonic of 1 % of the "
+        "fundamental causes at the operating point (--speed, --i-d, --i-q), from the "
+        "linearisation of its error dynamics (ideal current control; a harmonic of "
+        "order h appears at (h - 1) times the electrical frequency in the rotor frame; "
+        "order 1: the static angle error of a 1 % PM-flux error). For observers that "
+        "estimate a back-EMF (c-leso, gi-leso, fa-leso) also the complex gain from the "
+        "plant's back-EMF component at h times the electrical frequency to the "
         "observer's estimate e_ab_hat, computed from the observer's own discrete step "
         "(linearised) at sampling period --T-s, with its continuous transfer function "
-        "(li-fa-leso (17), (26), (29)) next to it. For observers that estimate a back-EMF "
-        "(c-leso, gi-leso, fa-leso). JSON fields: orders[].order, orders[].frequency_hz, "
-        "orders[].bemf_gain.mag, orders[].bemf_gain.phase_deg."
+        "(li-fa-leso (17), (26), (29)) next to it. JSON fields: orders[].order, "
+        "orders[].frequency_hz, orders[].angle_ripple_deg_per_pct, and for back-EMF "
+        "observers orders[].bemf_gain.mag, orders[].bemf_gain.phase_deg."
     ),
     add_arguments=_arguments,
     run=response_command,
