@@ -82,12 +82,14 @@ $$\frac{d\hat\omega}{dt} = -\frac{\gamma}{L_d}\left(\hat\lambda_\beta\tilde i_\a
 (`analysis.linearization`, averaged, and `analysis.floquet`) confirms it: with the
 printed sign an eigenvalue lies in the right half plane at every speed and load tested
 (and a simulation from a small error diverges), with the derived one the paper's
-gains are stable at every point tested from 0.2 to 1.5 p.u., both directions, loads
--0.9, 0, 0.9 p.u. (`test_rotor_flux.py`). Below about 0.05 p.u. at light load the
-slowest exponent crosses zero (the angle is unobservable at standstill, and the
-position correction, built from the current error, carries no angle information
-there). The region of attraction is small: with a matched model at 0.2 p.u. and
-0.35 p.u. load the generic analysis finds an unstable equilibrium at 0.082 rad.
+gains (gamma 1.0 p.u.) are stable at every point tested from 0.2 to 1 p.u., both
+directions, loads -0.9, 0, 0.9 p.u., and at 1.5 p.u. except under the motoring
+0.9 p.u. load (`test_rotor_flux.py`; "Choice of gamma" below). Below about 0.13 p.u.
+at light motoring load the slowest exponent crosses zero (the angle is unobservable at
+standstill, and the position correction, built from the current error, carries no
+angle information there). The region of attraction is small: with a matched model at
+0.2 p.u. and 0.35 p.u. load (and gamma 2.0 p.u.) the generic analysis finds an unstable
+equilibrium at 0.082 rad.
 
 **Discretisation.** In flux form the rotation terms of (7)-(8) cancel exactly: with
 $\hat\psi = L_{ab}(\hat\theta)\hat i + \psi_f e^{\hat\theta J}[1,0]^T$,

@@ -36,20 +36,28 @@ stabilises standstill holds for (35) only.
 `experiment`; errors as max |.| in the window: speed in p.u., angle in rad; the
 paper's "p.u." position errors are read as rad):
 
-| Fig. | simulated | published |
-|---|---|---|
-| 7(a) start-up to 2 p.u. | reaches 2.0 p.u. with u_dc 700 V (`U_DC_FIG7A`; 1.46 p.u. with the preset's 560 V); speed err 2e-4, angle 3e-4 | 2.0 p.u., stable |
-| 7(b) standstill | stable; speed err 3e-4, angle 0.0099, theta_lambda 6e-4 | stable, theta_lambda < 0.1 |
-| 10(b) no-load reversal -0.1 -> 0.1 | stable; speed err 0.0091, angle 0.015 | stable, oscillating |
-| 11(a) reversal at 0.5 p.u. load | speed err 0.049, angle 0.039 | speed err < 0.05, angle about 0.2 at zero speed |
-| 12 load step to 0.85 p.u. at 0.5 p.u. | speed err 0.0022, mean angle 2e-4 | speed err about 0.01, mean angle < 0.015 |
-| 13(a) k_c = 0, 0.025 p.u., -0.75 p.u. | angle 0.0051, i_sq -0.723 | stable but poor, i_sq -0.65 |
-| 13(b) k_c = 1.5 | angle 0.0031, i_sq -0.723 | angle < 0.03, i_sq -0.75 |
-| 14(a) load -0.85 -> 0.85 at 0.2 p.u. | observer holds (angle 0.028, speed err 0.057) but the 2 Hz speed loop lets the speed fall to -0.19 p.u. and back | angle about 0.2 at zero torque, speed held |
-| 16(a) observer L_d = 2 L_dN | stable; speed err 0.0023, angle 0.017 | stable; speed err 0.05, angle 0.2 |
-| 16(b) L_q = 0.3 L_qN | stable; angle 0.26 (steady offset), speed err 0.0034 | stable |
-| 16(b) L_q = 1.0 L_qN | angle 8e-4 | stable |
-| 16(b) L_q = 1.5 L_qN | loses the speed | "verge of stability", angle > 0.35 |
+- 7(a) start-up to 2 p.u.: reaches 2.0 p.u. with u_dc 700 V (`U_DC_FIG7A`; 1.46 p.u.
+  with the preset's 560 V); speed err 2e-4, angle err 3e-4. Published: 2.0 p.u., stable.
+- 7(b) standstill: stable; speed err 3e-4, angle err 0.0099, theta_lambda 6e-4.
+  Published: stable, theta_lambda < 0.1.
+- 10(b) no-load reversal -0.1 -> 0.1: stable; speed err 0.0091, angle err 0.015.
+  Published: stable, oscillating.
+- 11(a) reversal at 0.5 p.u. load: speed err 0.049, angle err 0.039. Published: speed
+  err < 0.05, angle err about 0.2 at zero speed.
+- 12 load step to 0.85 p.u. at 0.5 p.u.: speed err 0.0022, mean angle err 2e-4.
+  Published: speed err about 0.01, mean angle err < 0.015.
+- 13(a) k_c = 0 at 0.025 p.u., -0.75 p.u.: angle err 0.0051, i_sq -0.723. Published:
+  stable but poor, i_sq -0.65.
+- 13(b) k_c = 1.5: angle err 0.0031, i_sq -0.723. Published: angle err < 0.03, i_sq
+  -0.75.
+- 14(a) load -0.85 -> 0.85 p.u. at 0.2 p.u.: the observer holds (angle err 0.028,
+  speed err 0.057), but the 2 Hz speed loop lets the speed fall to -0.19 p.u. and
+  back. Published: angle err about 0.2 at zero torque, speed held.
+- 16(a) observer L_d = 2 L_dN: stable; speed err 0.0023, angle err 0.017. Published:
+  stable; speed err 0.05, angle err 0.2.
+- 16(b) L_q = 0.3 L_qN: stable; angle err 0.26 (a steady offset), speed err 0.0034;
+  L_q = L_qN: angle err 8e-4; L_q = 1.5 L_qN: loses the speed. Published: stable;
+  1.5 L_qN "on the verge of stability", angle err > 0.35.
 
 Why 14(a), 16(a) and 16(b) were lost with the first choices (gamma 2.0 p.u., speed
 bandwidth 5 Hz), and what changed (measured; no defect of the observer's equations was
