@@ -22,7 +22,7 @@ import pmsmjax as pj
 from pmsmjax.cli._options import name_value, out_dir_transaction
 from pmsmjax.observers import observer_names
 
-from .scenarios import OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
+from .scenarios import MOTOR_QUICK_DEFAULTS, OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -117,7 +117,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args) -> TuningConfig:
     d = TuningConfig()
-    base = TuningConfig.quick() if args.quick else TuningConfig.for_motor(args.motor)
+    base = TuningConfig.quick(**MOTOR_QUICK_DEFAULTS.get(args.motor, {})) if args.quick \
+        else TuningConfig.for_motor(args.motor)
     kw = {}
     # an option changes the configuration only if it differs from the CLI default, so
     # that --quick keeps its own values unless an option overrides them

@@ -82,12 +82,14 @@ $$\frac{d\hat\omega}{dt} = -\frac{\gamma}{L_d}\left(\hat\lambda_\beta\tilde i_\a
 (`analysis.linearization`, averaged, and `analysis.floquet`) confirms it: with the
 printed sign an eigenvalue lies in the right half plane at every speed and load tested
 (and a simulation from a small error diverges), with the derived one the paper's
-gains are stable at every point tested from 0.2 to 1.5 p.u., both directions, loads
--0.9, 0, 0.9 p.u. (`test_rotor_flux.py`). Below about 0.05 p.u. at light load the
-slowest exponent crosses zero (the angle is unobservable at standstill, and the
-position correction, built from the current error, carries no angle information
-there). The region of attraction is small: with a matched model at 0.2 p.u. and
-0.35 p.u. load the generic analysis finds an unstable equilibrium at 0.082 rad.
+gains (gamma 1.0 p.u.) are stable at every point tested from 0.2 to 1 p.u., both
+directions, loads -0.9, 0, 0.9 p.u., and at 1.5 p.u. except under the motoring
+0.9 p.u. load (`test_rotor_flux.py`; "Choice of gamma" below). Below about 0.13 p.u.
+at light motoring load the slowest exponent crosses zero (the angle is unobservable at
+standstill, and the position correction, built from the current error, carries no
+angle information there). The region of attraction is small: with a matched model at
+0.2 p.u. and 0.35 p.u. load (and gamma 2.0 p.u.) the generic analysis finds an unstable
+equilibrium at 0.082 rad.
 
 **Discretisation.** In flux form the rotation terms of (7)-(8) cancel exactly: with
 $\hat\psi = L_{ab}(\hat\theta)\hat i + \psi_f e^{\hat\theta J}[1,0]^T$,
@@ -104,6 +106,28 @@ continuous error dynamics by 6 % over 30 ms at 50 kHz, this rule by 2.8 %;
 `test_contract.py`). A matched observer at zero error stays there
 exactly. At $k = 0$ the flux
 is initialised from the measured current and the initial angle ($\hat i_0 = i_0$).
+
+**Choice of gamma** (not given with the paper's gains; Fig. 5(b) sweeps 0.01-2 p.u.),
+measured on `morawiec_ipm3k5` at 6.6 kHz with the other gains as printed:
+
+- *Spectra.* The slowest Floquet exponent at 0.2-1 p.u., both directions, MTPA currents
+  for i_q = -1..1 p.u., is set by c_theta (about -0.15 p.u. = -47 1/s) and hardly moves
+  with gamma from 0.5 to 2; it is -0.02 p.u. near i_q = 0.2 p.u. at 0.2 p.u. and crosses
+  zero below 0.13 p.u. at light load whatever gamma. Small gamma loses the loaded high
+  speeds: with gamma = 0.5 the exponent is +0.046 p.u. at 1 p.u. and i_q = 0.5 p.u.,
+  with 0.75 +0.096 at 1.5 p.u.; 1.0 is stable to 1 p.u. at every load and at 1.5 p.u.
+  up to i_q = 0.2 p.u. (+0.095 p.u. at 1.5 p.u., i_q = 0.5 p.u.).
+- *Discretisation.* The speed state is advanced by forward Euler; its lightly damped
+  pair grows with gamma / L. With the observer's L_q = 0.3 L_qN (Fig. 16(b)) at 0.2 p.u.
+  and 0.33 p.u. current, gamma = 2.0 diverges at 6.6 kHz into a limit cycle (speed
+  ripple 3.8 p.u.) but converges at 66 kHz, and 1.0-1.5 converge at 6.6 kHz
+  (`test_rotor_flux.py`): 2.0 is beyond the sampling rate's limit for the paper's own
+  mismatch test.
+- *Closed loop* (`pmsmjax.papers.morawiec2023`): with gamma = 2.0 the load reversal of
+  Fig. 14(a) loses the speed; with 1.0 it holds (angle error 0.028 rad).
+
+So 1.0 p.u.: the middle of the interval that the high-speed spectra (>= ~0.8) and the
+sampling rate (< 2) leave.
 
 **Error coordinates** (true minus estimate, as everywhere in pmsmjax): the current error
 $i - \hat i$ in the estimated frame, the angle error $\theta - \hat\theta$, the speed
@@ -145,10 +169,10 @@ _SIGNS = {"derived": -1.0, "printed": 1.0}
 N_AVERAGE = 8
 
 #: morawiec2023's gains (p.u., Sec. III end): c_alpha 3.0, c_lambda 0.001, k_c 0.1,
-#: c_theta 0.15. gamma is not given with them: 2.0 p.u. (the top of the range of
-#: Fig. 5(b)) is chosen here, see `RotorFluxObserver.from_drive`.
+#: c_theta 0.15. gamma is not given with them: 1.0 p.u. is chosen here (the module
+#: docstring, "Choice of gamma", gives the spectra and simulations behind it).
 PAPER_GAINS_PU = {"c_alpha": 3.0, "c_lambda": 0.001, "k_c": 0.1, "c_theta": 0.15,
-                  "gamma": 2.0}
+                  "gamma": 1.0}
 
 
 # ---------------------------------------------------------------------------------------
@@ -342,8 +366,8 @@ class RotorFluxObserver(AbstractObserver):
                    speed_sign: str = "derived", theta_sign: str = "derived", **design):
         """morawiec2023's gains (c_alpha 3.0, c_lambda 0.001, k_c 0.1, c_theta 0.15 p.u.)
         converted to SI with `drive.base` (see the module docstring). The paper gives no
-        gamma with them (Figs. 3-5 sweep 0.01-2 p.u.); 0.05 p.u. is chosen: the slowest
-        pole of the linearisation at 0.2-1 p.u. and rated load is then well damped.
+        gamma with them (Figs. 3-5 sweep 0.01-2 p.u.); 1.0 p.u. is chosen (module
+        docstring, "Choice of gamma").
         `design` overrides gains by name in SI (`design_units`)."""
         motor = drive.three_phase_motor if motor is None else motor
         b = drive.base
