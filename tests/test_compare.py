@@ -177,3 +177,18 @@ def test_config_errors():
         CompareConfig(cases=((1.0, 1.0, 1.0),))
     with pytest.raises(ValueError, match="tuner"):
         CompareConfig(tuner="sgd")
+
+
+def test_figures(job):
+    from tuning._compare_plots import hardest_point, plot_comparison
+
+    config, out, summary = job
+    paths = plot_comparison(summary, out)
+    assert sorted(p.name for p in paths) == ["metrics.png", "robustness_maps.png",
+                                             "traces.png"]
+    assert all(p.stat().st_size > 10_000 for p in paths)
+    # the hardest scenario is the run with the largest RMS angle error (one observer)
+    res = np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
+    idx = hardest_point(summary, out)
+    assert res["rms_deg"][idx] == np.max(res["rms_deg"])
+    assert res["trace_theta_deg"].shape[-1] <= compare.TRACE_SAMPLES + 1

@@ -122,6 +122,8 @@ CASE_NAMES = ("k_d", "k_q", "k_R", "k_psi")
 #: Environment variable (tests): stop the job with `CompareInterrupted` after this many
 #: units of work (a tuning, a sweep chunk, a cost measurement).
 STOP_ENV = "PMSMJAX_COMPARE_STOP_AFTER"
+#: Samples kept of each run's angle and speed-estimate errors (for the time traces).
+TRACE_SAMPLES = 200
 #: Keys of comparison.json that hold measurements of the machine (they differ between any
 #: two runs, a resumed one included); the last column of comparison.md is one of them.
 TIMING_KEYS = ("observer_us_per_step",)
@@ -361,7 +363,12 @@ def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
                          k_d=k[0:1], k_q=k[1:2], k_R=k[2:3], k_psi=k[3:4],
                          k_noise=jnp.ones(1, sp.dtype), keys=key[None])
     traj = simulate_validation(design, tcfg, vset, kind=kind)
-    return jax.tree_util.tree_map(lambda a: a[0], run_metrics(traj, config))
+    out = jax.tree_util.tree_map(lambda a: a[0], run_metrics(traj, config))
+    # decimated traces for the figures (at most about `TRACE_SAMPLES` samples)
+    stride = max(1, traj.t.shape[-1] // TRACE_SAMPLES)
+    out["trace_theta_deg"] = jnp.degrees(traj.theta_err[0, ::stride])
+    out["trace_w_err"] = (traj.w_m - traj.w_hat)[0, ::stride]
+    return out
 
 
 def feasibility_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
