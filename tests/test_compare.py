@@ -192,3 +192,16 @@ def test_figures(job):
     idx = hardest_point(summary, out)
     assert res["rms_deg"][idx] == np.max(res["rms_deg"])
     assert res["trace_theta_deg"].shape[-1] <= compare.TRACE_SAMPLES + 1
+
+
+def test_cli_dispatch(capsys):
+    from tuning.__main__ import main
+
+    # `python -m tuning compare ...` reaches the comparison's parser; a bad configuration
+    # is a one-line error with status 2, before anything is computed
+    assert main(["compare", "--observers", "nope", "--no-plot"]) == 2
+    assert "CompareConfig(observers=...)" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["compare", "--help"])
+    assert e.value.code == 0
+    assert "--chunk-size" in capsys.readouterr().out
