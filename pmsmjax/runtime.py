@@ -21,6 +21,21 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
 XLA reads its flags when the first computation starts the backend, so `configure` must
 run before any JAX computation; called later it keeps the backend as it is and warns.
 Set `PMSMJAX_FAST_LOOPS=0` to keep XLA's default loop threshold.
+
+**Long-running processes: memory mappings.** Every program XLA compiles for the CPU keeps
+its machine code in memory mappings of its own (about 6-10 for a small program, more for
+a large one), released only when JAX drops the program. Linux limits the mappings of one
+process (`vm.max_map_count`, 65,530 by default). A process that compiles thousands of
+distinct programs and keeps them (JAX keeps every compiled program of every jitted
+function) reaches the limit, and then the next compilation fails inside LLVM ("LLVM
+compilation error: Cannot allocate memory") and the process dies with a segmentation
+fault in `backend_compile` (`benchmarks/map_limit.py` shows it). The test suite's
+workers did this (about 30,000 mappings halfway through a run, a worker killed in the
+tuner's tests). `memory_maps()` tells where a process stands; `release_compiled()` drops
+every compiled program (`jax.clear_caches()`) once the mappings pass a fraction of the
+limit: programs still in use are compiled again when next called, nothing else changes.
+The test suite calls it after every test; a long notebook session or a script that
+compiles many designs in one process can call it between phases.
 """
 
 from __future__ import annotations
@@ -84,6 +99,40 @@ def clear_cache() -> int:
     if d.is_dir():
         shutil.rmtree(d)
     return n
+
+
+def memory_maps() -> tuple[int, int] | None:
+    """`(mappings, limit)`: the memory mappings of this process and the system's limit
+    (`vm.max_map_count`); `None` where the system does not tell (not Linux)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            n = sum(1 for _ in f)
+        with open("/proc/sys/vm/max_map_count") as f:
+            limit = int(f.read())
+    except (OSError, ValueError):
+        return None
+    return n, limit
+
+
+def release_compiled(fraction: float = 1 / 3) -> bool:
+    """Drop JAX's compiled programs (`jax.clear_caches()`) when this process's memory
+    mappings exceed `fraction` of the system's limit (see the module docstring: at the
+    limit the next compilation kills the process); return whether it did.
+
+    `fraction` in [0, 1]: 0 always releases. Where the mappings cannot be counted (not
+    Linux) it does nothing and returns False.
+    """
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"release_compiled: fraction={fraction!r}; allowed: a number in "
+                         "[0, 1] (a share of vm.max_map_count)")
+    state = memory_maps()
+    if state is None or state[0] <= fraction * state[1]:
+        return False
+    import gc
+
+    jax.clear_caches()
+    gc.collect()
+    return True
 
 
 def _backend_started() -> bool:

@@ -1,5 +1,3 @@
-import os
-
 import jax
 import jax.random as jr
 import pytest
@@ -8,15 +6,23 @@ import pmsmjax
 
 
 # The test suite is an entry point: the same process settings as the command line
-# (pmsmjax.runtime: XLA flags), applied before any computation. The persistent
-# compilation cache is off for the suite (and the commands and kernels it starts, which
-# inherit the variable; tests/test_runtime.py sets its own): in two full runs on the
-# 2-core machine a worker died natively inside JAX's cache code (a segfault reading an
-# entry under heavy load, an abort writing one from a cold run), so the suite must not
-# depend on it. Set PMSMJAX_CACHE=1 to use it anyway.
-os.environ.setdefault("PMSMJAX_CACHE", "0")
+# (pmsmjax.runtime: XLA flags, the persistent compilation cache), applied before any
+# computation. The native crashes that killed workers in earlier full runs (inside
+# compilation, and inside the cache's reading and writing of executables, which maps code
+# too) were the workers reaching the system's limit of memory mappings; the fixture below
+# keeps them away from it (pmsmjax.runtime, "Long-running processes").
 pmsmjax.runtime.configure()
 jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(autouse=True)
+def _bounded_memory_maps():
+    """A worker runs hundreds of tests and compiles thousands of programs, each holding
+    memory mappings until dropped; at the system's limit (vm.max_map_count) the next
+    compilation kills the worker (pmsmjax.runtime: "Long-running processes"). Drop the
+    compiled programs whenever a third of the limit is used."""
+    yield
+    pmsmjax.runtime.release_compiled(1 / 3)
 
 
 @pytest.fixture

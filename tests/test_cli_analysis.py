@@ -84,8 +84,10 @@ def test_feasibility_file_matches_the_api(tmp_path, capsys):
     fm = analysis.feasibility_map(SALIENT_DRIVE, [0.5], z, r, i_dq=(0.0, 2.0))
     np.testing.assert_array_equal(st, np.asarray(fm.status)[0, 0].T)
     np.testing.assert_array_equal(data["n_nonzero"], np.asarray(fm.n_nonzero)[0, 0].T)
-    np.testing.assert_array_equal(data["stable_theta_deg"],
-                                  np.asarray(fm.stable_theta_deg)[0, 0].T)
+    # the command evaluates the same kernel point by point in chunks (run_sweep): XLA's
+    # code for another batch shape may differ in the last bit
+    np.testing.assert_allclose(data["stable_theta_deg"],
+                               np.asarray(fm.stable_theta_deg)[0, 0].T, rtol=1e-13)
     Z, R = np.meshgrid(z, r)  # (N2, N1)
     c = analysis.classify_designs(SALIENT_DRIVE.motor, 0.5 * SALIENT_DRIVE.w_rated,
                                   np.array([0.0, 2.0]) * SALIENT_DRIVE.base.I_b, Z, R)

@@ -2,6 +2,7 @@
 compilation cache (filled by a command, reused, cleared, opted out of)."""
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -82,3 +83,52 @@ def test_cache_is_filled_reused_and_cleared(env, tmp_path):
     env["PMSMJAX_CACHE"] = "0"
     assert _run(cmd, env).returncode == 0
     assert not (tmp_path / "cache").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# Memory mappings: compiled programs hold them; at vm.max_map_count compilation kills
+# the process (the test suite's native worker crashes); release_compiled prevents it
+# ---------------------------------------------------------------------------------------
+
+linux_only = pytest.mark.skipif(pj.runtime.memory_maps() is None,
+                                reason="memory mappings are counted from /proc (Linux)")
+
+
+@linux_only
+def test_release_compiled_drops_the_mappings_of_compiled_programs():
+    import jax
+    import jax.numpy as jnp
+
+    n0, limit = pj.runtime.memory_maps()
+    assert 0 < n0 < limit
+    keep = []
+    for k in range(40):
+        f = jax.jit(lambda x, k=k: jnp.cos(x * k) + jnp.cumsum(x) * k)
+        f(jnp.ones(5)).block_until_ready()
+        keep.append(f)
+    n1, _ = pj.runtime.memory_maps()
+    assert n1 - n0 >= 80          # a few mappings per kept program
+    assert not pj.runtime.release_compiled(1.0)   # far below the limit: nothing dropped
+    assert pj.runtime.release_compiled(0.0)
+    n2, _ = pj.runtime.memory_maps()
+    assert n1 - n2 >= 0.6 * (n1 - n0)   # (the rest: buffers and JAX internals)
+    assert float(keep[3](jnp.ones(5))[0]) == pytest.approx(math.cos(3.0) + 3.0)  # recompiles
+    with pytest.raises(ValueError, match="fraction"):
+        pj.runtime.release_compiled(1.5)
+
+
+@linux_only
+def test_the_mapping_limit_kills_compilation_and_release_compiled_prevents_it():
+    """benchmarks/map_limit.py: a process with all but 60 of its allowed mappings taken
+    dies (segfault after LLVM's "Cannot allocate memory") within a few compilations;
+    releasing compiled programs after each one keeps it alive through 12."""
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+    try:
+        import map_limit
+    finally:
+        sys.path.pop(0)
+    dies = map_limit.run(headroom=60, programs=12, release=False, timeout=280)
+    assert dies["segfault"] and dies["llvm_out_of_memory"] and not dies["finished"], dies
+    assert dies["compiled"] < 12
+    lives = map_limit.run(headroom=60, programs=12, release=True, timeout=280)
+    assert lives["finished"] and lives["returncode"] == 0 and lives["compiled"] == 12, lives

@@ -683,22 +683,12 @@ def design_map(observer, drive: Drive, speeds, x, y, *, i_dq=(0.0, 0.0), plant=N
     cur = cur.reshape(-1, 2)
     dtype = jnp.float64 if dtype is None else dtype
     w_r, I_b = float(drive.w_rated), float(drive.base.I_b)
-    plant_ = drive.three_phase_motor if plant is None else plant
-    # the closed form needs the observer's model to be the plant's
-    matched = bool(eqx.tree_equal(as_arrays(plant_, dtype), as_arrays(observer.motor, dtype)))
-    # probe the design's structure with the largest values (a zero, allowed on an axis,
-    # is refused by some design constructors outside a trace)
-    probe = observer.with_design(**{xn: float(np.max(xv)), yn: float(np.max(yv))})
-    resolved = _resolve_classify("design_map", probe, None if matched else plant_, method,
-                                 jnp.asarray(sp[0] * w_r, dtype),
-                                 jnp.asarray(cur[0] * I_b, dtype))
+    obs_in, plant_in, resolved = _design_map_setup(observer, drive, sp, (xn, xv), (yn, yv),
+                                                   cur, plant, method, dtype)
     grid = np.stack(np.meshgrid(sp * w_r, np.arange(len(cur)), xv, yv, indexing="ij"),
                     -1).reshape(-1, 4)
     i_all = (cur * I_b)[grid[:, 1].astype(int)]
-    # (the closed form decides on the design's structure, e.g. n2 = n3 = 0, so the
-    # observer's Python-number leaves stay concrete there)
-    obs_in = observer if resolved == "closed_form" else as_arrays(observer, dtype)
-    res = _design_map_batch(obs_in, as_arrays(plant_, dtype),
+    res = _design_map_batch(obs_in, plant_in,
                             jnp.asarray(grid[:, 0], dtype), jnp.asarray(i_all, dtype),
                             jnp.asarray(grid[:, 2], dtype), jnp.asarray(grid[:, 3], dtype),
                             xn, yn, resolved, options)
@@ -713,15 +703,41 @@ def design_map(observer, drive: Drive, speeds, x, y, *, i_dq=(0.0, 0.0), plant=N
         x_name=xn, y_name=yn, observer=type(observer).__name__)
 
 
-@eqx.filter_jit
-def _design_map_batch(observer, plant, w0, i0, xv, yv, xn, yn, method, options):
+def _design_map_setup(observer, drive, sp, x, y, cur, plant, method, dtype):
+    """What `design_map` evaluates at each point: `(observer, plant, method)` for
+    `_design_point` (the closed form or the generic route, resolved on a probe design)."""
+    (xn, xv), (yn, yv) = x, y
+    w_r, I_b = float(drive.w_rated), float(drive.base.I_b)
+    plant_ = drive.three_phase_motor if plant is None else plant
+    # the closed form needs the observer's model to be the plant's
+    matched = bool(eqx.tree_equal(as_arrays(plant_, dtype), as_arrays(observer.motor, dtype)))
+    # probe the design's structure with the largest values (a zero, allowed on an axis,
+    # is refused by some design constructors outside a trace)
+    probe = observer.with_design(**{xn: float(np.max(xv)), yn: float(np.max(yv))})
+    resolved = _resolve_classify("design_map", probe, None if matched else plant_, method,
+                                 jnp.asarray(sp[0] * w_r, dtype),
+                                 jnp.asarray(cur[0] * I_b, dtype))
+    # (the closed form decides on the design's structure, e.g. n2 = n3 = 0, so the
+    # observer's Python-number leaves stay concrete there)
+    obs_in = observer if resolved == "closed_form" else as_arrays(observer, dtype)
+    return obs_in, as_arrays(plant_, dtype), resolved
+
+
+def _design_point(observer, plant, w, i, a, b, xn, yn, method, options) -> DesignClass:
+    """Classification of one design `xn = a`, `yn = b` at speed `w` (rad/s) and current
+    `i` (A): the body of `design_map` (and of the command line's sweep of it)."""
     from ._generic import OperatingPoint, equilibria_traced
 
+    obs = observer.with_design(**{xn: a, yn: b})
+    if method == "closed_form":
+        return obs.fast_classify(w, i)
+    eq = equilibria_traced(obs, plant, OperatingPoint(w, i), **options)
+    return _class_from_equilibria(eq)
+
+
+@eqx.filter_jit
+def _design_map_batch(observer, plant, w0, i0, xv, yv, xn, yn, method, options):
     def one(w, i, a, b):
-        obs = observer.with_design(**{xn: a, yn: b})
-        if method == "closed_form":
-            return obs.fast_classify(w, i)
-        eq = equilibria_traced(obs, plant, OperatingPoint(w, i), **options)
-        return _class_from_equilibria(eq)
+        return _design_point(observer, plant, w, i, a, b, xn, yn, method, options)
 
     return jax.vmap(one)(w0, i0, xv, yv)

@@ -1,6 +1,8 @@
 """`pmsmjax feasibility`: feasibility maps of any observer over two of its design
-parameters (zhang2022 Fig. 1 for the ESO's (zeta1, w1/|w0|)), via
-`pmsmjax.analysis.design_map`."""
+parameters (zhang2022 Fig. 1 for the ESO's (zeta1, w1/|w0|)): the per-design body of
+`pmsmjax.analysis.design_map` (or of `feasibility_map` for the zhang2022 shorthand), run
+point by point by `pmsmjax.analysis.run_sweep` (chunked, resumable, sharded over every
+device and, with `jax.distributed`, over several processes or hosts)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import argparse
 import os
 import time
 
+import jax
 import numpy as np
 
 from ._options import (
@@ -25,7 +28,15 @@ from ._options import (
     grid_values,
     named_grid,
     observer_from_args,
+    json_safe,
     prepare_out_dir,
+)
+from ._sweep_options import (
+    add_sweep_options,
+    init_distributed,
+    is_writer,
+    run_sweep_with,
+    sweep_settings,
 )
 
 
@@ -59,6 +70,7 @@ def _feasibility_arguments(p: argparse.ArgumentParser) -> None:
                    help="zhang2022 shorthand for --y ratio=LO:HI:N: w1 / |w0| (-, >= 0; 0 is "
                         "degenerate), or a single number (default 0:2:101, zhang2022 Fig. 1)")
     add_output_options(p, "results")
+    add_sweep_options(p)
 
 
 def _axes(args, choice) -> tuple[tuple[str, np.ndarray], tuple[str, np.ndarray]]:
@@ -164,58 +176,161 @@ def _zhang_shorthand(choice, xn: str, yn: str) -> dict | None:
     return kw
 
 
-def _map(choice, drive, speeds, x, y, i_pu):
-    """The `FeasibilityMap` over `speeds` (p.u.): `feasibility_map` when it applies (a
-    standstill speed gets status -1 there: w1 = ratio |w0| = 0), else `design_map`."""
-    from pmsmjax.analysis import FeasibilityMap, design_map, feasibility_map
+def _point_fn(choice, drive, x, y, i_pu):
+    """`(fn, method)`: the classification of one point `{"w_m": rad/s, "x", "y"}` of the
+    map, and the method's name. The same kernels as the in-memory maps: the zhang2022
+    shorthand (`feasibility_map`'s, through `classify_designs`: the closed form zhang2022
+    (34)-(36) when matched, the ESO-specific general route otherwise) when it computes
+    exactly this map, else `design_map`'s body. Every zhang2022 design is degenerate at
+    standstill (w1 = ratio |w0| = 0): status -1 there and nothing else, as before."""
+    import jax.numpy as jnp
 
+    from pmsmjax.analysis import DesignClass, classify_designs
+    from pmsmjax.analysis._feasibility import (
+        _design_map_setup,
+        _design_point,
+        _resolve_method,
+    )
+
+    i_si = jnp.asarray(np.asarray(i_pu, float) * float(drive.base.I_b))  # A
     kw = _zhang_shorthand(choice, x[0], y[0])
     if kw is None:
         # (plant only with mismatch: `design_map(plant=None)` allows the closed form)
         plant = choice.plant if choice.mismatched else None
-        return design_map(choice.observer, drive, speeds, x, y, i_dq=i_pu, plant=plant)
-    nonzero = [s for s in speeds if s != 0.0]
-    if len(nonzero) == len(speeds):
-        return feasibility_map(drive, speeds, x[1], y[1], i_dq=i_pu, **kw)
-    shape = (len(speeds), 1, len(x[1]), len(y[1]))
-    # every zhang2022 design is degenerate at standstill: status -1, nothing else
-    full = dict(status=np.full(shape, -1, np.int32), n_nonzero=np.zeros(shape, np.int32),
-                stable_theta_deg=np.full(shape, np.nan),
-                principal_stable=np.zeros(shape, bool),
-                principal_theta_deg=np.full(shape, np.nan))
-    method = "none (standstill only)"
-    if nonzero:
-        fm = feasibility_map(drive, nonzero, x[1], y[1], i_dq=i_pu, **kw)
-        idx = [i for i, s in enumerate(speeds) if s != 0.0]
-        for k in full:
-            full[k][idx] = np.asarray(getattr(fm, k))
-        method = fm.method
-    K = 1
-    return FeasibilityMap(
-        **full, theta_deg=np.full(shape + (K,), np.nan), stable=np.zeros(shape + (K,), bool),
-        speeds=np.asarray(speeds, float), i_dq=np.asarray([i_pu], float), x=x[1], y=y[1],
-        w_rated=float(drive.w_rated), I_b=float(drive.base.I_b), method=method,
-        frame="observer", x_name=x[0], y_name=y[0], observer=type(choice.observer).__name__)
+        speeds_probe = np.asarray([1.0])  # the method does not depend on the speed
+        obs, plant_in, method = _design_map_setup(
+            choice.observer, drive, speeds_probe, x, y, np.asarray([i_pu], float), plant,
+            "auto", jnp.float64)
+
+        def fn(p):
+            return _design_point(obs, plant_in, p["w_m"], i_si, p["x"], p["y"], x[0], y[0],
+                                 method, {})
+
+        return fn, method
+    motor = drive.three_phase_motor
+    method = _resolve_method("feasibility_map", "auto", kw["motor_hat"], kw.get("a", 1.0))
+
+    def fn(p):
+        w0 = p["w_m"]
+        res = classify_designs(motor, w0, i_si, p["x"], p["y"], method=method, **kw)
+        still = w0 == 0
+        nan = jnp.full_like(res.stable_theta, jnp.nan)
+        return DesignClass(
+            status=jnp.where(still, -1, res.status).astype(jnp.int32),
+            n_nonzero=jnp.where(still, 0, res.n_nonzero),
+            stable_theta=jnp.where(still, nan, res.stable_theta),
+            theta=jnp.where(still, jnp.nan, res.theta),
+            stable=res.stable & ~still,
+            principal_stable=res.principal_stable & ~still,
+            principal_theta=jnp.where(still, nan, res.principal_theta))
+
+    return fn, method
+
+
+#: Per-point functions of earlier maps in this process, by everything they close over
+#: (`_point_key`): a map computed again in the same process (a resumed or repeated
+#: command, a notebook, the tests) hands `run_sweep` the same function object, so its
+#: compiled chunk function is reused instead of compiled again.
+_POINT_FNS: dict[str, tuple] = {}
+
+
+def _point_key(choice, drive, x_name, y_name, i_pu) -> str:
+    """A hash of what the per-point function closes over: the observer (design and
+    model), the plant, the drive's machine and bases, the axes' names and the current."""
+    import hashlib
+
+    leaves, treedef = jax.tree_util.tree_flatten(
+        (choice.observer, choice.plant, drive.three_phase_motor))
+    h = hashlib.sha256(repr((str(treedef), x_name, y_name, tuple(map(float, i_pu)),
+                             float(drive.w_rated), float(drive.base.I_b))).encode())
+    for leaf in leaves:
+        a = np.asarray(leaf)
+        h.update(f"{a.dtype.str}{a.shape}".encode())
+        h.update(a.tobytes() if a.dtype.kind != "O" else repr(leaf).encode())
+    return h.hexdigest()
+
+
+def _map(choice, drive, speeds, x, y, i_pu, settings):
+    """The `FeasibilityMap` over `speeds` (p.u.), evaluated point by point by `run_sweep`
+    (chunked, resumable, sharded over every device of every process); `(map, chunk
+    infos)`. Only process 0 writes the sweep's files."""
+    import jax.numpy as jnp
+
+    from pmsmjax.analysis import FeasibilityMap, grid_product
+
+    key = _point_key(choice, drive, x[0], y[0], i_pu)
+    if key not in _POINT_FNS:
+        fn, method = _point_fn(choice, drive, x, y, i_pu)
+
+        def point(p):
+            res = fn(p)
+            return {"design_status": res.status, "n_nonzero": res.n_nonzero,
+                    "stable_theta": res.stable_theta, "theta": res.theta,
+                    "stable": res.stable, "principal_stable": res.principal_stable,
+                    "principal_theta": res.principal_theta}
+
+        if len(_POINT_FNS) >= 16:
+            _POINT_FNS.clear()
+        _POINT_FNS[key] = point, method
+    point, method = _POINT_FNS[key]
+    if all(s == 0.0 for s in speeds) and _zhang_shorthand(choice, x[0], y[0]) is not None:
+        method = "none (standstill only)"
+    w_r = float(drive.w_rated)
+
+    grid = grid_product(w_m=np.asarray(speeds, float) * w_r, x=x[1], y=y[1])
+    metadata = json_safe({
+        "command": "pmsmjax feasibility", "motor": drive.name, "w_rated": w_r,
+        "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
+        "y_name": y[0], "method": method, "observer": choice.info()})
+    infos = []
+    out = run_sweep_with(settings, point, grid, metadata=metadata,
+                         on_chunk_done=infos.append)
+    per = {k: v[:, None] for k, v in out.items()}  # (speed, load = 1, x, y, ...)
+    for k in ("stable_theta", "theta", "principal_theta"):  # rad -> deg
+        per[k + "_deg"] = np.asarray(jnp.degrees(per[k]))
+    fm = FeasibilityMap(
+        status=per["design_status"], n_nonzero=per["n_nonzero"],
+        stable_theta_deg=per["stable_theta_deg"], theta_deg=per["theta_deg"],
+        stable=per["stable"], principal_stable=per["principal_stable"],
+        principal_theta_deg=per["principal_theta_deg"], speeds=np.asarray(speeds, float),
+        i_dq=np.asarray([i_pu], float), x=x[1], y=y[1], w_rated=w_r,
+        I_b=float(drive.base.I_b), method=method, frame="observer", x_name=x[0],
+        y_name=y[0], observer=type(choice.observer).__name__)
+    return fm, infos
 
 
 def feasibility_command(args: argparse.Namespace) -> int:
+    settings = init_distributed(sweep_settings(args))  # before any JAX computation
     drive = drive_from_args(args)
     choice = observer_from_args(args, drive, skip=("zeta1", "ratio"))
     (xn, x), (yn, y) = _axes(args, choice)
     i_pu, _ = current_from_args(args, drive)
     speeds = [s for group in (args.speed or [[0.5]]) for s in group]
-    out = prepare_out_dir(args.out)
+    writer = is_writer()
+    out = prepare_out_dir(args.out) if writer else args.out
     S, NX, NY = len(speeds), len(x), len(y)
-    print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = ({i_pu[0]:g}, "
-          f"{i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} speed"
-          f"{'s' if S > 1 else ''}")
+    if writer:
+        print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = "
+              f"({i_pu[0]:g}, {i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} "
+              f"speed{'s' if S > 1 else ''}")
     t0 = time.perf_counter()
     try:
-        fm = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu)
+        fm, infos = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu, settings)
     except ValueError as e:
         raise CLIError(f"{choice.describe()}: {e}") from None
     status = np.asarray(fm.status)
     t_map = time.perf_counter() - t0
+    n_loaded = sum(i.loaded for i in infos)
+    sweep_line = (f"sweep: {len(infos)} chunk{'s' if len(infos) > 1 else ''} of up to "
+                  f"{settings.chunk_size} points on {jax.device_count()} device"
+                  f"{'s' if jax.device_count() > 1 else ''} in {jax.process_count()} "
+                  f"process{'es' if jax.process_count() > 1 else ''}"
+                  + (f", {n_loaded} reused from an earlier run" if n_loaded else "")
+                  + f"; files in {settings.sweep_dir}")
+    if not writer:
+        print(f"pmsmjax feasibility: process {jax.process_index()} of "
+              f"{jax.process_count()} done ({sweep_line}); process 0 writes the outputs")
+        return 0
 
     # FeasibilityMap arrays are (speed, load, x, y); the file's are (speed, y, x), so that
     # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
@@ -261,6 +376,7 @@ def feasibility_command(args: argparse.Namespace) -> int:
             _plot(fm, title, files["plot"])
 
     print(f"classified {S * NX * NY} designs in {t_map:.2f} s ({fm.method})")
+    print(sweep_line)
     for i, s in enumerate(speeds):
         st = status[i, 0]
         counts = ", ".join(f"{STATUS[c]} {int(np.sum(st == c))}" for c in (0, 1, 2, -1))
@@ -299,7 +415,12 @@ COMMAND = Command(
         "mismatch_psi_f (observer / plant), w_rated (rad/s), I_b (A), motor, method, "
         "status_codes. With several speeds every per-design array gets a leading speed "
         "axis (S, NY, NX) and speed has shape (S,). DIR/feasibility.png overlays the maps "
-        "of all speeds."
+        "of all speeds. The speeds x designs are evaluated in chunks by "
+        "pmsmjax.analysis.run_sweep, sharded over every device: each finished chunk is "
+        "written to --sweep-dir (default DIR/sweep, also the manifest sweep.json and "
+        "result.npz), and the same command run again after an interruption resumes from "
+        "there. With --coordinator the same command started in several processes or on "
+        "several hosts (jax.distributed) shares the work; process 0 writes the outputs."
     ),
     add_arguments=_feasibility_arguments,
     run=feasibility_command,

@@ -307,7 +307,8 @@ def out_dir_transaction(path: str | None):
     """Leave nothing half-written in the output folder `path` when the block fails: every
     file the block created or changed in it is removed again (and the folder itself if
     the block created it), then the exception propagates. Files that were there before and
-    that the block did not touch stay."""
+    that the block did not touch stay, and so do the files under the folders given to
+    `keep_on_failure` (a sweep's finished chunks)."""
     if not path:
         yield
         return
@@ -326,12 +327,13 @@ def out_dir_transaction(path: str | None):
         return out
 
     before = snapshot() if existed else {}
+    _KEEP.clear()
     try:
         yield
     except BaseException:
         if os.path.isdir(path):
             for q, sig in snapshot().items():
-                if before.get(q) != sig:
+                if before.get(q) != sig and not _kept(q):
                     with contextlib.suppress(OSError):
                         os.remove(q)
             for root, dirs, _ in os.walk(path, topdown=False):
@@ -342,6 +344,21 @@ def out_dir_transaction(path: str | None):
                 with contextlib.suppress(OSError):
                     os.rmdir(path)
         raise
+
+
+#: Folders whose files a failing `out_dir_transaction` keeps (`keep_on_failure`).
+_KEEP: set[str] = set()
+
+
+def keep_on_failure(path: str) -> None:
+    """Keep the files under `path` when the command fails or is interrupted inside
+    `out_dir_transaction`: a sweep's finished chunks, which the next run resumes from."""
+    _KEEP.add(os.path.abspath(path))
+
+
+def _kept(path: str) -> bool:
+    q = os.path.abspath(path)
+    return any(q == k or q.startswith(k + os.sep) for k in _KEEP)
 
 
 def prepare_out_dir(path: str) -> str:
