@@ -201,6 +201,9 @@ def test_cli_dispatch(capsys):
     # is a one-line error with status 2, before anything is computed
     assert main(["compare", "--observers", "nope", "--no-plot"]) == 2
     assert "CompareConfig(observers=...)" in capsys.readouterr().err
+    # the shared sweep options (chunking, resume, several processes) are checked too
+    assert main(["compare", "--num-processes", "2", "--no-plot"]) == 2
+    assert "--coordinator" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         main(["compare", "--help"])
     assert e.value.code == 0

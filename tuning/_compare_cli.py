@@ -11,11 +11,13 @@ import sys
 import time
 
 import pmsmjax as pj
+from pmsmjax.cli._options import CLIError
+from pmsmjax.cli._sweep_options import add_sweep_options, init_distributed, sweep_settings
 from pmsmjax.observers import observer_names
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from .compare import TUNERS
+    from .compare import TUNERS, CompareConfig
 
     p = argparse.ArgumentParser(
         prog="python -m tuning compare",
@@ -44,10 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "tuner, whose compilation takes minutes for some observers)")
     p.add_argument("--tune-steps", type=int, default=None, metavar="N",
                    help="tuner steps (designs for the local search)")
-    p.add_argument("--chunk-size", type=int, default=None, metavar="N",
-                   help="runs per sweep chunk (the unit of resume)")
-    p.add_argument("--restart", action="store_true",
-                   help="discard the job folder's earlier state and start over")
+    add_sweep_options(p, default_chunk_size=CompareConfig().chunk_size)
     p.add_argument("--no-plot", action="store_true", help="do not write the figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
@@ -61,20 +60,25 @@ def main(argv=None) -> int:
     kw = {"motor": args.motor}
     if args.observers is not None:
         kw["observers"] = tuple(s.strip() for s in args.observers.split(",") if s.strip())
-    for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps"),
-                       ("chunk_size", "chunk_size")):
+    kw["chunk_size"] = args.chunk_size
+    for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps")):
         v = getattr(args, opt)
         if v is not None:
             kw[field] = v
     try:
+        # `--sweep-dir` given: the sweeps go there (NAME/DESIGN/runs, .../analysis)
+        settings = sweep_settings(args, out=args.out)
+        sweep_dir = args.sweep_dir
+        init_distributed(settings)
         config = CompareConfig.quick(**kw) if args.quick else CompareConfig(**kw)
-    except ValueError as e:
+    except (ValueError, CLIError) as e:
         print(f"python -m tuning compare: error: {e}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
     try:
         s = run_comparison(config, args.out, progress=not args.no_progress, log=print,
-                           restart=args.restart, plot=not args.no_plot)
+                           restart=args.restart, plot=not args.no_plot,
+                           sweep_dir=sweep_dir, batch_size=settings.batch_size)
     except CompareInterrupted as e:
         print(f"python -m tuning compare: interrupted: {e}; run again to continue",
               file=sys.stderr)

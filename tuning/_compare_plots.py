@@ -33,8 +33,8 @@ BARS = (("static_worst_deg", "worst static error (deg)"),
         ("feasible_fraction", "feasible fraction (analysis)"))
 
 
-def _runs(out: pathlib.Path, name: str, design: str):
-    path = out / "sweeps" / name / design / "runs" / "result.npz"
+def _runs(sweeps: pathlib.Path, name: str, design: str):
+    path = sweeps / name / design / "runs" / "result.npz"
     return dict(np.load(path)) if path.is_file() else None
 
 
@@ -43,28 +43,31 @@ def _case_label(c: dict) -> str:
     return ", ".join(parts) if parts else "matched"
 
 
-def hardest_point(summary: dict, out) -> tuple[int, ...] | None:
-    """Grid index (speed, load, case) of the hardest scenario (module docstring)."""
-    out = pathlib.Path(out)
+def hardest_point(summary: dict, out, sweeps=None) -> tuple[int, ...] | None:
+    """Grid index (speed, load, case) of the hardest scenario (module docstring).
+    `sweeps`: the job's sweep folder (default `out/sweeps`)."""
+    sweeps = pathlib.Path(out) / "sweeps" if sweeps is None else pathlib.Path(sweeps)
     rms = [r["rms_deg"] for n in summary["observers"]
-           if (r := _runs(out, n, "paper")) is not None]
+           if (r := _runs(sweeps, n, "paper")) is not None]
     if not rms:
         return None
     med = np.median(np.stack(rms), axis=0)
     return tuple(int(i) for i in np.unravel_index(int(np.argmax(med)), med.shape))
 
 
-def plot_comparison(summary: dict, out) -> list[pathlib.Path]:
-    """Write the three figures into the job folder `out`; returns their paths."""
+def plot_comparison(summary: dict, out, sweeps=None) -> list[pathlib.Path]:
+    """Write the three figures into the job folder `out`; returns their paths.
+    `sweeps`: the job's sweep folder (default `out/sweeps`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     out = pathlib.Path(out)
+    sweeps = out / "sweeps" if sweeps is None else pathlib.Path(sweeps)
     paths = []
     for fn, name in ((_maps, "robustness_maps"), (_bars, "metrics"), (_traces, "traces")):
-        fig = fn(summary, out, plt)
+        fig = fn(summary, sweeps, plt)
         if fig is None:
             continue
         path = out / f"{name}.png"
@@ -74,14 +77,14 @@ def plot_comparison(summary: dict, out) -> list[pathlib.Path]:
     return paths
 
 
-def _maps(summary, out, plt):
+def _maps(summary, sweeps, plt):
     names = list(summary["observers"])
     designs = ("paper", "tuned")
     g = summary["grid"]
     data = {}
     for n in names:
         for d in designs:
-            r = _runs(out, n, d)
+            r = _runs(sweeps, n, d)
             if r is None:
                 continue
             static = np.abs(r["static_deg"])  # (speed, load, case)
@@ -125,8 +128,8 @@ def _maps(summary, out, plt):
     return fig
 
 
-def _bars(summary, out, plt):
-    del out
+def _bars(summary, sweeps, plt):
+    del sweeps
     names = list(summary["observers"])
     fig, axes = plt.subplots(1, len(BARS), figsize=(2.6 * len(BARS), 3.4))
     x = np.arange(len(names))
@@ -145,8 +148,8 @@ def _bars(summary, out, plt):
     return fig
 
 
-def _traces(summary, out, plt):
-    idx = hardest_point(summary, out)
+def _traces(summary, sweeps, plt):
+    idx = hardest_point(summary, None, sweeps)
     if idx is None:
         return None
     c = summary["config"]
@@ -155,7 +158,7 @@ def _traces(summary, out, plt):
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5))
     for k, n in enumerate(summary["observers"]):
         for d, ls in (("paper", "-"), ("tuned", "--")):
-            r = _runs(out, n, d)
+            r = _runs(sweeps, n, d)
             if r is None:
                 continue
             th = r["trace_theta_deg"][idx]

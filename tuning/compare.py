@@ -575,19 +575,28 @@ def _clean(x):
     return x
 
 
-def _sweep(fn, grid, out_dir, config, metadata, progress, units):
+def _sweep(fn, grid, out_dir, config, metadata, progress, units, batch_size):
     return run_sweep(fn, grid, out_dir=out_dir, chunk_size=config.chunk_size,
-                     metadata=metadata, progress=progress, resume=True,
+                     batch_size=batch_size, metadata=metadata,
+                     progress=progress and jax.process_index() == 0, resume=True,
                      on_chunk_done=units.tick)
 
 
 def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=print,
-                   restart: bool = False, plot: bool = False) -> dict:
+                   restart: bool = False, plot: bool = False, sweep_dir=None,
+                   batch_size: int | None = None) -> dict:
     """Run the comparison into the job folder `out` and return the summary (the content
     of `comparison.json`). Resumable: tuned designs, cost measurements and every sweep
     chunk are kept in `out`, and a second call continues where the first stopped.
     `restart`: start over (`ValueError` if `out` holds a job of another configuration
-    unless `restart`). `plot`: also write the figures (`tuning._compare_plots`)."""
+    unless `restart`). `plot`: also write the figures (`tuning._compare_plots`).
+    `sweep_dir`: folder of the sweeps (default `out/sweeps`: one sweep of the runs and
+    one of the analysis per observer and design, `NAME/DESIGN/runs`, `.../analysis`);
+    `batch_size`: of `run_sweep` (bitwise the same results on any device count).
+
+    Under `jax.distributed` every process runs this function (the sweeps are sharded
+    over the devices of all processes, the tuning is repeated in each, deterministic);
+    only process 0 writes the outputs."""
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     job = out / "job.json"
@@ -597,11 +606,12 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
         if old.get("fingerprint") != fp:
             raise ValueError(f"{out} holds a comparison with another configuration; give "
                              f"another --out or --restart.")
+    sweeps = out / "sweeps" if sweep_dir is None else pathlib.Path(sweep_dir)
     if restart:
         import shutil
 
-        for sub in ("tuned", "cost", "sweeps"):
-            shutil.rmtree(out / sub, ignore_errors=True)
+        for sub in (out / "tuned", out / "cost", sweeps):
+            shutil.rmtree(sub, ignore_errors=True)
     _atomic_write(job, json.dumps(dict(format=FORMAT, fingerprint=fp,
                                        config=config.to_dict()), indent=1).encode())
     log = log or (lambda msg: None)
@@ -632,17 +642,19 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
                                                       + meta.get("reason", "")})
                 continue
             cols, _ = _design_columns(design)
-            sweep_dir = out / "sweeps" / name / dname
+            sweep_dir = sweeps / name / dname
             md = dict(observer=name, design=dname, config=fp)
             log(f"{name}, {dname} design: {n_runs} runs ...")
             t = time.perf_counter()
             g = SweepGrid({**grid, **{k: np.full(n_runs, v) for k, v in cols.items()}},
                           shape=grid.shape, axes=grid.axes)
-            runs = _sweep(f_runs, g, sweep_dir / "runs", config, md, progress, units)
+            runs = _sweep(f_runs, g, sweep_dir / "runs", config, md, progress, units,
+                          batch_size)
             tim[f"{dname}_runs_s"] = time.perf_counter() - t
             t = time.perf_counter()
             agrid = {k: v for k, v in g.items() if k != "index"}
-            feas = _sweep(f_feas, agrid, sweep_dir / "analysis", config, md, progress, units)
+            feas = _sweep(f_feas, agrid, sweep_dir / "analysis", config, md, progress, units,
+                          batch_size)
             tim[f"{dname}_analysis_s"] = time.perf_counter() - t
             m = aggregate(runs, feas, config, grid)
             h, why = harmonic_sensitivity(design, config, name)
@@ -663,14 +675,16 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
                              n_runs=n_runs),
                    observers=observers, skipped=skipped)
     summary = _clean(summary)
-    _atomic_write(out / "comparison.json", json.dumps(summary, indent=1).encode())
-    _atomic_write(out / "comparison.md", markdown(summary).encode())
-    _atomic_write(out / "timing.json", json.dumps(_clean(timing), indent=1).encode())
+    writer = jax.process_index() == 0
+    if writer:
+        _atomic_write(out / "comparison.json", json.dumps(summary, indent=1).encode())
+        _atomic_write(out / "comparison.md", markdown(summary).encode())
+        _atomic_write(out / "timing.json", json.dumps(_clean(timing), indent=1).encode())
     summary["timing"] = _clean(timing)
-    if plot:
+    if plot and writer:
         from ._compare_plots import plot_comparison
 
-        plot_comparison(summary, out)
+        plot_comparison(summary, out, sweeps)
     return summary
 
 
