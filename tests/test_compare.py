@@ -208,3 +208,12 @@ def test_cli_dispatch(capsys):
         main(["compare", "--help"])
     assert e.value.code == 0
     assert "--chunk-size" in capsys.readouterr().out
+
+
+def test_analysis_not_run_is_flagged(job):
+    config, out, summary = job
+    runs = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz"))
+    m = compare.aggregate(runs, None, config, config.grid())
+    assert m["feasible_fraction"] is None and "feasible_fraction" in m["flags"]
+    assert m["static_worst_deg"] == summary["observers"][OBSERVER]["designs"]["paper"][
+        "static_worst_deg"]

@@ -150,6 +150,8 @@ class CompareConfig:
       `tune_steps`: its steps (designs for "local").
     - `harmonic_orders`, `harmonic_speeds_pu`: of the harmonic sensitivity.
     - `chunk_size`: runs per sweep chunk (the unit of resume).
+    - `analysis`: run the generic equilibrium analysis on the grid (its compilation is the
+      largest part of a small comparison; False: `feasible_fraction` is flagged).
     """
 
     motor: str = "zhang750"
@@ -170,6 +172,7 @@ class CompareConfig:
     harmonic_orders: tuple = (-5, 7)
     harmonic_speeds_pu: tuple = (0.1, 0.5, 1.0)
     chunk_size: int = 128
+    analysis: bool = True
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -516,9 +519,10 @@ def harmonic_sensitivity(design, config: CompareConfig, name: str):
     return float(np.max(np.abs(r))), None
 
 
-def aggregate(runs: dict, feas: dict, config: CompareConfig, grid) -> dict:
+def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dict:
     """Per-observer metrics of one design from its per-run metrics `runs` and the
-    analysis `feas` (numpy arrays over the grid; see the module docstring). Every value
+    analysis `feas` (numpy arrays over the grid, or None if not run; see the module
+    docstring). Every value
     is a float, an int, a list or None with its reason in `flags`."""
     flags = {}
     lost = np.asarray(runs["lost_lock"]).reshape(-1)
@@ -553,9 +557,14 @@ def aggregate(runs: dict, feas: dict, config: CompareConfig, grid) -> dict:
     nz = np.asarray(runs["noise_rad_s"]).reshape(-1)[keep]
     put("noise_median_rad_s", nz, np.median, none_kept)
     put("noise_worst_rad_s", nz, np.max, none_kept)
-    f = np.asarray(feas["feasible"]).reshape(-1)
-    out["feasible_fraction"] = float(np.mean(f))
-    out["analysis_failed"] = int(np.sum(np.asarray(feas["status"]).reshape(-1) < 0))
+    if feas is None:
+        out["feasible_fraction"] = out["analysis_failed"] = None
+        flags["feasible_fraction"] = flags["analysis_failed"] = \
+            "the analysis was not run (analysis = False)"
+    else:
+        f = np.asarray(feas["feasible"]).reshape(-1)
+        out["feasible_fraction"] = float(np.mean(f))
+        out["analysis_failed"] = int(np.sum(np.asarray(feas["status"]).reshape(-1) < 0))
     out["flags"] = flags
     return out
 
@@ -653,8 +662,8 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
             tim[f"{dname}_runs_s"] = time.perf_counter() - t
             t = time.perf_counter()
             agrid = {k: v for k, v in g.items() if k != "index"}
-            feas = _sweep(f_feas, agrid, sweep_dir / "analysis", config, md, progress, units,
-                          batch_size)
+            feas = (_sweep(f_feas, agrid, sweep_dir / "analysis", config, md, progress,
+                           units, batch_size) if config.analysis else None)
             tim[f"{dname}_analysis_s"] = time.perf_counter() - t
             m = aggregate(runs, feas, config, grid)
             h, why = harmonic_sensitivity(design, config, name)
