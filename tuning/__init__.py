@@ -6,9 +6,12 @@ runs the tuner never sees (`tuning.validation`), the tunable designs
 (`AbstractDesign`: the speed-scheduled zhang2022 `GainSchedule` and the generic
 `ConstantDesign` for any registered observer that declares `tunable` design parameters;
 unconstrained <-> physical, `filter_spec`), the objective (`tuning.objectives`), the
-optimisers (`tuning.optimise`) and `run_tuning` / `write_report`.
+optimisers (`tuning.optimise`) and `run_tuning` / `write_report`. The side-by-side
+comparison of every observer (`python -m tuning compare`) is `tuning.compare`
+(`CompareConfig`, `run_comparison`, `plot_comparison`).
 """
 
+from ._compare_plots import plot_comparison as plot_comparison
 from ._export import gains_table as gains_table, table_speeds as table_speeds
 from ._parametrise import (
     TUNABLE as TUNABLE,
@@ -40,6 +43,7 @@ from ._report import (
     tuned_design as tuned_design,
     write_report as write_report,
 )
+from .compare import CompareConfig as CompareConfig, run_comparison as run_comparison
 from .objectives import (
     EquilibriumSet as EquilibriumSet,
     Metrics as Metrics,

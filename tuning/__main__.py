@@ -8,6 +8,9 @@ design), validates every design on closed-loop runs it never trained on
 `gains.json`, `gains.h`) and the drive as a motor file (`motor.toml`). The drive is a
 preset (`--motor`) or your own (`--motor-file`), changed by `--set`. Exit status 0 on
 success, 2 for a bad configuration (one-line message, no traceback).
+
+`python -m tuning compare ...` runs the side-by-side comparison of every observer instead
+(`tuning.compare`; `python -m tuning compare --help`).
 """
 
 from __future__ import annotations
@@ -153,6 +156,11 @@ def config_from_args(args) -> TuningConfig:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "compare":  # `python -m tuning compare ...`: the comparison job
+        from ._compare_cli import main as compare_main
+
+        return compare_main(argv[1:])
     # process settings of an entry point, before any computation (building the parser
     # builds the default `TuningConfig`, which already computes)
     pj.runtime.configure()

@@ -1,0 +1,219 @@
+"""The comparison job (`tuning.compare`, `python -m tuning compare`) on a tiny grid:
+its metrics equal those of direct `simulate` calls, the metric definitions agree with
+`pmsmjax.trajectory_metrics` and a NumPy re-implementation, every metric is finite or
+flagged, and an interrupted job resumes to the same files."""
+
+import json
+import math
+import re
+
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from tuning import compare
+from tuning.compare import CompareConfig, CompareInterrupted, run_comparison
+from tuning.scenarios import make_observer
+from tuning.validation import RAMP, observer_model, validation_scenario
+
+
+OBSERVER = "parallel-model"
+
+
+def tiny(**kw):
+    base = dict(observers=(OBSERVER,), T_s=250e-6, t_end=0.1, speeds_pu=(0.5,),
+                loads_pu=(0.0, 1.0), cases=((1.0, 1.0, 1.0, 1.0), (0.7, 1.3, 1.5, 0.9)),
+                tune_steps=2, chunk_size=4, harmonic_speeds_pu=(0.5,))
+    base.update(kw)
+    return CompareConfig(**base)
+
+
+@pytest.fixture(scope="module")
+def job(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compare") / "job"
+    config = tiny()
+    summary = run_comparison(config, out, progress=False, log=None)
+    return config, out, summary
+
+
+def _direct(config, design):
+    """Every run of the grid by direct `pmsmjax.simulate` calls (vmapped over points)."""
+    drive = config.drive()
+    tcfg = config.run_config(OBSERVER)
+    grid = config.grid()
+    n = len(grid["case"])
+    cases = np.asarray(config.cases)[grid["case"]]
+
+    def one(j, speed, load, k):
+        obs = make_observer(OBSERVER, drive, design,
+                            motor=observer_model(drive, k[0], k[1], k[2], k[3]))
+        sc = validation_scenario(tcfg, speed, config.start_frac * speed, load)
+        key = jr.fold_in(jr.PRNGKey(config.seed), j.astype(jnp.uint32))
+        return pj.simulate(drive, tcfg.controller(), obs, sc, T_s=config.T_s,
+                           sensing=pj.Sensing(noise_std=config.noise_std), key=key,
+                           theta0=0.0, w_m0=config.start_frac * speed * float(drive.w_rated),
+                           theta_hat0=0.0, save_every=config.save_every, throw=False)
+
+    return grid, jax.jit(jax.vmap(one))(jnp.arange(n), jnp.asarray(grid["speed_pu"]),
+                                        jnp.asarray(grid["load_pu"]), jnp.asarray(cases))
+
+
+def test_metrics_equal_direct_simulate(job):
+    config, out, summary = job
+    design = config.tuning_config(OBSERVER).initial_schedule()  # the paper design
+    grid, traj = _direct(config, design)
+    runs = {k: np.asarray(v) for k, v in compare.run_metrics(traj, config).items()}
+    feas = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz"))
+    want = compare.aggregate(runs, feas, config, grid)
+    got = summary["observers"][OBSERVER]["designs"]["paper"]
+    for k, v in want.items():
+        if isinstance(v, float):
+            assert got[k] == pytest.approx(v, rel=1e-9, abs=1e-12), k
+        elif k != "flags":
+            assert got[k] == v, k
+    # the sweep's per-run outputs are the direct runs'
+    res = np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
+    np.testing.assert_allclose(res["static_deg"].reshape(-1), runs["static_deg"],
+                               rtol=1e-9, atol=1e-12)
+
+    # the definitions, independently: static error and speed noise as
+    # `pmsmjax.trajectory_metrics` over the static window; RMS, settling and loss of lock
+    # in NumPy
+    tm = pj.trajectory_metrics(traj, t_transient=(1 - compare.STATIC_WINDOW) * config.t_end,
+                               T_s=config.T_s, save_every=config.save_every, theta_err0=1.0)
+    np.testing.assert_allclose(runs["static_deg"], np.asarray(tm["theta_ss_deg"]),
+                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(runs["noise_rad_s"], np.asarray(tm["noise_rad_s"]),
+                               rtol=1e-6, atol=1e-6)
+    t = np.asarray(traj.t)
+    th = np.degrees(np.asarray(traj.theta_err))
+    for j in range(th.shape[0]):
+        assert runs["rms_deg"][j] == pytest.approx(np.sqrt(np.mean(th[j] ** 2)), rel=1e-9)
+        t0 = RAMP[0] * config.t_end
+        outside = np.nonzero((t[j] >= t0 - 1e-9)
+                             & (np.abs(th[j] - runs["static_deg"][j])
+                                > config.settle_band_deg))[0]
+        if outside.size == 0:
+            settle = 0.0
+        elif outside[-1] == t.shape[-1] - 1:
+            settle = math.nan  # never settled
+        else:
+            settle = t[j][outside[-1] + 1] - t0
+        assert runs["settle_s"][j] == pytest.approx(settle, abs=1e-12, nan_ok=True)
+        assert bool(runs["lost_lock"][j]) == bool(np.max(np.abs(th[j])) > config.lock_deg)
+    # the tiny grid is not trivial: the mismatched case moves the static error
+    assert np.ptp(runs["static_deg"]) > 0.1
+
+
+def _finite_or_flagged(m, where):
+    for k, v in m.items():
+        if k in ("flags", "lost_lock_where"):
+            continue
+        if v is None:
+            assert k in m.get("flags", {}) or "all" in m.get("flags", {}), (where, k)
+        elif isinstance(v, float | int):
+            assert math.isfinite(v), (where, k)
+
+
+def test_every_metric_finite_or_flagged(job):
+    config, out, summary = job
+    s = json.loads((out / "comparison.json").read_text())  # strict JSON: no NaN
+    assert set(s["observers"]) == {OBSERVER}
+    for name, e in s["observers"].items():
+        assert set(e["designs"]) == set(compare.DESIGNS)
+        for d, m in e["designs"].items():
+            _finite_or_flagged(m, (name, d))
+        assert e["observer_us_per_step"] > 0
+    # the harmonic sensitivity is computed where the analysis exists, else flagged
+    m = s["observers"][OBSERVER]["designs"]["paper"]
+    assert m["harmonic_deg_per_pct"] is not None or "harmonic_deg_per_pct" in m["flags"]
+    md = (out / "comparison.md").read_text()
+    assert md.count(f"| {OBSERVER} |") == 2
+
+
+def _strip_timing(path):
+    """A file of the job without the measurements of the machine (`TIMING_KEYS`)."""
+    if path.suffix == ".json":
+        s = json.loads(path.read_text())
+        for e in s["observers"].values():
+            for k in compare.TIMING_KEYS:
+                e.pop(k)
+        return s
+    # comparison.md: the last column of the table is the observer step time
+    return re.sub(r"\| [^|]+ \|\n", "|\n", path.read_text())
+
+
+def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
+    config, out, _ = job
+    part = tmp_path / "part"
+    monkeypatch.setenv(compare.STOP_ENV, "4")  # tuning, cost, two chunks of runs
+    with pytest.raises(CompareInterrupted):
+        run_comparison(config, part, progress=False, log=None)
+    assert not (part / "comparison.json").exists()
+    assert (part / "tuned" / f"{OBSERVER}.eqx").is_file()
+    monkeypatch.delenv(compare.STOP_ENV)
+    run_comparison(config, part, progress=False, log=None)
+    for f in ("comparison.json", "comparison.md"):
+        assert _strip_timing(part / f) == _strip_timing(out / f), f
+    for sub in ("runs", "analysis"):
+        a = np.load(out / "sweeps" / OBSERVER / "tuned" / sub / "result.npz")
+        b = np.load(part / "sweeps" / OBSERVER / "tuned" / sub / "result.npz")
+        for k in a.files:
+            np.testing.assert_array_equal(a[k], b[k])
+    # another configuration in the same folder is refused
+    with pytest.raises(ValueError, match="another configuration"):
+        run_comparison(tiny(noise_std=0.03), part, progress=False, log=None)
+
+
+def test_config_errors():
+    with pytest.raises(ValueError, match="observers"):
+        CompareConfig(observers=("nope",))
+    with pytest.raises(ValueError, match="speeds_pu"):
+        CompareConfig(speeds_pu=(0.0, 0.5))
+    with pytest.raises(ValueError, match="cases"):
+        CompareConfig(cases=((1.0, 1.0, 1.0),))
+    with pytest.raises(ValueError, match="tuner"):
+        CompareConfig(tuner="sgd")
+
+
+def test_figures(job):
+    from tuning._compare_plots import hardest_point, plot_comparison
+
+    config, out, summary = job
+    paths = plot_comparison(summary, out)
+    assert sorted(p.name for p in paths) == ["metrics.png", "robustness_maps.png",
+                                             "traces.png"]
+    assert all(p.stat().st_size > 10_000 for p in paths)
+    # the hardest scenario is the run with the largest RMS angle error (one observer)
+    res = np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
+    idx = hardest_point(summary, out)
+    assert res["rms_deg"][idx] == np.max(res["rms_deg"])
+    assert res["trace_theta_deg"].shape[-1] <= compare.TRACE_SAMPLES + 1
+
+
+def test_cli_dispatch(capsys):
+    from tuning.__main__ import main
+
+    # `python -m tuning compare ...` reaches the comparison's parser; a bad configuration
+    # is a one-line error with status 2, before anything is computed
+    assert main(["compare", "--observers", "nope", "--no-plot"]) == 2
+    assert "CompareConfig(observers=...)" in capsys.readouterr().err
+    # the shared sweep options (chunking, resume, several processes) are checked too
+    assert main(["compare", "--num-processes", "2", "--no-plot"]) == 2
+    assert "--coordinator" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["compare", "--help"])
+    assert e.value.code == 0
+    assert "--chunk-size" in capsys.readouterr().out
+
+
+def test_analysis_not_run_is_flagged(job):
+    config, out, summary = job
+    runs = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz"))
+    m = compare.aggregate(runs, None, config, config.grid())
+    assert m["feasible_fraction"] is None and "feasible_fraction" in m["flags"]
+    assert m["static_worst_deg"] == summary["observers"][OBSERVER]["designs"]["paper"][
+        "static_worst_deg"]

@@ -1,0 +1,94 @@
+"""`python -m tuning compare`: every observer, paper design and tuned, on one common grid
+(`tuning.compare`). Writes `comparison.json`, `comparison.md`, `timing.json` and the
+figures into `--out`; resumable (run the same command again after an interruption).
+Exit status 0 on success, 2 for a bad configuration (one-line message), 3 when the job
+was interrupted on purpose (`PMSMJAX_COMPARE_STOP_AFTER`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import pmsmjax as pj
+from pmsmjax.cli._options import CLIError
+from pmsmjax.cli._sweep_options import add_sweep_options, init_distributed, sweep_settings
+from pmsmjax.observers import observer_names
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from .compare import TUNERS, CompareConfig
+
+    p = argparse.ArgumentParser(
+        prog="python -m tuning compare",
+        description=(
+            "Which observer for my drive? Runs every registered observer that applies to "
+            "the motor (or --observers), with its paper design and the design tuned by "
+            "the existing tuner, on one common grid of closed-loop speed-controlled "
+            "sensorless runs (speeds in both directions, no load to rated load, a speed "
+            "ramp and a load step, observer-model mismatch of L_d, L_q, R_s and psi_f, "
+            "current noise), checks the same grid with the generic equilibrium analysis, "
+            "and writes one table (comparison.md), the numbers (comparison.json) and "
+            "figures. Interrupted runs continue where they stopped."),
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--motor", default="zhang750", choices=pj.PRESET_NAMES,
+                   help="motor preset (plant and the observers' nominal model)")
+    p.add_argument("--observers", default=None, metavar="NAMES",
+                   help=f"comma-separated registered observers (default: every one that "
+                        f"applies to the motor: {','.join(observer_names())})")
+    p.add_argument("--out", default="results/compare", metavar="DIR",
+                   help="job folder (outputs, and the state that makes the job resumable)")
+    p.add_argument("--quick", action="store_true",
+                   help="the small comparison (CompareConfig.quick: under 2 minutes)")
+    p.add_argument("--tuner", default=None, choices=TUNERS,
+                   help="tuner of the 'tuned' design (default: local, the gradient-free "
+                        "(1+1) search of tuning.local_search; adam/bfgs/lm: the gradient "
+                        "tuner, whose compilation takes minutes for some observers)")
+    p.add_argument("--tune-steps", type=int, default=None, metavar="N",
+                   help="tuner steps (designs for the local search)")
+    add_sweep_options(p, default_chunk_size=CompareConfig().chunk_size)
+    p.add_argument("--no-plot", action="store_true", help="do not write the figures")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    return p
+
+
+def main(argv=None) -> int:
+    pj.runtime.configure()
+    args = build_parser().parse_args(argv)
+    from .compare import CompareConfig, CompareInterrupted, run_comparison
+
+    kw = {"motor": args.motor}
+    if args.observers is not None:
+        kw["observers"] = tuple(s.strip() for s in args.observers.split(",") if s.strip())
+    kw["chunk_size"] = args.chunk_size
+    for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps")):
+        v = getattr(args, opt)
+        if v is not None:
+            kw[field] = v
+    try:
+        # `--sweep-dir` given: the sweeps go there (NAME/DESIGN/runs, .../analysis)
+        settings = sweep_settings(args, out=args.out)
+        sweep_dir = args.sweep_dir
+        init_distributed(settings)
+        config = CompareConfig.quick(**kw) if args.quick else CompareConfig(**kw)
+    except (ValueError, CLIError) as e:
+        print(f"python -m tuning compare: error: {e}", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    try:
+        s = run_comparison(config, args.out, progress=not args.no_progress, log=print,
+                           restart=args.restart, plot=not args.no_plot,
+                           sweep_dir=sweep_dir, batch_size=settings.batch_size)
+    except CompareInterrupted as e:
+        print(f"python -m tuning compare: interrupted: {e}; run again to continue",
+              file=sys.stderr)
+        return 3
+    except ValueError as e:
+        print(f"python -m tuning compare: error: {e}", file=sys.stderr)
+        return 2
+    print()
+    print(open(f"{args.out}/comparison.md").read().split("\n\n## Definitions")[0])
+    print(f"wall time {time.perf_counter() - t0:.1f} s "
+          f"({s['timing']['runs_per_design']} runs per observer and design); wrote "
+          f"{args.out}/comparison.json")
+    return 0
