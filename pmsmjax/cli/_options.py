@@ -83,14 +83,22 @@ def nonneg_float(text: str) -> float:
     return x
 
 
-def positive_int(text: str) -> int:
+def _int_at_least(text: str, lo: int) -> int:
     try:
         n = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= 1")
+    if n < lo:
+        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= {lo}")
     return n
+
+
+def positive_int(text: str) -> int:
+    return _int_at_least(text, 1)
+
+
+def nonneg_int(text: str) -> int:
+    return _int_at_least(text, 0)
 
 
 def name_value(text: str) -> tuple[str, float]:

@@ -22,7 +22,7 @@ import os
 
 import jax
 
-from ._options import CLIError, keep_on_failure, positive_int
+from ._options import CLIError, keep_on_failure, nonneg_int, positive_int
 
 
 #: Default points per chunk: a few seconds of work for the cheapest per-point functions on
@@ -32,16 +32,6 @@ DEFAULT_CHUNK_SIZE = 4096
 #: of processes and this process's id in the environment (SLURM, Open MPI, Kubernetes,
 #: Cloud TPU, or `JAX_COORDINATOR_ADDRESS`).
 AUTO = "auto"
-
-
-def _nonneg_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer >= 0") from None
-    if v < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} must be an integer >= 0")
-    return v
 
 
 def add_sweep_options(parser: argparse.ArgumentParser, *,
@@ -86,7 +76,7 @@ def add_sweep_options(parser: argparse.ArgumentParser, *,
                         "or reads JAX_COORDINATOR_ADDRESS")
     d.add_argument("--num-processes", type=positive_int, default=None, metavar="P",
                    help="number of processes (needs --coordinator)")
-    d.add_argument("--process-id", type=_nonneg_int, default=None, metavar="I",
+    d.add_argument("--process-id", type=nonneg_int, default=None, metavar="I",
                    help="this process's id, 0 <= I < P; process 0 runs the coordinator "
                         "(needs --coordinator)")
 
