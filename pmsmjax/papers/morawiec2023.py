@@ -107,7 +107,8 @@ from ..observers import RotorFluxObserver
 
 
 #: The sweeps of Figs. 3-5: fixed p.u. settings and the swept parameter with its values.
-#: gamma is not given for Figs. 3, 4 and 5(a): the default 2.0 p.u. is used there.
+#: gamma is not given for Figs. 3, 4 and 5(a): 2.0 p.u. (the top of Fig. 5(b)'s range) is used
+#: there, not the observer's default 1.0 p.u. (`PAPER_GAINS_PU`).
 SWEEPS = {
     "fig3a": ({"c_alpha": 3.0, "c_lambda": 0.05, "k_c": 0.5, "T_L": 1.0, "w": 0.0,
                "c_theta": 0.0}, "c_theta", (0.0,)),
