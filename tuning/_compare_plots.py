@@ -89,10 +89,12 @@ def _maps(summary, sweeps, plt):
                 continue
             static = np.abs(r["static_deg"])  # (speed, load, case)
             lost = r["lost_lock"].astype(bool)
-            worst = np.max(np.where(lost, np.nan, static), axis=1)  # over loads
+            worst = np.max(np.where(lost, -np.inf, static), axis=1)  # over loads kept
+            worst = np.where(np.isfinite(worst), worst, np.nan)  # every load lost lock
             data[n, d] = (worst.T, np.any(lost, axis=1).T)  # (case, speed)
     if not data:
         return None
+    designs = tuple(d for d in designs if any((n, d) in data for n in names))
     vals = np.concatenate([v[0][np.isfinite(v[0])].ravel() for v in data.values()])
     vmax = max(float(np.max(vals)) if vals.size else 1.0, 1e-3)
     fig, axes = plt.subplots(len(designs), len(names), squeeze=False, sharex=True,
