@@ -194,7 +194,9 @@ def test_rotor_flux_ripple_has_the_sidebands_of_its_periodic_error_dynamics():
     print("rotor-flux simulated peak over phases", peak.max(0), "dft", dft.max(0),
           "harmonic balance", worst, "averaged (discrete)", disc)
     np.testing.assert_allclose(disc, dft.max(0), rtol=0.01)
-    np.testing.assert_allclose(worst, peak.max(0), rtol=0.03)
+    # continuous harmonic balance vs the sampled observer: O(Omega T_s / 2) as above, with
+    # Omega up to (h - 1 + 4) w for the sidebands (~5 % here)
+    np.testing.assert_allclose(worst, peak.max(0), rtol=0.06)
 
 
 def test_response_command_reports_the_ripple_for_every_observer(capsys):

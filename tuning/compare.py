@@ -84,7 +84,13 @@ import jax.random as jr
 import numpy as np
 
 import pmsmjax as pj
-from pmsmjax.analysis import SweepGrid, equilibria_traced, grid_product, run_sweep
+from pmsmjax.analysis import (
+    SweepGrid,
+    equilibria_traced,
+    grid_product,
+    harmonic_ripple,
+    run_sweep,
+)
 from pmsmjax.observers import (
     OperatingPoint,
     make_observer as registry_observer,
@@ -92,6 +98,7 @@ from pmsmjax.observers import (
     observer_names,
 )
 
+from ._report import _clean
 from .objectives import evaluate, report_objective
 from .optimise import optimise
 from .scenarios import MOTOR_DEFAULTS, TuningConfig, make_observer, operating_current
@@ -499,12 +506,9 @@ def _cost(config: CompareConfig, name: str, folder: pathlib.Path, units) -> dict
 
 def harmonic_sensitivity(design, config: CompareConfig, name: str):
     """Largest peak angle ripple per 1 % back-EMF harmonic (deg) over `harmonic_orders`
-    and `harmonic_speeds_pu` (matched model, no load), or `(None, reason)` if
-    `pmsmjax.analysis.harmonic_ripple` is not available."""
-    try:
-        from pmsmjax.analysis import harmonic_ripple
-    except ImportError:
-        return None, "not available: pmsmjax.analysis.harmonic_ripple is not in this version"
+    and `harmonic_speeds_pu` (matched model, no load) from the linearisation
+    (`pmsmjax.analysis.harmonic_ripple`), or `(None, reason)` where it is not finite (an
+    unstable or resonant linearisation at one of the speeds)."""
     drive = config.drive()
     obs = make_observer(name, drive, design)
     orders = jnp.asarray(config.harmonic_orders)
@@ -567,21 +571,6 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
         out["analysis_failed"] = int(np.sum(np.asarray(feas["status"]).reshape(-1) < 0))
     out["flags"] = flags
     return out
-
-
-def _clean(x):
-    """JSON-ready: numpy scalars to Python, non-finite floats to None."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_clean(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _clean(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def _sweep(fn, grid, out_dir, config, metadata, progress, units, batch_size):
