@@ -40,6 +40,7 @@ compiles many designs in one process can call it between phases.
 
 from __future__ import annotations
 
+import gc
 import os
 import shutil
 import warnings
@@ -128,8 +129,6 @@ def release_compiled(fraction: float = 1 / 3) -> bool:
     state = memory_maps()
     if state is None or state[0] <= fraction * state[1]:
         return False
-    import gc
-
     jax.clear_caches()
     gc.collect()
     return True
