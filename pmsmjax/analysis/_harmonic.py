@@ -322,8 +322,7 @@ def _harmonic_ripple(observer, drive, op, h, T_s):
 
         def one(Om, hh, is_one):
             z = jnp.exp(1j * Om * T)
-            arg = 0.5 * hh * w_ev * T
-            sinc = jnp.where(arg == 0, 1.0, jnp.sin(arg) / jnp.where(arg == 0, 1.0, arg))
+            sinc = jnp.sinc(0.5 * hh * w_ev * T / jnp.pi)  # sin(x)/x at x = h w T_s / 2
             X = jnp.linalg.solve(z * eye - Phi, Gam @ jnp.where(is_one, d1, v)
                                  * jnp.exp(0.5j * Om * T))
             return jnp.abs(X[a]) * jnp.abs(sinc)
