@@ -53,6 +53,11 @@ print("done", flush=True)
 """
 
 
+#: What a process at the mapping limit prints before it dies (LLVM's error, glibc's
+#: failed mapping of a library, C++'s failed allocation).
+_OOM_MESSAGES = ("Cannot allocate memory", "out of memory", "failed to map", "bad_alloc")
+
+
 def run(headroom: int, programs: int, release: bool, timeout: float = 600) -> dict:
     """One fresh process (see the module docstring); returns what it did."""
     t0 = time.perf_counter()
@@ -67,7 +72,10 @@ def run(headroom: int, programs: int, release: bool, timeout: float = 600) -> di
                 maps_before=int(lines[0].split()[1]) if lines and lines[0].startswith("maps")
                 else None,
                 llvm_out_of_memory="Cannot allocate memory" in p.stderr,
+                out_of_memory=any(m in p.stderr for m in _OOM_MESSAGES),
                 segfault=p.returncode == -11 or "Segmentation fault" in p.stderr,
+                fatal_signal=p.returncode in (-6, -11),
+                stderr_tail=p.stderr[-600:],
                 seconds=round(time.perf_counter() - t0, 1))
 
 
