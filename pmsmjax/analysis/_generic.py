@@ -152,17 +152,18 @@ class _Scaled(eqx.Module):
     def Fw(self, theta, y):
         return self.F(self.insert(theta, y)) * self.weight
 
-    def solve_y(self, theta, y, n_iter):
+    def solve_y(self, theta, y, n_iter, n_active=None):
         """Gauss-Newton for the other coordinates at a fixed angle error, with the angle
         row as an equality constraint (null-space method): each step solves
         min ||F_o + J_o d|| subject to F_a + J_a d = 0, so that the solution follows the
-        branch on which the estimated frame turns at the true speed."""
+        branch on which the estimated frame turns at the true speed. `n_active` (may be
+        traced, <= `n_iter`): only the first `n_active` of the `n_iter` steps act."""
         m = y.shape[0]
         a = self.angle
         eye = jnp.eye(m, dtype=y.dtype)
         e0 = eye[0]
 
-        def body(y, _):
+        def body(y, k):
             Fv, Jy = self._FJ(theta, y)
             Fa, Ja = Fv[a], Jy[a]
             Fo = jnp.concatenate([Fv[:a], Fv[a + 1:]])
@@ -192,9 +193,12 @@ class _Scaled(eqx.Module):
             cand = y[None, :] + steps[:, None] * d[None, :]
             merit = jax.vmap(lambda v: jnp.sum(self.Fw(theta, v) ** 2))(cand)
             merit = jnp.where(jnp.isfinite(merit), merit, jnp.inf)
-            return cand[jnp.argmin(merit)], None
+            y_new = cand[jnp.argmin(merit)]
+            if n_active is not None:
+                y_new = jnp.where(k < n_active, y_new, y)
+            return y_new, None
 
-        y, _ = jax.lax.scan(body, y, None, length=n_iter)
+        y, _ = jax.lax.scan(body, y, jnp.arange(n_iter))
         return y
 
     def _FJ(self, theta, y):
@@ -205,11 +209,16 @@ class _Scaled(eqx.Module):
 
     def r(self, theta, y):
         """Signed least-squares residual at `theta` for the other coordinates `y`."""
+        return self.r_and_angle_row(theta, y)[0]
+
+    def r_and_angle_row(self, theta, y):
+        """`r(theta, y)` and the (unweighted) angle row of `F` there."""
         Fv, Jy = self._FJ(theta, y)
         H = Jy.T @ Jy
         _, logdet = _chol_solve(H + 1e-300 * jnp.eye(H.shape[0], dtype=H.dtype),
                                 jnp.zeros(H.shape[0], H.dtype))
-        return _det(jnp.concatenate([Jy, Fv[:, None]], 1)) * jnp.exp(-0.5 * logdet)
+        r = _det(jnp.concatenate([Jy, Fv[:, None]], 1)) * jnp.exp(-0.5 * logdet)
+        return r, Fv[self.angle] / self.weight[self.angle]
 
     def newton(self, z, n_iter):
         """Newton steps on the full square system F(z) = 0 (normal equations)."""
@@ -294,23 +303,35 @@ def stability(A) -> Stability:
 def _continuation(sys: _Scaled, grid, y0, n_iter):
     """The other coordinates along the angle grid, continued outwards from the two grid
     points next to 0 (where the designed equilibrium is), each warm-started from its
-    neighbour, so that they follow one branch of least-squares solutions."""
+    neighbour, so that they follow one branch of least-squares solutions. Also returns
+    the signed residual `r` and the angle row of `F` at every grid point.
+
+    Both directions run in one scan (vmapped over the direction), and the start (`2
+    n_iter` Gauss-Newton steps at the first angle before the sweep) is two extra scan
+    steps at that angle: the same iterations as separate calls, but the error dynamics
+    and their Jacobian are traced once (the compile time of the generic route grows with
+    the number of places that trace them)."""
     N = grid.shape[0]
     mid = N // 2
+    up = grid[mid:]
+    down = grid[:mid][::-1]
+    L = up.shape[0]
+    down = jnp.concatenate([down, jnp.broadcast_to(down[-1:], (L - mid,))])
+    thetas = jnp.stack([up, down])
+    thetas = jnp.concatenate([thetas[:, :1], thetas[:, :1], thetas], 1)
 
-    def run(thetas):
-        y_start = sys.solve_y(thetas[0], y0, 2 * n_iter)
-
+    def run(th):
         def body(y, t):
             y = sys.solve_y(t, y, n_iter)
-            return y, y
+            rv, fa = sys.r_and_angle_row(t, y)
+            return y, (y, rv, fa)
 
-        _, ys = jax.lax.scan(body, y_start, thetas)
-        return ys
+        _, out = jax.lax.scan(body, y0, th)
+        return jax.tree_util.tree_map(lambda a: a[2:], out)
 
-    up = run(grid[mid:])
-    down = run(grid[:mid][::-1])[::-1]
-    return jnp.concatenate([down, up], 0)
+    ys, rv, fa = jax.vmap(run)(thetas)
+    cat = lambda a: jnp.concatenate([a[1, :mid][::-1], a[0]], 0)  # noqa: E731
+    return cat(ys), cat(rv), cat(fa)
 
 
 def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0), *,
@@ -381,12 +402,10 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
     y0 = jnp.zeros(m, dtype)
     h = 2 * math.pi / n_grid
     grid = -math.pi + h * (jnp.arange(n_grid, dtype=dtype) + 0.5)
-    ys = _continuation(sys, grid, y0, n_gauss_newton)
-    rv = jax.vmap(sys.r)(grid, ys)
+    ys, rv, Fa = _continuation(sys, grid, y0, n_gauss_newton)
     # Grid points where the inner solve did not settle (the angle row is not satisfied,
     # e.g. oscillating Gauss-Newton steps across a kink of a piecewise-smooth feedback
     # such as fal) are skipped: brackets join the nearest settled points on each side.
-    Fa = jax.vmap(lambda t, y: sys.F(sys.insert(t, y))[sys.angle])(grid, ys)
     settled = jnp.isfinite(rv) & (jnp.abs(Fa) < 1e-6)
     finite = jnp.sum(settled) >= n_grid // 2
     rv = jnp.where(jnp.isfinite(rv), rv, 0.0)
@@ -448,28 +467,40 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
         def extremum(k):
             sgn = jnp.where(rv[k] >= 0, 1.0, -1.0)
             yk = ys[k]
-            f = lambda t: sgn * sys.r(t, sys.solve_y(t, yk, 2))  # noqa: E731
+            last = n_golden + 2
 
-            # golden section, one new evaluation per iteration
-            def body(c, _):
-                a, b, x1, x2, f1, f2 = c
+            # golden section, one evaluation per scan step: steps 0 and 1 evaluate the
+            # two inner points, then `n_golden` section steps, and the last step the
+            # midpoint of the final interval with one more Gauss-Newton iteration (one
+            # traced copy of the inner solve and the residual instead of four)
+            def body(c, i):
+                a, b, x1, x2, f1, f2, tc, yc, rc = c
                 left = f1 < f2  # the minimum is in [a, x2]
                 a2, b2 = jnp.where(left, a, x1), jnp.where(left, x2, b)
                 xn = jnp.where(left, b2 - g * (b2 - a2), a2 + g * (b2 - a2))
-                fn = f(xn)
+                sec = (i >= 2) & (i < last)
+                t = jnp.where(i == 0, x1, jnp.where(i == 1, x2,
+                                                    jnp.where(i == last, 0.5 * (a + b), xn)))
+                y = sys.solve_y(t, yk, 3, n_active=jnp.where(i == last, 3, 2))
+                rt = sys.r(t, y)
+                fn = sgn * rt
                 x1n = jnp.where(left, xn, x2)
                 x2n = jnp.where(left, x1, xn)
                 f1n = jnp.where(left, fn, f2)
                 f2n = jnp.where(left, f1, fn)
-                return (a2, b2, x1n, x2n, f1n, f2n), None
+                return (jnp.where(sec, a2, a), jnp.where(sec, b2, b),
+                        jnp.where(sec, x1n, x1), jnp.where(sec, x2n, x2),
+                        jnp.where(sec, f1n, jnp.where(i == 0, fn, f1)),
+                        jnp.where(sec, f2n, jnp.where(i == 1, fn, f2)),
+                        jnp.where(i == last, t, tc), jnp.where(i == last, y, yc),
+                        jnp.where(i == last, rt, rc)), None
 
             a, b = grid[k] - h, grid[k] + h
             x1, x2 = b - g * (b - a), a + g * (b - a)
-            c0 = (a, b, x1, x2, f(x1), f(x2))
-            (a, b, *_), _ = jax.lax.scan(body, c0, None, length=n_golden)
-            tc = 0.5 * (a + b)
-            yc = sys.solve_y(tc, yk, 3)
-            return tc, yc, sys.r(tc, yc)
+            zero = jnp.zeros((), dtype)
+            c0 = (a, b, x1, x2, zero, zero, zero, yk, zero)
+            c, _ = jax.lax.scan(body, c0, jnp.arange(last + 1))
+            return c[6], c[7], c[8]
 
         tc, yc, rc = jax.vmap(extremum)(cidx)
         split = cslot & ((rc >= 0) != (rv[cidx] >= 0))
