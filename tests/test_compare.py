@@ -168,6 +168,20 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
         run_comparison(tiny(noise_std=0.03), part, progress=False, log=None)
 
 
+def test_worker_processes_give_the_same_files(job, tmp_path):
+    """`jobs` > 1: the observer's part runs in a worker process (`tuning._compare_worker`)
+    and the parent assembles the same files as the one-process job."""
+    config, out, _ = job
+    par = tmp_path / "par"
+    run_comparison(config, par, progress=False, log=None, jobs=2)
+    assert (par / "observers" / f"{OBSERVER}.json").is_file()
+    assert (par / "logs" / f"{OBSERVER}.log").is_file()
+    for f in ("comparison.json", "comparison.md"):
+        assert _strip_timing(par / f) == _strip_timing(out / f), f
+    with pytest.raises(ValueError, match="jobs"):
+        run_comparison(config, par, progress=False, log=None, jobs=0)
+
+
 def test_config_errors():
     with pytest.raises(ValueError, match="observers"):
         CompareConfig(observers=("nope",))
@@ -204,6 +218,13 @@ def test_cli_dispatch(capsys):
     # the shared sweep options (chunking, resume, several processes) are checked too
     assert main(["compare", "--num-processes", "2", "--no-plot"]) == 2
     assert "--coordinator" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["compare", "--jobs", "0", "--no-plot"])
+    assert e.value.code == 2 and "--jobs" in capsys.readouterr().err
+    from tuning._compare_cli import jobs_for
+
+    assert jobs_for("auto", distributed=True) == 1 and jobs_for(3, distributed=False) == 3
+    assert 1 <= jobs_for("auto", distributed=False) <= 4
     with pytest.raises(SystemExit) as e:
         main(["compare", "--help"])
     assert e.value.code == 0

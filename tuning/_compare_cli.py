@@ -7,6 +7,7 @@ was interrupted on purpose (`PMSMJAX_COMPARE_STOP_AFTER`)."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
@@ -46,10 +47,37 @@ def build_parser() -> argparse.ArgumentParser:
                         "tuner, whose compilation takes minutes for some observers)")
     p.add_argument("--tune-steps", type=int, default=None, metavar="N",
                    help="tuner steps (designs for the local search)")
+    p.add_argument("--jobs", type=_jobs, default="auto", metavar="N",
+                   help="observers computed side by side in N worker processes (each "
+                        "compiles its own observer's programs; the results do not depend "
+                        "on N); 'auto': one per CPU core, at most 4; 1 under "
+                        "--num-processes")
     add_sweep_options(p, default_chunk_size=CompareConfig().chunk_size)
     p.add_argument("--no-plot", action="store_true", help="do not write the figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
+
+
+def _jobs(text: str):
+    if text == "auto":
+        return text
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be 'auto' or an integer >= 1; got {text!r}")
+    return v
+
+
+def jobs_for(value, distributed: bool) -> int:
+    """`--jobs`: 'auto' is one worker per CPU core, at most 4 (each worker holds its own
+    compiled programs, about 1.5 GB), and 1 when the job runs under jax.distributed."""
+    if distributed:
+        return 1
+    if value == "auto":
+        return max(1, min(os.cpu_count() or 1, 4))
+    return value
 
 
 def main(argv=None) -> int:
@@ -78,7 +106,8 @@ def main(argv=None) -> int:
     try:
         s = run_comparison(config, args.out, progress=not args.no_progress, log=print,
                            restart=args.restart, plot=not args.no_plot,
-                           sweep_dir=sweep_dir, batch_size=settings.batch_size)
+                           sweep_dir=sweep_dir, batch_size=settings.batch_size,
+                           jobs=jobs_for(args.jobs, settings.distributed))
     except CompareInterrupted as e:
         print(f"python -m tuning compare: interrupted: {e}; run again to continue",
               file=sys.stderr)

@@ -245,6 +245,14 @@ class CompareConfig:
         return {k: (list(v) if isinstance(v, tuple) else v)
                 for k, v in dataclasses.asdict(self).items()}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> CompareConfig:
+        """The configuration of `to_dict` (e.g. the `config` of a job's `job.json`)."""
+        def tup(v):
+            return tuple(tup(x) for x in v) if isinstance(v, list) else v
+
+        return cls(**{k: tup(v) for k, v in d.items()})
+
     def fingerprint(self) -> str:
         return hashlib.sha256(json.dumps(self.to_dict(), sort_keys=True).encode()
                               ).hexdigest()[:16]
@@ -270,11 +278,15 @@ class CompareConfig:
                                   steps=max(self.tune_steps, 1), patience=0,
                                   seed=self.seed, **kw)
 
-    def grid(self):
-        """The common grid as a `SweepGrid` (axes: signed speed, load, case index)."""
+    def grid(self, index: bool = False):
+        """The common grid as a `SweepGrid` (axes: signed speed, load, case index);
+        `index`: with the column `index` (the point number: of the noise keys)."""
         speeds = np.array([s for v in self.speeds_pu for s in (-v, v)])
-        return grid_product(speed_pu=np.sort(speeds), load_pu=np.asarray(self.loads_pu),
-                            case=np.arange(len(self.cases)))
+        g = grid_product(speed_pu=np.sort(speeds), load_pu=np.asarray(self.loads_pu),
+                         case=np.arange(len(self.cases)))
+        if index:
+            g["index"] = np.arange(len(g["case"]))
+        return g
 
 
 def applicable_observers(config: CompareConfig) -> tuple[dict, dict]:
@@ -580,9 +592,131 @@ def _sweep(fn, grid, out_dir, config, metadata, progress, units, batch_size):
                      on_chunk_done=units.tick)
 
 
+class _Context:
+    """What every observer's part of the job shares (see `observer_entry`)."""
+
+    def __init__(self, config, out, sweeps, grid, progress, log, batch_size):
+        self.config, self.out, self.sweeps, self.grid = config, out, sweeps, grid
+        self.progress, self.log, self.batch_size = progress, log, batch_size
+
+    def entry_path(self, name: str) -> pathlib.Path:
+        return self.out / "observers" / f"{name}.json"
+
+
+def observer_entry(ctx: _Context, name: str, units, *, class_name: str | None = None):
+    """One observer's part of the job: tune (or load the tuned design), measure the cost
+    per step, run both designs' sweeps and aggregate. Returns `(entry, timing)` and keeps
+    both in `OUT/observers/NAME.json`, so that a resumed job (or the parent of worker
+    processes, `jobs`) reads them instead of computing them again."""
+    path = ctx.entry_path(name)
+    if path.is_file():
+        rec = json.loads(path.read_text())
+        return rec["entry"], rec["timing"]
+    config, out, sweeps, grid = ctx.config, ctx.out, ctx.sweeps, ctx.grid
+    progress, log, batch_size = ctx.progress, ctx.log, ctx.batch_size
+    n_runs = len(grid["case"])
+    tim = {}
+    design_t, meta = _tuned(config, name, out / "tuned", units, progress, log)
+    tim["tuning_s"] = meta.pop("seconds", None)
+    tim.update(_cost(config, name, out / "cost", units))
+    # measured on this machine: differs between any two runs (`TIMING_KEYS`)
+    entry = {"class": class_name or observer_class(name).__name__, "designs": {},
+             "tuning": meta, "observer_us_per_step": tim["observer_us_per_step"]}
+    paper = config.tuning_config(name).initial_schedule()
+    f_runs, f_feas = _sweep_fns(config, name)
+    for dname, design in (("paper", paper), ("tuned", design_t)):
+        if dname == "tuned" and design is None:
+            entry["designs"][dname] = dict(flags={"all": "tuned design not available: "
+                                                  + meta.get("reason", "")})
+            continue
+        cols, _ = _design_columns(design)
+        sweep_dir = sweeps / name / dname
+        md = dict(observer=name, design=dname, config=config.fingerprint())
+        log(f"{name}, {dname} design: {n_runs} runs ...")
+        t = time.perf_counter()
+        g = SweepGrid({**grid, **{k: np.full(n_runs, v) for k, v in cols.items()}},
+                      shape=grid.shape, axes=grid.axes)
+        runs = _sweep(f_runs, g, sweep_dir / "runs", config, md, progress, units,
+                      batch_size)
+        tim[f"{dname}_runs_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        agrid = {k: v for k, v in g.items() if k != "index"}
+        feas = (_sweep(f_feas, agrid, sweep_dir / "analysis", config, md, progress,
+                       units, batch_size) if config.analysis else None)
+        tim[f"{dname}_analysis_s"] = time.perf_counter() - t
+        m = aggregate(runs, feas, config, grid)
+        t = time.perf_counter()
+        h, why = harmonic_sensitivity(design, config, name)
+        tim[f"{dname}_harmonic_s"] = time.perf_counter() - t
+        m["harmonic_deg_per_pct"] = h
+        if why:
+            m["flags"]["harmonic_deg_per_pct"] = why
+        entry["designs"][dname] = m
+    entry, tim = _clean(entry), _clean(tim)
+    if jax.process_index() == 0:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_write(path, json.dumps(dict(entry=entry, timing=tim), indent=1).encode())
+    return entry, tim
+
+
+def _run_workers(ctx: _Context, names: list, jobs: int):
+    """Run `observer_entry` for `names` in `jobs` worker processes at a time (`python -m
+    tuning._compare_worker`); each writes `OUT/observers/NAME.json` and its log to
+    `OUT/logs/NAME.log`. Compilation, which dominates a small comparison, is per observer
+    and runs on one or two cores per process, so the observers compile side by side."""
+    import subprocess
+    import sys
+
+    if not names:
+        return
+    logs = ctx.out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, "-m", "tuning._compare_worker", "--out", str(ctx.out),
+           "--sweep-dir", str(ctx.sweeps)]
+    if ctx.batch_size:
+        cmd += ["--batch-size", str(ctx.batch_size)]
+    ctx.log(f"{len(names)} observers in {min(jobs, len(names))} worker processes (logs: "
+            f"{logs}) ...")
+    bar = _observer_bar(len(names), ctx.progress)
+    queue, running, failed = list(names), {}, []
+    try:
+        while queue or running:
+            while queue and len(running) < jobs:
+                n = queue.pop(0)
+                f = open(logs / f"{n}.log", "w")
+                running[n] = (subprocess.Popen(cmd + ["--observer", n], stdout=f,
+                                               stderr=subprocess.STDOUT), f)
+            time.sleep(0.2)
+            for n, (proc, f) in list(running.items()):
+                if proc.poll() is None:
+                    continue
+                f.close()
+                del running[n]
+                if proc.returncode != 0:
+                    failed.append(n)
+                bar.update(1)
+                bar.set_postfix_str(n)
+    finally:
+        for proc, f in running.values():
+            proc.kill()
+            f.close()
+        bar.close()
+    if failed:
+        raise RuntimeError(f"worker processes failed for {', '.join(failed)}; see "
+                           f"{logs}/<observer>.log (the other observers' results are kept: "
+                           f"run the job again to continue)")
+
+
+def _observer_bar(n, progress):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=n, desc="observers", unit="obs", disable=not progress)
+
+
+
 def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=print,
                    restart: bool = False, plot: bool = False, sweep_dir=None,
-                   batch_size: int | None = None) -> dict:
+                   batch_size: int | None = None, jobs: int = 1) -> dict:
     """Run the comparison into the job folder `out` and return the summary (the content
     of `comparison.json`). Resumable: tuned designs, cost measurements and every sweep
     chunk are kept in `out`, and a second call continues where the first stopped.
@@ -591,10 +725,18 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
     `sweep_dir`: folder of the sweeps (default `out/sweeps`: one sweep of the runs and
     one of the analysis per observer and design, `NAME/DESIGN/runs`, `.../analysis`);
     `batch_size`: of `run_sweep` (bitwise the same results on any device count).
+    `jobs`: observers computed side by side in this many worker processes (1: all in
+    this process; not with `jax.distributed`). The results do not depend on it.
 
     Under `jax.distributed` every process runs this function (the sweeps are sharded
     over the devices of all processes, the tuning is repeated in each, deterministic);
     only process 0 writes the outputs."""
+    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+        raise ValueError(f"`run_comparison(jobs=...)` must be an int >= 1; got {jobs!r}.")
+    if jobs > 1 and jax.process_count() > 1:
+        raise ValueError("`run_comparison(jobs=...)` > 1 cannot be combined with "
+                         "jax.distributed (several processes already share the work); "
+                         "give jobs=1.")
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     job = out / "job.json"
@@ -608,7 +750,7 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
     if restart:
         import shutil
 
-        for sub in (out / "tuned", out / "cost", sweeps):
+        for sub in (out / "tuned", out / "cost", out / "observers", out / "logs", sweeps):
             shutil.rmtree(sub, ignore_errors=True)
     _atomic_write(job, json.dumps(dict(format=FORMAT, fingerprint=fp,
                                        config=config.to_dict()), indent=1).encode())
@@ -616,51 +758,20 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
     units = _Units()
     t_start = time.perf_counter()
     ok, skipped = applicable_observers(config)
-    grid = config.grid()
-    grid["index"] = np.arange(len(grid["case"]))
+    grid = config.grid(index=True)
     n_runs = len(grid["case"])
     steps = int(round(config.t_end / config.T_s))
     log(f"comparison on {config.motor}: {len(ok)} observers x {len(DESIGNS)} designs x "
         f"{n_runs} runs ({2 * len(config.speeds_pu)} speeds x {len(config.loads_pu)} loads "
         f"x {len(config.cases)} mismatch cases) of {steps} steps")
     observers, timing = {}, {"observers": {}}
+    ctx = _Context(config, out, sweeps, grid, progress, log, batch_size)
+    if jobs > 1:
+        _run_workers(ctx, [n for n in ok if not ctx.entry_path(n).is_file()], jobs)
     for name in ok:
-        tim = timing["observers"].setdefault(name, {})
-        design_t, meta = _tuned(config, name, out / "tuned", units, progress, log)
-        tim["tuning_s"] = meta.pop("seconds", None)
-        tim.update(_cost(config, name, out / "cost", units))
-        # measured on this machine: differs between any two runs (`TIMING_KEYS`)
-        entry = {"class": ok[name], "designs": {}, "tuning": meta,
-                 "observer_us_per_step": tim["observer_us_per_step"]}
-        paper = config.tuning_config(name).initial_schedule()
-        f_runs, f_feas = _sweep_fns(config, name)
-        for dname, design in (("paper", paper), ("tuned", design_t)):
-            if dname == "tuned" and design is None:
-                entry["designs"][dname] = dict(flags={"all": "tuned design not available: "
-                                                      + meta.get("reason", "")})
-                continue
-            cols, _ = _design_columns(design)
-            sweep_dir = sweeps / name / dname
-            md = dict(observer=name, design=dname, config=fp)
-            log(f"{name}, {dname} design: {n_runs} runs ...")
-            t = time.perf_counter()
-            g = SweepGrid({**grid, **{k: np.full(n_runs, v) for k, v in cols.items()}},
-                          shape=grid.shape, axes=grid.axes)
-            runs = _sweep(f_runs, g, sweep_dir / "runs", config, md, progress, units,
-                          batch_size)
-            tim[f"{dname}_runs_s"] = time.perf_counter() - t
-            t = time.perf_counter()
-            agrid = {k: v for k, v in g.items() if k != "index"}
-            feas = (_sweep(f_feas, agrid, sweep_dir / "analysis", config, md, progress,
-                           units, batch_size) if config.analysis else None)
-            tim[f"{dname}_analysis_s"] = time.perf_counter() - t
-            m = aggregate(runs, feas, config, grid)
-            h, why = harmonic_sensitivity(design, config, name)
-            m["harmonic_deg_per_pct"] = h
-            if why:
-                m["flags"]["harmonic_deg_per_pct"] = why
-            entry["designs"][dname] = m
+        entry, tim = observer_entry(ctx, name, units, class_name=ok[name])
         observers[name] = entry
+        timing["observers"][name] = tim
     timing["wall_s"] = time.perf_counter() - t_start
     timing["runs_per_design"] = n_runs
     timing["steps_per_run"] = steps
