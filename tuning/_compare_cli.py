@@ -40,11 +40,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results/compare", metavar="DIR",
                    help="job folder (outputs, and the state that makes the job resumable)")
     p.add_argument("--quick", action="store_true",
-                   help="the small comparison (CompareConfig.quick: under 2 minutes)")
+                   help="a first look in about two minutes (CompareConfig.quick): a small "
+                        "grid, the paper designs only, no equilibrium analysis (add "
+                        "--tuner local and --analysis for the tuned designs and the "
+                        "feasible fraction)")
     p.add_argument("--tuner", default=None, choices=TUNERS,
                    help="tuner of the 'tuned' design (default: local, the gradient-free "
                         "(1+1) search of tuning.local_search; adam/bfgs/lm: the gradient "
                         "tuner, whose compilation takes minutes for some observers)")
+    p.add_argument("--analysis", action=argparse.BooleanOptionalAction, default=None,
+                   help="run the generic equilibrium analysis of the grid (the feasible "
+                        "fraction; default: on, off with --quick)")
     p.add_argument("--tune-steps", type=int, default=None, metavar="N",
                    help="tuner steps (designs for the local search)")
     p.add_argument("--jobs", type=_jobs, default="auto", metavar="N",
@@ -89,7 +95,8 @@ def main(argv=None) -> int:
     if args.observers is not None:
         kw["observers"] = tuple(s.strip() for s in args.observers.split(",") if s.strip())
     kw["chunk_size"] = args.chunk_size
-    for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps")):
+    for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps"),
+                       ("analysis", "analysis")):
         v = getattr(args, opt)
         if v is not None:
             kw[field] = v

@@ -233,11 +233,15 @@ class CompareConfig:
 
     @classmethod
     def quick(cls, **changes) -> CompareConfig:
-        """The `--quick` comparison: 4 kHz, 0.3 s runs, speeds +-{0.05, 0.25, 1} p.u., no
-        load and rated load, five mismatch cases, four tuner steps."""
+        """The `--quick` comparison, a first look in about two minutes on two cores: the
+        paper designs only (`tuner="none"`) and no generic equilibrium analysis
+        (`analysis=False`), whose compilations per observer are what a small comparison
+        spends its time on (see BENCHMARKS.md); 4 kHz, 0.3 s runs, speeds +-{0.05, 0.25,
+        1} p.u., no load and rated load, five mismatch cases. The tuned designs and the
+        feasible fraction are flagged as not computed; the default job has them."""
         kw = dict(T_s=250e-6, t_end=0.3, speeds_pu=(0.05, 0.25, 1.0), loads_pu=(0.0, 1.0),
                   cases=(CASES[0], CASES[3], CASES[5], CASES[8], CASES[9]), tune_steps=4,
-                  harmonic_speeds_pu=(0.25, 1.0))
+                  harmonic_speeds_pu=(0.25, 1.0), tuner="none", analysis=False)
         kw.update(changes)
         return cls(**kw)
 
