@@ -35,7 +35,8 @@ def tiny(**kw):
 def job(tmp_path_factory):
     out = tmp_path_factory.mktemp("compare") / "job"
     config = tiny()
-    summary = run_comparison(config, out, progress=False, log=None)
+    # batch_size: bitwise the same results on any device count (the worker test below)
+    summary = run_comparison(config, out, progress=False, log=None, batch_size=2)
     return config, out, summary
 
 
@@ -151,11 +152,11 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
     part = tmp_path / "part"
     monkeypatch.setenv(compare.STOP_ENV, "4")  # tuning, cost, two chunks of runs
     with pytest.raises(CompareInterrupted):
-        run_comparison(config, part, progress=False, log=None)
+        run_comparison(config, part, progress=False, log=None, batch_size=2)
     assert not (part / "comparison.json").exists()
     assert (part / "tuned" / f"{OBSERVER}.eqx").is_file()
     monkeypatch.delenv(compare.STOP_ENV)
-    run_comparison(config, part, progress=False, log=None)
+    run_comparison(config, part, progress=False, log=None, batch_size=2)
     for f in ("comparison.json", "comparison.md"):
         assert _strip_timing(part / f) == _strip_timing(out / f), f
     for sub in ("runs", "analysis"):
@@ -168,18 +169,50 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
         run_comparison(tiny(noise_std=0.03), part, progress=False, log=None)
 
 
-def test_worker_processes_give_the_same_files(job, tmp_path):
-    """`jobs` > 1: the observer's part runs in a worker process (`tuning._compare_worker`)
-    and the parent assembles the same files as the one-process job."""
+def test_worker_processes_and_devices_give_the_same_files(job, tmp_path, monkeypatch):
+    """`jobs` > 1: the observer's part runs in a worker process (`tuning._compare_worker`),
+    here with two CPU devices over which its sweeps are sharded, and the parent assembles
+    the same files as the one-process, one-device job. Equal to rounding, not bitwise:
+    with `batch_size` the vmap width is the same, but XLA compiles the program sharded
+    over two devices differently (the last digit of some metrics differs)."""
     config, out, _ = job
     par = tmp_path / "par"
-    run_comparison(config, par, progress=False, log=None, jobs=2)
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    run_comparison(config, par, progress=False, log=None, jobs=2, batch_size=2)
     assert (par / "observers" / f"{OBSERVER}.json").is_file()
     assert (par / "logs" / f"{OBSERVER}.log").is_file()
-    for f in ("comparison.json", "comparison.md"):
-        assert _strip_timing(par / f) == _strip_timing(out / f), f
+    manifest = json.loads((par / "sweeps" / OBSERVER / "paper" / "runs" / "sweep.json"
+                           ).read_text())
+    assert manifest["devices"]["count"] == 2
+    _assert_close(_strip_timing(par / "comparison.json"),
+                  _strip_timing(out / "comparison.json"))
+    for sub in ("runs", "analysis"):
+        a = np.load(out / "sweeps" / OBSERVER / "paper" / sub / "result.npz")
+        b = np.load(par / "sweeps" / OBSERVER / "paper" / sub / "result.npz")
+        for k in a.files:
+            if np.issubdtype(a[k].dtype, np.floating):
+                np.testing.assert_allclose(a[k], b[k], rtol=1e-12, atol=1e-12, err_msg=k)
+            else:
+                np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert _strip_timing(par / "comparison.md") == _strip_timing(out / "comparison.md")
     with pytest.raises(ValueError, match="jobs"):
         run_comparison(config, par, progress=False, log=None, jobs=0)
+
+
+def _assert_close(a, b, path=""):
+    """Equal trees (dicts, lists, strings, ints, None), floats to 1e-12 relative."""
+    if isinstance(a, dict):
+        assert sorted(a) == sorted(b), path
+        for k in a:
+            _assert_close(a[k], b[k], f"{path}/{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (u, v) in enumerate(zip(a, b)):
+            _assert_close(u, v, f"{path}[{i}]")
+    elif isinstance(a, float):
+        assert b == pytest.approx(a, rel=1e-12, abs=1e-12), path
+    else:
+        assert a == b, path
 
 
 def test_config_errors():
