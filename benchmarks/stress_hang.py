@@ -18,7 +18,12 @@ Workloads (each iteration uses new inputs, so nothing is served from a cache):
 - `certificate_eager`: the same `jax.vmap` without an outer `jit` (as the notebook
   called it: many small dispatched computations);
 - `loop`: one sensorless closed-loop run (ESO, 4000 steps) and a vmapped batch of 16;
-- `equilibria`: the generic equilibria route vmapped over 256 operating points.
+- `equilibria`: the generic equilibria route vmapped over 256 operating points;
+- `callback_loop`: the minimal program of the public reports of a hang with asynchronous
+  CPU dispatch: a jitted `lax.while_loop` whose body calls the host (`jax.debug.callback`
+  and a `jax.pure_callback` inside a `lax.cond`, as `equinox.error_if` lowers), single and
+  vmapped, 100 chained dispatches per iteration; `callback_loop_jax`: the same with a
+  host function that itself runs a JAX computation.
 
 Variants (process settings, applied before JAX starts):
 
@@ -26,7 +31,10 @@ Variants (process settings, applied before JAX starts):
 - `small_loops`: `--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`;
 - `small_loops_sync`: the same with `jax_cpu_enable_async_dispatch=False`;
 - `small_loops_no_eigen_mt`: the same with `--xla_cpu_multi_thread_eigen=false`;
-- `pmsmjax`: whatever `pmsmjax.runtime.configure()` chooses (the entry points' default).
+- `pmsmjax`: whatever `pmsmjax.runtime.configure()` chooses (the entry points' default);
+- `sync`: XLA's defaults with `jax_cpu_enable_async_dispatch=False`;
+- `no_eigen_mt`: XLA's defaults with `--xla_cpu_multi_thread_eigen=false`;
+- `pmsmjax_sync`: `configure()` with `jax_cpu_enable_async_dispatch=False`.
 
 `--mode kernel` runs the iterations inside Jupyter kernels driven by jupyter_client
 (the notebook condition); the watchdog then dumps the kernel's stacks.
@@ -63,8 +71,13 @@ VARIANTS = {
         xla_flags=SMALL_LOOPS + " --xla_cpu_multi_thread_eigen=false", sync=False,
         configure=False),
     "pmsmjax": dict(xla_flags="", sync=False, configure=True),
+    "sync": dict(xla_flags="", sync=True, configure=False),
+    "no_eigen_mt": dict(xla_flags="--xla_cpu_multi_thread_eigen=false", sync=False,
+                        configure=False),
+    "pmsmjax_sync": dict(xla_flags="", sync=True, configure=True),
 }
-WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria")
+WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria", "callback_loop",
+             "callback_loop_jax")
 
 
 # ----------------------------------------------------------------------------- worker
@@ -115,7 +128,51 @@ def _workload(name):
             obs, drive.motor, w, jnp.stack([0.0, iq]), method="generic").status))
         w = jnp.linspace(0.1, 1.0, 256) * wr
         return lambda i: f(w * (1 + 1e-3 * (i % 5)), jnp.full(256, 0.5 + 0.01 * (i % 3)))
+    if name in ("callback_loop", "callback_loop_jax"):
+        return _callback_loop(name.endswith("_jax"))
     raise ValueError(f"unknown workload {name!r}")
+
+
+def _callback_loop(jax_in_callback: bool, n_loop: int = 20, n_chain: int = 50):
+    """The minimal workload of the public reports: a jitted `lax.while_loop` whose body
+    calls the host twice per step (a `jax.debug.callback`, and a `jax.pure_callback`
+    inside a `lax.cond` as `equinox.error_if` lowers), single and vmapped over 8, each
+    dispatched `n_chain` times in a chain (each call's input is the previous output) before
+    the caller blocks. With `jax_in_callback` the host function itself runs a JAX
+    computation (the `pure_callback` report)."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax import lax
+
+    def host(v):
+        if jax_in_callback:
+            return np.asarray(jnp.asarray(v) * 1.0)
+        return np.asarray(v)
+
+    def body(c):
+        k, x = c
+        jax.debug.callback(lambda v: None, x)
+        x = lax.cond(jnp.any(x > 1e9),
+                     lambda x: jax.pure_callback(host, jax.ShapeDtypeStruct(x.shape, x.dtype),
+                                                 x, vmap_method="broadcast_all"),
+                     lambda x: x, x)
+        x = jax.pure_callback(host, jax.ShapeDtypeStruct(x.shape, x.dtype), x,
+                              vmap_method="broadcast_all")
+        return k + 1, 0.99 * x + 1.0
+
+    def loop(x):
+        return lax.while_loop(lambda c: c[0] < n_loop, body, (0, x))[1]
+
+    single = jax.jit(loop)
+    batch = jax.jit(jax.vmap(loop))
+
+    def run(i):
+        x, xb = jnp.asarray(1.0 + 1e-3 * i), jnp.linspace(0.0, 1.0, 8) + 1e-3 * i
+        for _ in range(n_chain):
+            x, xb = 0.5 * single(x), 0.5 * batch(xb)
+        return x, xb
+    return run
 
 
 def kernel_worker(args):
