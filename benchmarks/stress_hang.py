@@ -23,7 +23,8 @@ Workloads (each iteration uses new inputs, so nothing is served from a cache):
   CPU dispatch: a jitted `lax.while_loop` whose body calls the host (`jax.debug.callback`
   and a `jax.pure_callback` inside a `lax.cond`, as `equinox.error_if` lowers), single and
   vmapped, 100 chained dispatches per iteration; `callback_loop_jax`: the same with a
-  host function that itself runs a JAX computation.
+  host function that itself runs a JAX computation; `callback_print`: the same with a
+  `debug.callback` that prints a line.
 
 Variants (process settings, applied before JAX starts):
 
@@ -77,7 +78,7 @@ VARIANTS = {
     "pmsmjax_sync": dict(xla_flags="", sync=True, configure=True),
 }
 WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria", "callback_loop",
-             "callback_loop_jax")
+             "callback_loop_jax", "callback_print")
 
 
 # ----------------------------------------------------------------------------- worker
@@ -128,18 +129,21 @@ def _workload(name):
             obs, drive.motor, w, jnp.stack([0.0, iq]), method="generic").status))
         w = jnp.linspace(0.1, 1.0, 256) * wr
         return lambda i: f(w * (1 + 1e-3 * (i % 5)), jnp.full(256, 0.5 + 0.01 * (i % 3)))
-    if name in ("callback_loop", "callback_loop_jax"):
-        return _callback_loop(name.endswith("_jax"))
+    if name in ("callback_loop", "callback_loop_jax", "callback_print"):
+        return _callback_loop(name.endswith("_jax"), printing=name.endswith("_print"))
     raise ValueError(f"unknown workload {name!r}")
 
 
-def _callback_loop(jax_in_callback: bool, n_loop: int = 20, n_chain: int = 50):
+def _callback_loop(jax_in_callback: bool, printing: bool = False, n_loop: int = 20,
+                   n_chain: int = 50):
     """The minimal workload of the public reports: a jitted `lax.while_loop` whose body
     calls the host twice per step (a `jax.debug.callback`, and a `jax.pure_callback`
     inside a `lax.cond` as `equinox.error_if` lowers), single and vmapped over 8, each
     dispatched `n_chain` times in a chain (each call's input is the previous output) before
     the caller blocks. With `jax_in_callback` the host function itself runs a JAX
-    computation (the `pure_callback` report)."""
+    computation (the `pure_callback` report); with `printing` the `debug.callback` prints
+    a line (to the worker's pipe, or a Jupyter kernel's output stream), as in the report of
+    a hang with asynchronous dispatch."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -152,7 +156,8 @@ def _callback_loop(jax_in_callback: bool, n_loop: int = 20, n_chain: int = 50):
 
     def body(c):
         k, x = c
-        jax.debug.callback(lambda v: None, x)
+        jax.debug.callback((lambda v: print("step", v.shape)) if printing
+                           else (lambda v: None), x)
         x = lax.cond(jnp.any(x > 1e9),
                      lambda x: jax.pure_callback(host, jax.ShapeDtypeStruct(x.shape, x.dtype),
                                                  x, vmap_method="broadcast_all"),
