@@ -24,7 +24,9 @@ Workloads (each iteration uses new inputs, so nothing is served from a cache):
   and a `jax.pure_callback` inside a `lax.cond`, as `equinox.error_if` lowers), single and
   vmapped, 100 chained dispatches per iteration; `callback_loop_jax`: the same with a
   host function that itself runs a JAX computation; `callback_print`: the same with a
-  `debug.callback` that prints a line.
+  `debug.callback` that prints a line; `callback_random`: 100 independent dispatches
+  (no chain, nothing blocks between them) of a 30-step loop with a printing
+  `debug.callback` and a data-dependent stop, each on a new random input.
 
 Variants (process settings, applied before JAX starts):
 
@@ -78,10 +80,36 @@ VARIANTS = {
     "pmsmjax_sync": dict(xla_flags="", sync=True, configure=True),
 }
 WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria", "callback_loop",
-             "callback_loop_jax", "callback_print")
+             "callback_loop_jax", "callback_print", "callback_random")
 
 
 # ----------------------------------------------------------------------------- worker
+
+def _callback_random(n_dispatch: int = 100):
+    """`callback_random` (see the module docstring)."""
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    def solve(x):
+        def body(c):
+            x, k = c
+            jax.debug.callback(lambda k: print("step", int(k)), k)
+            return 0.9 * x + jnp.sin(x), k + 1
+        return lax.while_loop(lambda c: (c[1] < 30) & (jnp.max(jnp.abs(c[0])) < 1e6),
+                              body, (x, 0))[0]
+
+    f = jax.jit(solve)
+
+    def run(i):
+        key = jax.random.PRNGKey(i)
+        out = []
+        for _ in range(n_dispatch):
+            key, sub = jax.random.split(key)
+            out.append(f(jax.random.normal(sub, (64,))))
+        return out
+    return run
+
 
 def _workload(name):
     """A function `f(i)` that runs iteration `i` of the workload to completion."""
@@ -131,6 +159,8 @@ def _workload(name):
         return lambda i: f(w * (1 + 1e-3 * (i % 5)), jnp.full(256, 0.5 + 0.01 * (i % 3)))
     if name in ("callback_loop", "callback_loop_jax", "callback_print"):
         return _callback_loop(name.endswith("_jax"), printing=name.endswith("_print"))
+    if name == "callback_random":
+        return _callback_random()
     raise ValueError(f"unknown workload {name!r}")
 
 
