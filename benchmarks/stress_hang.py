@@ -42,6 +42,10 @@ Variants (process settings, applied before JAX starts):
 `--mode kernel` runs the iterations inside Jupyter kernels driven by jupyter_client
 (the notebook condition); the watchdog then dumps the kernel's stacks.
 
+`--count-callbacks` runs nothing under load: it compiles the affected programs and counts
+the custom calls to the Python CPU callback in their HLO, and how many of them a `while`
+body reaches (the ingredient of the public reports of hangs with asynchronous dispatch).
+
 Usage (results go to BENCHMARKS.md):
 
     .venv/bin/python benchmarks/stress_hang.py [--runs 100] [--procs 3] [--load 2]
@@ -273,6 +277,90 @@ def worker(args):
             print(f"done {i} {w} {time.perf_counter() - t0:.3f}", flush=True)
 
 
+# ----------------------------------------------------------------------------- callbacks
+
+def _hlo_callbacks(text: str) -> tuple[int, int, int]:
+    """(while loops, host callbacks, host callbacks reachable from a while body) of an
+    optimized HLO module's text."""
+    import re
+
+    comps: dict[str, list[str]] = {}
+    cur = None
+    for line in text.splitlines():
+        m = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{\s*$", line)
+        if m:
+            cur = m.group(1)
+            comps[cur] = []
+        elif cur is not None:
+            comps[cur].append(line)
+    edges: dict[str, set] = {}
+    bodies: list[str] = []
+    for c, lines in comps.items():
+        e = set()
+        for line in lines:
+            for key in ("condition", "body", "to_apply", "calls", "true_computation",
+                        "false_computation"):
+                e.update(re.findall(key + r"=%?([\w.\-]+)", line))
+            m = re.search(r"branch_computations=\{([^}]*)\}", line)
+            if m:
+                e.update(x.strip().lstrip("%") for x in m.group(1).split(","))
+            if " while(" in line:
+                bodies += re.findall(r"body=%?([\w.\-]+)", line)
+        edges[c] = e
+    in_loop: set = set()
+    todo = list(bodies)
+    while todo:
+        c = todo.pop()
+        if c not in in_loop:
+            in_loop.add(c)
+            todo += edges.get(c, ())
+    n_cb = {c: sum("custom_call_target=" in x and "callback" in x for x in lines)
+            for c, lines in comps.items()}
+    return (len(bodies), sum(n_cb.values()),
+            sum(n for c, n in n_cb.items() if c in in_loop))
+
+
+def count_callbacks():
+    import jax
+    import jax.numpy as jnp
+
+    import pmsmjax as pj
+    from pmsmjax import analysis
+
+    pj.runtime.configure(cache=False)
+    drive = pj.preset("zhang750")
+    wr = float(drive.w_rated)
+    leso = pj.observers.make_observer("leso", drive)
+    foc, eso = pj.FOC.from_drive(drive), pj.ESOObserver.from_drive(drive)
+
+    def cert(zeta1):
+        return analysis.slowly_varying_certificate(
+            drive, leso.with_design(zeta1=zeta1, ratio=0.5), (0.2, 1.0), n_speed=21,
+            n_time=60, n_dirs=64, n_refine=10, n_k1_speeds=5).eps
+
+    def sim(w, throw):
+        sc = pj.Scenario(t_end=4000 * 125e-6, w_m_ref=pj.Profile.ramp(0.0, 0.1, 0.0, w),
+                         tau_L=pj.Profile.steps([0.3], [1.0]))
+        return pj.simulate(drive, foc, eso, sc, T_s=125e-6, save_every=4000,
+                           throw=throw).ise_theta
+
+    cases = {
+        "slowly_varying_certificate, vmapped over 4 LESO designs":
+            (jax.vmap(cert), (jnp.linspace(0.6, 1.2, 4),)),
+        "generic equilibria, vmapped over 256 points":
+            (jax.vmap(lambda w, iq: analysis.equilibria(
+                leso, drive.motor, w, jnp.stack([0.0, iq]), method="generic").status),
+             (jnp.linspace(0.1, 1.0, 256) * wr, jnp.full(256, 0.5))),
+        "simulate (ESO closed loop), throw=True": (lambda w: sim(w, True), (0.3 * wr,)),
+        "simulate, throw=False": (lambda w: sim(w, False), (0.3 * wr,)),
+    }
+    print("| program | while loops | host callbacks | inside a loop |")
+    print("|---|---:|---:|---:|")
+    for name, (f, args) in cases.items():
+        n_while, n_cb, n_in = _hlo_callbacks(jax.jit(f).lower(*args).compile().as_text())
+        print(f"| {name} | {n_while} | {n_cb} | {n_in} |", flush=True)
+
+
 # ----------------------------------------------------------------------------- parent
 
 def _load_proc():
@@ -398,9 +486,14 @@ def main():
     ap.add_argument("--timeout", type=float, default=120.0,
                     help="seconds without progress that count as a hang")
     ap.add_argument("--out", default="results/stress")
+    ap.add_argument("--count-callbacks", action="store_true",
+                    help="count the host callbacks in the affected programs' compiled HLO")
     args = ap.parse_args()
     if args.child:
         worker(args)
+        return
+    if args.count_callbacks:
+        count_callbacks()
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
