@@ -90,3 +90,21 @@ def test_the_closed_loop_calls_the_host_only_after_its_time_loop(drive):
     raising = host_callbacks(jax.make_jaxpr(lambda w: run(w, True))(w))
     assert raising and all(not in_loop for _, in_loop in raising)
     assert host_callbacks(jax.make_jaxpr(lambda w: run(w, False))(w)) == []
+
+
+def test_no_registered_observer_calls_the_host_inside_the_time_loop(drive):
+    """Every observer's `step` runs inside `simulate`'s time loop: none may call the host
+    there (an `eqx.error_if` in a `step` would put a host callback in the loop)."""
+    from pmsmjax.observers import make_observer, observer_names
+
+    foc = pj.FOC.from_drive(drive)
+    in_loop = {}
+    for name in observer_names():
+        obs = make_observer(name, drive)
+
+        def run(w, obs=obs):
+            sc = pj.Scenario(t_end=4 * 125e-6, w_m_ref=pj.Profile.ramp(0.0, 0.1, 0.0, w))
+            return pj.simulate(drive, foc, obs, sc, T_s=125e-6, throw=True).ise_theta
+        jaxpr = jax.make_jaxpr(run)(0.3 * float(drive.w_rated))
+        in_loop[name] = [p for p, inside in host_callbacks(jaxpr) if inside]
+    assert len(in_loop) >= 3 and not any(in_loop.values()), in_loop
