@@ -51,6 +51,7 @@ Usage (results go to BENCHMARKS.md):
     .venv/bin/python benchmarks/stress_hang.py [--runs 100] [--procs 3] [--load 2]
         [--variants default,small_loops,...] [--workloads certificate,loop]
         [--timeout 120] [--out results/stress]
+    .venv/bin/python benchmarks/stress_hang.py --count-callbacks
 """
 
 from __future__ import annotations
