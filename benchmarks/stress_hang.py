@@ -18,7 +18,15 @@ Workloads (each iteration uses new inputs, so nothing is served from a cache):
 - `certificate_eager`: the same `jax.vmap` without an outer `jit` (as the notebook
   called it: many small dispatched computations);
 - `loop`: one sensorless closed-loop run (ESO, 4000 steps) and a vmapped batch of 16;
-- `equilibria`: the generic equilibria route vmapped over 256 operating points.
+- `equilibria`: the generic equilibria route vmapped over 256 operating points;
+- `callback_loop`: the minimal program of the public reports of a hang with asynchronous
+  CPU dispatch: a jitted `lax.while_loop` whose body calls the host (`jax.debug.callback`
+  and a `jax.pure_callback` inside a `lax.cond`, as `equinox.error_if` lowers), single and
+  vmapped, 100 chained dispatches per iteration; `callback_loop_jax`: the same with a
+  host function that itself runs a JAX computation; `callback_print`: the same with a
+  `debug.callback` that prints a line; `callback_random`: 100 independent dispatches
+  (no chain, nothing blocks between them) of a 30-step loop with a printing
+  `debug.callback` and a data-dependent stop, each on a new random input.
 
 Variants (process settings, applied before JAX starts):
 
@@ -26,16 +34,24 @@ Variants (process settings, applied before JAX starts):
 - `small_loops`: `--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`;
 - `small_loops_sync`: the same with `jax_cpu_enable_async_dispatch=False`;
 - `small_loops_no_eigen_mt`: the same with `--xla_cpu_multi_thread_eigen=false`;
-- `pmsmjax`: whatever `pmsmjax.runtime.configure()` chooses (the entry points' default).
+- `pmsmjax`: whatever `pmsmjax.runtime.configure()` chooses (the entry points' default);
+- `sync`: XLA's defaults with `jax_cpu_enable_async_dispatch=False`;
+- `no_eigen_mt`: XLA's defaults with `--xla_cpu_multi_thread_eigen=false`;
+- `pmsmjax_sync`: `configure()` with `jax_cpu_enable_async_dispatch=False`.
 
 `--mode kernel` runs the iterations inside Jupyter kernels driven by jupyter_client
 (the notebook condition); the watchdog then dumps the kernel's stacks.
+
+`--count-callbacks` runs nothing under load: it compiles the affected programs and counts
+the custom calls to the Python CPU callback in their HLO, and how many of them a `while`
+body reaches (the ingredient of the public reports of hangs with asynchronous dispatch).
 
 Usage (results go to BENCHMARKS.md):
 
     .venv/bin/python benchmarks/stress_hang.py [--runs 100] [--procs 3] [--load 2]
         [--variants default,small_loops,...] [--workloads certificate,loop]
         [--timeout 120] [--out results/stress]
+    .venv/bin/python benchmarks/stress_hang.py --count-callbacks
 """
 
 from __future__ import annotations
@@ -63,11 +79,42 @@ VARIANTS = {
         xla_flags=SMALL_LOOPS + " --xla_cpu_multi_thread_eigen=false", sync=False,
         configure=False),
     "pmsmjax": dict(xla_flags="", sync=False, configure=True),
+    "sync": dict(xla_flags="", sync=True, configure=False),
+    "no_eigen_mt": dict(xla_flags="--xla_cpu_multi_thread_eigen=false", sync=False,
+                        configure=False),
+    "pmsmjax_sync": dict(xla_flags="", sync=True, configure=True),
 }
-WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria")
+WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria", "callback_loop",
+             "callback_loop_jax", "callback_print", "callback_random")
 
 
 # ----------------------------------------------------------------------------- worker
+
+def _callback_random(n_dispatch: int = 100):
+    """`callback_random` (see the module docstring)."""
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
+
+    def solve(x):
+        def body(c):
+            x, k = c
+            jax.debug.callback(lambda k: print("step", int(k)), k)
+            return 0.9 * x + jnp.sin(x), k + 1
+        return lax.while_loop(lambda c: (c[1] < 30) & (jnp.max(jnp.abs(c[0])) < 1e6),
+                              body, (x, 0))[0]
+
+    f = jax.jit(solve)
+
+    def run(i):
+        key = jax.random.PRNGKey(i)
+        out = []
+        for _ in range(n_dispatch):
+            key, sub = jax.random.split(key)
+            out.append(f(jax.random.normal(sub, (64,))))
+        return out
+    return run
+
 
 def _workload(name):
     """A function `f(i)` that runs iteration `i` of the workload to completion."""
@@ -115,7 +162,57 @@ def _workload(name):
             obs, drive.motor, w, jnp.stack([0.0, iq]), method="generic").status))
         w = jnp.linspace(0.1, 1.0, 256) * wr
         return lambda i: f(w * (1 + 1e-3 * (i % 5)), jnp.full(256, 0.5 + 0.01 * (i % 3)))
+    if name in ("callback_loop", "callback_loop_jax", "callback_print"):
+        return _callback_loop(name.endswith("_jax"), printing=name.endswith("_print"))
+    if name == "callback_random":
+        return _callback_random()
     raise ValueError(f"unknown workload {name!r}")
+
+
+def _callback_loop(jax_in_callback: bool, printing: bool = False, n_loop: int = 20,
+                   n_chain: int = 50):
+    """The minimal workload of the public reports: a jitted `lax.while_loop` whose body
+    calls the host twice per step (a `jax.debug.callback`, and a `jax.pure_callback`
+    inside a `lax.cond` as `equinox.error_if` lowers), single and vmapped over 8, each
+    dispatched `n_chain` times in a chain (each call's input is the previous output) before
+    the caller blocks. With `jax_in_callback` the host function itself runs a JAX
+    computation (the `pure_callback` report); with `printing` the `debug.callback` prints
+    a line (to the worker's pipe, or a Jupyter kernel's output stream), as in the report of
+    a hang with asynchronous dispatch."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax import lax
+
+    def host(v):
+        if jax_in_callback:
+            return np.asarray(jnp.asarray(v) * 1.0)
+        return np.asarray(v)
+
+    def body(c):
+        k, x = c
+        jax.debug.callback((lambda v: print("step", v.shape)) if printing
+                           else (lambda v: None), x)
+        x = lax.cond(jnp.any(x > 1e9),
+                     lambda x: jax.pure_callback(host, jax.ShapeDtypeStruct(x.shape, x.dtype),
+                                                 x, vmap_method="broadcast_all"),
+                     lambda x: x, x)
+        x = jax.pure_callback(host, jax.ShapeDtypeStruct(x.shape, x.dtype), x,
+                              vmap_method="broadcast_all")
+        return k + 1, 0.99 * x + 1.0
+
+    def loop(x):
+        return lax.while_loop(lambda c: c[0] < n_loop, body, (0, x))[1]
+
+    single = jax.jit(loop)
+    batch = jax.jit(jax.vmap(loop))
+
+    def run(i):
+        x, xb = jnp.asarray(1.0 + 1e-3 * i), jnp.linspace(0.0, 1.0, 8) + 1e-3 * i
+        for _ in range(n_chain):
+            x, xb = 0.5 * single(x), 0.5 * batch(xb)
+        return x, xb
+    return run
 
 
 def kernel_worker(args):
@@ -179,6 +276,90 @@ def worker(args):
             t0 = time.perf_counter()
             jax.block_until_ready(f(i))
             print(f"done {i} {w} {time.perf_counter() - t0:.3f}", flush=True)
+
+
+# ----------------------------------------------------------------------------- callbacks
+
+def _hlo_callbacks(text: str) -> tuple[int, int, int]:
+    """(while loops, host callbacks, host callbacks reachable from a while body) of an
+    optimized HLO module's text."""
+    import re
+
+    comps: dict[str, list[str]] = {}
+    cur = None
+    for line in text.splitlines():
+        m = re.match(r"^(?:ENTRY )?%?([\w.\-]+) .*\{\s*$", line)
+        if m:
+            cur = m.group(1)
+            comps[cur] = []
+        elif cur is not None:
+            comps[cur].append(line)
+    edges: dict[str, set] = {}
+    bodies: list[str] = []
+    for c, lines in comps.items():
+        e = set()
+        for line in lines:
+            for key in ("condition", "body", "to_apply", "calls", "true_computation",
+                        "false_computation"):
+                e.update(re.findall(key + r"=%?([\w.\-]+)", line))
+            m = re.search(r"branch_computations=\{([^}]*)\}", line)
+            if m:
+                e.update(x.strip().lstrip("%") for x in m.group(1).split(","))
+            if " while(" in line:
+                bodies += re.findall(r"body=%?([\w.\-]+)", line)
+        edges[c] = e
+    in_loop: set = set()
+    todo = list(bodies)
+    while todo:
+        c = todo.pop()
+        if c not in in_loop:
+            in_loop.add(c)
+            todo += edges.get(c, ())
+    n_cb = {c: sum("custom_call_target=" in x and "callback" in x for x in lines)
+            for c, lines in comps.items()}
+    return (len(bodies), sum(n_cb.values()),
+            sum(n for c, n in n_cb.items() if c in in_loop))
+
+
+def count_callbacks():
+    import jax
+    import jax.numpy as jnp
+
+    import pmsmjax as pj
+    from pmsmjax import analysis
+
+    pj.runtime.configure(cache=False)
+    drive = pj.preset("zhang750")
+    wr = float(drive.w_rated)
+    leso = pj.observers.make_observer("leso", drive)
+    foc, eso = pj.FOC.from_drive(drive), pj.ESOObserver.from_drive(drive)
+
+    def cert(zeta1):
+        return analysis.slowly_varying_certificate(
+            drive, leso.with_design(zeta1=zeta1, ratio=0.5), (0.2, 1.0), n_speed=21,
+            n_time=60, n_dirs=64, n_refine=10, n_k1_speeds=5).eps
+
+    def sim(w, throw):
+        sc = pj.Scenario(t_end=4000 * 125e-6, w_m_ref=pj.Profile.ramp(0.0, 0.1, 0.0, w),
+                         tau_L=pj.Profile.steps([0.3], [1.0]))
+        return pj.simulate(drive, foc, eso, sc, T_s=125e-6, save_every=4000,
+                           throw=throw).ise_theta
+
+    cases = {
+        "slowly_varying_certificate, vmapped over 4 LESO designs":
+            (jax.vmap(cert), (jnp.linspace(0.6, 1.2, 4),)),
+        "generic equilibria, vmapped over 256 points":
+            (jax.vmap(lambda w, iq: analysis.equilibria(
+                leso, drive.motor, w, jnp.stack([0.0, iq]), method="generic").status),
+             (jnp.linspace(0.1, 1.0, 256) * wr, jnp.full(256, 0.5))),
+        "simulate (ESO closed loop), throw=True": (lambda w: sim(w, True), (0.3 * wr,)),
+        "simulate, throw=False": (lambda w: sim(w, False), (0.3 * wr,)),
+    }
+    print("| program | while loops | host callbacks | inside a loop |")
+    print("|---|---:|---:|---:|")
+    for name, (f, args) in cases.items():
+        n_while, n_cb, n_in = _hlo_callbacks(jax.jit(f).lower(*args).compile().as_text())
+        print(f"| {name} | {n_while} | {n_cb} | {n_in} |", flush=True)
 
 
 # ----------------------------------------------------------------------------- parent
@@ -306,9 +487,14 @@ def main():
     ap.add_argument("--timeout", type=float, default=120.0,
                     help="seconds without progress that count as a hang")
     ap.add_argument("--out", default="results/stress")
+    ap.add_argument("--count-callbacks", action="store_true",
+                    help="count the host callbacks in the affected programs' compiled HLO")
     args = ap.parse_args()
     if args.child:
         worker(args)
+        return
+    if args.count_callbacks:
+        count_callbacks()
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

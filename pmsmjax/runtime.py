@@ -11,7 +11,13 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   raises it (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`):
   single runs become about 8x faster, batched runs are unchanged (see `FAST_LOOP_FLAGS`).
 - **No hangs.** `--xla_cpu_multi_thread_eigen=false` (see `SAFE_FLAGS`); asynchronous
-  CPU dispatch stays on (the stress reproducer found no hang with it either way).
+  CPU dispatch stays on (the stress reproducer found no hang with it either way). Public
+  reports of hangs with asynchronous dispatch need a host callback inside a `while` loop;
+  the analyses that hung have no host callback at all and `simulate` calls the host only
+  after its time loop (`throw=True`), and the reports' programs did not hang here either.
+  Code that calls the host inside a loop can turn it off first:
+  `jax.config.update("jax_cpu_enable_async_dispatch", False)` (no measurable cost on the
+  closed loop).
 - **Persistent compilation cache.** Compiled programs are kept in a per-user directory
   (`cache_dir()`: `$PMSMJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/pmsmjax/jax`, else
   `~/.cache/pmsmjax/jax`), so a repeated command skips XLA compilation. Opt out with

@@ -32,11 +32,16 @@ def test_configure_in_a_fresh_process(env, tmp_path):
             "r = pj.runtime.configure()\n"
             "jax.numpy.ones(3).block_until_ready()\n"
             "print(json.dumps(dict(r, flags=os.environ['XLA_FLAGS'],"
-            " cache=jax.config.jax_compilation_cache_dir)))\n")
+            " cache=jax.config.jax_compilation_cache_dir,"
+            " async_dispatch=jax.config.read('jax_cpu_enable_async_dispatch'))))\n")
     res = _run(["-c", code], env)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert "xla_cpu_small_while_loop_byte_threshold" in out["flags"]
+    # the hang settings (BENCHMARKS.md, "Hangs"): Eigen single-threaded; asynchronous CPU
+    # dispatch stays on (the library's programs have no host callback inside a loop)
+    assert "--xla_cpu_multi_thread_eigen=false" in out["flags"].split()
+    assert out["async_dispatch"] is True
     assert out["cache"] == str(tmp_path / "cache") == out["cache_dir"]
     assert out["backend_was_started"] is False
     env["PMSMJAX_CACHE"] = "0"
