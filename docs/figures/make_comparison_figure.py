@@ -1,7 +1,7 @@
 """Regenerate `docs/figures/comparison_maps.png`, the README's figure of the observer
-comparison: one observer of each paper on zhang750, paper designs, the configuration of
-`notebooks/05_observer_comparison.ipynb` (about a minute; the job folder is resumable, so
-a finished one is reused), and copies its robustness maps here.
+comparison: one observer of each paper on zhang750, paper designs, a small grid (about a
+minute; the job folder is resumable, so a finished one is reused), and copies its
+robustness maps here.
 
     .venv/bin/python docs/figures/make_comparison_figure.py [--out results/compare-readme]
 """
