@@ -264,6 +264,28 @@ def test_cli_dispatch(capsys):
     assert "--chunk-size" in capsys.readouterr().out
 
 
+def test_cli_starts_no_jax_backend_before_jax_distributed():
+    """Under --coordinator, jax.distributed must start before JAX's backend: parsing
+    the command line and checking the sweep options must not compute anything (a fresh
+    process: this one has long started its backend)."""
+    import subprocess
+    import sys
+
+    code = ("import pmsmjax as pj\n"
+            "pj.runtime.configure()\n"
+            "from jax._src import xla_bridge as xb\n"
+            "from tuning._compare_cli import build_parser\n"
+            "from pmsmjax.cli._sweep_options import sweep_settings\n"
+            "a = build_parser().parse_args(['--coordinator', 'localhost:1', "
+            "'--num-processes', '2', '--process-id', '0', '--quick'])\n"
+            "sweep_settings(a, out=a.out)\n"
+            "print('started' if xb.backends_are_initialized() else 'not started')\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().endswith("not started")
+
+
 def test_analysis_not_run_is_flagged(job):
     config, out, summary = job
     runs = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz"))

@@ -58,7 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "compiles its own observer's programs; the results do not depend "
                         "on N); 'auto': one per CPU core, at most 4; 1 under "
                         "--num-processes")
-    add_sweep_options(p, default_chunk_size=CompareConfig().chunk_size)
+    # the field's default, not `CompareConfig()`: building a configuration computes,
+    # and under --coordinator nothing may start JAX's backend before jax.distributed
+    add_sweep_options(p, default_chunk_size=CompareConfig.__dataclass_fields__[
+        "chunk_size"].default)
     p.add_argument("--no-plot", action="store_true", help="do not write the figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
