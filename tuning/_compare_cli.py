@@ -92,7 +92,7 @@ def jobs_for(value, distributed: bool) -> int:
 def main(argv=None) -> int:
     pj.runtime.configure()
     args = build_parser().parse_args(argv)
-    from .compare import CompareConfig, CompareInterrupted, run_comparison
+    from .compare import CompareConfig, CompareInterrupted, markdown, run_comparison
 
     kw = {"motor": args.motor}
     if args.observers is not None:
@@ -125,8 +125,14 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"python -m tuning compare: error: {e}", file=sys.stderr)
         return 2
+    import jax
+
+    if jax.process_index() != 0:  # process 0 writes the outputs (perhaps not yet)
+        print(f"process {jax.process_index()} done after {time.perf_counter() - t0:.1f} s; "
+              f"process 0 writes {args.out}/comparison.json")
+        return 0
     print()
-    print(open(f"{args.out}/comparison.md").read().split("\n\n## Definitions")[0])
+    print(markdown(s).split("\n\n## Definitions")[0])
     print(f"wall time {time.perf_counter() - t0:.1f} s "
           f"({s['timing']['runs_per_design']} runs per observer and design); wrote "
           f"{args.out}/comparison.json")
