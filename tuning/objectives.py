@@ -338,15 +338,20 @@ def _raw_equilibria(config, drive, kind, design, k_d, k_q, speed_pu, load_pu):
                              max_roots=MAX_ROOTS, tol=tol)
 
 
-@eqx.filter_jit
 def equilibria(design, config: TuningConfig, scenarios: ScenarioSet, kind: str | None = None
                ) -> EquilibriumSet:
     """Every equilibrium of the error dynamics at each scenario's operating point, for
     `design` (`pmsmjax.analysis.equilibria_traced`, or the family's own route
     `observer.fast_equilibria`, on the grid `config.n_grid`: not differentiable; see
     `stability_penalty` for how the loss uses them)."""
+    # one compiled program whether `kind` is left out, None or `config.observer`
+    return _equilibria_jit(design, config, scenarios,
+                           config.observer if kind is None else kind)
+
+
+@eqx.filter_jit
+def _equilibria_jit(design, config, scenarios, kind):
     drive = config.drive()
-    kind = config.observer if kind is None else kind
 
     def one(k_d, k_q, speed_pu, load_pu):
         eq = _raw_equilibria(config, drive, kind, design, k_d, k_q, speed_pu, load_pu)
@@ -606,6 +611,7 @@ def evaluate(design, config: TuningConfig, scenarios: ScenarioSet, *,
     """
     if objective is None and reference is None:
         objective = report_objective(config)
+    kind = config.observer if kind is None else kind  # the same programs as `feasibility`
     ms = []
     for part in _chunks(scenarios, chunk):
         eqs = equilibria(design, config, part, kind) if config.w_stab > 0 else None
