@@ -107,7 +107,7 @@ def run_case(name: str, work: Path) -> dict:
     for man in (out / "sweeps").glob("*/*/*/sweep.json"):
         m = json.loads(man.read_text())
         compile_s += m.get("compile_seconds") or 0.0
-        devices.add(m["devices"]["count"] * m["devices"]["process_count"])
+        devices.add(m["devices"]["count"])  # over all processes
         if man.parent.name == "runs":
             n_runs += m["n_points"]
             chunk_s += sum(c.get("seconds") or 0.0 for c in m["chunks"].values())

@@ -440,7 +440,9 @@ class _Units:
 
 
 def _atomic_write(path: pathlib.Path, data: bytes):
-    tmp = path.with_name(f".{path.name}.tmp")
+    # one temporary name per process: under jax.distributed every process may write the
+    # same (deterministic) file; os.replace makes the last complete write win
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     tmp.write_bytes(data)
     os.replace(tmp, path)
 
@@ -475,7 +477,7 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
                 objective=tcfg.objective, train_loss_paper=float(value),
                 train_loss_tuned=float(res.loss), design=res.value.table(),
                 seconds=time.perf_counter() - t)
-    buf = folder / f".{name}.eqx.tmp"
+    buf = folder / f".{name}.eqx.{os.getpid()}.tmp"
     eqx.tree_serialise_leaves(buf, res.value)
     os.replace(buf, eqx_path)
     _atomic_write(meta_path, json.dumps(_clean(meta), indent=1).encode())
