@@ -57,6 +57,7 @@ from ._gains_table import (  # noqa: E402
     gains_table_constant as gains_table_constant,
     gains_table_scheduled as gains_table_scheduled,
     load_gains_table as load_gains_table,
+    verdict_warning as verdict_warning,
     write_gains_table as write_gains_table,
 )
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402

@@ -29,6 +29,16 @@ the gains, change with the current).
 
 **Constant designs** (observers tuned by constant factors): the table is one row of the
 observer's design parameters (`design_units`), applied with `with_design`.
+
+**Provenance** (optional keys, all written by `python -m tuning`): `T_s` (s), the sampling
+period the design was tuned and validated at (a discrete observer's poles move with it:
+the gains are not valid at another period without checking); `objective`, the tuner's
+objective; `verdict`, `{"holds": bool, "baseline": str, "where_not": [str, ...]}`, whether
+the tuned design beat the paper's design on the training, held-out and closed-loop
+validation runs with no run worse (`where_not` says where it did not). A table whose
+verdict does not hold (or has none) is not a validated improvement: `gains.h` then
+emits a compiler warning (silenced by defining `PMSMJAX_GAINS_ACCEPT_UNVALIDATED`),
+and `verdict_warning(table)` gives the line the command line prints.
 """
 
 from __future__ import annotations
@@ -147,10 +157,57 @@ def gain_columns(schedule: AbstractGainSchedule, motor: PMSMParams, w_m) -> dict
     return {k: a[:, j] for j, k in enumerate(GAIN_COLUMNS)}
 
 
+def _provenance(T_s, objective, verdict) -> dict:
+    """The optional provenance keys (module docstring), checked."""
+    out = {}
+    if T_s is not None:
+        if not (isinstance(T_s, int | float) and math.isfinite(T_s) and T_s > 0):
+            raise ValueError(f"gains table: `T_s` (s) must be a finite number > 0; got "
+                             f"{T_s!r}.")
+        out["T_s"] = float(T_s)
+    if objective is not None:
+        out["objective"] = str(objective)
+    if verdict is not None:
+        out["verdict"] = _check_verdict(verdict, "gains table")
+    return out
+
+
+def _check_verdict(verdict, source: str) -> dict:
+    if not isinstance(verdict, dict) or not isinstance(verdict.get("holds"), bool):
+        raise ValueError(f"{source}: `verdict` must be a dict with a bool `holds` (and "
+                         f"optionally `baseline`, `where_not`); got {verdict!r}")
+    where_not = verdict.get("where_not", [])
+    if not isinstance(where_not, list | tuple) or not all(isinstance(w, str)
+                                                         for w in where_not):
+        raise ValueError(f"{source}: `verdict.where_not` must be a list of strings; got "
+                         f"{where_not!r}")
+    return {"holds": verdict["holds"], "baseline": str(verdict.get("baseline", "")),
+            "where_not": list(where_not)}
+
+
+def verdict_warning(table: dict) -> str | None:
+    """`None` when the table's tuner verdict holds, else one line saying that the design
+    was not validated (no verdict recorded, or where the tuned design did not beat the
+    paper's)."""
+    v = table.get("verdict")
+    what = f"the {table.get('observer', '?')} gains table"
+    if v is None:
+        return (f"{what} records no tuner verdict: it is not known to beat the paper's "
+                f"design on closed-loop validation")
+    if v["holds"]:
+        return None
+    first = v["where_not"][0] if v["where_not"] else "no reason recorded"
+    more = f" (and {len(v['where_not']) - 1} more)" if len(v["where_not"]) > 1 else ""
+    return (f"{what} did NOT beat {v['baseline'] or 'the paper design'} on the tuner's "
+            f"checks: {first}{more}; deploy it only after your own validation")
+
+
 def gains_table_scheduled(observer: str, schedule: TabulatedDesign, motor: PMSMParams, *,
-                    drive: str = "", notes=()) -> dict:
+                    drive: str = "", notes=(), T_s: float | None = None,
+                    objective: str | None = None, verdict: dict | None = None) -> dict:
     """The gains table (a JSON-ready dict) of a speed-scheduled design given as a
-    `TabulatedDesign`, with the gain columns for the machine model `motor`."""
+    `TabulatedDesign`, with the gain columns for the machine model `motor`; `T_s` (s),
+    `objective` and `verdict`: the provenance keys (module docstring)."""
     cols = {"w_m": np.asarray(schedule.w_m)}
     cols.update({n: np.asarray(getattr(schedule, n)) for n in list(DESIGN_COLUMNS)[1:]})
     cols.update(gain_columns(schedule, motor, schedule.w_m))
@@ -162,19 +219,22 @@ def gains_table_scheduled(observer: str, schedule: TabulatedDesign, motor: PMSMP
                                                                  "psi_f")},
         "columns": list(units), "units": units,
         "rows": [[float(cols[c][j]) for c in units] for j in range(len(cols["w_m"]))],
-        "notes": list(notes),
+        "notes": list(notes), **_provenance(T_s, objective, verdict),
     }
 
 
 def gains_table_constant(observer: str, values: dict, units: dict, *, drive: str = "",
-                   notes=()) -> dict:
-    """The gains table of a constant design: `values` `{name: value}` (SI, `units`)."""
+                   notes=(), T_s: float | None = None, objective: str | None = None,
+                   verdict: dict | None = None) -> dict:
+    """The gains table of a constant design: `values` `{name: value}` (SI, `units`);
+    `T_s`, `objective`, `verdict` as for `gains_table_scheduled`."""
     names = list(values)
     return {
         "format": FORMAT, "version": VERSION, "observer": observer, "kind": "constant",
         "drive": drive, "interpolation": "none: constant design parameters",
         "columns": names, "units": {n: units.get(n, "") for n in names},
         "rows": [[float(values[n]) for n in names]], "notes": list(notes),
+        **_provenance(T_s, objective, verdict),
     }
 
 
@@ -205,6 +265,12 @@ def check_gains_table(table: dict, source: str = "gains table") -> dict:
             fail(f"missing columns {', '.join(missing)}")
     elif len(rows) != 1:
         fail("a constant design has exactly one row")
+    T_s = table.get("T_s")
+    if T_s is not None and not (isinstance(T_s, int | float) and not isinstance(T_s, bool)
+                                and math.isfinite(T_s) and T_s > 0):
+        fail(f"T_s {T_s!r}; allowed: a finite sampling period > 0 (s)")
+    if "verdict" in table:
+        _check_verdict(table["verdict"], source)
     return table
 
 
@@ -271,6 +337,14 @@ def _c_name(s: str) -> str:
     return "".join(ch if ch.isalnum() else "_" for ch in s)
 
 
+def _c_comment(s: str) -> str:
+    return s.replace("*/", "* /")
+
+
+def _c_string(s: str) -> str:
+    return s.replace("\\", "\\\\").replace('"', "'")
+
+
 def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
     """A C header with the table: `#define`s for the row count and one `static const`
     array per column (`PMSMJAX_GAINS_REAL`, default `float`), units and the
@@ -278,12 +352,35 @@ def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
     P = prefix.upper()
     n = len(table["rows"])
     c = table_columns(table)
+    T_s = table.get("T_s")
+    warning = verdict_warning(table)
     out = [f"/* Gains table of the {table['observer']} observer, drive "
            f"{table.get('drive') or '(unnamed)'}, written by pmsmjax (SI units).",
-           f" * Interpolation: {table['interpolation']}.", " */",
-           f"#ifndef {P}_H", f"#define {P}_H", "",
-           f"#ifndef {P}_REAL", f"#define {P}_REAL float", "#endif", "",
-           f"#define {P}_N_ROWS {n}", ""]
+           f" * Interpolation: {table['interpolation']}.",
+           " * Sampling period: " + (f"{T_s:.9g} s (the gains were tuned and validated at "
+                                     f"this period only)" if T_s is not None else
+                                     "not recorded"),
+           f" * Tuner objective: {table.get('objective') or 'not recorded'}.",
+           " * Tuner verdict: " + ("the tuned design beat "
+                                   f"{table['verdict']['baseline'] or 'the paper design'} "
+                                   "on training, held-out and validation runs"
+                                   if warning is None else
+                                   _c_comment(warning)) + ".",
+           " */",
+           f"#ifndef {P}_H", f"#define {P}_H", ""]
+    if warning is not None:
+        out += [f"#ifndef {P}_ACCEPT_UNVALIDATED",
+                "#if defined(__GNUC__) || defined(__clang__)",
+                f'#warning "{_c_string(warning)}"',
+                "#elif defined(_MSC_VER)",
+                f'#pragma message("{_c_string(warning)}")',
+                "#endif", "#endif", ""]
+    out += [f"#ifndef {P}_REAL", f"#define {P}_REAL float", "#endif", "",
+            f"#define {P}_N_ROWS {n}",
+            f"#define {P}_VERDICT_HOLDS {0 if warning is not None else 1}"]
+    if T_s is not None:
+        out.append(f"#define {P}_T_S {T_s:.17g} /* s */")
+    out.append("")
     for name in table["columns"]:
         unit = table.get("units", {}).get(name, "")
         vals = ", ".join(f"{float(x):.9g}" for x in c[name])

@@ -4,6 +4,7 @@ them) and deploying a tuned design (gains table -> observer, `--design`)."""
 import json
 import math
 import pathlib
+import re
 import shutil
 import subprocess
 
@@ -265,3 +266,58 @@ def test_design_option_in_replay_and_simulate(tuned, tmp_path, capsys):
     assert main(["replay", "--design", str(tmp_path), "--data",
                  str(sim / "recording.npz"), "--out", str(rep)]) == 2
     assert "no gains table there" in capsys.readouterr().err
+
+
+def test_gains_table_carries_sampling_period_objective_and_verdict(tuned, tmp_path, capsys):
+    """The table records the sampling period, the objective and the tuner's verdict; a
+    verdict that does not hold (or none) makes gains.h warn when compiled (unless
+    PMSMJAX_GAINS_ACCEPT_UNVALIDATED is defined) and `--design` warn on the console."""
+    cfg, gs, _ = tuned
+    failed = {"holds": False, "baseline": "zhang2022 (38)/(25)",
+              "where_not": ["validation: 85 of 88 scenarios worse", "held-out: worse"]}
+    table = tg.gains_table(gs, cfg, verdict=failed)
+    assert table["T_s"] == cfg.T_s and table["objective"] == cfg.objective
+    assert table["verdict"] == failed
+    ok = tg.gains_table(gs, cfg, verdict=dict(failed, holds=True, where_not=[]))
+    assert pj.verdict_warning(ok) is None
+    msg = pj.verdict_warning(table)
+    assert "did NOT beat zhang2022 (38)/(25)" in msg and "85 of 88" in msg
+    assert "and 1 more" in msg
+    old = {k: v for k, v in table.items() if k not in ("verdict", "T_s", "objective")}
+    assert "records no tuner verdict" in pj.verdict_warning(pj.check_gains_table(old))
+    for bad, what in (({"T_s": -1.0}, "T_s"), ({"T_s": True}, "T_s"),
+                      ({"verdict": {"holds": "no"}}, "verdict"),
+                      ({"verdict": {"holds": False, "where_not": [1]}}, "where_not")):
+        with pytest.raises(ValueError, match=what):
+            pj.check_gains_table({**table, **bad})
+    # gains.h: the period as a define, the verdict as a define and a compiler warning
+    for name, t in (("failed", table), ("ok", ok), ("old", old)):
+        pj.write_gains_table(t, tmp_path / name)
+    text = (tmp_path / "failed" / "gains.h").read_text()
+    T_s = float(re.search(r"#define PMSMJAX_GAINS_T_S (\S+)", text).group(1))
+    assert T_s == cfg.T_s
+    assert "#define PMSMJAX_GAINS_VERDICT_HOLDS 0" in text
+    assert "#define PMSMJAX_GAINS_VERDICT_HOLDS 1" in (tmp_path / "ok" / "gains.h").read_text()
+    if shutil.which("gcc"):
+        def warnings(name, *flags):
+            p = subprocess.run(["gcc", "-fsyntax-only", "-Wall", *flags, "-x", "c",
+                                str(tmp_path / name / "gains.h")], capture_output=True,
+                               text=True, check=True)
+            return p.stderr
+
+        assert "did NOT beat" in warnings("failed")
+        assert "records no tuner verdict" in warnings("old")
+        assert warnings("ok") == ""
+        assert warnings("failed", "-DPMSMJAX_GAINS_ACCEPT_UNVALIDATED") == ""
+    # the console: --design warns about the verdict and a different sampling period
+    sim = tmp_path / "sim"
+    capsys.readouterr()
+    assert main(["simulate", "--design", str(tmp_path / "failed"), "--scenario",
+                 "load-step", "--speed", "0.4", "--t-end", "0.05", "--T-s",
+                 str(2 * cfg.T_s), "--no-plot", "--out", str(sim)]) == 0
+    err = capsys.readouterr().err
+    assert "did NOT beat" in err and f"tuned at T_s = {cfg.T_s:g} s" in err
+    assert main(["simulate", "--design", str(tmp_path / "ok"), "--scenario", "load-step",
+                 "--speed", "0.4", "--t-end", "0.05", "--T-s", str(cfg.T_s), "--no-plot",
+                 "--out", str(sim)]) == 0
+    assert "warning" not in capsys.readouterr().err

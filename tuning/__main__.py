@@ -202,6 +202,10 @@ def main(argv=None) -> int:
               f"on every scenario: {s['feasible']}; where it does not:")
         for line in v["where_not"]:
             print(f"  {line}")
+        print(f"warning: {out / 'gains.h'} (and gains.json, gains.csv) hold this tuned "
+              f"design, which did NOT pass the tuner's checks: the table records the "
+              f"verdict and gains.h warns when compiled; deploy "
+              f"{s['baseline_label']} or validate the tuned gains yourself", file=sys.stderr)
     from ._report import SPLITS, accounting_lines
 
     for split in SPLITS:

@@ -36,10 +36,13 @@ def table_speeds(config: TuningConfig, step_pu: float = 0.025) -> np.ndarray:
     return pj.gains_speed_grid(float(config.drive().w_rated), n_half * step_pu, n_half)
 
 
-def gains_table(design, config: TuningConfig, *, step_pu: float = 0.025) -> dict:
+def gains_table(design, config: TuningConfig, *, step_pu: float = 0.025,
+                verdict: dict | None = None) -> dict:
     """The gains table (JSON-ready dict, `pmsmjax.load_gains_table` format) of the tuned
     `design` (a `GainSchedule` or a `ConstantDesign`) for the problem `config`: the
-    observer's nominal model is the drive's machine."""
+    observer's nominal model is the drive's machine. The table carries the sampling
+    period `config.T_s`, the objective and `verdict` (the tuner's verdict,
+    `{"holds", "baseline", "where_not"}`; None: not recorded, and `gains.h` warns)."""
     drive = config.drive()
     motor = drive.three_phase_motor
     notes = [f"tuned by `python -m tuning` ({config.objective} objective, "
@@ -48,6 +51,7 @@ def gains_table(design, config: TuningConfig, *, step_pu: float = 0.025) -> dict
              f"[{config.mismatch[0]:g}, {config.mismatch[1]:g}], speeds "
              f"{', '.join(f'{s:g}' for s in config.speeds_pu)} p.u. of w_rated = "
              f"{float(drive.w_rated):.6g} rad/s"]
+    provenance = dict(T_s=float(config.T_s), objective=config.objective, verdict=verdict)
     if isinstance(design, GainSchedule):
         w = table_speeds(config, step_pu)
         v = {k: np.asarray(x, dtype=float)
@@ -57,12 +61,12 @@ def gains_table(design, config: TuningConfig, *, step_pu: float = 0.025) -> dict
             w1=jnp.asarray(v["ratio"] * np.abs(w)), zeta2=jnp.asarray(v["zeta2"]),
             w2=jnp.asarray(v["w2"]), nu2=jnp.asarray(v["nu2"]), nu3=jnp.asarray(v["nu3"]))
         return pj.gains_table_scheduled(config.observer, sched, motor, drive=drive.name,
-                                        notes=notes)
+                                        notes=notes, **provenance)
     if isinstance(design, ConstantDesign):
         obs = make_observer(config.observer, drive, design)
         units = type(obs).design_units
         values = {n: float(x) for n, x in design.values().items()}
         return pj.gains_table_constant(config.observer, values, dict(units),
-                                       drive=drive.name, notes=notes)
+                                       drive=drive.name, notes=notes, **provenance)
     raise ValueError(f"`gains_table(design=...)` must be a `GainSchedule` or a "
                      f"`ConstantDesign`; got {type(design).__name__}.")

@@ -294,10 +294,12 @@ def write_report(report: TuningReport, out, *, plot: bool = True) -> dict:
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     eqx.tree_serialise_leaves(out / SCHEDULE_FILE, report.tuned)
-    # deployment: the tuned gains as a lookup table, and the drive they were tuned for
-    pj.write_gains_table(gains_table(report.tuned, report.config), out)
-    pj.save_motor_file(report.config.drive(), out / MOTOR_FILE)
     s = summary(report)
+    # deployment: the tuned gains as a lookup table (with the sampling period, objective
+    # and verdict), and the drive they were tuned for
+    verdict = dict(s["verdict"], baseline=s["baseline_label"])
+    pj.write_gains_table(gains_table(report.tuned, report.config, verdict=verdict), out)
+    pj.save_motor_file(report.config.drive(), out / MOTOR_FILE)
     (out / SUMMARY_FILE).write_text(json.dumps(s, indent=1, allow_nan=False))
     if plot:
         plot_report(report, out)

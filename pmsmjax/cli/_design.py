@@ -47,6 +47,13 @@ def observer_with_design(args, drive: pj.Drive, *, default: str) -> ObserverChoi
         raise CLIError(f"--design {args.design} sets the whole design; the design options "
                        f"({', '.join(choice.gains)}) are not allowed with it")
     observer = pj.apply_gains_table(table, choice.observer)
+    warning = pj.verdict_warning(table)
+    if warning is not None:
+        print(f"warning: --design {args.design}: {warning}", file=sys.stderr)
+    if table.get("T_s") is not None and getattr(args, "T_s", None) is not None \
+            and abs(float(args.T_s) - float(table["T_s"])) > 1e-9 * float(table["T_s"]):
+        print(f"warning: --design {args.design} was tuned at T_s = {table['T_s']:g} s; "
+              f"this run uses {float(args.T_s):g} s", file=sys.stderr)
     if table.get("drive") and table["drive"] != drive.name:
         print(f"note: --design {args.design} was tuned for drive {table['drive']!r}; this "
               f"run uses {drive.name!r} (pass its motor file with --motor-file)",
