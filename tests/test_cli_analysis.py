@@ -121,8 +121,8 @@ def test_feasibility_several_speeds_and_standstill(tmp_path):
 
 
 def test_feasibility_with_inductance_mismatch(tmp_path, capsys):
-    assert main(["feasibility", "--i-q", "1", "--mismatch-L-d", "0.7", "--mismatch-L-q",
-                 "1.5", "--zeta1", "0.5:2:2", "--ratio", "0.5:1:2", "--speed", "0.05",
+    assert main(["feasibility", "--i-q", "1", "--mismatch", "L_d=0.7", "--mismatch",
+                 "L_q=1.5", "--zeta1", "0.5:2:2", "--ratio", "0.5:1:2", "--speed", "0.05",
                  "--no-plot", "--out", str(tmp_path)]) == 0
     assert "(general)" in capsys.readouterr().out
     with np.load(tmp_path / "feasibility.npz", allow_pickle=False) as f:
@@ -187,9 +187,9 @@ EQUILIBRIUM_KEYS = {"theta_deg", "theta_rad", "designed", "stable", "tangent", "
 
 
 def test_equilibria_mismatch_json_schema(capsys):
-    """`--observer leso --mismatch-L-q 1.5 --json`: the schema of every observer, state
+    """`--observer leso --mismatch L_q=1.5 --json`: the schema of every observer, state
     names and units from `observer.coordinates`; the designed equilibrium moves off 0."""
-    assert main(["equilibria", "--observer", "leso", "--mismatch-L-q", "1.5", "--i-q", "1",
+    assert main(["equilibria", "--observer", "leso", "--mismatch", "L_q=1.5", "--i-q", "1",
                  "--json"]) == 0
     report = _strict_json(capsys.readouterr().out)
     assert {"command", "motor", "operating_point", "observer", "design", "status",
@@ -222,9 +222,9 @@ def test_equilibria_mismatch_json_schema(capsys):
 
 def test_equilibria_no_equilibrium_is_its_own_status(capsys):
     """A mismatch without any equilibrium: status 'no equilibrium' (code 2) in the text and
-    the JSON, exit 0; --observer-set gives the same observer model as --mismatch-L-q."""
+    the JSON, exit 0; --observer-set gives the same observer model as --mismatch L_q=RATIO."""
     base = ["equilibria", "--i-q", "2", "--speed", "0.02", "--zeta1", "0.5", "--ratio", "0.25"]
-    assert main([*base, "--mismatch-L-q", "1.5"]) == 0
+    assert main([*base, "--mismatch", "L_q=1.5"]) == 0
     out = capsys.readouterr().out
     assert "0 equilibria; status no equilibrium; design no equilibrium" in out
     L_q = repr(1.5 * float(DRIVE.motor.L_q))
@@ -293,7 +293,7 @@ def _fake_certificate(real):
 def test_certify_passes_any_observer_with_mismatch(monkeypatch, tmp_path, capsys):
     fake, seen = _fake_certificate(analysis.slowly_varying_certificate)
     monkeypatch.setattr(analysis, "slowly_varying_certificate", fake)
-    assert main(["certify", "--observer", "eso", "--mismatch-R-s", "1.2", "--observer-set",
+    assert main(["certify", "--observer", "eso", "--mismatch", "R_s=1.2", "--observer-set",
                  "L_d=3e-3", "--gain", "w2=400", "--a", "0.7", "--speed-range", "0.3:1",
                  "--i-q", "0.5", "--quick", "--out", str(tmp_path)]) == 0
     obs = seen["observer"]
@@ -314,7 +314,7 @@ def test_certify_passes_any_observer_with_mismatch(monkeypatch, tmp_path, capsys
 @pytest.mark.slow
 def test_certify_with_mismatch_matches_the_api(capsys):
     args = ["certify", "--quick", "--n-speed", "3", "--n-dirs", "16", "--speed-range",
-            "0.3:1", "--i-q", "0.5", "--mismatch-L-q", "1.2"]
+            "0.3:1", "--i-q", "0.5", "--mismatch", "L_q=1.2"]
     assert main(args) == 0
     report = _strict_json(capsys.readouterr().out)
     m_hat = pj.replace_params(DRIVE, L_q=1.2 * float(DRIVE.motor.L_q)).motor
@@ -388,7 +388,8 @@ def _psi_a0_zero_current():
     (["certify", "--speed-range", "0:1"], ["--speed-range", "0 < LO < HI"]),
     (["certify", "--speed-range", "1:0.5"], ["--speed-range", "LO < HI"]),
     (["certify", "--c3", "1.5"], ["--c3 1.5", "0 < C3 < 1"]),
-    # observers from the registry: --observer, --gain, --observer-set, --mismatch-*
+    # observers from the registry: --observer, --gain, --observer-set, --mismatch (and
+    # the deprecated --mismatch-X RATIO, checked while parsing)
     (["equilibria", "--observer", "kalman"],
      ["--observer", "invalid choice: 'kalman'", "'eso', 'leso', 'afo'"]),
     (["equilibria", "--gain", "foo=1"],
@@ -409,9 +410,13 @@ def _psi_a0_zero_current():
     (["certify", "--observer-set", "L_q=big"], ["--observer-set", "'L_q=big'", "not a number"]),
     (["equilibria", "--mismatch-L-q", "0"], ["--mismatch-L-q", "'0'", "> 0"]),
     (["certify", "--mismatch-psi-f", "-1.5"], ["--mismatch-psi-f", "'-1.5'", "> 0"]),
-    (["equilibria", "--mismatch-L-q", "1.5", "--observer-set", "L_q=0.004"],
-     ["--mismatch-L-q 1.5", "--observer-set L_q=0.004", "both set the observer's L_q",
+    (["equilibria", "--mismatch", "L_q=1.5", "--observer-set", "L_q=0.004"],
+     ["--mismatch L_q=1.5", "--observer-set L_q=0.004", "both set the observer's L_q",
       "allowed: one of the two"]),
+    (["equilibria", "--mismatch", "L_q=0"], ["--mismatch L_q=0", "> 0"]),
+    (["equilibria", "--mismatch", "Lq=1.2"], ["--mismatch Lq=1.2", "unknown parameter",
+                                             "allowed: R_s, L_d, L_q, psi_f"]),
+    (["equilibria", "--mismatch", "L_q"], ["--mismatch", "'L_q'", "NAME=VALUE"]),
     # design axes of the map
     (["feasibility", "--x", "zeta1"], ["--x", "'zeta1'", "NAME=LO:HI:N"]),
     (["feasibility", "--x", "zeta1=0:5"], ["--x", "'0:5'", "LO:HI:N"]),

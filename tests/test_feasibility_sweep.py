@@ -155,5 +155,5 @@ def test_a_map_reuses_only_its_own_compiled_function():
     assert key(*SALIENT, "--zeta1", "0:1:3", "--chunk-size", "7") == base  # grid, chunks
     others = [key(*SALIENT[:-2], "--i-q", "1"), key("--i-q", "2"),
               key(*SALIENT, "--set", "psi_f=0.05"), key(*SALIENT, "--zeta2", "0.8"),
-              key(*SALIENT, "--mismatch-R-s", "1.2"), key(*SALIENT, "--observer", "eso")]
+              key(*SALIENT, "--mismatch", "R_s=1.2"), key(*SALIENT, "--observer", "eso")]
     assert len({base, *others}) == 1 + len(others)

@@ -151,8 +151,8 @@ def test_cli_help_and_bad_arguments(tmp_path, capsys):
     assert "invalid choice: 'nosuchmotor'" in capsys.readouterr().err
 
     for argv, fragment in ((["--n-mismatch", "0"], "mismatch grid is empty"),
-                           (["--mismatch", "-1", "1.5"], "0 < lo <= hi"),
-                           (["--tune", "w2,bogus"], "distinct names")):
+                           (["--mismatch-range", "-1", "1.5"], "0 < lo <= hi"),
+                           (["--tune", "w2", "bogus"], "distinct names")):
         assert main(["--quick", "--out", str(tmp_path / "x"), *argv]) == 2
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
@@ -465,7 +465,7 @@ def test_cli_observer_option(registered, tmp_path, capsys):
     assert err.startswith("python -m tuning: error:") and "declares no tunable design" in err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert main(["--quick", "--observer", "leso", "--parametrisation", "constant",
-                 "--tune", "w2,zeta1", "--out", str(out)]) == 2
+                 "--tune", "w2", "zeta1", "--out", str(out)]) == 2
     assert "distinct names from w2, zeta2" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         main(["--observer", "nosuchobserver", "--out", str(out)])

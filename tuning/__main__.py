@@ -10,7 +10,10 @@ preset (`--motor`) or your own (`--motor-file`), changed by `--set`. Exit status
 success, 2 for a bad configuration (one-line message, no traceback).
 
 `python -m tuning compare ...` runs the side-by-side comparison of every observer instead
-(`tuning.compare`; `python -m tuning compare --help`).
+(`tuning.compare`; `python -m tuning compare --help`). `pmsmjax tune` and `pmsmjax
+compare` run the same two commands; the options they share with the other `pmsmjax`
+commands (`--motor`, `--motor-file`, `--set`, lists, deprecated spellings) come from
+`pmsmjax.cli._options`.
 """
 
 from __future__ import annotations
@@ -22,16 +25,29 @@ import sys
 import time
 
 import pmsmjax as pj
-from pmsmjax.cli._options import name_value, out_dir_transaction
+from pmsmjax.cli._options import (
+    DeprecatedOption,
+    ListOption,
+    add_drive_options,
+    finite_float,
+    out_dir_transaction,
+)
 from pmsmjax.observers import observer_names
 
 from .scenarios import MOTOR_QUICK_DEFAULTS, OBJECTIVES, OPTIMISERS, PARAMETRISATIONS, TuningConfig
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
     d = TuningConfig()
+    compare = prog.replace("tune", "compare") if prog.endswith("tune") else \
+        f"{prog} compare"
     p = argparse.ArgumentParser(
-        prog="python -m tuning",
+        prog=prog,
+        epilog=(f"`{compare} --help`: the other command of the tuner, every observer "
+                "(paper design and tuned) side by side on one common grid of closed-loop "
+                "runs. The tuned gains are written as gains.json, gains.csv and gains.h "
+                "with the sampling period and the verdict; gains.h warns when compiled if "
+                "the tuned design did not pass validation."),
         description=(
             "Gradient-based tuning of a sensorless observer's design (default: the "
             "zhang2022 ESO gain schedule) so that the observer stays fast, accurate and "
@@ -48,18 +64,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--out", default="results/tuning", metavar="DIR",
                    help="output folder (summary.json, tuned_schedule.eqx, plots)")
-    p.add_argument("--motor", default=d.motor, choices=pj.PRESET_NAMES,
-                   help="motor preset (plant and nominal observer model)")
-    p.add_argument("--motor-file", default=None, metavar="FILE",
-                   help="your own drive as a motor file (TOML; `pmsmjax motor --export "
-                        "NAME` writes a preset as one), instead of --motor")
-    p.add_argument("--set", dest="set_params", action="append", default=[],
-                   type=name_value, metavar="NAME=VALUE",
-                   help="replace a drive parameter (SI units, e.g. J=3e-3), repeatable; "
-                        "changes the plant and the observer's nominal model")
+    add_drive_options(p)  # --motor, --motor-file, --set: as every pmsmjax command
     p.add_argument("--observer", default=d.observer, choices=observer_names(),
-                   help="observer to tune (a registered name: its class declares the "
-                        "tunable design, its from_drive the paper's design)")
+                   metavar="NAME",
+                   help=f"observer to tune, one of {', '.join(observer_names())} (its "
+                        f"class declares the tunable design, its from_drive the paper's "
+                        f"design)")
     p.add_argument("--parametrisation", default=d.parametrisation, choices=PARAMETRISATIONS,
                    help="auto: speed-scheduled gains if the observer declares them, else "
                         "constant factors on its paper design; or force one")
@@ -80,23 +90,32 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Adam learning rate (unconstrained units)")
     p.add_argument("--patience", type=int, default=d.patience,
                    help="early stop after this many steps without improvement (0: never)")
-    p.add_argument("--seed", type=int, default=d.seed,
+    p.add_argument("--seed", type=int, default=d.seed, metavar="N",
                    help="seed of the noise keys and of the random search")
-    p.add_argument("--mismatch", type=float, nargs=2, default=d.mismatch,
-                   metavar=("LO", "HI"), help="range of L_hat / L for L_d and L_q")
+    p.add_argument("--mismatch-range", dest="mismatch", type=finite_float, nargs=2,
+                   default=d.mismatch, metavar=("LO", "HI"),
+                   help="range of the training mismatch ratios L_hat / L (observer / "
+                        "plant, -) of L_d and L_q")
+    p.add_argument("--mismatch", dest="mismatch", type=finite_float, nargs=2,
+                   default=d.mismatch, metavar=("LO", "HI"), action=DeprecatedOption,
+                   instead="give --mismatch-range LO HI (in the analysis commands "
+                           "--mismatch NAME=RATIO is one ratio)",
+                   help="deprecated: --mismatch-range LO HI")
     p.add_argument("--n-mismatch", type=int, default=d.n_mismatch,
                    help="training values per inductance (grid n x n)")
     p.add_argument("--n-heldout", type=int, default=d.n_heldout,
                    help="held-out values per inductance (midpoints, disjoint)")
-    p.add_argument("--speeds", type=float, nargs="+", default=d.speeds_pu, metavar="PU",
-                   help="operating speeds (p.u. of rated, nonzero)")
-    p.add_argument("--loads", type=float, nargs="+", default=d.loads_pu, metavar="PU",
-                   help="loads (p.u. of rated torque)")
-    p.add_argument("--nodes", type=float, nargs="+", default=d.nodes_pu, metavar="PU",
-                   help="speed nodes of the gain schedule (p.u.; scheduled designs)")
-    p.add_argument("--tune", default=None, metavar="NAMES",
-                   help=f"comma-separated quantities to tune (default: every quantity the "
-                        f"observer declares; for the ESO {','.join(d.tuned)})")
+    p.add_argument("--speeds", action=ListOption, item=finite_float, default=d.speeds_pu,
+                   metavar="PU", help="operating speeds (p.u. of rated, nonzero), separated "
+                                      "by spaces")
+    p.add_argument("--loads", action=ListOption, item=finite_float, default=d.loads_pu,
+                   metavar="PU", help="loads (p.u. of rated torque), separated by spaces")
+    p.add_argument("--nodes", action=ListOption, item=finite_float, default=d.nodes_pu,
+                   metavar="PU", help="speed nodes of the gain schedule (p.u.; scheduled "
+                                      "designs), separated by spaces")
+    p.add_argument("--tune", action=ListOption, default=None, metavar="NAME",
+                   help=f"quantities to tune, separated by spaces (default: every quantity "
+                        f"the observer declares; for the ESO {' '.join(d.tuned)})")
     p.add_argument("--t-end", type=float, default=d.t_end, metavar="S",
                    help="length of each run (s)")
     p.add_argument("--t-transient", type=float, default=d.t_transient, metavar="S",
@@ -120,12 +139,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args) -> TuningConfig:
     d = TuningConfig()
-    base = TuningConfig.quick(**MOTOR_QUICK_DEFAULTS.get(args.motor, {})) if args.quick \
-        else TuningConfig.for_motor(args.motor)
-    kw = {}
+    motor = d.motor if args.motor is None else args.motor
+    base = TuningConfig.quick(**MOTOR_QUICK_DEFAULTS.get(motor, {})) if args.quick \
+        else TuningConfig.for_motor(motor)
+    kw = {"motor": motor} if motor != d.motor else {}
     # an option changes the configuration only if it differs from the CLI default, so
     # that --quick keeps its own values unless an option overrides them
-    for opt, field in (("motor", "motor"), ("observer", "observer"),
+    for opt, field in (("observer", "observer"),
                        ("parametrisation", "parametrisation"), ("optimiser", "optimiser"),
                        ("objective", "objective"), ("regression_tol", "regression_tol"),
                        ("steps", "steps"), ("lr", "learning_rate"),
@@ -143,33 +163,36 @@ def config_from_args(args) -> TuningConfig:
         if v != tuple(getattr(d, field)):
             kw[field] = v
     if args.motor_file is not None:
-        if args.motor != d.motor:
+        if args.motor is not None:
             raise ValueError(f"--motor {args.motor} and --motor-file {args.motor_file}: give "
                              f"one of the two")
         kw["motor_file"] = args.motor_file
     if args.set_params:
         kw["set_params"] = tuple(args.set_params)
     if args.tune is not None:
-        kw["tuned"] = tuple(s.strip() for s in args.tune.split(",") if s.strip())
+        kw["tuned"] = tuple(args.tune)
     # the motor's own defaults (`MOTOR_DEFAULTS`) are in `base` (`TuningConfig.for_motor`)
     return base.replace(**kw)
 
 
-def main(argv=None) -> int:
+def main(argv=None, prog: str = "python -m tuning") -> int:
+    """Run the tuner's command line `argv` (default `sys.argv[1:]`; `compare ...`: the
+    comparison job); `prog`: the name the messages use (`pmsmjax tune` hands over with
+    its own). Returns the exit status."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv and argv[0] == "compare":  # `python -m tuning compare ...`: the comparison job
         from ._compare_cli import main as compare_main
 
-        return compare_main(argv[1:])
+        return compare_main(argv[1:], prog=f"{prog} compare")
     # process settings of an entry point, before any computation (building the parser
     # builds the default `TuningConfig`, which already computes)
     pj.runtime.configure()
-    parser = build_parser()
+    parser = build_parser(prog)
     args = parser.parse_args(argv)  # bad options: argparse exits with status 2
     try:
         config = config_from_args(args)
     except ValueError as e:
-        print(f"python -m tuning: error: {e}", file=sys.stderr)
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     out = pathlib.Path(args.out)
     from ._pipeline import run_tuning

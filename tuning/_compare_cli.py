@@ -12,16 +12,16 @@ import sys
 import time
 
 import pmsmjax as pj
-from pmsmjax.cli._options import CLIError
+from pmsmjax.cli._options import CLIError, ListOption, add_drive_options
 from pmsmjax.cli._sweep_options import add_sweep_options, init_distributed, sweep_settings
 from pmsmjax.observers import observer_names
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(prog: str = "python -m tuning compare") -> argparse.ArgumentParser:
     from .compare import TUNERS, CompareConfig
 
     p = argparse.ArgumentParser(
-        prog="python -m tuning compare",
+        prog=prog,
         description=(
             "Which observer for my drive? Runs every registered observer that applies to "
             "the motor (or --observers), with its paper design and the design tuned by "
@@ -32,15 +32,15 @@ def build_parser() -> argparse.ArgumentParser:
             "and writes one table (comparison.md), the numbers (comparison.json) and "
             "figures. Interrupted runs continue where they stopped."),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--motor", default="zhang750", choices=pj.PRESET_NAMES,
-                   help="motor preset (plant and the observers' nominal model)")
-    p.add_argument("--observers", default=None, metavar="NAMES",
-                   help=f"comma-separated registered observers (default: every one that "
-                        f"applies to the motor: {','.join(observer_names())})")
+    add_drive_options(p)  # --motor, --motor-file, --set: as every pmsmjax command
+    p.add_argument("--observers", action=ListOption, default=None, metavar="NAME",
+                   help=f"registered observers, separated by spaces (default: every one "
+                        f"that applies to the motor: {' '.join(observer_names())})")
     p.add_argument("--out", default="results/compare", metavar="DIR",
                    help="job folder (outputs, and the state that makes the job resumable)")
     p.add_argument("--quick", action="store_true",
-                   help="a first look in about two minutes (CompareConfig.quick): a small "
+                   help="a first look, about 80 s on a 2-core CPU from an empty "
+                        "compilation cache (CompareConfig.quick; BENCHMARKS.md): a small "
                         "grid, the paper designs only, no equilibrium analysis (add "
                         "--tuner local and --analysis for the tuned designs and the "
                         "feasible fraction)")
@@ -89,14 +89,22 @@ def jobs_for(value, distributed: bool) -> int:
     return value
 
 
-def main(argv=None) -> int:
+def main(argv=None, prog: str = "python -m tuning compare") -> int:
     pj.runtime.configure()
-    args = build_parser().parse_args(argv)
+    args = build_parser(prog).parse_args(argv)
     from .compare import CompareConfig, CompareInterrupted, markdown, run_comparison
 
-    kw = {"motor": args.motor}
+    kw = {"motor": args.motor or "zhang750"}
+    if args.motor_file is not None:
+        if args.motor is not None:
+            print(f"{prog}: error: --motor {args.motor} and --motor-file "
+                  f"{args.motor_file}: give one of the two", file=sys.stderr)
+            return 2
+        kw["motor_file"] = args.motor_file
+    if args.set_params:
+        kw["set_params"] = tuple(args.set_params)
     if args.observers is not None:
-        kw["observers"] = tuple(s.strip() for s in args.observers.split(",") if s.strip())
+        kw["observers"] = tuple(args.observers)
     kw["chunk_size"] = args.chunk_size
     for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps"),
                        ("analysis", "analysis")):
@@ -110,7 +118,7 @@ def main(argv=None) -> int:
         init_distributed(settings)
         config = CompareConfig.quick(**kw) if args.quick else CompareConfig(**kw)
     except (ValueError, CLIError) as e:
-        print(f"python -m tuning compare: error: {e}", file=sys.stderr)
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     t0 = time.perf_counter()
     try:
@@ -119,11 +127,11 @@ def main(argv=None) -> int:
                            sweep_dir=sweep_dir, batch_size=settings.batch_size,
                            jobs=jobs_for(args.jobs, settings.distributed))
     except CompareInterrupted as e:
-        print(f"python -m tuning compare: interrupted: {e}; run again to continue",
+        print(f"{prog}: interrupted: {e}; run again to continue",
               file=sys.stderr)
         return 3
     except ValueError as e:
-        print(f"python -m tuning compare: error: {e}", file=sys.stderr)
+        print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     import jax
 

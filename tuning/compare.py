@@ -101,7 +101,14 @@ from pmsmjax.observers import (
 from ._report import _clean
 from .objectives import evaluate, report_objective
 from .optimise import optimise
-from .scenarios import MOTOR_DEFAULTS, TuningConfig, make_observer, operating_current
+from .scenarios import (
+    MOTOR_DEFAULTS,
+    TuningConfig,
+    _drive,
+    _mtime,
+    make_observer,
+    operating_current,
+)
 from .validation import RAMP, ValidationSet, observer_model, simulate_validation
 
 
@@ -145,6 +152,10 @@ class CompareConfig:
     """Everything that defines a comparison (see the module docstring).
 
     - `motor`: preset name; `observers`: registered names (None: every one that applies).
+    - `motor_file`: a motor file (TOML) of your own drive instead of a preset (stored as
+      an absolute path; `motor` becomes the name the file gives its drive);
+      `set_params`: `((name, value), ...)` drive parameters replaced (SI units), as
+      `TuningConfig`'s.
     - `T_s` (s), `t_end` (s): sampling period and length of each run; `save_every`: samples
       kept (every n-th).
     - `speeds_pu` (p.u., > 0, each run with both signs), `loads_pu` (p.u. of rated torque,
@@ -163,6 +174,8 @@ class CompareConfig:
 
     motor: str = "zhang750"
     observers: tuple | None = None
+    motor_file: str | None = None
+    set_params: tuple = ()
     T_s: float = 125e-6
     t_end: float = 0.4
     save_every: int = 2
@@ -183,9 +196,22 @@ class CompareConfig:
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
-        if self.motor not in pj.PRESET_NAMES:
+        if self.motor_file is None and self.motor not in pj.PRESET_NAMES:
             raise ValueError(f"`CompareConfig(motor=...)` must be one of "
-                             f"{', '.join(pj.PRESET_NAMES)}; got {self.motor!r}.")
+                             f"{', '.join(pj.PRESET_NAMES)} (or give `motor_file`); got "
+                             f"{self.motor!r}.")
+        try:
+            set_("set_params", tuple((str(n), float(v)) for n, v in self.set_params))
+        except (TypeError, ValueError):
+            raise ValueError(f"`CompareConfig(set_params=...)` must be (name, value) pairs "
+                             f"(SI units); got {self.set_params!r}.") from None
+        if self.motor_file is not None:
+            set_("motor_file", os.path.abspath(os.fspath(self.motor_file)))
+            try:
+                set_("motor", self.drive().name)
+            except OSError as e:
+                raise ValueError(f"`CompareConfig(motor_file=...)` cannot be read: {e}"
+                                 ) from None
         if self.observers is not None:
             obs = tuple(str(o).strip().lower() for o in self.observers if str(o).strip())
             unknown = [o for o in obs if o not in observer_names()]
@@ -233,7 +259,7 @@ class CompareConfig:
 
     @classmethod
     def quick(cls, **changes) -> CompareConfig:
-        """The `--quick` comparison, a first look in about two minutes on two cores: the
+        """The `--quick` comparison, a first look in about 80 s on two cores: the
         paper designs only (`tuner="none"`) and no generic equilibrium analysis
         (`analysis=False`), whose compilations per observer are what a small comparison
         spends its time on (see BENCHMARKS.md); 4 kHz, 0.3 s runs, speeds +-{0.05, 0.25,
@@ -262,12 +288,20 @@ class CompareConfig:
                               ).hexdigest()[:16]
 
     def drive(self) -> pj.Drive:
-        return pj.preset(self.motor)
+        """The preset `motor` or the drive of `motor_file`, with `set_params` applied."""
+        return _drive(self.motor, self.motor_file, self.set_params,
+                      _mtime(self.motor_file))
+
+    def _drive_kw(self) -> dict:
+        """The drive of a `TuningConfig`: the preset, or the motor file, and `--set`."""
+        if self.motor_file is None:
+            return dict(motor=self.motor, set_params=self.set_params)
+        return dict(motor_file=self.motor_file, set_params=self.set_params)
 
     def run_config(self, observer: str) -> TuningConfig:
         """The `TuningConfig` whose validation runs are this comparison's runs."""
         load = max(self.loads_pu)
-        return TuningConfig(motor=self.motor, observer=observer, T_s=self.T_s,
+        return TuningConfig(**self._drive_kw(), observer=observer, T_s=self.T_s,
                             noise_std=self.noise_std, seed=self.seed,
                             save_every=self.save_every, val_t_end=self.t_end,
                             val_start_frac=self.start_frac, val_load_pu=load,
@@ -278,7 +312,7 @@ class CompareConfig:
         `MOTOR_DEFAULTS` initial angle error and mismatch range), `tune_steps` steps."""
         md = MOTOR_DEFAULTS.get(self.motor, {})
         kw = {k: md[k] for k in ("theta_err0_deg", "mismatch", "T_s") if k in md}
-        return TuningConfig.quick(motor=self.motor, observer=observer,
+        return TuningConfig.quick(**self._drive_kw(), observer=observer,
                                   steps=max(self.tune_steps, 1), patience=0,
                                   seed=self.seed, **kw)
 

@@ -3,7 +3,8 @@
 Every command is a module of this package that defines `COMMAND`, a `Command` with its
 name, help texts, `add_arguments(parser)` and `run(args) -> exit status`; `COMMANDS` below
 lists them, and `build_parser` makes one argparse subparser per command. The options that
-several commands share are defined once in `_options.py`.
+several commands share are defined once in `_options.py`. `tune` and `compare` hand
+over to the `tuning` package, imported only when they run (`_tuning.py`).
 
 Errors in the inputs (a bad file, a bad `--set`, an unknown motor or observer, an invalid
 option value) end the command with exit status 2 and a one-line message on stderr, without
@@ -28,6 +29,7 @@ from . import (
     _replay,
     _response,
     _simulate,
+    _tuning,
 )
 from ._options import CLIError, Command, out_dir_transaction
 
@@ -39,6 +41,8 @@ COMMANDS: dict[str, Command] = {
     + (_response,)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
+COMMANDS[_tuning.TUNE.name] = _tuning.TUNE
+COMMANDS[_tuning.COMPARE.name] = _tuning.COMPARE
 
 
 class _Parser(argparse.ArgumentParser):
@@ -73,6 +77,13 @@ def main(argv: list[str] | None = None) -> int:
 
     0 = success, 1 = the run finished but failed (e.g. diverged), 2 = bad input.
     """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in _tuning.HANDOVER:  # `tuning` parses and runs these itself
+        try:
+            return _tuning.handover(argv[0], argv[1:])
+        except CLIError as e:
+            print(_one_line(e), file=sys.stderr)
+            return 2
     pj.runtime.configure()  # process settings of an entry point, before any computation
     parser = build_parser()
     try:

@@ -3,7 +3,7 @@
 FILE is the tuner's output: the gains table `gains.json` that `python -m tuning` writes,
 or its output folder (or any file in it, such as `tuned_schedule.eqx`). The observer is
 the table's (`--observer` may be left out or must name the same one); its machine model
-follows `--observer-set` / `--mismatch-*` as usual, and the design replaces the paper's
+follows `--observer-set` / `--mismatch` as usual, and the design replaces the paper's
 (`pmsmjax.apply_gains_table`), so `--gain` and the design shorthands are not allowed
 with it.
 """

@@ -12,14 +12,21 @@ import pmsmjax as pj
 from ._options import CLIError, Command, add_drive_options, drive_from_args
 
 
+#: The file name `--out DIR` writes (the tuner writes its drive under the same name).
+MOTOR_FILE = "motor.toml"
+
+
 def _motor_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     g = p.add_argument_group("motor file")
     g.add_argument("--export", default=None, choices=pj.PRESET_NAMES, metavar="NAME",
                    help=f"write the motor file of the preset NAME (one of "
                         f"{', '.join(pj.PRESET_NAMES)}); the same as --motor NAME")
-    g.add_argument("--out", dest="out_file", default=None, metavar="FILE",
-                   help="write the motor file to FILE (default: print it on stdout)")
+    g.add_argument("--out", dest="out_dir", default=None, metavar="DIR",
+                   help="write the motor file to DIR/motor.toml, DIR created if missing, "
+                        "as every command writes into its --out folder (default: print it "
+                        "on stdout). A FILE ending in .toml (the old meaning) still works, "
+                        "with a deprecation message")
     g.add_argument("--check", action="store_true",
                    help="only validate the drive (--motor-file FILE) and print a summary: "
                         "parameters, per-unit bases and derived ratings")
@@ -63,15 +70,24 @@ def motor_command(args: argparse.Namespace) -> int:
         print("valid")
         return 0
     text = pj.motor_file_text(drive)
-    if args.out_file is None:
+    if args.out_dir is None:
         sys.stdout.write(text)
         return 0
-    folder = os.path.dirname(args.out_file)
+    if args.out_dir.endswith(".toml") and not os.path.isdir(args.out_dir):
+        print(f"pmsmjax motor: --out {args.out_dir} (a file) is deprecated; --out is a "
+              f"folder in every command: give --out DIR to write DIR/{MOTOR_FILE}",
+              file=sys.stderr)
+        path = args.out_dir
+    else:
+        if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
+            raise CLIError(f"--out {args.out_dir!r} exists and is not a directory")
+        path = os.path.join(args.out_dir, MOTOR_FILE)
+    folder = os.path.dirname(path)
     if folder:
         os.makedirs(folder, exist_ok=True)
-    pj.save_motor_file(drive, args.out_file)
+    pj.save_motor_file(drive, path)
     print("\n".join(_summary(drive)))
-    print(f"wrote {args.out_file}")
+    print(f"wrote {path}")
     return 0
 
 
@@ -80,9 +96,10 @@ COMMAND = Command(
     help="write a drive as a motor file (TOML), or check one",
     description=(
         "Write the drive given by --motor NAME (or --export NAME) or --motor-file FILE, "
-        "after the --set replacements, as a motor file (TOML, SI units) to --out FILE or "
-        "stdout; every command and `python -m tuning` accept it with --motor-file. With "
-        "--check, only validate it and print its parameters, bases and rated back-EMF. "
+        "after the --set replacements, as a motor file (TOML, SI units) to --out "
+        "DIR/motor.toml or stdout; every command (tune and compare too) accepts it with "
+        "--motor-file. With --check, only validate it and print its parameters, bases "
+        "and rated back-EMF. "
         "A malformed file ends with exit status 2 and a message that names the field and "
         "the allowed range."
     ),

@@ -11,6 +11,17 @@ r"""Options and helpers shared by the subcommands of `pmsmjax`, each defined onc
   (`--w2`/`--bandwidth`, `--zeta2`, `--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min`,
   `--fixed-at`, `--a`, `--eta`), which only translate into `--gain` values.
 
+**One spelling and one unit per option, across `pmsmjax` and `python -m tuning`:**
+angles in degrees (`--theta0 DEG`), speeds in p.u. of the rated electrical speed
+(`--speed PU`, `--speeds PU ...`, `--speed0 PU`), lists as space-separated values after
+a plural option (`--speeds 0.2 0.6`, `--observers eso leso`; the comma-separated form
+still works, with a deprecation message), observer-model mismatch as ratios observer /
+plant (`--mismatch L_q=1.3` in the analysis commands; the tuner's range of ratios
+`--mismatch-range LO HI`), `--out` always a folder. Old spellings that are cheap to keep
+(`--mismatch-L-q RATIO`, `--w-m0 RAD_S`, `--w0 RAD_S`, `motor --out FILE.toml`, the
+tuner's `--mismatch LO HI`) still work and print a deprecation message
+(`DeprecatedOption`).
+
 A bad value raises `CLIError` (or `argparse.ArgumentTypeError` while parsing); `main`
 prints it as one line and exits with status 2.
 """
@@ -25,6 +36,7 @@ import json
 import math
 import os
 import re
+import sys
 import time
 from collections.abc import Callable
 
@@ -195,6 +207,93 @@ def speed_range(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(f"{text!r} needs LO < HI (allowed: 0 < LO < HI, "
                                          f"p.u.)")
     return lo, hi
+
+
+def deprecation(parser: argparse.ArgumentParser, old: str, new: str) -> None:
+    """Print the deprecation message of an old spelling (stderr, one line)."""
+    print(f"{parser.prog}: {old} is deprecated; {new}", file=sys.stderr)
+
+
+class DeprecatedOption(argparse.Action):
+    """An old spelling of an option: stores (or with `append=True` appends) its value
+    like `store`/`append` and prints `instead` as a deprecation message."""
+
+    def __init__(self, option_strings, dest, *, instead: str, append: bool = False, **kw):
+        self.instead = instead
+        self.append = append
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        deprecation(parser, option_string, self.instead)
+        if self.append:
+            cur = getattr(namespace, self.dest, None)
+            values = (list(cur) if cur is not None and cur is not self.default else []) \
+                + [values]
+        setattr(namespace, self.dest, values)
+
+
+class ListOption(argparse.Action):
+    """A list option: space-separated values (`nargs="+"`), each converted by `item`;
+    repeating the option adds to the list (with `groups=True` each occurrence is one
+    group, a list of lists). The old comma-separated form (`0.2,0.6`) is split, with a
+    deprecation message."""
+
+    def __init__(self, option_strings, dest, *, item=str, groups: bool = False, **kw):
+        self.item = item
+        self.groups = groups
+        kw.setdefault("nargs", "+")
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        items = []
+        for v in values:
+            parts = v.split(",")
+            if len(parts) > 1:
+                deprecation(parser, f"{option_string} {v} (comma-separated)",
+                            f"give the values separated by spaces: {option_string} "
+                            + " ".join(x.strip() for x in parts))
+            for x in parts:
+                if not x.strip():
+                    raise argparse.ArgumentError(self, f"{v!r} has an empty item")
+                try:
+                    items.append(self.item(x.strip()))
+                except argparse.ArgumentTypeError as e:
+                    raise argparse.ArgumentError(self, str(e)) from None
+                except ValueError:
+                    raise argparse.ArgumentError(self, f"invalid value {x.strip()!r}"
+                                                 ) from None
+        cur = getattr(namespace, self.dest, None)
+        cur = list(cur) if cur is not None and cur is not self.default else []
+        setattr(namespace, self.dest, cur + ([items] if self.groups else items))
+
+
+def add_initial_state_options(group, *, what: str, old_speed: str | None = None) -> None:
+    """`--theta0 DEG` and `--speed0 PU`: the initial angle and speed of `what` (the rotor,
+    or the observer's estimate), in the units of every command (degrees, p.u. of the
+    rated electrical speed). `old_speed`: the old spelling (rad/s) kept with a
+    deprecation message. `initial_state_from_args` reads them."""
+    group.add_argument("--theta0", type=finite_float, default=0.0, metavar="DEG",
+                       help=f"initial electrical angle of {what} (deg, default: "
+                            "%(default)s)")
+    group.add_argument("--speed0", type=finite_float, default=None, metavar="PU",
+                       help=f"initial electrical speed of {what} (p.u. of the rated speed "
+                            "Drive.w_rated, any sign; default: 0)")
+    if old_speed is not None:
+        group.add_argument(old_speed, dest="speed0_rad_s", type=finite_float, default=None,
+                           metavar="RAD_S", action=DeprecatedOption,
+                           instead="give --speed0 PU (p.u. of the rated speed)",
+                           help="deprecated: the initial speed in rad/s; use --speed0 PU")
+
+
+def initial_state_from_args(args, drive: pj.Drive) -> tuple[float, float]:
+    """`(theta0 in rad, speed0 in rad/s)` of `--theta0 DEG`, `--speed0 PU` (or the
+    deprecated rad/s spelling)."""
+    old = getattr(args, "speed0_rad_s", None)
+    if old is not None and args.speed0 is not None:
+        raise CLIError(f"--speed0 {args.speed0:g} and the deprecated rad/s option "
+                       f"{old:g} both set the initial speed; give --speed0 only")
+    w0 = old if old is not None else float(args.speed0 or 0.0) * float(drive.w_rated)
+    return math.radians(float(args.theta0)), float(w0)
 
 
 # Let values that start with a minus sign but are not plain numbers (-0.5,0.5 or -1:1 or
@@ -450,12 +549,17 @@ def add_operating_point_options(parser: argparse.ArgumentParser, *, speed: str) 
     w0_text = ("electrical speed w0 in p.u. of the rated speed (Drive.w_rated, rad/s "
                "electrical), any sign")
     if speed == "list":
+        g.add_argument("--speeds", dest="speed", action=ListOption, item=finite_float,
+                       groups=True, default=None, metavar="PU",
+                       help=f"{w0_text}; one or more, separated by spaces: one map per "
+                            "speed, overlaid in the PNG (default: 0.5). 0 is allowed (the "
+                            "ratio design's gains stay finite there, w1 = ratio |w0| = 0) "
+                            "but every zhang2022 design is degenerate at standstill "
+                            "(status -1)")
         g.add_argument("--speed", action="append", type=speed_list, default=None,
-                       metavar="PU[,PU...]",
-                       help=f"{w0_text}; repeatable or comma-separated: one map per speed, "
-                            "overlaid in the PNG (default: 0.5). 0 is allowed (the ratio "
-                            "design's gains stay finite there, w1 = ratio |w0| = 0) but every "
-                            "zhang2022 design is degenerate at standstill (status -1)")
+                       metavar="PU", help="one speed (p.u.), as in the other commands; "
+                                          "repeatable (the comma-separated list "
+                                          "PU,PU,... is deprecated: use --speeds)")
     elif speed == "one":
         g.add_argument("--speed", type=finite_float, default=0.5, metavar="PU",
                        help=f"{w0_text}, nonzero for the zhang2022 schedules (default: "
@@ -568,15 +672,20 @@ def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                         "design_units), repeatable. Names by observer: "
                         + _design_list(classes))
     if mismatch:
+        g.add_argument("--mismatch", action="append", default=[], type=name_value,
+                       metavar="NAME=RATIO",
+                       help="observer-model mismatch, repeatable: the observer's model, "
+                            "from which its gains are computed, has NAME = RATIO x the "
+                            "plant's NAME (-, > 0; default 1 = matched), for NAME in "
+                            + ", ".join(MODEL_PARAMETERS) + ". Example: --mismatch "
+                            "L_q=1.3. The same as --observer-set NAME=RATIO*plant value "
+                            "(give one of the two)")
         for p, unit in MODEL_PARAMETERS.items():
             opt = "--mismatch-" + p.replace("_", "-")
             g.add_argument(opt, dest="mismatch_" + p, type=positive_float, default=None,
-                           metavar="RATIO",
-                           help=f"observer's {p} / plant's {p} (-, > 0; default 1 = "
-                                f"matched): the observer's model, from which its gains are "
-                                f"computed, has {p} = RATIO x the plant's {p} ({unit}); the "
-                                f"same as --observer-set {p}=RATIO*plant value (give one "
-                                f"of the two)")
+                           metavar="RATIO", action=DeprecatedOption,
+                           instead=f"give --mismatch {p}=RATIO",
+                           help=f"deprecated: --mismatch {p}=RATIO")
     z = parser.add_argument_group(
         "zhang2022 observers (eso, leso, afo): shorthands for --gain")
     bw = z.add_mutually_exclusive_group()
@@ -702,17 +811,28 @@ def _observer_motor(args, plant: pj.PMSMParams) -> pj.PMSMParams:
                 f"observer's machine model; allowed: "
                 + ", ".join(f"{k} ({u})" for k, u in MODEL_PARAMETERS.items()))
         values[name] = (value, f"--observer-set {name}={value:g}")
-    for p in MODEL_PARAMETERS:
-        ratio = getattr(args, "mismatch_" + p, None)
-        if ratio is None:
-            continue
-        opt = "--mismatch-" + p.replace("_", "-")
+    ratios = [(p, getattr(args, "mismatch_" + p), "--mismatch-" + p.replace("_", "-"))
+              for p in MODEL_PARAMETERS if getattr(args, "mismatch_" + p, None) is not None]
+    for p, ratio in getattr(args, "mismatch", None) or []:
+        if p not in MODEL_PARAMETERS:
+            raise CLIError(f"--mismatch {p}={ratio:g}: unknown parameter {p!r} of the "
+                           f"observer's machine model; allowed: "
+                           f"{', '.join(MODEL_PARAMETERS)}")
+        if not ratio > 0:
+            raise CLIError(f"--mismatch {p}={ratio:g}: RATIO must be > 0 (observer's {p} "
+                           f"/ plant's {p})")
+        ratios.append((p, ratio, "--mismatch"))
+    for p, ratio, opt in ratios:
+        if opt == "--mismatch":
+            opt = f"--mismatch {p}="
+        else:
+            opt += " "
         if p in values:
             raise CLIError(
-                f"{opt} {ratio:g} and {values[p][1]} both set the observer's {p}; allowed: "
+                f"{opt}{ratio:g} and {values[p][1]} both set the observer's {p}; allowed: "
                 f"one of the two (the ratio to the plant's value, or the value in "
                 f"{MODEL_PARAMETERS[p]})")
-        values[p] = (ratio * float(getattr(plant, p)), f"{opt} {ratio:g}")
+        values[p] = (ratio * float(getattr(plant, p)), f"{opt}{ratio:g}")
     motor = plant
     for p, (value, spelled) in values.items():
         fields = {f: getattr(motor, f) for f in type(motor).__dataclass_fields__}

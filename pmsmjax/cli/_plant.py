@@ -14,11 +14,12 @@ from ._options import (
     CLIError,
     Command,
     add_drive_options,
+    add_initial_state_options,
     add_output_options,
     compile_and_run,
     drive_from_args,
     drive_info,
-    finite_float,
+    initial_state_from_args,
     positive_int,
     prepare_out_dir,
     write_json,
@@ -33,14 +34,11 @@ def _plant_arguments(p: argparse.ArgumentParser) -> None:
                         "u_ab (V) are required, tau_L (N m) is used if present (else zero "
                         "load); i_ab (A), theta (rad) and w_m (rad/s), if present, are "
                         "compared with the simulation")
-    g.add_argument("--theta0", type=finite_float, default=0.0, metavar="RAD",
-                   help="initial electrical rotor angle (rad, default: %(default)s)")
-    g.add_argument("--w-m0", type=finite_float, default=0.0, metavar="RAD_S",
-                   help="initial electrical rotor speed (rad/s, default: %(default)s)")
+    add_initial_state_options(g, what="the rotor", old_speed="--w-m0")
     g.add_argument("--init-from-data", action="store_true",
                    help="take the initial angle, speed and current from the first sample of "
                         "the data (needs theta; uses w_m and i_ab if present) instead of "
-                        "--theta0/--w-m0 and zero current")
+                        "--theta0/--speed0 and zero current")
     g.add_argument("--substeps", type=positive_int, default=4, metavar="N",
                    help="RK4 steps per sampling period (default: %(default)s; use the "
                         "simulation's value, 1 for `pmsmjax simulate`, to reproduce it)")
@@ -76,7 +74,8 @@ def plant_command(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     data = pj.load_recording(args.data, require=("t", "u_ab"))
     drive = drive_from_args(args)
-    theta0, w_m0, i_dq0 = args.theta0, args.w_m0, (0.0, 0.0)
+    theta0, w_m0 = initial_state_from_args(args, drive)
+    i_dq0 = (0.0, 0.0)
     if args.init_from_data:
         if data.theta is None:
             raise CLIError(f"--init-from-data needs `theta` in {args.data}")

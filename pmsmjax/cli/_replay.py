@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 
 import numpy as np
@@ -15,11 +14,12 @@ from ._options import (
     CLIError,
     Command,
     add_drive_options,
+    add_initial_state_options,
     add_observer_options,
     add_output_options,
     drive_from_args,
     drive_info,
-    finite_float,
+    initial_state_from_args,
     nonneg_float,
     prepare_out_dir,
     write_json,
@@ -32,10 +32,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--data", required=True, metavar="FILE",
                    help="recorded drive data (.npz or .csv, format in README.md) with t, "
                         "u_ab, i_ab (and optionally theta, w_m to score the estimates)")
-    g.add_argument("--theta0", type=finite_float, default=0.0, metavar="DEG",
-                   help="initial angle estimate (deg, electrical, default: %(default)s)")
-    g.add_argument("--w0", type=finite_float, default=0.0, metavar="RAD_S",
-                   help="initial speed estimate (rad/s, electrical, default: %(default)s)")
+    add_initial_state_options(g, what="the observer's estimate", old_speed="--w0")
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
@@ -81,8 +78,8 @@ def replay_command(args: argparse.Namespace) -> int:
                        f"0 <= S <= {duration:.6g}")
     print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
           f"{data.T_s:g} s from {args.data}")
-    est = pj.replay_estimates(choice.observer, data, theta0=math.radians(args.theta0),
-                              w0=args.w0)
+    theta0, w0 = initial_state_from_args(args, drive)
+    est = pj.replay_estimates(choice.observer, data, theta0=theta0, w0=w0)
     theta_hat, w_hat = np.asarray(est.theta_hat), np.asarray(est.w_hat)
     extras = {k: np.asarray(v) for k, v in est.extras.items()}
     clash = sorted(set(extras) & (set(pj.RecordedData.__dataclass_fields__) | {"t"}))
@@ -108,7 +105,7 @@ def replay_command(args: argparse.Namespace) -> int:
         "design_file": getattr(args, "design", None),
         "data": str(args.data),
         "T_s": data.T_s,
-        "initial_estimate": {"theta0_deg": float(args.theta0), "w0_rad_s": float(args.w0)},
+        "initial_estimate": {"theta0_deg": float(args.theta0), "w0_rad_s": w0},
         "arrays": {"theta_hat": "rad, estimated electrical angle at t_k, wrapped",
                    "w_hat": "rad/s, estimated electrical speed at t_k",
                    **{k: choice.cls.extras.get(k, "") for k in extras}},
@@ -135,7 +132,8 @@ COMMAND = Command(
         "Run an observer (--observer, any of the registry, with its paper's default design "
         "changed by --gain and the shorthands, and its machine model changed by "
         "--observer-set) over the recorded u_ab, i_ab of a data file (.npz or .csv) from "
-        "the initial estimate --theta0/--w0, and write to --out: replay.npz (the input "
+        "the initial estimate --theta0 (deg)/--speed0 (p.u.), and write to --out: "
+        "replay.npz (the input "
         "arrays t, u_ab, i_ab and, when present, theta, w_m, tau_L; theta_hat and w_hat at "
         "each t_k; and every observer-specific output of the Estimate under its name, e.g. "
         "psi_ab_hat (V s) for the zhang2022 observers; plain arrays, readable by "

@@ -15,6 +15,7 @@ import numpy as np
 from ._options import (
     CLIError,
     Command,
+    ListOption,
     add_drive_options,
     add_json_option,
     add_observer_options,
@@ -31,17 +32,17 @@ from ._options import (
 )
 
 
-def _orders(text: str) -> list[int]:
+def _order(text: str) -> int:
+    """One signed harmonic order (a nonzero integer)."""
     try:
-        out = [int(v) for v in text.split(",") if v.strip()]
+        h = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"--orders must be comma-separated signed integers (e.g. 1,-5,7); got "
-            f"{text!r}") from None
-    if not out or 0 in out:
+            f"--orders must be signed integers (e.g. 1 -5 7); got {text!r}") from None
+    if h == 0:
         raise argparse.ArgumentTypeError(
-            f"--orders needs at least one nonzero signed order (e.g. 1,-5,7); got {text!r}")
-    return out
+            f"--orders needs nonzero signed orders (e.g. 1 -5 7); got {text!r}")
+    return h
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
@@ -50,10 +51,11 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     add_observer_options(p, default="fa-leso", mismatch=True, flux=None, fixed_at=False,
                          default_note=": li-fa-leso's frequency-adaptive LESO; any "
                                       "registered observer")
-    p.add_argument("--orders", type=_orders, default=[1, -5, 7], metavar="H[,H...]",
-                   help="signed harmonic orders of the electrical frequency: 1 the "
-                        "fundamental, -5 the negative-sequence 5th, 7 the positive-"
-                        "sequence 7th (default: 1,-5,7)")
+    p.add_argument("--orders", action=ListOption, item=_order, default=[1, -5, 7],
+                   metavar="H",
+                   help="signed harmonic orders of the electrical frequency, separated by "
+                        "spaces: 1 the fundamental, -5 the negative-sequence 5th, 7 the "
+                        "positive-sequence 7th (default: 1 -5 7)")
     p.add_argument("--T-s", dest="T_s", type=positive_float, default=1e-4, metavar="S",
                    help="sampling period of the discrete observer (s) (default: %(default)s)")
     g = add_output_options(p, None, plot=False,

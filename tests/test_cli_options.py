@@ -1,0 +1,212 @@
+"""One command line: `pmsmjax tune`/`pmsmjax compare` hand over to `tuning` (imported
+only then), every command takes `--motor-file`/`--set`, one spelling and one unit per
+option across the commands, and the old spellings still work with a deprecation
+message."""
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax.cli import _options
+from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
+from tuning.__main__ import build_parser as tuning_parser, config_from_args
+from tuning._compare_cli import build_parser as compare_parser
+
+
+def _subparsers(parser):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    raise AssertionError("no subcommands")
+
+
+def _all_parsers() -> dict:
+    """Every parser of the command line: the `pmsmjax` commands, with `tune` and
+    `compare` as the `tuning` parsers that run them."""
+    out = {n: p for n, p in _subparsers(build_parser()).items()
+           if n not in ("tune", "compare")}
+    out["tune"] = tuning_parser("pmsmjax tune")
+    out["compare"] = compare_parser("pmsmjax compare")
+    return out
+
+
+def _options_of(parser) -> dict:
+    return {s: a for a in parser._actions for s in a.option_strings if s.startswith("--")}
+
+
+def test_every_command_takes_a_drive_and_the_tuner_commands_are_listed():
+    assert {"tune", "compare"} <= set(COMMANDS)
+    for name, parser in _all_parsers().items():
+        if name == "cache":  # the compilation cache: no drive
+            continue
+        opts = _options_of(parser)
+        assert {"--motor", "--motor-file", "--set"} <= set(opts), name
+
+
+def test_one_spelling_one_unit_across_commands():
+    """An option spelled the same in two commands has the same unit (metavar), except
+    the deprecated spellings and the feasibility map's grid axes (documented there);
+    angles are in degrees and speeds in p.u. wherever they are options."""
+    seen: dict[str, tuple] = {}
+    grid_axes = {("feasibility", "--zeta1"), ("feasibility", "--ratio")}
+    for name, parser in _all_parsers().items():
+        for opt, action in _options_of(parser).items():
+            if (action.help or "").startswith("deprecated") or (name, opt) in grid_axes:
+                continue
+            if opt in ("--theta0",):
+                assert action.metavar == "DEG", (name, opt)
+            if opt in ("--speed", "--speeds", "--speed0", "--loads", "--nodes"):
+                assert action.metavar == "PU", (name, opt)
+            if opt == "--out":
+                assert action.metavar == "DIR", (name, opt)
+            meta = action.metavar if isinstance(action.metavar, tuple) else (action.metavar,)
+            if opt in seen:
+                assert seen[opt][1] == meta, (opt, seen[opt][0], name, meta)
+            else:
+                seen[opt] = (name, meta)
+    # lists: space-separated (nargs "+") everywhere
+    for name, opt in (("feasibility", "--speeds"), ("tune", "--speeds"), ("tune", "--loads"),
+                      ("tune", "--tune"), ("compare", "--observers"),
+                      ("response", "--orders")):
+        assert _options_of(_all_parsers()[name])[opt].nargs == "+", (name, opt)
+
+
+def test_lists_parse_space_separated_and_commas_are_deprecated(capsys):
+    p = build_parser()
+    a = p.parse_args(["feasibility", "--speeds", "0.2", "-0.5", "--out", "x"])
+    assert a.speed == [[0.2, -0.5]]
+    assert capsys.readouterr().err == ""
+    a = p.parse_args(["feasibility", "--speeds", "0.2,0.5", "--out", "x"])
+    assert a.speed == [[0.2, 0.5]]
+    assert "deprecated" in capsys.readouterr().err
+    a = p.parse_args(["feasibility", "--speed", "0.2,0.5", "--speed", "1", "--out", "x"])
+    assert a.speed == [[0.2, 0.5], [1.0]]  # the old spelling still works
+    a = p.parse_args(["response", "--orders", "1", "-5", "7", "--out", "x"])
+    assert a.orders == [1, -5, 7]
+    with pytest.raises(_options.CLIError, match="--orders"):
+        p.parse_args(["response", "--orders", "1", "0"])
+    t = tuning_parser().parse_args(["--speeds", "0.2", "0.6", "--tune", "w2", "zeta2"])
+    assert t.speeds == [0.2, 0.6] and t.tune == ["w2", "zeta2"]
+    t = tuning_parser().parse_args(["--tune", "w2,zeta2"])
+    assert t.tune == ["w2", "zeta2"] and "deprecated" in capsys.readouterr().err
+    c = compare_parser().parse_args(["--observers", "eso", "leso"])
+    assert c.observers == ["eso", "leso"]
+
+
+def test_mismatch_is_one_ratio_per_parameter(capsys):
+    """`--mismatch L_q=1.3` gives the observer model of `--observer-set L_q=1.3 L_q` and of
+    the deprecated `--mismatch-L-q 1.3`; the tuner's range is `--mismatch-range LO HI`
+    (the deprecated `--mismatch LO HI` still works)."""
+    drive = pj.preset("zhang750")
+    L_q = float(drive.three_phase_motor.L_q)
+    p = build_parser()
+    models = []
+    for extra in (["--mismatch", "L_q=1.3", "--mismatch", "R_s=0.8"],
+                  ["--mismatch-L-q", "1.3", "--mismatch-R-s", "0.8"],
+                  ["--observer-set", f"L_q={1.3 * L_q!r}", "--mismatch", "R_s=0.8"]):
+        args = p.parse_args(["equilibria", *extra])
+        models.append(_options.observer_from_args(args, drive).observer.motor)
+    err = capsys.readouterr().err
+    assert err.count("deprecated") == 2 and "--mismatch L_q=RATIO" in err
+    for m in models:
+        assert float(m.L_q) == pytest.approx(1.3 * L_q, rel=1e-15)
+        assert float(m.R_s) == pytest.approx(0.8 * float(drive.three_phase_motor.R_s))
+    for bad, fragment in ((["--mismatch", "L_x=1.3"], "unknown parameter 'L_x'"),
+                          (["--mismatch", "L_q=0"], "must be > 0"),
+                          (["--mismatch", "L_q=1.3", "--mismatch-L-q", "1.2"], "both set")):
+        args = p.parse_args(["equilibria", *bad])
+        with pytest.raises(_options.CLIError, match=fragment):
+            _options.observer_from_args(args, drive)
+    t = tuning_parser()
+    assert t.parse_args(["--mismatch-range", "0.7", "1.3"]).mismatch == [0.7, 1.3]
+    capsys.readouterr()
+    assert t.parse_args(["--mismatch", "0.7", "1.3"]).mismatch == [0.7, 1.3]
+    assert "--mismatch-range" in capsys.readouterr().err
+
+
+def test_initial_state_in_degrees_and_per_unit(capsys):
+    """plant and replay: `--theta0 DEG` and `--speed0 PU`; the old rad/s spellings
+    (`--w-m0`, `--w0`) are converted, with a deprecation message."""
+    drive = pj.preset("zhang750")
+    w_r = float(drive.w_rated)
+    p = build_parser()
+    for cmd, old in (("plant", "--w-m0"), ("replay", "--w0")):
+        base = [cmd, "--data", "x.npz", "--out", "o"]
+        a = p.parse_args([*base, "--theta0", "90", "--speed0", "0.5"])
+        theta0, w0 = _options.initial_state_from_args(a, drive)
+        assert theta0 == pytest.approx(math.pi / 2) and w0 == pytest.approx(0.5 * w_r)
+        assert capsys.readouterr().err == ""
+        a = p.parse_args([*base, old, "100"])
+        assert _options.initial_state_from_args(a, drive) == (0.0, 100.0)
+        assert "--speed0 PU" in capsys.readouterr().err
+        a = p.parse_args([*base, old, "100", "--speed0", "0.5"])
+        with pytest.raises(_options.CLIError, match="both set the initial speed"):
+            _options.initial_state_from_args(a, drive)
+        capsys.readouterr()
+
+
+def test_plant_run_takes_degrees_and_per_unit(tmp_path, capsys):
+    """A cheap run: the initial state written to summary.json is --theta0 in rad and
+    --speed0 x w_rated."""
+    drive = pj.preset("zhang750")
+    t = np.arange(40) * 1e-4
+    pj.save_recording(tmp_path / "rec.npz", pj.RecordedData(t=t, u_ab=np.zeros((40, 2))))
+    assert main(["plant", "--data", str(tmp_path / "rec.npz"), "--theta0", "45",
+                 "--speed0", "0.25", "--no-plot", "--out", str(tmp_path / "o")]) == 0
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())["initial_state"]
+    assert s["theta0_rad"] == pytest.approx(math.pi / 4)
+    assert s["w_m0_rad_s"] == pytest.approx(0.25 * float(drive.w_rated))
+
+
+def test_motor_out_is_a_folder(tmp_path, capsys):
+    assert main(["motor", "--export", "zhang750", "--out", str(tmp_path / "d")]) == 0
+    assert pj.load_motor_file(tmp_path / "d" / "motor.toml").name == "zhang750"
+    capsys.readouterr()
+    assert main(["motor", "--export", "zhang750", "--out", str(tmp_path / "m.toml")]) == 0
+    assert "deprecated" in capsys.readouterr().err
+    assert (tmp_path / "m.toml").read_text() == (tmp_path / "d" / "motor.toml").read_text()
+
+
+def test_tune_and_compare_hand_over_to_tuning(tmp_path, capsys):
+    """`pmsmjax tune`/`compare` parse with the tuner's parsers (help, bad options, the
+    drive options); `python -m tuning --help` names `compare`; compare takes a motor
+    file."""
+    assert main(["tune", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: pmsmjax tune") and "pmsmjax compare --help" in out
+    assert main(["compare", "--help"]) == 0
+    assert capsys.readouterr().out.startswith("usage: pmsmjax compare")
+    assert main(["tune", "--no-such-option"]) == 2
+    assert main(["tune", "--quick", "--motor", "zhang750", "--motor-file", "x.toml",
+                 "--out", str(tmp_path / "t")]) == 2
+    assert "give one of the two" in capsys.readouterr().err
+    assert "compare --help" in tuning_parser().format_help()
+    # a motor file (and --set) in the tuner and the comparison
+    pj.save_motor_file(pj.replace_params(pj.preset("zhang750"), R_s=1.1), tmp_path / "m.toml")
+    cfg = config_from_args(tuning_parser().parse_args(
+        ["--quick", "--motor-file", str(tmp_path / "m.toml"), "--set", "J=0.01"]))
+    assert cfg.drive().name == "zhang750" and float(cfg.drive().mechanics.J) == 0.01
+    from tuning.compare import CompareConfig
+
+    c = CompareConfig.quick(motor_file=str(tmp_path / "m.toml"), set_params=(("J", 0.01),))
+    assert c.motor == "zhang750" and float(c.drive().mechanics.J) == 0.01
+    assert c.run_config("eso").drive() == c.drive()
+    assert CompareConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    capsys.readouterr()
+    assert main(["compare", "--motor-file", str(tmp_path / "nope.toml"), "--quick",
+                 "--out", str(tmp_path / "c")]) == 2
+    assert "nope.toml" in capsys.readouterr().err
+
+
+def test_the_command_line_does_not_import_tuning():
+    code = ("import sys; from pmsmjax.cli.__main__ import build_parser; build_parser(); "
+            "import pmsmjax.cli; print('tuning' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=120)
+    assert out.stdout.strip() == "False"
