@@ -115,3 +115,53 @@ def test_log_conversion_example_runs(tmp_path, monkeypatch):
     np.testing.assert_allclose(rec.u_ab, u_ab, atol=1e-10)
     np.testing.assert_allclose(np.cos(rec.theta - theta), 1.0, atol=1e-12)
     np.testing.assert_allclose(rec.w_m, 150.0, rtol=1e-9)
+
+
+def test_cli_reference_is_written_from_the_parsers():
+    """docs/cli.md holds the marker the docs hook replaces; the generated reference names
+    every command and every option of every parser (tune and compare included)."""
+    from pmsmjax.cli._reference import MARKER, _parsers, reference_markdown
+
+    assert MARKER in (DOCS / "cli.md").read_text()
+    text = reference_markdown()
+    for name, parser in _parsers().items():
+        assert f"## `pmsmjax {name}`" in text, name
+        for action in parser._actions:
+            for opt in action.option_strings:
+                if opt.startswith("--") and opt != "--help":
+                    assert f"`{opt}`" in text, (name, opt)
+
+
+def _slug(heading: str) -> str:
+    """The anchor Python-Markdown's toc extension gives a heading."""
+    text = re.sub(r"[^\w\s-]", "", heading.strip().lower())
+    return re.sub(r"[-\s]+", "-", text).strip("-")
+
+
+def test_glossary_defines_the_terms_and_links_resolve():
+    """Every term the README uses before explaining it has a glossary entry, and every
+    link from the README or a docs page into the glossary names an existing entry."""
+    glossary = (DOCS / "glossary.md").read_text()
+    anchors = {_slug(h) for h in re.findall(r"^#+ (.+)$", glossary, flags=re.M)}
+    for term in ("ESO", "LESO", "AFO", "p.u.", "Robust loss", "Feasibility",
+                 "zhang2022 (38)/(25)", "Held-out", "Lost lock", "VSD", "Floquet",
+                 "Closed-loop validation", "Verdict", "Gains table"):
+        assert re.search(rf"^### .*{re.escape(term)}", glossary, flags=re.M), term
+    pages = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+    links = 0
+    for page in pages:
+        for anchor in re.findall(r"glossary\.md#([\w-]+)", page.read_text()):
+            assert anchor in anchors, (page.name, anchor)
+            links += 1
+    assert links >= 10
+
+
+def test_readme_is_a_front_door():
+    """At most 200 lines, and its links into the repository point at files that exist
+    (docs/firmware.md comes with the C export)."""
+    text = (ROOT / "README.md").read_text()
+    assert len(text.splitlines()) <= 200
+    for target in re.findall(r"\]\(([^)#]+)(?:#[^)]*)?\)", text):
+        if "://" in target or target == "docs/firmware.md":
+            continue
+        assert (ROOT / target).exists(), target

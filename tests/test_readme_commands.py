@@ -1,6 +1,7 @@
-"""Every command line the README shows runs, on small settings, in the order it shows them
-(one scratch folder, so the "your own drive" example runs end to end: motor file ->
-simulate -> replay -> analyse -> tune -> deploy).
+"""Every command line the README and the your-own-drive guide show runs, on small
+settings, in the order they show them (one scratch folder per page, so the quick start
+runs as written and the guide end to end: motor file -> simulate -> replay -> analyse ->
+tune -> deploy).
 
 Command lines are read from the README's ```sh blocks, so lines added later are picked
 up without touching this file:
@@ -12,7 +13,8 @@ up without touching this file:
   installs (`pip`, `jupyter`) are skipped;
 - anything else fails: add a rule here.
 
-The command lines of docs/your-own-drive.md are parsed (every option must exist).
+The command lines of every other page of docs/ are parsed (every option must exist;
+`pmsmjax tune`/`compare` with the tuner's parsers).
 """
 
 import pathlib
@@ -36,6 +38,9 @@ SMALL = {
     "certify": ["--quick"],
     "tuning": ["--quick", "--steps", "1", "--no-ablation", "--no-plot", "--no-progress"],
 }
+SMALL["tune"] = SMALL["tuning"]
+#: The pages whose command lines run (the others are parsed).
+RUN = (ROOT / "README.md", ROOT / "docs" / "your-own-drive.md")
 SKIP = ("make", "source", "pip", "jupyter", "cd", "export")
 
 
@@ -80,40 +85,66 @@ def _small(cmd: str, args: list[str]) -> list[str]:
     return args + out
 
 
-@pytest.mark.timeout(900)
-def test_readme_command_lines_run(tmp_path, monkeypatch, capsys):
-    monkeypatch.setenv("MPLBACKEND", "Agg")
-    monkeypatch.chdir(tmp_path)
-    lines = command_lines(ROOT / "README.md")
+def _run_page(page: pathlib.Path, folder: pathlib.Path, monkeypatch, capsys) -> list[str]:
+    folder.mkdir()
+    monkeypatch.chdir(folder)
     ran = []
-    for argv in lines:
+    for argv in command_lines(page):
         prog, args = _program(argv)
         if prog == "skip":
             continue
         if prog == "ls":
             for f in args:
-                assert (tmp_path / f).is_file(), f"README: `ls {f}`: no such file"
+                assert (folder / f).is_file(), f"{page.name}: `ls {f}`: no such file"
             continue
         if prog == "tuning":
             rc = tuning_main(_small("tuning", args))
         else:
             rc = pmsmjax_main(_small(args[0], args) if args else args)
         out = capsys.readouterr()
-        assert rc == 0, f"README command line {' '.join(argv)!r} -> exit {rc}\n" \
+        assert rc == 0, f"{page.name}: command line {' '.join(argv)!r} -> exit {rc}\n" \
                         f"{out.out[-2000:]}\n{out.err[-2000:]}"
         ran.append(" ".join(argv))
-    # the your-own-drive example is there and ran end to end
-    assert any("--motor-file" in r and "tuning" in r for r in ran)
-    assert any("--design" in r and "replay" in r for r in ran)
+    return ran
+
+
+@pytest.mark.timeout(900)
+def test_readme_command_lines_run(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    readme, guide = (_run_page(page, tmp_path / page.stem, monkeypatch, capsys)
+                     for page in RUN)
+    # the quick start: a sensorless run, a replay of its recording, the analysis
+    assert [r.split()[1] for r in readme] == ["simulate", "replay", "equilibria"]
+    # the your-own-drive guide is there and ran end to end
+    assert any("--motor-file" in r and "tune" in r for r in guide)
+    assert any("--design" in r and "replay" in r for r in guide)
 
 
 def test_docs_command_lines_parse():
-    """The command lines of the your-own-drive guide name existing options."""
-    lines = command_lines(ROOT / "docs" / "your-own-drive.md")
-    assert lines
-    for argv in lines:
-        prog, args = _program(argv)
-        if prog == "pmsmjax":
-            build_parser().parse_args(args)
-        elif prog == "tuning":
-            tuning_parser().parse_args(args)
+    """The command lines of every page of docs/ name existing options."""
+    from pmsmjax.cli._tuning import tuning_module
+
+    pages = sorted((ROOT / "docs").glob("*.md"))
+    parsed = 0
+    for page in pages:
+        for argv in command_lines(page):
+            try:
+                prog, args = _program(argv)
+            except AssertionError:
+                continue  # not a pmsmjax command (a shell line, a script)
+            if prog == "pmsmjax" and args and args[0] in ("tune", "compare"):
+                parser, args = tuning_module(args[0]).build_parser(), args[1:]
+            elif prog == "pmsmjax":
+                parser = build_parser()
+            elif prog == "tuning" and args[:1] == ["compare"]:
+                parser, args = tuning_module("compare").build_parser(), args[1:]
+            elif prog == "tuning":
+                parser = tuning_parser()
+            else:
+                continue
+            try:
+                parser.parse_args(args)
+            except SystemExit as e:  # `--help`
+                assert e.code == 0, f"{page.name}: {' '.join(argv)!r}"
+            parsed += 1
+    assert parsed >= 10
