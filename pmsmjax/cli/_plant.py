@@ -30,7 +30,7 @@ def _plant_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     g = p.add_argument_group("input")
     g.add_argument("--data", required=True, metavar="FILE",
-                   help="recorded drive data (.npz or .csv, format in README.md): t (s) and "
+                   help="recorded drive data (.npz or .csv, format in docs/conventions.md): t (s) and "
                         "u_ab (V) are required, tau_L (N m) is used if present (else zero "
                         "load); i_ab (A), theta (rad) and w_m (rad/s), if present, are "
                         "compared with the simulation")

@@ -30,7 +30,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     g = p.add_argument_group("input")
     g.add_argument("--data", required=True, metavar="FILE",
-                   help="recorded drive data (.npz or .csv, format in README.md) with t, "
+                   help="recorded drive data (.npz or .csv, format in docs/conventions.md) with t, "
                         "u_ab, i_ab (and optionally theta, w_m to score the estimates)")
     add_initial_state_options(g, what="the observer's estimate", old_speed="--w0")
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
