@@ -104,3 +104,53 @@ def plot_ramp_runs(runs, *, ax=None, label_fmt="{:.3g} rad/s^2"):
     ax.set_ylabel("angle error (deg)")
     ax.legend(fontsize=7, ncol=2)
     return ax
+
+
+def plot_response(curves: dict, *, title: str = ""):
+    """The frequency response of an observer from `pmsmjax response --plot`.
+
+    `curves` (from `pmsmjax.cli._response.response_curves`): `orders` and `ripple_deg`,
+    the peak angle-error ripple per 1 % back-EMF harmonic of each signed order (every
+    observer); for a back-EMF observer also the Bode data `bode` (`f_hz` signed, `mag_db`,
+    `phase_deg`, and `mag_db_discrete`, `phase_deg_discrete` at the sampling period) of
+    its estimate's gain from the back-EMF component; `marked`: the orders asked for,
+    `f_electrical_hz`. Returns the figure (1 panel, or 3 with the Bode plot)."""
+    bode = curves.get("bode")
+    n = 3 if bode is not None else 1
+    fig, axes = plt.subplots(n, 1, figsize=(7.0, 2.6 + 2.4 * (n - 1)), squeeze=False)
+    ax = axes[0, 0]
+    h = np.asarray(curves["orders"])
+    r = np.asarray(curves["ripple_deg"])
+    # an order the observer rejects exactly (ripple at rounding level) is left out
+    ax.semilogy(h, np.where(r > 1e-9 * np.nanmax(r), r, np.nan), "o-", ms=3,
+                color="tab:blue")
+    for m in curves.get("marked", ()):
+        ax.axvline(m, color="0.6", lw=0.8, ls=":")
+    ax.set_xlabel("signed harmonic order h (negative: negative sequence)")
+    ax.set_ylabel("angle ripple\n(deg per 1 %)")
+    ax.grid(True, which="both", alpha=0.3)
+    if bode is not None:
+        f = np.asarray(bode["f_hz"])
+        for sign, style in ((1, "-"), (-1, "--")):
+            sel = np.sign(f) == sign
+            lab = "positive sequence" if sign > 0 else "negative sequence"
+            for key, ax_i in (("mag_db", 1), ("phase_deg", 2)):
+                a = axes[ax_i, 0]
+                a.semilogx(np.abs(f[sel]), np.asarray(bode[key])[sel], style,
+                           color="tab:orange", label=f"continuous, {lab}")
+                if f"{key}_discrete" in bode:
+                    a.semilogx(np.abs(f[sel]), np.asarray(bode[f"{key}_discrete"])[sel],
+                               style, color="tab:blue", lw=1.0,
+                               label=f"discrete (T_s), {lab}")
+        fe = float(curves["f_electrical_hz"])
+        for a, lab in ((axes[1, 0], "|G| (dB)"), (axes[2, 0], "phase (deg)")):
+            for m in curves.get("marked", ()):
+                a.axvline(abs(m) * abs(fe), color="0.6", lw=0.8, ls=":")
+            a.set_ylabel(lab)
+            a.grid(True, which="both", alpha=0.3)
+        axes[2, 0].set_xlabel("|frequency| of the back-EMF component (Hz)")
+        axes[1, 0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    return fig

@@ -613,6 +613,25 @@ def discrete_error_map(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq,
     return fn
 
 
+def discrete_poles(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, T_s, *,
+                   theta_k=0.0):
+    r"""The poles of the discrete observer: the eigenvalues $z$ of the Jacobian of one
+    real `observer.step` (`discrete_error_map`) at its designed equilibrium
+    (`observer.designed_error`; with a mismatched model use `jax.jacfwd` of
+    `discrete_error_map` at the equilibrium of `equilibria` instead).
+
+    $|z| < 1$ for every pole: locally stable at sampling period `T_s` (s). For small
+    `T_s` they approach $e^{T_s\lambda}$ of the continuous `linearization`'s
+    eigenvalues $\lambda$ (tested); at the firmware's `T_s` they say how far the real
+    observer is from its continuous design. `w_m` (rad/s) and `i_dq` (A, estimated
+    frame) as in `discrete_error_map`; pure, so `jax.vmap` it over speeds. Returns the
+    `(n,)` complex eigenvalues, unordered."""
+    op = OperatingPoint(jnp.asarray(w_m, float), jnp.asarray(i_dq, float))
+    x = observer.designed_error(op, plant)
+    fn = discrete_error_map(observer, plant, w_m, i_dq, T_s, theta_k=theta_k)
+    return jnp.linalg.eigvals(jax.jacfwd(fn)(x))
+
+
 def discrete_error_run(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, T_s,
                        x0, n_steps: int):
     """Iterate `discrete_error_map` `n_steps` times from `x0` (the discrete observer in a

@@ -24,6 +24,7 @@ from . import (
     _certify,
     _equilibria,
     _feasibility,
+    _gains,
     _motor,
     _plant,
     _replay,
@@ -41,6 +42,7 @@ COMMANDS: dict[str, Command] = {
     + (_response,)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
+COMMANDS[_gains.COMMAND.name] = _gains.COMMAND
 COMMANDS[_tuning.TUNE.name] = _tuning.TUNE
 COMMANDS[_tuning.COMPARE.name] = _tuning.COMPARE
 

@@ -62,6 +62,11 @@ def _arguments(p: argparse.ArgumentParser) -> None:
                            out_help="also write the JSON to DIR/response.json (created if "
                                     "missing)")
     add_json_option(g)
+    g.add_argument("--plot", action="store_true",
+                   help="also write DIR/response.png (needs --out): the angle ripple per "
+                        "1 % harmonic over the signed orders -25 to 25 and, for a back-EMF "
+                        "observer, the Bode plot (magnitude and phase, continuous and "
+                        "discrete at --T-s) of its estimate over frequency")
 
 
 def response_report(choice, drive, speed_pu: float, i_pu, orders, T_s: float) -> dict:
@@ -122,10 +127,39 @@ def response_report(choice, drive, speed_pu: float, i_pu, orders, T_s: float) ->
     }
 
 
+#: Signed orders of the ripple curve of `--plot`.
+PLOT_ORDERS = tuple(h for h in range(-25, 26) if h)
+
+
+def response_curves(choice, drive, speed_pu: float, i_pu, orders, T_s: float) -> dict:
+    """The curves of `--plot` (`pmsmjax.plotting_analysis.plot_response`): the angle
+    ripple over `PLOT_ORDERS` and, for an observer with a continuous transfer function,
+    `analysis.bode_data` over signed frequencies up to 0.4 / T_s (log-spaced, 1 Hz to
+    that)."""
+    import jax.numpy as jnp
+
+    from pmsmjax.analysis import OperatingPoint, bode_data, harmonic_ripple
+
+    obs = choice.observer
+    w = speed_pu * float(drive.w_rated)
+    i_a = np.asarray(i_pu, float) * float(drive.base.I_b)
+    ripple = np.asarray(harmonic_ripple(obs, drive, OperatingPoint(w, jnp.asarray(i_a)),
+                                        PLOT_ORDERS))
+    out = {"orders": list(PLOT_ORDERS), "ripple_deg": ripple, "marked": list(orders),
+           "f_electrical_hz": w / (2 * math.pi)}
+    if getattr(obs, "transfer_function", None) is not None and \
+            "e_ab_hat" in type(obs).extras:
+        f = np.logspace(0.0, math.log10(0.4 / T_s), 60)
+        out["bode"] = bode_data(obs, w, np.concatenate([-f[::-1], f]), T_s=T_s)
+    return out
+
+
 def response_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
     choice = observer_from_args(args, drive)
     i_pu, _ = current_from_args(args, drive)
+    if args.plot and not args.out:
+        raise CLIError("--plot writes DIR/response.png: give --out DIR")
     try:
         report = response_report(choice, drive, float(args.speed), i_pu, args.orders,
                                  float(args.T_s))
@@ -134,6 +168,14 @@ def response_command(args: argparse.Namespace) -> int:
     report = {**header("response", drive, args), **report}
     if args.out:
         write_json(os.path.join(prepare_out_dir(args.out), "response.json"), report)
+    if args.plot:
+        from pmsmjax.plotting_analysis import plot_response
+
+        curves = response_curves(choice, drive, float(args.speed), i_pu, args.orders,
+                                 float(args.T_s))
+        fig = plot_response(curves, title=f"{drive.name}, {choice.describe()}, speed "
+                                          f"{args.speed:g} p.u., T_s = {args.T_s:g} s")
+        fig.savefig(os.path.join(args.out, "response.png"), dpi=120)
     if args.json:
         print(dumps_json(report))
         return 0
