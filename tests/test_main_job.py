@@ -89,6 +89,17 @@ def test_main_job_quick(tmp_path):
     # the gradient-free baseline had the same number of simulations
     h = s["histories"]
     assert h["random_search"]["n_simulations"][-1] == h["tuned"]["n_simulations"][-1]
+    # the gains table for firmware carries the sampling period, the objective and the
+    # verdict of this run; a verdict that does not hold is announced on stderr and in
+    # gains.h (a compiler warning)
+    g = json.loads((out / "gains.json").read_text())
+    assert g["T_s"] == s["config"]["T_s"] and g["objective"] == s["objective"]
+    assert g["verdict"] == {"holds": v["holds"], "baseline": s["baseline_label"],
+                            "where_not": v["where_not"]}
+    header = (out / "gains.h").read_text()
+    assert f"#define PMSMJAX_GAINS_VERDICT_HOLDS {int(holds)}" in header
+    assert ("did NOT pass the tuner's checks" in proc.stderr) is (not holds)
+    assert ("#warning" in header) is (not holds)
     # the saved schedule reloads
     back = tg.load_schedule(out)
     assert np.allclose(tg.schedule_table(back)["w2"], nodes["w2"], rtol=0, atol=0)

@@ -17,6 +17,7 @@ The command lines of every other page of docs/ are parsed (every option must exi
 `pmsmjax tune`/`compare` with the tuner's parsers).
 """
 
+import json
 import pathlib
 import re
 import shlex
@@ -113,8 +114,21 @@ def test_readme_command_lines_run(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     readme, guide = (_run_page(page, tmp_path / page.stem, monkeypatch, capsys)
                      for page in RUN)
-    # the quick start: a sensorless run, a replay of its recording, the analysis
+    # the quick start: a sensorless run, a replay of its recording, the analysis; and
+    # what the README says they show
     assert [r.split()[1] for r in readme] == ["simulate", "replay", "equilibria"]
+    stats = json.loads((tmp_path / "README" / "replay" / "stats.json").read_text())
+    assert abs(stats["theta_err_mean_deg"]) < 0.1  # "0.06 deg mean after settling"
+    eq_line = shlex.split(readme[2])[1:]
+    for i_q, designed, others in (("0.5", 3.4, [118]), ("0", 0.0, None)):
+        assert pmsmjax_main([*eq_line, "--i-q", i_q, "--json"]) == 0
+        report = json.loads(capsys.readouterr().out)
+        eqs = report["equilibria"]
+        d = [e for e in eqs if e["designed"]]
+        assert len(d) == 1 and d[0]["stable"] and round(d[0]["theta_deg"], 1) == designed
+        if others is not None:  # "an unstable one at 118 deg"
+            assert [round(e["theta_deg"]) for e in eqs if not e["designed"]] == others
+            assert not any(e["stable"] for e in eqs if not e["designed"])
     # the your-own-drive guide is there and ran end to end
     assert any("--motor-file" in r and "tune" in r for r in guide)
     assert any("--design" in r and "replay" in r for r in guide)
