@@ -8,10 +8,11 @@ every run cost before the cache. Wall time of the whole process, best of `--repe
 
 Usage:
 
-    .venv/bin/python benchmarks/bench_startup.py [--quick] [--out FILE.json]
+    .venv/bin/python benchmarks/bench_startup.py [--quick | --readme] [--out FILE.json]
 
 `--quick` leaves out the full main job (`python -m tuning`, about 2 minutes) and runs its
-`--quick` variant instead.
+`--quick` variant instead. `--readme` runs only the README's three quick-start commands
+(`README_QUICK_START`, in the README's order), which the README says take a few seconds.
 """
 
 from __future__ import annotations
@@ -27,6 +28,25 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+
+#: The README's quick start (keep in step with README.md; `--readme` times it).
+README_QUICK_START = {
+    "quick start: simulate (sensorless)": [
+        "simulate", "--observer", "eso", "--scenario", "load-step", "--t-end", "0.5",
+        "--out", "{tmp}/sim"],
+    "quick start: replay (leso)": [
+        "replay", "--observer", "leso", "--data", "{tmp}/sim/recording.npz", "--theta0",
+        "30", "--speed0", "0.5", "--out", "{tmp}/replay"],
+    "quick start: equilibria": [
+        "equilibria", "--observer", "eso", "--speed", "0.5", "--i-q", "0.5", "--mismatch",
+        "L_q=1.3"],
+}
+
+
+def readme_commands(tmp: Path) -> dict[str, list[str]]:
+    return {name: ["-m", "pmsmjax", *(a.format(tmp=tmp) for a in cmd)]
+            for name, cmd in README_QUICK_START.items()}
 
 
 def commands(tmp: Path, quick: bool) -> dict[str, list[str]]:
@@ -65,13 +85,16 @@ def timed(args, env) -> float:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--readme", action="store_true",
+                    help="only the README's quick-start commands")
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--out", default="results/bench_startup.json")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="pmsmjax-startup-"))
     rows = []
     try:
-        for name, cmd in commands(tmp, args.quick).items():
+        cmds = readme_commands(tmp) if args.readme else commands(tmp, args.quick)
+        for name, cmd in cmds.items():
             cache = tmp / "cache"
             shutil.rmtree(cache, ignore_errors=True)
             env = dict(os.environ, PMSMJAX_CACHE_DIR=str(cache), MPLBACKEND="Agg")

@@ -162,3 +162,18 @@ def test_docs_command_lines_parse():
                 assert e.code == 0, f"{page.name}: {' '.join(argv)!r}"
             parsed += 1
     assert parsed >= 10
+
+
+def test_quick_start_benchmark_times_the_readme_commands():
+    """benchmarks/bench_startup.py --readme times the README's quick start as written."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_startup", ROOT / "benchmarks" / "bench_startup.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    readme = [argv for argv in command_lines(ROOT / "README.md")
+              if _program(argv)[0] == "pmsmjax"]
+    timed = [[a.replace("{tmp}/", "") for a in cmd]
+             for cmd in bench.README_QUICK_START.values()]
+    assert [argv[1:] for argv in readme] == timed
