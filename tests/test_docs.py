@@ -165,3 +165,13 @@ def test_readme_is_a_front_door():
         if "://" in target or target == "docs/firmware.md":
             continue
         assert (ROOT / target).exists(), target
+
+
+def test_papers_page_states_the_rotor_flux_gamma_of_the_code():
+    """docs/papers.md names the gamma that `RotorFluxObserver.from_drive` uses (the paper
+    gives none)."""
+    from pmsmjax.observers._rotor_flux import PAPER_GAINS_PU
+
+    m = re.search(r"\$\\gamma\$ is not given with the paper's gains: ([0-9.]+) p\.u\.",
+                  (DOCS / "papers.md").read_text())
+    assert m and float(m.group(1)) == PAPER_GAINS_PU["gamma"]
