@@ -210,3 +210,18 @@ def test_the_command_line_does_not_import_tuning():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=120)
     assert out.stdout.strip() == "False"
+
+
+def test_compare_runs_on_a_motor_file(tmp_path, capsys):
+    """`pmsmjax compare --motor-file F --set ...`: the quick comparison of one observer on
+    a drive of one's own (the job records the file and the replacements)."""
+    drive = pj.replace_params(pj.preset("zhang750"), R_s=1.1)
+    pj.save_motor_file(drive, tmp_path / "m.toml")
+    out = tmp_path / "cmp"
+    assert main(["compare", "--motor-file", str(tmp_path / "m.toml"), "--set", "J=0.002",
+                 "--quick", "--observers", "eso", "--jobs", "1", "--no-plot",
+                 "--no-progress", "--out", str(out)]) == 0
+    s = json.loads((out / "comparison.json").read_text())
+    assert s["config"]["motor_file"] == str(tmp_path / "m.toml")
+    assert s["config"]["set_params"] == [["J", 0.002]]
+    assert list(s["observers"]) == ["eso"]
