@@ -56,6 +56,8 @@ def _help(parser: argparse.ArgumentParser, action: argparse.Action) -> str:
     if not action.help:
         return ""
     text = parser._get_formatter()._expand_help(action)
+    for empty in (" (default: None)", " (default: False)", " (default: [])"):
+        text = text.replace(empty, "")  # added by ArgumentDefaultsHelpFormatter
     default = action.default
     if ("%(default)" not in action.help and default not in (None, False, [], ())
             and default is not argparse.SUPPRESS and action.nargs != 0
