@@ -6,8 +6,8 @@ r"""Options and helpers shared by the subcommands of `pmsmjax`, each defined onc
 - operating point of the analysis commands: `--speed`/`--speed-range`, `--i-d`, `--i-q`;
 - observer, for every observer of the registry `pmsmjax.observers`: `--observer NAME`,
   `--observer-set NAME=VALUE` (the observer's machine model), `--gain NAME=VALUE` (a design
-  parameter, checked against the class's `design_units`), `--mismatch-R-s/-L-d/-L-q/-psi-f
-  RATIO` (analysis commands) and the documented shorthands of the zhang2022 observers
+  parameter, checked against the class's `design_units`), `--mismatch NAME=RATIO`
+  (analysis commands) and the documented shorthands of the zhang2022 observers
   (`--w2`/`--bandwidth`, `--zeta2`, `--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min`,
   `--fixed-at`, `--a`, `--eta`), which only translate into `--gain` values.
 
@@ -614,7 +614,7 @@ def check_operating_point(observer, drive: pj.Drive, i_pu, *, speed_pu=None) -> 
 # Observer: name, machine model, design
 # ---------------------------------------------------------------------------------------
 
-#: Parameters of the observer's machine model that --observer-set and --mismatch-* change.
+#: Parameters of the observer's machine model that --observer-set and --mismatch change.
 MODEL_PARAMETERS = {"R_s": "Ohm", "L_d": "H", "L_q": "H", "psi_f": "V s"}
 
 #: The zhang2022 shorthands: option dest -> (option, design parameter, factor).
@@ -649,8 +649,8 @@ def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                          flux: str | None = "one", fixed_at: bool = True,
                          default_note: str = "") -> None:
     """`--observer` (choices: the registry, plus `sensored` with `sensored=True`),
-    `--observer-set`, `--gain`, with `mismatch` the `--mismatch-*` ratios, and the zhang2022
-    shorthands. `flux`: `"one"` (`--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min` as
+    `--observer-set`, `--gain`, with `mismatch` the `--mismatch NAME=RATIO` ratios (and the
+    deprecated `--mismatch-X RATIO`), and the zhang2022 shorthands. `flux`: `"one"` (`--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min` as
     single values), `"grid"` (the caller adds `--zeta1`/`--ratio` as map axes) or None."""
     classes = _observer_classes(sensored)
     g = parser.add_argument_group(
@@ -891,7 +891,7 @@ def _gains(args, name: str, cls: type, skip=()) -> dict:
 
 
 def observer_from_args(args, drive: pj.Drive, *, skip=()) -> ObserverChoice:
-    """The observer of `--observer`, `--observer-set`/`--mismatch-*`, `--gain` and the
+    """The observer of `--observer`, `--observer-set`/`--mismatch`, `--gain` and the
     shorthands, made by the registry (`pmsmjax.observers.make_observer`). `skip`: shorthand
     dests that the command uses otherwise (`feasibility`'s `zeta1`/`ratio` axes)."""
     name = args.observer
