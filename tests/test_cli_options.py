@@ -87,6 +87,8 @@ def test_lists_parse_space_separated_and_commas_are_deprecated(capsys):
     assert "deprecated" in capsys.readouterr().err
     a = p.parse_args(["feasibility", "--speed", "0.2,0.5", "--speed", "1", "--out", "x"])
     assert a.speed == [[0.2, 0.5], [1.0]]  # the old spelling still works
+    assert "deprecated; give the values separated by spaces: --speeds 0.2 0.5" in \
+        capsys.readouterr().err
     a = p.parse_args(["response", "--orders", "1", "-5", "7", "--out", "x"])
     assert a.orders == [1, -5, 7]
     with pytest.raises(_options.CLIError, match="--orders"):

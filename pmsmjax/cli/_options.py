@@ -236,22 +236,23 @@ class ListOption(argparse.Action):
     """A list option: space-separated values (`nargs="+"`), each converted by `item`;
     repeating the option adds to the list (with `groups=True` each occurrence is one
     group, a list of lists). The old comma-separated form (`0.2,0.6`) is split, with a
-    deprecation message."""
+    deprecation message that suggests the spaced form of this option (or of `plural`,
+    for a one-value option, `nargs=None`, that used to take a comma-separated list)."""
 
-    def __init__(self, option_strings, dest, *, item=str, groups: bool = False, **kw):
+    def __init__(self, option_strings, dest, *, item=str, groups: bool = False,
+                 plural: str | None = None, **kw):
         self.item = item
         self.groups = groups
+        self.plural = plural  # the list option to suggest (for a one-value option)
         kw.setdefault("nargs", "+")
         super().__init__(option_strings, dest, **kw)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        items = []
-        for v in values:
+        items, commas = [], []
+        for v in [values] if isinstance(values, str) else values:
             parts = v.split(",")
             if len(parts) > 1:
-                deprecation(parser, f"{option_string} {v} (comma-separated)",
-                            f"give the values separated by spaces: {option_string} "
-                            + " ".join(x.strip() for x in parts))
+                commas.append(v)
             for x in parts:
                 if not x.strip():
                     raise argparse.ArgumentError(self, f"{v!r} has an empty item")
@@ -262,6 +263,11 @@ class ListOption(argparse.Action):
                 except ValueError:
                     raise argparse.ArgumentError(self, f"invalid value {x.strip()!r}"
                                                  ) from None
+        if commas:  # only once the values are good: a bad one is a one-line error
+            opt = self.plural or option_string
+            deprecation(parser, f"{option_string} {' '.join(commas)} (comma-separated)",
+                        f"give the values separated by spaces: {opt} "
+                        + " ".join(" ".join(x.strip() for x in v.split(",")) for v in commas))
         cur = getattr(namespace, self.dest, None)
         cur = list(cur) if cur is not None and cur is not self.default else []
         setattr(namespace, self.dest, cur + ([items] if self.groups else items))
@@ -556,7 +562,8 @@ def add_operating_point_options(parser: argparse.ArgumentParser, *, speed: str) 
                             "ratio design's gains stay finite there, w1 = ratio |w0| = 0) "
                             "but every zhang2022 design is degenerate at standstill "
                             "(status -1)")
-        g.add_argument("--speed", action="append", type=speed_list, default=None,
+        g.add_argument("--speed", action=ListOption, item=finite_float, groups=True,
+                       nargs=None, plural="--speeds", default=None,
                        metavar="PU", help="one speed (p.u.), as in the other commands; "
                                           "repeatable (the comma-separated list "
                                           "PU,PU,... is deprecated: use --speeds)")
