@@ -12,6 +12,7 @@ from pmsmjax import analysis
 
 
 README = pathlib.Path(__file__).parents[1] / "README.md"
+OBSERVERS = pathlib.Path(__file__).parents[1] / "docs" / "observers.md"
 
 
 def test_readme_example_runs_and_shows_the_static_error(tmp_path, monkeypatch, capsys):
@@ -36,3 +37,17 @@ def test_readme_example_runs_and_shows_the_static_error(tmp_path, monkeypatch, c
     theta_eq = np.degrees(np.asarray(eq.theta)[valid])
     assert theta_eq.size == 1 and 1.0 < theta_eq[0]
     assert abs(err[-800:].mean() - theta_eq[0]) < 0.05  # measured 2.74 vs 2.76 deg
+
+
+def test_observers_page_example_runs():
+    """The registry example of docs/observers.md: under load (5 A) the observer with L_q
+    50 % high has its designed equilibrium off zero, stable."""
+    block, = re.findall(r"```python\n(.*?)```", OBSERVERS.read_text(), flags=re.S)
+    ns: dict = {}
+    exec(compile(block, str(OBSERVERS), "exec"), ns)
+    eq = ns["eq"]
+    assert int(eq.status) == 0
+    theta = np.degrees(np.asarray(eq.theta)[np.asarray(eq.valid)])
+    stable = np.asarray(eq.stable)[np.asarray(eq.valid)]
+    assert np.sum(stable) == 1 and abs(theta[stable][0]) > 0.5
+    assert np.asarray(ns["fm"].status).shape[-2:] == (3, 3)
