@@ -272,8 +272,14 @@ class CompareConfig:
         return cls(**kw)
 
     def to_dict(self) -> dict:
-        return {k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in dataclasses.asdict(self).items()}
+        """The fields as JSON values; `motor_file` and `set_params` only when given, so
+        that a preset job keeps the fingerprint (and resumes) it had before they
+        existed."""
+        d = dataclasses.asdict(self)
+        for k, empty in (("motor_file", None), ("set_params", ())):
+            if d[k] == empty:
+                del d[k]
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
 
     @classmethod
     def from_dict(cls, d: dict) -> CompareConfig:
