@@ -125,6 +125,10 @@ def test_mismatch_is_one_ratio_per_parameter(capsys):
         args = p.parse_args(["equilibria", *bad])
         with pytest.raises(_options.CLIError, match=fragment):
             _options.observer_from_args(args, drive)
+    for cmd in (["simulate", "--observer", "eso"], ["replay", "--data", "x", "--out", "o"]):
+        args = p.parse_args([*cmd, "--mismatch", "L_q=1.3"])
+        m = _options.observer_from_args(args, drive).observer.motor
+        assert float(m.L_q) == pytest.approx(1.3 * L_q, rel=1e-15)
     t = tuning_parser()
     assert t.parse_args(["--mismatch-range", "0.7", "1.3"]).mismatch == [0.7, 1.3]
     capsys.readouterr()

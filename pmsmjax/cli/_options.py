@@ -16,8 +16,8 @@ angles in degrees (`--theta0 DEG`), speeds in p.u. of the rated electrical speed
 (`--speed PU`, `--speeds PU ...`, `--speed0 PU`), lists as space-separated values after
 a plural option (`--speeds 0.2 0.6`, `--observers eso leso`; the comma-separated form
 still works, with a deprecation message), observer-model mismatch as ratios observer /
-plant (`--mismatch L_q=1.3` in the analysis commands; the tuner's range of ratios
-`--mismatch-range LO HI`), `--out` always a folder. Old spellings that are cheap to keep
+plant (`--mismatch L_q=1.3` in simulate, replay and the analysis commands; the tuner's
+range of ratios `--mismatch-range LO HI`), `--out` always a folder. Old spellings that are cheap to keep
 (`--mismatch-L-q RATIO`, `--w-m0 RAD_S`, `--w0 RAD_S`, `motor --out FILE.toml`, the
 tuner's `--mismatch LO HI`) still work and print a deprecation message
 (`DeprecatedOption`).
@@ -654,10 +654,11 @@ def _design_list(classes: dict) -> str:
 def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                          sensored: bool = False, mismatch: bool = False,
                          flux: str | None = "one", fixed_at: bool = True,
-                         default_note: str = "") -> None:
+                         default_note: str = "", old_mismatch: bool = True) -> None:
     """`--observer` (choices: the registry, plus `sensored` with `sensored=True`),
     `--observer-set`, `--gain`, with `mismatch` the `--mismatch NAME=RATIO` ratios (and the
-    deprecated `--mismatch-X RATIO`), and the zhang2022 shorthands. `flux`: `"one"` (`--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min` as
+    deprecated `--mismatch-X RATIO` where the command had them, `old_mismatch`), and the
+    zhang2022 shorthands. `flux`: `"one"` (`--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min` as
     single values), `"grid"` (the caller adds `--zeta1`/`--ratio` as map axes) or None."""
     classes = _observer_classes(sensored)
     g = parser.add_argument_group(
@@ -687,7 +688,7 @@ def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                             + ", ".join(MODEL_PARAMETERS) + ". Example: --mismatch "
                             "L_q=1.3. The same as --observer-set NAME=RATIO*plant value "
                             "(give one of the two)")
-        for p, unit in MODEL_PARAMETERS.items():
+        for p, unit in MODEL_PARAMETERS.items() if old_mismatch else ():
             opt = "--mismatch-" + p.replace("_", "-")
             g.add_argument(opt, dest="mismatch_" + p, type=positive_float, default=None,
                            metavar="RATIO", action=DeprecatedOption,

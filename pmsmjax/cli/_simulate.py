@@ -151,8 +151,8 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="seed of the noise generator (integer, default: %(default)s)")
     g.add_argument("--substeps", type=positive_int, default=1, metavar="N",
                    help="RK4 steps of the plant per sampling period (default: %(default)s)")
-    add_observer_options(p, default="sensored", sensored=True,
-                         default_note=": the encoder angle and speed")
+    add_observer_options(p, default="sensored", sensored=True, mismatch=True,
+                         old_mismatch=False, default_note=": the encoder angle and speed")
     add_design_option(p)
     add_output_options(p, "results")
 
