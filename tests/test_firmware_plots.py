@@ -110,3 +110,25 @@ def test_response_plot(tmp_path, capsys, monkeypatch):
     capsys.readouterr()
     assert main(["response", "--plot"]) == 2
     assert "--out" in capsys.readouterr().err
+
+
+def test_gains_command_on_a_constant_design(tmp_path, capsys):
+    """A constant design (stumper's parallel-model estimator, every parameter 1.2 x the
+    paper's): its parameters against the paper's, and its poles, over both signs of
+    speed."""
+    drive = pj.preset("stumper_mt5")
+    paper = make_observer("parallel-model", drive)
+    values = {k: 1.2 * float(v) for k, v in paper.design_parameters().items()}
+    t = pj.gains_table_constant("parallel-model", values, dict(type(paper).design_units),
+                                drive=drive.name, T_s=62.5e-6, objective="robust",
+                                verdict={"holds": True, "baseline": "paper"})
+    pj.write_gains_table(t, tmp_path / "tab")
+    assert main(["gains", "--motor", "stumper_mt5", "--design", str(tmp_path / "tab"),
+                 "--i-q", "0.3", "--out", str(tmp_path / "chk")]) == 0
+    assert "warning" not in capsys.readouterr().err  # the verdict holds
+    r = json.loads((tmp_path / "chk" / "gains_check.json").read_text())
+    for k, g in r["gains"].items():
+        np.testing.assert_allclose(g["tuned"], 1.2 * np.asarray(g["paper"]), rtol=1e-12)
+    s = np.asarray(r["speed_pu"])
+    assert s.min() < 0 < s.max() and r["T_s"] == 62.5e-6
+    assert max(r["max_abs_pole_tuned"]) < 1 and max(r["max_abs_pole_paper"]) < 1
