@@ -60,6 +60,10 @@ from ._gains_table import (  # noqa: E402
     write_gains_table as write_gains_table,
 )
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
+from ._inverter import (  # noqa: E402
+    dead_time_error_ab as dead_time_error_ab,
+    dead_time_fundamental as dead_time_fundamental,
+)
 from ._io import (  # noqa: E402
     RecordedData as RecordedData,
     load_recording as load_recording,
