@@ -23,6 +23,7 @@ from . import (
     _certify,
     _equilibria,
     _feasibility,
+    _identify,
     _motor,
     _plant,
     _replay,
@@ -35,8 +36,8 @@ from ._options import CLIError, Command, out_dir_transaction
 #: The commands, by name, in the order `pmsmjax --help` lists them.
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
-    for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
-    + (_response,)
+    for m in (_simulate, _plant, _replay, _identify, _feasibility, _equilibria, _certify,
+              _cache) + (_response,)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
 
