@@ -82,14 +82,15 @@ def main() -> None:
             subprocess.run(cmd, env=env, check=True, capture_output=True)
             wall = time.perf_counter() - t0
             rep = json.loads((tmp / "id" / "identify.json").read_text())
-            err = max(abs(p["value"] / _value(true, n) - 1) for n, p in
-                      rep["parameters"].items())
+            errs = {n: abs(p["value"] / _value(true, n) - 1) for n, p in
+                    rep["parameters"].items()}
+            worst = max(errs, key=errs.get)
             rows.append({"case": case, "wall_s": wall, "solver_steps": rep["solver_steps"],
-                         "max_rel_error_pct": 100 * err})
+                         "max_rel_error_pct": 100 * errs[worst], "worst": worst})
     print(f"{'case':6s} {'wall (s)':>9s} {'LM steps':>9s} {'max error %':>12s}")
     for r in rows:
         print(f"{r['case']:6s} {r['wall_s']:9.1f} {r['solver_steps']:9d} "
-              f"{r['max_rel_error_pct']:12.3f}")
+              f"{r['max_rel_error_pct']:12.3f} ({r['worst']})")
     if args.out:
         Path(args.out).write_text(json.dumps({
             "machine": f"{platform.machine()} {os.cpu_count()} cores, {platform.platform()}",
