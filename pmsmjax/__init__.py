@@ -61,6 +61,17 @@ from ._gains_table import (  # noqa: E402
     write_gains_table as write_gains_table,
 )
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
+from ._identify import (  # noqa: E402
+    IDENTIFIABLE as IDENTIFIABLE,
+    IdentifiabilityWarning as IdentifiabilityWarning,
+    IdentifyError as IdentifyError,
+    IdentifyResult as IdentifyResult,
+    identify as identify,
+)
+from ._inverter import (  # noqa: E402
+    dead_time_error_ab as dead_time_error_ab,
+    dead_time_fundamental as dead_time_fundamental,
+)
 from ._io import (  # noqa: E402
     RecordedData as RecordedData,
     load_recording as load_recording,

@@ -121,7 +121,9 @@ class RecordedData(eqx.Module):
     **Arguments:**
 
     - `t`: sampling instants t_k (s), shape (N,).
-    - `u_ab`: stator voltage applied over [t_k, t_{k+1}) (V, stationary frame, (N, 2)).
+    - `u_ab`: stator voltage over [t_k, t_{k+1}) (V, stationary frame, (N, 2)): the one
+      the inverter applied, or, for a drive's own log, the one its controller commanded
+      (then replay with `inverter=` / `--voltage commanded`).
     - `i_ab`: stator current sampled at t_k (A, stationary frame, (N, 2)).
     - `theta`: electrical rotor angle at t_k (rad, (N,)); optional.
     - `w_m`: electrical rotor speed at t_k (rad/s, (N,)); optional.
@@ -202,7 +204,8 @@ class RecordedData(eqx.Module):
           otherwise the true current `Trajectory.i_ab`.
         - `estimates`: also store `theta_hat`, `w_hat`.
 
-        `u_ab` is the voltage the plant saw (after any computational delay), `theta` the
+        `u_ab` is the voltage commanded over each period (after any computational delay;
+        the plant's own when the inverter is ideal, `drive.inverter.u_dt` unset), `theta` the
         true angle (wrapped to (-pi, pi]) and `w_m`, `tau_L` the true speed and load.
         """
         if np.ndim(traj.t) != 1:

@@ -36,7 +36,8 @@ import jax
 import jax.numpy as jnp
 
 from ._frames import park
-from ._params import DualThreePhaseParams, EMFHarmonics, Mechanics, PMSMParams
+from ._inverter import dead_time_error_ab, dead_time_error_vsd
+from ._params import DualThreePhaseParams, EMFHarmonics, Inverter, Mechanics, PMSMParams
 
 
 @jax.custom_jvp
@@ -115,6 +116,11 @@ def split_input(u: PlantInput) -> PlantInput:
     return PlantInput(u_ab=_pair(u.u_ab), tau_L=u.tau_L, u_xy=_pair(u.u_xy), free=u.free)
 
 
+def _is_zero(u_dt) -> bool:
+    """`u_dt` is `None` or a Python zero: no inverter error (a static decision)."""
+    return u_dt is None or (isinstance(u_dt, (int, float)) and u_dt == 0)
+
+
 def _xy_order(h: int) -> bool:
     """True if a PM harmonic of signed order h maps to the x-y subspace of a DTP machine."""
     return abs(h) % 12 in (5, 7)
@@ -127,10 +133,21 @@ class PMSM(eqx.Module):
 
     - `motor`: `PMSMParams` or `DualThreePhaseParams`.
     - `mechanics`: `Mechanics`.
+    - `inverter`: optional `Inverter` whose dead-time error (`u_dt`, `i_dt`) the windings
+      see: the input voltage is then the *commanded* one, and the machine receives it
+      less the error at its present phase currents (`pmsmjax._inverter`), evaluated
+      continuously inside each integration step. `None` or `u_dt = 0`: ideal.
     """
 
     motor: PMSMParams | DualThreePhaseParams
     mechanics: Mechanics
+    inverter: Inverter | None = None
+
+    @property
+    def _dead_time(self) -> bool:
+        """Whether the inverter's voltage error is modelled (skipped when `u_dt` is a
+        Python zero or `None`, so an ideal inverter costs nothing)."""
+        return self.inverter is not None and not _is_zero(self.inverter.u_dt)
 
     @property
     def dual(self) -> bool:
@@ -223,6 +240,20 @@ class PMSM(eqx.Module):
         i_d, i_q = y.i_dq
         c, s = cos_sin(y.theta)
         u_a, u_b = args.u_ab
+        u_xy = None
+        if self.dual:
+            u_xy = args.u_xy if args.u_xy is not None else (jnp.zeros_like(u_a),) * 2
+        if self._dead_time:  # the windings receive the commanded voltage less the error
+            inv = self.inverter
+            i_a, i_b = c * i_d - s * i_q, s * i_d + c * i_q  # inv_park(i_dq, theta)
+            if self.dual:
+                du_ab, du_xy = dead_time_error_vsd(inv.u_dt, inv.i_dt, jnp.stack([i_a, i_b], -1),
+                                                   jnp.stack(y.i_xy, -1))
+                u_a, u_b = u_a - du_ab[..., 0], u_b - du_ab[..., 1]
+                u_xy = (u_xy[0] - du_xy[..., 0], u_xy[1] - du_xy[..., 1])
+            else:
+                du_a, du_b = dead_time_error_ab(inv.u_dt, inv.i_dt, i_a, i_b)
+                u_a, u_b = u_a - du_a, u_b - du_b
         u_d, u_q = c * u_a + s * u_b, c * u_b - s * u_a  # park(u_ab, theta)
         psi_pm = p.psi_pm_dq(y.theta)
         psi_d = p.L_d * i_d + psi_pm[..., 0]
@@ -235,7 +266,6 @@ class PMSM(eqx.Module):
         tau_M = self._torque(y, psi_d, psi_q, p)
         dw = args.free * p.n_p * (tau_M - m.B * w / p.n_p - args.tau_L) / m.J
         if self.dual:
-            u_xy = args.u_xy if args.u_xy is not None else (jnp.zeros_like(u_a),) * 2
             dpsi = self.dpsi_pm_xy_dtheta(y.theta)
             di_xy = tuple((u - p.R_s * i - w * dpsi[..., j]) / self.motor.L_xy
                           for j, (u, i) in enumerate(zip(u_xy, y.i_xy)))
@@ -260,14 +290,24 @@ class PMSM(eqx.Module):
         """
         p = self._ab_params()
         k = self.k_tau / p.n_p  # 1.5 or 3: power scaling of amplitude-invariant vectors
-        u_dq = park(args.u_ab, y.theta)
         dy = self.vector_field(0.0, y, args)
+        u_ab, u_xy = jnp.asarray(args.u_ab), args.u_xy
+        if self.dual and u_xy is None:
+            u_xy = jnp.zeros_like(u_ab)
+        if self._dead_time:  # p_in is the power the windings receive
+            inv, i_ab = self.inverter, self.i_ab(y)
+            if self.dual:
+                du_ab, du_xy = dead_time_error_vsd(inv.u_dt, inv.i_dt, i_ab, y.i_xy)
+                u_ab, u_xy = u_ab - du_ab, u_xy - du_xy
+            else:
+                du = dead_time_error_ab(inv.u_dt, inv.i_dt, i_ab[..., 0], i_ab[..., 1])
+                u_ab = u_ab - jnp.stack(du, -1)
+        u_dq = park(u_ab, y.theta)
         p_in = k * jnp.sum(u_dq * y.i_dq, -1)
         p_cu = k * p.R_s * jnp.sum(y.i_dq ** 2, -1)
         dW = k * (p.L_d * y.i_dq[..., 0] * dy.i_dq[..., 0]
                   + p.L_q * y.i_dq[..., 1] * dy.i_dq[..., 1])
         if self.dual:
-            u_xy = args.u_xy if args.u_xy is not None else jnp.zeros_like(args.u_ab)
             p_in = p_in + k * jnp.sum(u_xy * y.i_xy, -1)
             p_cu = p_cu + k * p.R_s * jnp.sum(y.i_xy ** 2, -1)
             dW = dW + k * self.motor.L_xy * jnp.sum(y.i_xy * dy.i_xy, -1)

@@ -155,6 +155,10 @@ MOTOR_FILE_SCHEMA: dict[str, dict[str, Field]] = {
                        "u_dc / sqrt(3); at most 2 u_dc / 3)", required=False, **_POS),
         "delay": Field("", "one-sample computational delay (default false)", kind="bool",
                        required=False),
+        "u_dt": Field("V", "dead-time and device-drop voltage error per phase (default: "
+                      "none, an ideal inverter)", required=False, **_NONNEG),
+        "i_dt": Field("A", "width of the dead-time error's transition around zero phase "
+                      "current, u_dt tanh(i / i_dt) (default 0.1)", required=False, **_POS),
     },
     "ratings": {
         "w_rated": Field("rad/s", "rated electrical speed (give this or n_rated_rpm)",
@@ -316,7 +320,9 @@ def parse_motor_file(text: str, source: str = "<text>") -> Drive:
             ab=ab, L_xy=m["L_xy"], gamma=m.get("gamma", math.pi / 6)))
     mechanics = build("mechanics", lambda: Mechanics(J=mech["J"], B=mech.get("B", 0.0)))
     inverter = build("inverter", lambda: Inverter(u_dc=inv["u_dc"], u_max=inv.get("u_max"),
-                                                  delay=inv.get("delay", False)))
+                                                  delay=inv.get("delay", False),
+                                                  u_dt=inv.get("u_dt"),
+                                                  i_dt=inv.get("i_dt", 0.1)))
 
     if ("w_rated" in rat) == ("n_rated_rpm" in rat):
         r.fail("[ratings]: give exactly one of w_rated (rad/s electrical) and n_rated_rpm "
@@ -404,6 +410,8 @@ def motor_file_text(drive: Drive) -> str:
         lines.append(row("inverter", "u_max", inv.u_max))
     if inv.delay:
         lines.append(_line("delay", "true", "one-sample computational delay"))
+    if inv.u_dt is not None:
+        lines += [row("inverter", "u_dt", inv.u_dt), row("inverter", "i_dt", inv.i_dt)]
     lines += ["", "[ratings]", row("ratings", "w_rated", drive.w_rated),
               row("ratings", "tau_rated", drive.tau_rated),
               row("ratings", "i_max", drive.i_max),

@@ -186,7 +186,7 @@ class Mechanics(eqx.Module):
 
 
 class Inverter(eqx.Module):
-    """Voltage-source inverter, modelled as an ideal ZOH voltage source with a limit.
+    """Voltage-source inverter: a ZOH voltage source with a limit and a dead-time error.
 
     **Arguments:**
 
@@ -195,15 +195,24 @@ class Inverter(eqx.Module):
       the linear range of space-vector modulation.
     - `delay`: one-sample computational delay. If `True`, the voltage computed at sample
       k is applied over [t_{k+1}, t_{k+2}).
+    - `u_dt`: dead-time and device-drop voltage error per phase (V), >= 0; default `None`
+      (an ideal inverter, at no cost). Each phase receives its commanded voltage less
+      `u_dt * tanh(i_x / i_dt)` (see `pmsmjax._inverter` for the model).
+    - `i_dt`: width of that error's transition around zero phase current (A), > 0;
+      default 0.1 A (a few percent of rated current is typical).
     """
 
     u_dc: float
     u_max: float | None = None
     delay: bool = eqx.field(static=True, default=False)
+    u_dt: float | None = None
+    i_dt: float = 0.1
 
     def __check_init__(self):
         check_positive("Inverter", "u_dc", self.u_dc, "V")
         check_positive("Inverter", "u_max", self.u_max, "V")
+        check_positive("Inverter", "u_dt", self.u_dt, "V", allow_zero=True)
+        check_positive("Inverter", "i_dt", self.i_dt, "A")
         if self.u_max is not None and is_concrete((self.u_max, self.u_dc)):
             if np.any(np.asarray(self.u_max) > np.asarray(self.u_dc) * 2 / 3 + 1e-12):
                 raise ValueError(
@@ -513,6 +522,6 @@ def replace_params(drive: Drive, **values) -> Drive:
             raise ValueError(
                 f"Unknown parameter {name!r}; settable names are motor fields "
                 f"(R_s, L_d, L_q, psi_f, n_p{', L_xy, gamma' if drive.dual else ''}), "
-                f"mechanics (J, B) and inverter (u_dc, u_max)."
+                f"mechanics (J, B) and inverter (u_dc, u_max, u_dt, i_dt)."
             )
     return drive

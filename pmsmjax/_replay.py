@@ -19,7 +19,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._simulate import scale_motor
+from ._params import Inverter
+from ._simulate import observer_voltage, scale_motor
 from ._validate import is_concrete
 from .observers import AbstractObserver, Measurement
 
@@ -37,9 +38,12 @@ def _arrays(data, u_ab, i_ab, t):
 
 
 @eqx.filter_jit
-def _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales):
+def _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales, inverter=None):
     dtype = jnp.result_type(i_ab.dtype, u_ab.dtype)
     n = i_ab.shape[0]
+    if inverter is not None:  # commanded voltages: the drive's compensation, as in simulate
+        u_ab = observer_voltage(u_ab[:-1], i_ab[:-1], i_ab[1:], inverter.u_dt, inverter.i_dt)
+        u_ab = jnp.concatenate([u_ab, jnp.zeros((1, 2), u_ab.dtype)], 0)  # (never used)
     u_prev = jnp.concatenate([jnp.zeros((1, 2), u_ab.dtype), u_ab[:-1]], 0)
     nan = jnp.full((), jnp.nan, dtype)
     state0 = observer.init(theta0=theta0, w0=w0)
@@ -59,7 +63,7 @@ def _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales):
 
 
 def replay(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *, t=None,
-           T_s=None, theta0=0.0, w0=0.0, observer_scale=None):
+           T_s=None, theta0=0.0, w0=0.0, observer_scale=None, inverter=None):
     """Run `observer` over recorded voltages and currents; returns
     `(theta_hat, w_hat)`. `replay_estimates` (same arguments) returns the whole
     `Estimate` sequence, including the observer's `extras`.
@@ -80,17 +84,24 @@ def replay(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *, t=Non
     - `observer_scale`: optional `{name: (N,) array}` factors on the observer's machine
       parameters (`R_s`, `L_d`, `L_q`, `psi_f`) at each sample, as
       `Scenario(observer_scale=...)` applies them in `simulate`.
+    - `inverter`: for a recording of *commanded* voltages (what a drive's controller
+      logs), the `Inverter` (e.g. `drive.inverter`) whose dead-time model (`u_dt` V,
+      `i_dt` A) reconstructs the applied voltage: the observer sees the commanded voltage
+      of each period less the model's error averaged over the currents at the period's two
+      ends, as `simulate(..., observer_u_dt=...)` hands it in the loop. Default `None`:
+      the voltages are the applied ones and are used as they are.
 
     **Returns:** `(theta_hat, w_hat)`, each (N,): the estimated electrical angle at t_k
     (rad, wrapped to (-pi, pi]) and speed (rad/s).
     """
     est = replay_estimates(observer, data, u_ab, i_ab, t=t, T_s=T_s, theta0=theta0, w0=w0,
-                           observer_scale=observer_scale)
+                           observer_scale=observer_scale, inverter=inverter)
     return est.theta_hat, est.w_hat
 
 
 def replay_estimates(observer: AbstractObserver, data=None, u_ab=None, i_ab=None, *,
-                     t=None, T_s=None, theta0=0.0, w0=0.0, observer_scale=None):
+                     t=None, T_s=None, theta0=0.0, w0=0.0, observer_scale=None,
+                     inverter=None):
     """`replay`, returning the `Estimate` at every sample: `theta_hat` (N,), `w_hat`
     (N,) and every observer-specific estimate in `extras` (leading axis N; names and
     units in the observer class's `extras`)."""
@@ -128,4 +139,7 @@ def replay_estimates(observer: AbstractObserver, data=None, u_ab=None, i_ab=None
     dtype = jnp.result_type(i_ab.dtype, u_ab.dtype)
     theta0 = jnp.asarray(theta0, dtype)
     w0 = jnp.asarray(w0, dtype)
-    return _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales)
+    if inverter is not None and not isinstance(inverter, Inverter):
+        raise ValueError(f"`replay(inverter=...)` must be a `pmsmjax.Inverter` (e.g. "
+                         f"`drive.inverter`) or None; got {type(inverter).__name__}.")
+    return _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales, inverter)

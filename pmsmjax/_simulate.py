@@ -23,7 +23,8 @@ from jax.ad_checkpoint import checkpoint_name
 from ._control import FOC
 from ._frames import wrap_angle
 from ._integrate import RK4, check_step, integrate
-from ._motor import PMSM, PlantInput, PlantState, cos_sin, join_state, split_state
+from ._inverter import dead_time_error_ab
+from ._motor import PMSM, PlantInput, PlantState, _is_zero, cos_sin, join_state, split_state
 from ._params import Drive, DualThreePhaseParams, PMSMParams
 from ._scenario import Scenario
 from ._solution import RESULTS, Trajectory
@@ -148,6 +149,7 @@ def simulate(
     i_dq0=(0.0, 0.0),
     save_every: int = 1,
     throw: bool = True,
+    observer_u_dt=None,
 ) -> Trajectory:
     """Simulate one closed-loop run of a (sensored or sensorless) drive.
 
@@ -170,6 +172,13 @@ def simulate(
       steps); the integrals `ise_*` always use every sample.
     - `throw`: raise if the run diverged; with `False` the status is returned instead
       (use this under `vmap` for sweeps).
+    - `observer_u_dt`: the inverter error (V) that the drive's dead-time compensation
+      assumes when it hands the observer its voltage: the observer sees the commanded
+      voltage of the last period less `observer_u_dt * tanh(i / i_dt)` per phase,
+      averaged over the measured currents at both ends of the period (what `replay(...,
+      inverter=...)` does with a commanded-voltage recording). Default: the drive's own
+      `inverter.u_dt` (an exact model); `0` gives the observer the raw commanded voltage.
+      Three-phase drives only (a dual three-phase drive needs its x-y currents).
 
     The run's floating-point dtype is that of the `drive` and `controller` parameters
     (Python floats adapt): cast both with `pmsmjax.astype(..., jnp.float32)` for a
@@ -203,19 +212,43 @@ def simulate(
             f"`controller.dual` ({controller.dual.mode!r} control) needs a dual three-phase "
             f"drive; {drive.name!r} is three-phase.")
 
+    if drive.dual and _compensates(drive, observer_u_dt):
+        raise ValueError(
+            "`simulate(observer_u_dt=...)`: dead-time compensation of the observer's voltage "
+            "is modelled for three-phase drives only; pass `observer_u_dt=0` for a dual "
+            "three-phase drive with `inverter.u_dt > 0`.")
     return _simulate(arguments)
+
+
+def _compensates(drive: Drive, observer_u_dt) -> bool:
+    """Whether the observer's voltage is compensated for the inverter error (a static
+    decision: False only when the model's `u_dt` is `None` or a Python zero)."""
+    return not _is_zero(drive.inverter.u_dt if observer_u_dt is None else observer_u_dt)
+
+
+def observer_voltage(u_cmd_prev, i_prev, i_now, u_dt, i_dt):
+    """The voltage a drive's observer sees for the period that ended at the present sample:
+    the commanded voltage `u_cmd_prev` (V, last axis 2) less the inverter error model
+    (`u_dt` V, `i_dt` A) averaged over the measured currents at the period's two ends
+    `i_prev`, `i_now` (A, last axis 2) (trapezoid rule)."""
+    e0 = dead_time_error_ab(u_dt, i_dt, i_prev[..., 0], i_prev[..., 1])
+    e1 = dead_time_error_ab(u_dt, i_dt, i_now[..., 0], i_now[..., 1])
+    return u_cmd_prev - 0.5 * (jnp.stack(e0, -1) + jnp.stack(e1, -1))
 
 
 @eqx.filter_jit
 def _simulate(arguments: dict) -> Trajectory:
     """The jitted body of `simulate`, called with its (validated) arguments by name."""
     names = ("drive controller observer scenario T_s solver n_substeps sensing key theta0 "
-             "w_m0 theta_hat0 w_hat0 i_dq0 save_every throw").split()
+             "w_m0 theta_hat0 w_hat0 i_dq0 save_every throw observer_u_dt").split()
     (drive, controller, observer, scenario, T_s, solver, n_substeps, sensing, key, theta0,
-     w_m0, theta_hat0, w_hat0, i_dq0, save_every, throw) = (arguments[k] for k in names)
+     w_m0, theta_hat0, w_hat0, i_dq0, save_every, throw, observer_u_dt) = (
+        arguments[k] for k in names)
+    compensate = _compensates(drive, observer_u_dt)
+    u_dt_model = drive.inverter.u_dt if observer_u_dt is None else observer_u_dt
     # Validated by `simulate` (with concrete values, outside jit).
     N = scenario.n_steps(T_s)
-    plant0 = PMSM(drive.motor, drive.mechanics)
+    plant0 = PMSM(drive.motor, drive.mechanics, drive.inverter)
     # The run's floating dtype follows the drive and controller parameters (float32 after
     # `astype`); inputs and initial states are cast to it, and so is the carried state
     # after every step, so a float64 leaf elsewhere (e.g. an observer) cannot promote it.
@@ -260,6 +293,7 @@ def _simulate(arguments: dict) -> Trajectory:
         ok=jnp.array(True),
         ise=(zero, zero, zero),  # integrals of theta_err^2, (w_ref - w)^2, (w - w_hat)^2
         noise=None if key is None else jnp.zeros((_NOISE_BLOCK, 2), dtype),
+        i_meas_prev=jnp.zeros(2, dtype) if compensate else None,
     )
     carry_dtypes = jax.tree_util.tree_map(lambda a: a.dtype, carry0)
     i_bound = 20.0 * drive.i_max
@@ -294,7 +328,11 @@ def _simulate(arguments: dict) -> Trajectory:
         i_b = sensing.quantise(i_b, sensing.quantum)
         i_meas = jnp.stack([i_a, i_b], -1)
         theta_enc = sensing.quantise(y.theta, sensing.encoder_quantum)
-        meas = Measurement(i_ab=i_meas, u_ab=carry["u_prev"], theta=theta_enc, w_m=y.w_m)
+        u_obs = carry["u_prev"]
+        if compensate:  # no period before k = 0 (u_prev is zero there)
+            u_obs = jnp.where(k > 0, observer_voltage(u_obs, carry["i_meas_prev"], i_meas,
+                                                      u_dt_model, drive.inverter.i_dt), u_obs)
+        meas = Measurement(i_ab=i_meas, u_ab=u_obs, theta=theta_enc, w_m=y.w_m)
         # --- observer
         obs = observer
         if inp["observer_scale"]:
@@ -334,7 +372,8 @@ def _simulate(arguments: dict) -> Trajectory:
         # --- plant over [t_k, t_k+1)
         plant = plant0
         if inp["plant_scale"]:
-            plant = PMSM(scale_motor(drive.motor, inp["plant_scale"]), drive.mechanics)
+            plant = PMSM(scale_motor(drive.motor, inp["plant_scale"]), drive.mechanics,
+                         drive.inverter)
         args = PlantInput(u_ab=(u_apply[..., 0], u_apply[..., 1]), tau_L=inp["tau_L"],
                           u_xy=None if u_xy_apply is None else
                           (u_xy_apply[..., 0], u_xy_apply[..., 1]),
@@ -348,7 +387,7 @@ def _simulate(arguments: dict) -> Trajectory:
             theta_err ** 2, (inp["w_m_ref"] - y.w_m) ** 2, (y.w_m - est.w_hat) ** 2)))
         new_carry = dict(plant=y_next, ctrl=ctrl_state, obs=obs_state, u_prev=u_apply,
                          u_pending=u_pending, i_hist=i_hist, ok=good, ise=ise,
-                         noise=noise_blk)
+                         noise=noise_blk, i_meas_prev=i_meas if compensate else None)
         new_carry = jax.tree_util.tree_map(lambda a, d: jnp.asarray(a, d), new_carry,
                                            carry_dtypes)
 
@@ -432,7 +471,8 @@ def run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver=RK4(), n_substeps: in
 
     - `drive`: the `Drive`.
     - `t`: sampling instants (s), uniform spacing, shape (N,).
-    - `u_ab`: voltage applied over [t_k, t_{k+1}) (V, (N, 2)).
+    - `u_ab`: voltage commanded over [t_k, t_{k+1}) (V, (N, 2)); the machine receives
+      it less the inverter's dead-time error (`drive.inverter.u_dt`; none by default).
     - `tau_L`: load torque over [t_k, t_{k+1}) (N m, (N,)); default zero.
     - `theta0`, `w_m0`, `i_dq0`: initial state (rad, rad/s, A).
     - `w_m_imposed`: if given ((N,) rad/s), the speed is imposed (dynamometer).
@@ -466,7 +506,7 @@ def _run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver, n_substeps, theta0,
     N = t.shape[0]
     T_s = t[1] - t[0]
     tau = jnp.zeros(N) if tau_L is None else jnp.asarray(tau_L)
-    plant = PMSM(drive.motor, drive.mechanics)
+    plant = PMSM(drive.motor, drive.mechanics, drive.inverter)
     y0 = plant.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0)
     imposed = w_m_imposed is not None
     w_imp = jnp.zeros(N) if w_m_imposed is None else jnp.asarray(w_m_imposed)

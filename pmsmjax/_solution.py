@@ -28,7 +28,8 @@ class Trajectory(eqx.Module):
     - `theta_err`: `wrap(theta - theta_hat)` (rad), true minus estimate.
     - `i_dq`: true current in rotor coordinates (A); `i_ab` in the stationary frame (A).
     - `i_meas_ab`: the current the controller saw (noise, quantisation, delay) (A).
-    - `u_ab`: voltage applied over [t_k, t_{k+1}) (V, stationary frame).
+    - `u_ab`: voltage commanded over [t_k, t_{k+1}) (V, stationary frame); the machine
+      receives it less the inverter's dead-time error when `drive.inverter.u_dt > 0`.
     - `u_dq`: that voltage in rotor coordinates at t_k (V).
     - `i_ref`: current references (A, controller frame); `tau_ref` torque reference.
     - `tau_M`: electromagnetic torque at t_k (N m); `tau_L`: load torque (N m).

@@ -252,3 +252,34 @@ def plot_plant_trace(trace, drive, *, data=None, title: str | None = None,
     axes[-1].set_xlim(float(t[0]), float(t[-1]))
     fig.suptitle(title if title is not None else f"{drive.name}: open-loop plant run")
     return fig
+
+
+def plot_identification(result, *, recording: int = 0, t_window: float | None = None,
+                        title: str | None = None) -> Figure:
+    """Measured against model signals of a `pmsmjax.identify` result: the alpha and beta
+    currents (A) and the speed (rad/s, electrical) of recording `recording`, the model
+    restarted from the measurement at each segment start (multiple shooting), over the
+    first `t_window` seconds (default: 8 segments, so the fit is visible), with the
+    residual underneath."""
+    tr = result.traces[recording]
+    t = np.asarray(tr["t"])
+    span = 8 * result.segment_s if t_window is None else float(t_window)
+    k = t - t[0] <= span
+    fig, ax = _axes(None, 4, height=1.7)
+    for j, name in enumerate(("alpha", "beta")):
+        ax[j].plot(t[k], tr["i_ab"][k, j], "k", lw=0.8, label=f"i_{name} measured")
+        ax[j].plot(t[k], tr["i_model"][k, j], "r--", lw=1.0, label="model")
+        ax[j].set_ylabel(f"i_{name} (A)")
+        _legend(ax[j])
+    ax[2].plot(t[k], tr["w_m"][k], "k", lw=0.8, label="w_m measured")
+    ax[2].plot(t[k], tr["w_model"][k], "r--", lw=1.0, label="model")
+    ax[2].set_ylabel("speed (rad/s)")
+    _legend(ax[2])
+    ax[3].plot(t[k], tr["i_model"][k, 0] - tr["i_ab"][k, 0], "b", lw=0.6,
+               label="i_alpha model - measured")
+    ax[3].set_ylabel("residual (A)")
+    _legend(ax[3])
+    ax[-1].set_xlabel("t (s)")
+    fit = ", ".join(f"{n} {p['value']:.4g} {p['unit']}" for n, p in result.parameters.items())
+    fig.suptitle(title or f"identified: {fit}", fontsize=9)
+    return fig

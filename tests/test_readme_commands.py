@@ -10,7 +10,8 @@ up without touching this file:
   with `SMALL` options appended (shorter runs, no plots);
 - `ls FILE...` checks that the files exist;
 - `make ...` (tested by tests/test_main_job.py and the suite itself), `source ...`, and
-  installs (`pip`, `jupyter`) are skipped;
+  installs (`pip`, `jupyter`) are skipped; `pmsmjax identify` (it needs a commissioning
+  log) is parsed only;
 - anything else fails: add a rule here.
 
 The command lines of every other page of docs/ are parsed (every option must exist;
@@ -43,6 +44,9 @@ SMALL["tune"] = SMALL["tuning"]
 #: The pages whose command lines run (the others are parsed).
 RUN = (ROOT / "README.md", ROOT / "docs" / "your-own-drive.md")
 SKIP = ("make", "source", "pip", "jupyter", "cd", "export")
+#: Commands that need inputs the pages do not produce (identify: the drive's commissioning
+#: log): parsed, not run (tests/test_identify.py runs the command).
+PARSE_ONLY = ("identify",)
 
 
 def command_lines(path: pathlib.Path) -> list[list[str]]:
@@ -97,6 +101,9 @@ def _run_page(page: pathlib.Path, folder: pathlib.Path, monkeypatch, capsys) -> 
         if prog == "ls":
             for f in args:
                 assert (folder / f).is_file(), f"{page.name}: `ls {f}`: no such file"
+            continue
+        if prog == "pmsmjax" and args[:1] and args[0] in PARSE_ONLY:
+            build_parser().parse_args(args)
             continue
         if prog == "tuning":
             rc = tuning_main(_small("tuning", args))

@@ -3,6 +3,10 @@ linearisation, equilibria, feasibility maps over any two design parameters, Lyap
 (slowly-varying) certificates, and a chunked, sharded, resumable runner for large sweeps.
 zhang2022's closed forms (the quartic (34)-(36)) are fast paths next to the generic route."""
 
+from ._dead_time import (
+    dead_time_angle_error as dead_time_angle_error,
+    dead_time_resistance as dead_time_resistance,
+)
 from ._equilibria import (
     Equilibria as Equilibria,
     eso_equilibria as eso_equilibria,

@@ -25,6 +25,7 @@ from . import (
     _equilibria,
     _feasibility,
     _gains,
+    _identify,
     _motor,
     _plant,
     _replay,
@@ -38,8 +39,8 @@ from ._options import CLIError, Command, out_dir_transaction
 #: The commands, by name, in the order `pmsmjax --help` lists them.
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
-    for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
-    + (_response,)
+    for m in (_simulate, _plant, _replay, _identify, _feasibility, _equilibria, _certify,
+              _cache) + (_response,)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
 COMMANDS[_gains.COMMAND.name] = _gains.COMMAND

@@ -30,9 +30,14 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     g = p.add_argument_group("input")
     g.add_argument("--data", required=True, metavar="FILE",
-                   help="recorded drive data (.npz or .csv, format in docs/conventions.md) with t, "
-                        "u_ab, i_ab (and optionally theta, w_m to score the estimates)")
+                   help="recorded drive data (.npz or .csv, format in docs/conventions.md) "
+                        "with t, u_ab, i_ab (and optionally theta, w_m to score the estimates)")
     add_initial_state_options(g, what="the observer's estimate", old_speed="--w0")
+    g.add_argument("--voltage", choices=("applied", "commanded"), default="applied",
+                   help="what the recording's u_ab is: the voltage the inverter applied "
+                        "(default), or the one the drive's controller commanded; with "
+                        "'commanded' the observer sees it less the drive's inverter error "
+                        "model (u_dt, i_dt of the motor file's [inverter] or --set u_dt=V)")
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
@@ -70,6 +75,17 @@ def replay_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
     choice = observer_with_design(args, drive, default="eso")
     data = pj.load_recording(args.data, require=("t", "u_ab", "i_ab"))
+    inverter = None
+    if args.voltage == "commanded":
+        if drive.inverter.u_dt is None:
+            raise CLIError("--voltage commanded needs the drive's inverter error model: "
+                           "u_dt (V) in the motor file's [inverter] section or --set u_dt=V "
+                           "(pmsmjax identify --fit u_dt estimates it from a recording)")
+        if drive.dual:
+            raise CLIError("--voltage commanded: the dead-time compensation of a dual "
+                           "three-phase drive needs its x-y currents, which recordings do "
+                           "not carry; allowed for three-phase drives")
+        inverter = drive.inverter
     out = prepare_out_dir(args.out)
     duration = float(data.t[-1] - data.t[0])
     t_settle = 0.5 * duration if args.t_settle is None else float(args.t_settle)
@@ -79,7 +95,8 @@ def replay_command(args: argparse.Namespace) -> int:
     print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
           f"{data.T_s:g} s from {args.data}")
     theta0, w0 = initial_state_from_args(args, drive)
-    est = pj.replay_estimates(choice.observer, data, theta0=theta0, w0=w0)
+    est = pj.replay_estimates(choice.observer, data, theta0=theta0, w0=w0,
+                              inverter=inverter)
     theta_hat, w_hat = np.asarray(est.theta_hat), np.asarray(est.w_hat)
     extras = {k: np.asarray(v) for k, v in est.extras.items()}
     clash = sorted(set(extras) & (set(pj.RecordedData.__dataclass_fields__) | {"t"}))
@@ -105,6 +122,9 @@ def replay_command(args: argparse.Namespace) -> int:
         "design_file": getattr(args, "design", None),
         "data": str(args.data),
         "T_s": data.T_s,
+        "voltage": args.voltage,
+        "inverter_model": None if inverter is None else {
+            "u_dt": float(inverter.u_dt), "i_dt": float(inverter.i_dt)},
         "initial_estimate": {"theta0_deg": float(args.theta0), "w0_rad_s": w0},
         "arrays": {"theta_hat": "rad, estimated electrical angle at t_k, wrapped",
                    "w_hat": "rad/s, estimated electrical speed at t_k",

@@ -147,6 +147,12 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--delay", action="store_true",
                    help="one-sample computational delay: the voltage computed at t_k is "
                         "applied over [t_(k+1), t_(k+2))")
+    g.add_argument("--observer-u-dt", type=nonneg_float, default=None, metavar="V",
+                   help="the inverter error (V per phase) that the drive's dead-time "
+                        "compensation assumes for the observer's voltage (default: the "
+                        "drive's own u_dt, set with --set u_dt=V; 0: the observer sees the "
+                        "commanded voltage). The recording's u_ab is the commanded voltage: "
+                        "replay it with --voltage commanded")
     g.add_argument("--seed", type=int, default=0, metavar="N",
                    help="seed of the noise generator (integer, default: %(default)s)")
     g.add_argument("--substeps", type=positive_int, default=1, metavar="N",
@@ -168,7 +174,8 @@ def simulate_command(args: argparse.Namespace) -> int:
         # The Inverter's delay flag is static: replace the whole Inverter.
         inv = drive.inverter
         drive = eqx.tree_at(lambda d: d.inverter, drive,
-                            pj.Inverter(u_dc=inv.u_dc, u_max=inv.u_max, delay=True))
+                            pj.Inverter(u_dc=inv.u_dc, u_max=inv.u_max, delay=True,
+                                    u_dt=inv.u_dt, i_dt=inv.i_dt))
     scenario, description, w_m0 = spec.build(drive, args.t_end, args.speed, load)
     alpha_c, alpha_s = 2 * math.pi * args.current_bw, 2 * math.pi * args.speed_bw
     controller = pj.FOC.from_drive(drive, alpha_c=alpha_c, alpha_s=alpha_s)
@@ -186,7 +193,7 @@ def simulate_command(args: argparse.Namespace) -> int:
     traj, t_compile, t_run = compile_and_run(
         pj.simulate, drive, controller, observer, scenario, T_s=args.T_s,
         n_substeps=args.substeps, sensing=sensing, key=jax.random.PRNGKey(args.seed),
-        w_m0=w_m0, throw=False)
+        w_m0=w_m0, throw=False, observer_u_dt=args.observer_u_dt)
 
     ok = bool(traj.ok)
     arrays = {f.name: np.asarray(getattr(traj, f.name)) for f in dataclasses.fields(traj)
@@ -228,6 +235,13 @@ def simulate_command(args: argparse.Namespace) -> int:
         "design_file": getattr(args, "design", None),
         "sensing": {"noise_std_A": float(args.noise), "seed": int(args.seed)},
         "computational_delay": bool(args.delay),
+        "inverter_error": {
+            "u_dt_V": None if drive.inverter.u_dt is None else float(drive.inverter.u_dt),
+            "i_dt_A": float(drive.inverter.i_dt),
+            "observer_u_dt_V": (args.observer_u_dt if args.observer_u_dt is not None else
+                                None if drive.inverter.u_dt is None else
+                                float(drive.inverter.u_dt)),
+            "recording_voltage": "commanded"},
         "T_s": float(args.T_s),
         "steps": int(n_steps),
         "n_substeps": int(args.substeps),

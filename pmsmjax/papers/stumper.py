@@ -303,11 +303,14 @@ class ClosedLoop:
 
 
 def steady_state(rpm: float, load: float = LOAD_RATED, *, t_end: float = 0.3,
-                 L_hat: float | None = 7e-3, drive: Drive | None = None) -> ClosedLoop:
+                 L_hat: float | None = 7e-3, drive: Drive | None = None,
+                 observer_u_dt=None) -> ClosedLoop:
     """Fig. 3: encoderless speed control at `rpm` under `load` (N m), started in steady
     state; the estimator with the paper's single inductance `L_hat` (H; None: the
     model's L_q). Summary over the last 0.1 s: mean/peak angle error (deg), speed
-    ripple (rpm)."""
+    ripple (rpm). `observer_u_dt` (V): the dead-time compensation of the estimator's
+    voltage when `drive.inverter.u_dt` is set (`simulate`'s argument; 0: the estimator
+    takes the voltage commands, as the paper's scheme does)."""
     drive = preset("stumper_mt5") if drive is None else drive
     w = rpm * RPM
     obs = ParallelModelObserver.from_drive(drive, L_hat=L_hat)
@@ -316,7 +319,7 @@ def steady_state(rpm: float, load: float = LOAD_RATED, *, t_end: float = 0.3,
                                         * 0.05 * float(drive.base.I_b)))
     sc = Scenario(t_end=t_end, w_m_ref=Profile.constant(w), tau_L=Profile.constant(load))
     tr = simulate(drive, _foc(drive, tau0=load), obs, sc, T_s=T_S, w_m0=w,
-                  i_dq0=(0.05 * float(drive.base.I_b), i_q0))
+                  i_dq0=(0.05 * float(drive.base.I_b), i_q0), observer_u_dt=observer_u_dt)
     last = np.asarray(tr.t) > t_end - 0.1
     e = np.degrees(np.asarray(tr.theta_err))[last]
     wm = np.asarray(tr.w_m)[last] / RPM

@@ -1,0 +1,166 @@
+"""`pmsmjax.identify` / `pmsmjax identify`: parameter recovery on simulated recordings of
+motors, profiles and noise the fit was not developed on, and every bad-input path.
+
+The recordings are closed-loop runs of `simulate` (sensored FOC) with known parameters;
+the fit starts from values off by up to 40 % and must recover each fitted parameter
+within 1 % (the issue's requirement; the Gauss-Newton standard deviations are reported,
+not tested, since the multiple-shooting segments start from noisy currents and their
+errors-in-variables bias is not in them)."""
+
+import json
+import math
+import warnings
+
+import jax
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+from pmsmjax.cli.__main__ import main as cli_main
+
+
+def _current_steps(drive, T, *, noise, key, u_dt=None, T_s=1e-4):
+    """Current control with i_q reversing every T/10 and i_d steps; free rotor."""
+    d = drive if u_dt is None else pj.replace_params(drive, u_dt=u_dt)
+    i_m = float(d.i_max)
+    t_q = list(np.linspace(0, T, 11)[1:-1])
+    sc = pj.Scenario(
+        t_end=T,
+        i_q_ref=pj.Profile.steps(t_q, [0.3 * i_m * (-1) ** k for k in range(1, 10)],
+                                 initial=0.3 * i_m),
+        i_d_ref=pj.Profile.steps([0.2 * T, 0.45 * T, 0.7 * T],
+                                 [-0.25 * i_m, -0.05 * i_m, -0.3 * i_m], initial=0.0))
+    tr = pj.simulate(d, pj.FOC.from_drive(d), pj.SensoredObserver(), sc, T_s=T_s,
+                     w_m0=0.3 * float(d.w_rated), sensing=pj.Sensing(noise_std=noise),
+                     key=jax.random.PRNGKey(key))
+    return d, pj.RecordedData.from_trajectory(tr)
+
+
+def _speed_steps(drive, T, *, noise, key, T_s=1e-4):
+    """Speed control with MTPA (i_d follows the load), speed steps and load steps."""
+    w, tau = float(drive.w_rated), float(drive.tau_rated)
+    sc = pj.Scenario(
+        t_end=T,
+        w_m_ref=pj.Profile.steps([0.3 * T, 0.6 * T], [0.6 * w, 0.3 * w], initial=0.2 * w),
+        tau_L=pj.Profile.steps([0.15 * T, 0.45 * T, 0.8 * T], [0.8 * tau, 0.2 * tau, tau]))
+    foc = pj.FOC.from_drive(drive, strategy="mtpa", alpha_s=2 * math.pi * 15.0)
+    tr = pj.simulate(drive, foc, pj.SensoredObserver(), sc, T_s=T_s, w_m0=0.2 * w,
+                     sensing=pj.Sensing(noise_std=noise), key=jax.random.PRNGKey(key))
+    return pj.RecordedData.from_trajectory(tr)
+
+
+def _true(d, name):
+    if name in ("J", "B"):
+        return float(getattr(d.mechanics, name))
+    if name == "u_dt":
+        return float(d.inverter.u_dt)
+    return float(getattr(d.three_phase_motor, name))
+
+
+def _start(d, factors):
+    return pj.replace_params(d, **{n: _true(d, n) * f for n, f in factors.items()})
+
+
+def _check(res, d, names):
+    for n in names:
+        v = res.parameters[n]["value"]
+        assert abs(v / _true(d, n) - 1) < 0.01, (n, v, _true(d, n), res.parameters)
+        assert res.parameters[n]["std"] > 0
+
+
+def test_salient_ipm_speed_and_load_steps():
+    """morawiec_ipm3k5 (salient, L_q ~ 2 L_d) under MTPA speed control with load steps,
+    applied voltages, 0.02 A noise: R_s, L_d, L_q, psi_f and J from 40 % off."""
+    d = pj.preset("morawiec_ipm3k5")
+    rec = _speed_steps(d, 0.6, noise=0.02, key=7)
+    names = ("R_s", "L_d", "L_q", "psi_f", "J")
+    start = _start(d, dict(R_s=0.6, L_d=1.4, L_q=0.65, psi_f=1.3, J=0.6))
+    res = pj.identify(start, rec, names)
+    _check(res, d, names)
+    assert res.condition < 1e4
+
+
+def test_commanded_voltages_two_recordings():
+    """stumper_mt5 with 4 V of dead time, two current-step recordings of different noise,
+    commanded voltages: every electrical parameter and u_dt, from 40 % off."""
+    d0 = pj.preset("stumper_mt5")
+    d, rec1 = _current_steps(d0, 0.3, noise=0.05, key=3, u_dt=4.0)
+    _, rec2 = _current_steps(d0, 0.3, noise=0.01, key=4, u_dt=4.0)
+    names = ("R_s", "L_d", "L_q", "psi_f", "u_dt")
+    start = _start(d, dict(R_s=1.4, L_d=0.6, L_q=1.3, psi_f=0.7, u_dt=0.6))
+    res = pj.identify(start, [rec1, rec2], names, voltage="commanded")
+    _check(res, d, names)
+    # the identified inverter model makes the commanded-voltage replay as good as the
+    # applied one: the ESO's angle error at the recording's speeds
+    obs = pj.observers.make_observer("eso", res.drive)
+    th_c, _ = pj.replay(obs, rec1, inverter=res.drive.inverter, w0=float(rec1.w_m[0]))
+    err = np.degrees(np.abs(np.asarray(pj.wrap_angle(rec1.theta - th_c))))[rec1.n // 2:]
+    assert err.max() < 2.0
+
+
+def test_cli_writes_result_motor_file_and_plot(tmp_path):
+    d0 = pj.preset("zhang750")
+    d, rec = _current_steps(d0, 0.2, noise=0.01, key=11, u_dt=2.0)
+    pj.save_recording(tmp_path / "rec.npz", rec)
+    pj.save_motor_file(_start(d, dict(R_s=1.3, psi_f=0.8)), tmp_path / "start.toml")
+    out = tmp_path / "out"
+    rc = cli_main(["identify", "--motor-file", str(tmp_path / "start.toml"), "--data",
+                      str(tmp_path / "rec.npz"), "--voltage", "commanded", "--fit",
+                      "R_s,psi_f", "--out", str(out)])
+    assert rc == 0
+    rep = json.loads((out / "identify.json").read_text())
+    for n in ("R_s", "psi_f"):
+        p = rep["parameters"][n]
+        assert set(p) >= {"value", "initial", "std"}
+        assert abs(p["value"] / _true(d, n) - 1) < 0.01
+    assert rep["condition"] >= 1.0 and rep["residual_rms"]["i_A"] > 0
+    back = pj.load_motor_file(out / "identified.toml")
+    assert float(back.motor.R_s) == pytest.approx(rep["parameters"]["R_s"]["value"])
+    assert cli_main(["motor", "--motor-file", str(out / "identified.toml"), "--check"]) == 0
+    assert (out / "identify.png").stat().st_size > 10_000
+
+
+def test_weakly_determined_parameter_is_named():
+    """Constant speed and load with i_d = 0: L_d barely acts (no d-current changes), so
+    fitting it warns and names L_d and the excitation it needs; with no load at all the
+    current is zero and R_s is not determined either, and the warning says so instead
+    of returning a silent number."""
+    d = pj.preset("zhang750")
+    w = float(d.w_rated)
+    for load, weak in ((0.5, {"L_d"}), (0.0, {"R_s", "L_d"})):
+        sc = pj.Scenario(t_end=0.2, w_m_ref=pj.Profile.constant(0.5 * w),
+                         tau_L=pj.Profile.constant(load * float(d.tau_rated)))
+        tr = pj.simulate(d, pj.FOC.from_drive(d), pj.SensoredObserver(), sc, T_s=1e-4,
+                         w_m0=0.5 * w, sensing=pj.Sensing(noise_std=0.02),
+                         key=jax.random.PRNGKey(0))
+        rec = pj.RecordedData.from_trajectory(tr)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = pj.identify(d, rec, ("R_s", "L_d"))
+        named = {n for n in ("R_s", "L_d") if any(
+            m.startswith(f"{n} (") and "weakly determined" in m for m in res.warnings)}
+        assert named == weak, res.warnings
+        assert {str(c.message) for c in caught} >= set(res.warnings)
+        assert all(issubclass(c.category, pj.IdentifiabilityWarning) for c in caught)
+        assert "d-axis current" in next(m for m in res.warnings if m.startswith("L_d ("))
+
+
+def test_bad_inputs():
+    d = pj.preset("zhang750")
+    _, rec = _current_steps(d, 0.05, noise=0.0, key=0)
+    no_theta = pj.RecordedData(t=rec.t, u_ab=rec.u_ab, i_ab=rec.i_ab)
+    with pytest.raises(pj.IdentifyError, match="rotor angle"):
+        pj.identify(d, no_theta, ("R_s",))
+    with pytest.raises(pj.IdentifyError, match="'Rs' is not a parameter"):
+        pj.identify(d, rec, ("Rs",))
+    with pytest.raises(pj.IdentifyError, match="u_dt.*voltage='applied'"):
+        pj.identify(d, rec, ("u_dt",))
+    with pytest.raises(pj.IdentifyError, match="too short"):
+        pj.identify(d, rec, ("R_s",), segment=0.04)
+    with pytest.raises(pj.IdentifyError, match="dual three-phase"):
+        pj.identify(pj.preset("li_dtp"), rec, ("R_s",))
+    with pytest.raises(pj.IdentifyError, match="voltage"):
+        pj.identify(d, rec, ("R_s",), voltage="measured")
+    with pytest.raises(ValueError):
+        pj.identify("zhang750", rec, ("R_s",))
+    assert cli_main(["identify", "--data", "x.npz", "--fit", "Q", "--out", "o"]) == 2
