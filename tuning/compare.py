@@ -595,7 +595,7 @@ def _sweep(fn, grid, out_dir, config, metadata, progress, units, batch_size):
     return run_sweep(fn, grid, out_dir=out_dir, chunk_size=config.chunk_size,
                      batch_size=batch_size, metadata=metadata,
                      progress=progress and jax.process_index() == 0, resume=True,
-                     on_chunk_done=units.tick)
+                     on_chunk_done=units.tick, keep_chunks=False)
 
 
 class _Context:

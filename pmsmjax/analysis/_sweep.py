@@ -38,6 +38,7 @@ Every process returns the full result; chunks finished by an earlier run are rea
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import dataclasses
 import datetime
@@ -70,6 +71,17 @@ _TMP_RE = re.compile(r"^\..+\.tmp$")
 # truth, so a manifest that lags behind loses nothing; this only bounds the cost of
 # rewriting a large manifest after every small chunk.
 _MANIFEST_INTERVAL_S = 2.0
+# The automatic chunk size (`chunk_size=None`): a chunk lasts about this long (s) at the
+# rate measured on the first block, and holds at most this many bytes of outputs.
+_AUTO_CHUNK_SECONDS = 4.0
+_AUTO_CHUNK_BYTES = 512 * 2**20
+# ... in blocks of at most this many points per device (one compiled evaluation).
+_AUTO_BLOCK_PER_DEVICE = 2**16
+# Blocks on the devices at a time (asynchronous dispatch): the next block runs while the
+# last one is copied and its chunk counted and handed to the writer thread.
+_DEPTH = 2
+_DONE: concurrent.futures.Future = concurrent.futures.Future()
+_DONE.set_result(None)
 
 
 class SweepGrid(dict):
@@ -169,7 +181,7 @@ def run_sweep(
     grid: Mapping[str, Any],
     *,
     out_dir: str | os.PathLike,
-    chunk_size: int,
+    chunk_size: int | None = None,
     batch_size: int | None = None,
     metadata: Mapping[str, Any] | None = None,
     progress: bool = True,
@@ -178,6 +190,7 @@ def run_sweep(
     dtype: Any = None,
     allow_nonfinite: bool = False,
     on_chunk_done: Callable[[ChunkInfo], None] | None = None,
+    keep_chunks: bool | None = None,
 ) -> Any:
     """Evaluate `fn` on every point of `grid`, in chunks sharded over all devices.
 
@@ -269,11 +282,16 @@ def run_sweep(
         raise TypeError(f"`run_sweep(fn=...)` must be callable; got {type(fn).__name__}.")
     shape = grid.shape if isinstance(grid, SweepGrid) else None
     host_grid, n_points = _validate_grid(grid, dtype=dtype, allow_nonfinite=allow_nonfinite)
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer):
-        raise ValueError(f"`run_sweep(chunk_size=...)` must be an int; got {chunk_size!r}.")
-    if chunk_size < 1:
-        raise ValueError(f"`run_sweep(chunk_size=...)` must be >= 1; got {chunk_size}.")
-    chunk_size = int(chunk_size)
+    auto = chunk_size is None
+    if not auto:
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer):
+            raise ValueError(
+                f"`run_sweep(chunk_size=...)` must be an int or None; got {chunk_size!r}."
+            )
+        if chunk_size < 1:
+            raise ValueError(f"`run_sweep(chunk_size=...)` must be >= 1; got {chunk_size}.")
+        chunk_size = int(chunk_size)
+    keep_chunks = (not auto) if keep_chunks is None else bool(keep_chunks)
     if batch_size is not None:
         if isinstance(batch_size, bool) or not isinstance(batch_size, int | np.integer):
             raise ValueError(f"`run_sweep(batch_size=...)` must be an int; got {batch_size!r}.")
@@ -304,7 +322,8 @@ def run_sweep(
 
     parts = {
         "grid": _hash_grid(host_grid, shape),
-        "chunk_size": str(chunk_size),
+        # the automatic size is chosen once and kept in the manifest and the chunk files
+        "chunk_size": "auto" if auto else str(chunk_size),
         "outputs": _hash_text(
             json.dumps([[n, str(s.dtype), list(s.shape)] for n, s in zip(out_names, out_specs)])
         ),
@@ -314,47 +333,68 @@ def run_sweep(
     fingerprint = _hash_text(json.dumps(parts, sort_keys=True))
 
     n_devices = mesh.size
-    n_chunks = math.ceil(n_points / chunk_size)
-    # Common padded length of every chunk: one compiled executable for the whole sweep.
+    # Points per compiled evaluation ("block"). With an explicit `chunk_size` a block is a
+    # whole chunk, padded to a multiple of the device count (times `batch_size`); with the
+    # automatic chunk size it is at most `_AUTO_BLOCK_PER_DEVICE` points per device, and
+    # a chunk is as many blocks as last about `_AUTO_CHUNK_SECONDS`. Every block has the
+    # same padded length, so `fn` is compiled exactly once, and the block length does not
+    # depend on how blocks are grouped into chunks (the same results bit for bit).
     step = n_devices * (batch_size or 1)
-    padded = math.ceil(min(chunk_size, n_points) / step) * step
-    bounds = [(i * chunk_size, min((i + 1) * chunk_size, n_points)) for i in range(n_chunks)]
+    if auto:
+        block = min(_round_up(n_points, step),
+                    _round_up(_AUTO_BLOCK_PER_DEVICE * n_devices, step))
+    else:
+        block = _round_up(min(chunk_size, n_points), step)
+    out_bytes = sum(int(np.prod(s.shape)) * np.dtype(s.dtype).itemsize for s in out_specs)
 
     # Decide what to resume on process 0 and broadcast it, so that every process runs the
     # same chunks (and the same collectives) or raises the same error.
     error = scan_error = None
-    done = np.zeros(n_chunks, dtype=bool)
-    old_manifest = None
+    scan = _Scan(chunk_size=None if auto else chunk_size)
     if is_writer:
         try:
             os.makedirs(out_dir, exist_ok=True)
-            error, done, old_manifest = _scan_out_dir(
-                out_dir, fingerprint, parts, n_chunks, resume
+            error, scan = _scan_out_dir(
+                out_dir, fingerprint, parts, n_points, scan.chunk_size, resume
             )
         except Exception as e:  # raised below, after the other processes have been told
             scan_error = e
             error = f"Cannot use {out_dir!r}: {e!r}"
     if jax.process_count() > 1:
-        flags = np.concatenate([[error is not None], done]).astype(np.int32)
-        flags = np.asarray(multihost_utils.broadcast_one_to_all(flags))
-        if not is_writer and flags[0]:
+        head = np.array([error is not None, scan.complete, scan.chunk_size or 0], np.int64)
+        head = np.asarray(multihost_utils.broadcast_one_to_all(head))
+        if not is_writer and head[0]:
             error = f"Process 0 refused to resume the sweep in {out_dir!r}; see its error."
-        done = flags[1:].astype(bool)
+        scan.complete, scan.chunk_size = bool(head[1]), int(head[2]) or None
+        n_known = math.ceil(n_points / scan.chunk_size) if scan.chunk_size else 0
+        done = np.zeros(n_known, dtype=np.int32)
+        done[: len(scan.done)] = scan.done[:n_known]
+        if n_known:
+            done = np.asarray(multihost_utils.broadcast_one_to_all(done))
+        scan.done = done.astype(bool)
     if scan_error is not None:
         raise scan_error
     if error is not None:
         raise ValueError(error)
 
+    old_manifest = scan.manifest
+    old_chunks = (old_manifest or {}).get("chunks", {})
     manifest = _new_manifest(
-        fingerprint, parts, metadata, host_grid, shape, n_points, chunk_size, n_chunks,
-        out_names, out_specs, mesh, old_manifest,
+        fingerprint, parts, metadata, host_grid, shape, n_points, scan.chunk_size, out_names,
+        out_specs, mesh, old_manifest,
     )
+    manifest.update(chunk_size_auto=auto, block_size=block, keep_chunks=keep_chunks)
     results = [np.empty((n_points, *s.shape), dtype=s.dtype) for s in out_specs]
+    keep = ("seconds", "points_per_second", "devices", "batch_size", "finished_at")
 
-    def record(info: ChunkInfo, extra: dict):
+    def bounds(i):
+        i, c = int(i), int(manifest["chunk_size"])
+        return i * c, min((i + 1) * c, n_points)
+
+    def record(info: ChunkInfo, extra: dict, file):
         manifest["chunks"][str(info.index)] = {
             "status": "done",
-            "file": _chunk_name(info.index),
+            "file": file,
             "start": info.start,
             "stop": info.stop,
             "n_nonfinite": info.n_nonfinite,
@@ -362,56 +402,55 @@ def run_sweep(
             **extra,
         }
 
-    pbar = None
-    last_manifest_write = -math.inf
+    def loaded(i, chunk):
+        start, stop = bounds(i)
+        n_nonfinite, n_failed = _count_bad(chunk, status_leaves, stop - start)
+        info = ChunkInfo(int(i), start, stop, True, None, n_nonfinite, n_failed)
+        old = old_chunks.get(str(i), {})
+        return info, {k: old.get(k) for k in keep}
+
+    if scan.complete:
+        # A finished sweep: `result.npz` holds every output; nothing is computed or written.
+        arrays = _load_result(os.path.join(out_dir, _RESULT), out_names, fingerprint)
+        for res, name in zip(results, out_names):
+            res[...] = arrays[name].reshape(res.shape)
+        del arrays
+        for i in range(manifest["n_chunks"]):
+            start, stop = bounds(i)
+            info, extra = loaded(i, [r[start:stop] for r in results])
+            record(info, extra, old_chunks.get(str(i), {}).get("file"))
+            if on_chunk_done is not None:
+                on_chunk_done(info)
+        return _output_tree(results, shape, out_treedef)
+
+    pbar = prev = None
+    writer = concurrent.futures.ThreadPoolExecutor(1) if is_writer else None
+    # The manifest is rewritten at most every `_MANIFEST_INTERVAL_S` while chunks finish
+    # (the chunk files are the source of truth), and once at the end.
+    last_manifest_write = time.perf_counter()
     try:
         # Chunks finished by an earlier run.
-        for i in np.flatnonzero(done):
-            start, stop = bounds[i]
+        n_done_points = 0
+        for i in np.flatnonzero(scan.done):
+            start, stop = bounds(i)
             arrays = _load_chunk(os.path.join(out_dir, _chunk_name(i)), out_names, fingerprint)
             for res, name in zip(results, out_names):
                 res[start:stop] = arrays[name]
-            n_nonfinite, n_failed = _count_bad(
-                [arrays[n] for n in out_names], status_leaves, stop - start
-            )
-            info = ChunkInfo(int(i), start, stop, True, None, n_nonfinite, n_failed)
-            old = (old_manifest or {}).get("chunks", {}).get(str(i), {})
-            keep = ("seconds", "points_per_second", "devices", "batch_size", "finished_at")
-            record(info, {k: old.get(k) for k in keep})
+            info, extra = loaded(i, [arrays[n] for n in out_names])
+            record(info, extra, _chunk_name(int(i)))
+            n_done_points += stop - start
             if on_chunk_done is not None:
                 on_chunk_done(info)
-        todo = [int(i) for i in np.flatnonzero(~done)]
 
-        if todo:
-            sharding = NamedSharding(mesh, PartitionSpec(mesh.axis_names))
-            vfn = _jitted_chunk_fn(fn, parts["fn"], mesh, padded, batch_size)
-            in_spec = {
-                k: jax.ShapeDtypeStruct((padded,), v.dtype, sharding=sharding)
-                for k, v in host_grid.items()
-            }
-            t0 = time.perf_counter()
-            compiled = vfn.lower(in_spec).compile()
-            manifest["compile_seconds"] = time.perf_counter() - t0
+        sharding = NamedSharding(mesh, PartitionSpec(mesh.axis_names))
+        t0 = time.perf_counter()
+        compiled = _compiled_chunk_fn(fn, parts["fn"], mesh, block, batch_size, host_grid)
+        manifest["compile_seconds"] = time.perf_counter() - t0
 
-        pbar = _make_pbar(progress and is_writer, n_points, n_points - _n_todo(todo, bounds))
-
-        def dispatch(i):
-            start, stop = bounds[i]
-            # Pad by repeating the last point: real, finite inputs, discarded afterwards.
-            idx = np.minimum(np.arange(start, start + padded), stop - 1)
-            # Every process holds the whole grid; the callback is asked only for the slices
-            # of this process's own devices.
-            inputs = {
-                k: jax.make_array_from_callback((padded,), sharding, lambda s, c=v[idx]: c[s])
-                for k, v in host_grid.items()
-            }
-            try:
-                return i, inputs, compiled(inputs)
-            except Exception as e:
-                failed(i, e)
+        pbar = _make_pbar(progress and is_writer, n_points, n_done_points)
 
         def failed(i, e) -> NoReturn:
-            start, stop = bounds[i]
+            start, stop = bounds(i) if manifest["chunk_size"] else (0, n_points)
             manifest["chunks"][str(i)] = {
                 "status": "error", "start": start, "stop": stop, "error": repr(e)[:2000]
             }
@@ -422,94 +461,177 @@ def run_sweep(
                 f"are kept in {out_dir!r}; fix `fn` and run again to resume."
             ) from e
 
-        def finish(i, inputs, out, t_begin):
-            nonlocal last_manifest_write
-            start, stop = bounds[i]
-            n = stop - start
+        def dispatch(i, s, e):
+            """Start points [s, e) of chunk i on the devices (asynchronously)."""
+            if e - s == block:  # views of the grid, no copy
+                cols = {k: v[s:e] for k, v in host_grid.items()}
+            else:  # pad by repeating the last point: real, finite inputs, discarded
+                idx = np.minimum(np.arange(s, s + block), e - 1)
+                cols = {k: v[idx] for k, v in host_grid.items()}
+            # Every process holds the whole grid; the callback is asked only for the slices
+            # of this process's own devices.
+            inputs = {
+                k: jax.make_array_from_callback((block,), sharding, lambda sl, c=c: c[sl])
+                for k, c in cols.items()
+            }
+            try:
+                return inputs, compiled(inputs)
+            except Exception as err:
+                failed(i, err)
+
+        def collect(i, s, e, out):
+            """Wait for a block; copy its outputs (padding removed) into `results`."""
             leaves = jtu.tree_leaves(out)
             try:
                 if jax.process_count() > 1:
                     host = multihost_utils.process_allgather(leaves, tiled=True)
                 else:
                     host = jax.device_get(leaves)
-            except Exception as e:
-                failed(i, e)
-            host = [np.asarray(h)[:n] for h in host]
-            n_nonfinite, n_failed = _count_bad(host, status_leaves, n)
-            if is_writer:
-                _write_chunk(
-                    out_dir, i, dict(zip(out_names, host)), fingerprint, metadata_json, start, stop
-                )
-            seconds = time.perf_counter() - t_begin
+            except Exception as err:
+                failed(i, err)
             for res, h in zip(results, host):
-                res[start:stop] = h
+                res[s:e] = np.asarray(h)[: e - s]
+            return leaves
+
+        # The automatic chunk size: time the first block, then make a chunk as many blocks
+        # as last about `_AUTO_CHUNK_SECONDS`, within `_AUTO_CHUNK_BYTES` of outputs.
+        # Process 0 decides for all.
+        first = None
+        if manifest["chunk_size"] is None:
+            e0 = min(block, n_points)
+            t_first = time.perf_counter()
+            inputs0, out0 = dispatch(0, 0, e0)
+            leaves0 = collect(0, 0, e0, out0)
+            seconds = time.perf_counter() - t_first
+            size = _auto_chunk_size(n_points, block, seconds, out_bytes)
+            if jax.process_count() > 1:
+                size = int(multihost_utils.broadcast_one_to_all(np.int64(size)))
+            manifest["chunk_size"] = size
+            manifest["n_chunks"] = math.ceil(n_points / size)
+            manifest["first_block_seconds"] = seconds
+            first = (e0, inputs0, leaves0)
+        n_chunks = manifest["n_chunks"]
+        todo = [i for i in range(n_chunks) if not (i < len(scan.done) and scan.done[i])]
+        last = todo[-1] if todo else None
+
+        # One queue of blocks over every chunk to do, at most `_DEPTH` of them on the
+        # devices at a time: the next blocks run while a finished chunk is counted and
+        # handed to the writer thread, which writes it while the devices compute. A chunk
+        # is final (`on_chunk_done`) once its file is written, and the next chunk's file is
+        # only written after that. The last chunk gets no file unless chunk files are kept:
+        # `result.npz`, written at once, holds it.
+        queue = collections.deque()
+        remaining = {}
+        for i in todo:
+            start, stop = bounds(i)
+            s = first[0] if (first is not None and i == 0) else start
+            remaining[i] = stop - s
+            for b in range(s, stop, block):
+                queue.append((i, b, min(b + block, stop)))
+        chunk_io = {} if first is None else {0: first[1:]}
+        in_flight = collections.deque()
+        t_begin = time.perf_counter() if first is None else t_first
+        # prev: (info, extra, future of the file write) of the last finished chunk
+
+        def final(prev):
+            nonlocal last_manifest_write
+            info, extra, fut = prev
+            fut.result()
+            record(info, extra, _chunk_name(info.index))
+            now = time.perf_counter()
+            if is_writer and now - last_manifest_write > _MANIFEST_INTERVAL_S:
+                _write_manifest(out_dir, manifest)
+                last_manifest_write = now
+            notify(info)
+
+        def notify(info):
+            pbar.update(info.stop - info.start)
+            pbar.set_postfix_str(f"chunk {info.index + 1}/{n_chunks}", refresh=False)
+            if on_chunk_done is not None:
+                on_chunk_done(info)
+
+        def chunk_done(i):
+            nonlocal t_begin, prev
+            start, stop = bounds(i)
+            n = stop - start
+            chunk = [r[start:stop] for r in results]
+            n_nonfinite, n_failed = _count_bad(chunk, status_leaves, n)
+            inputs, leaves = chunk_io.pop(i)
+            now = time.perf_counter()
+            seconds, t_begin = now - t_begin, now
             info = ChunkInfo(
                 i, start, stop, False, seconds, n_nonfinite, n_failed,
                 input_sharding=next(iter(inputs.values())).sharding,
                 output_sharding=leaves[0].sharding if leaves else None,
             )
-            record(info, {
+            extra = {
                 "seconds": seconds,
                 "points_per_second": n / seconds if seconds > 0 else None,
                 "devices": n_devices,
                 "batch_size": batch_size,
                 "finished_at": _now(),
-            })
-            now = time.perf_counter()
-            if is_writer and now - last_manifest_write > _MANIFEST_INTERVAL_S:
-                _write_manifest(out_dir, manifest)
-                last_manifest_write = now
-            pbar.update(n)
-            pbar.set_postfix_str(f"chunk {i + 1}/{n_chunks}", refresh=False)
-            if on_chunk_done is not None:
-                on_chunk_done(info)
+            }
+            if prev is not None:  # the previous chunk's file is written: it is final
+                p, prev = prev, None
+                final(p)
+            if keep_chunks or i != last:
+                fut = writer.submit(
+                    _write_chunk, out_dir, i, dict(zip(out_names, chunk)), fingerprint,
+                    metadata_json, start, stop, manifest["chunk_size"],
+                ) if is_writer else _DONE
+                prev = (info, extra, fut)
+            else:
+                prev = (info, extra, None)
 
-        # Depth-1 pipeline: chunk k+1 runs on the devices while chunk k is gathered and
-        # written. Wall time per chunk is measured between successive completions.
-        pending = None
-        t_begin = time.perf_counter()
-        for i in todo:
-            try:
-                nxt = dispatch(i)
-            except Exception:
-                if pending is not None:  # keep the previous chunk, which did succeed
-                    finish(*pending, t_begin)
-                raise
-            if pending is not None:
-                finish(*pending, t_begin)
-                t_begin = time.perf_counter()
-            pending = nxt
-        if pending is not None:
-            finish(*pending, t_begin)
+        def next_block():
+            i, s, e, inputs, out = in_flight.popleft()
+            leaves = collect(i, s, e, out)
+            chunk_io.setdefault(i, (inputs, leaves))
+            remaining[i] -= e - s
+            if remaining[i] == 0:
+                chunk_done(i)
+
+        if first is not None and remaining.get(0) == 0:
+            chunk_done(0)
+        while queue or in_flight:
+            while queue and len(in_flight) < _DEPTH:
+                i, s, e = queue.popleft()
+                try:
+                    inputs, out = dispatch(i, s, e)
+                except Exception:
+                    while in_flight:  # keep the blocks started before, which did succeed
+                        next_block()
+                    raise
+                in_flight.append((i, s, e, inputs, out))
+            next_block()
+        if prev is not None:
+            p, prev = prev, None
+            if p[2] is not None:
+                final(p)
+            else:  # the last chunk: final once `result.npz` holds it
+                record(p[0], p[1], None)
+                _complete(results, shape, out_names, host_grid, out_dir, manifest,
+                          status_leaves, fingerprint, is_writer, keep_chunks)
+                notify(p[0])
+    except BaseException:
+        if prev is not None and prev[2] is not None:
+            with contextlib.suppress(Exception):  # keep a chunk whose file was written
+                prev[2].result()
+                record(prev[0], prev[1], _chunk_name(prev[0].index))
+        raise
     finally:
         if pbar is not None:
             pbar.close()
-        if is_writer:
+        if writer is not None:
+            writer.shutdown(wait=True)
+        if is_writer and not manifest["complete"]:
             manifest["updated"] = _now()
             _write_manifest(out_dir, manifest)
 
-    out_leaves = results
-    arrays = dict(zip(out_names, results))
-    if shape is not None:
-        out_leaves = [r.reshape(*shape, *r.shape[1:]) for r in results]
-        arrays = dict(zip(out_names, out_leaves))
-    if is_writer:
-        grid_arrays = {
-            f"grid/{k}": v if shape is None else v.reshape(shape) for k, v in host_grid.items()
-        }
-        _atomic_write(
-            os.path.join(out_dir, _RESULT),
-            lambda f: np.savez(
-                f, **arrays, **grid_arrays, __fingerprint__=np.array(fingerprint)
-            ),
-        )
-        manifest["complete"] = True
-        manifest["n_nonfinite"] = sum(c["n_nonfinite"] for c in manifest["chunks"].values())
-        failed = [c["n_failed"] for c in manifest["chunks"].values()]
-        manifest["n_failed"] = None if not status_leaves else sum(failed)
-        manifest["updated"] = _now()
-        _write_manifest(out_dir, manifest)
-    return jtu.tree_unflatten(out_treedef, out_leaves)
+    if not manifest["complete"]:
+        _complete(results, shape, out_names, host_grid, out_dir, manifest, status_leaves,
+                  fingerprint, is_writer, keep_chunks)
+    return _output_tree(results, shape, out_treedef)
 
 
 # The last few compiled chunk functions, so that running the same sweep again in one
@@ -520,8 +642,12 @@ _JIT_CACHE: collections.OrderedDict = collections.OrderedDict()
 _JIT_CACHE_SIZE = 8
 
 
-def _jitted_chunk_fn(fn, fn_hash, mesh, padded, batch_size):
-    key = (id(fn), fn_hash, mesh, padded, batch_size)
+def _compiled_chunk_fn(fn, fn_hash, mesh, padded, batch_size, host_grid):
+    """The compiled function of one padded block, from the cache when the same sweep
+    function ran before in this process (lowering a simulation again costs more than a
+    small sweep's work)."""
+    dtypes = tuple((k, v.dtype.str) for k, v in host_grid.items())
+    key = (id(fn), fn_hash, mesh, padded, batch_size, dtypes)
     if key in _JIT_CACHE:
         _JIT_CACHE.move_to_end(key)
         return _JIT_CACHE[key][1]
@@ -529,10 +655,15 @@ def _jitted_chunk_fn(fn, fn_hash, mesh, padded, batch_size):
     jitted = jax.jit(
         _chunk_fn(fn, mesh, padded, batch_size), in_shardings=sharding, out_shardings=sharding
     )
-    _JIT_CACHE[key] = (fn, jitted)
+    in_spec = {
+        k: jax.ShapeDtypeStruct((padded,), v.dtype, sharding=sharding)
+        for k, v in host_grid.items()
+    }
+    compiled = jitted.lower(in_spec).compile()
+    _JIT_CACHE[key] = (fn, compiled)  # holds `fn`: its id stays unique
     while len(_JIT_CACHE) > _JIT_CACHE_SIZE:
         _JIT_CACHE.popitem(last=False)
-    return jitted
+    return compiled
 
 
 def _chunk_fn(fn, mesh, padded, batch_size):
@@ -652,15 +783,30 @@ def _hash_grid(host_grid, shape) -> str:
     for key in sorted(host_grid):
         a = host_grid[key]
         h.update(json.dumps([key, a.dtype.str, a.size]).encode())
-        h.update(a.tobytes())
+        h.update(memoryview(a).cast("B"))  # the bytes of `a.tobytes()`, without a copy
     return h.hexdigest()
 
 
+# Hashes of the printed jaxprs of recent sweeps, by the jaxpr object: `make_jaxpr` of the
+# same function returns the same (cached) jaxpr, and printing a large one (a simulation)
+# costs more than a small sweep's work.
+_JAXPR_TEXT_HASH: collections.OrderedDict = collections.OrderedDict()
+
+
 def _hash_jaxpr(closed_jaxpr) -> str:
-    # jax prints function addresses as 0xXXXXXXXXXXXX already; strip any left to be sure,
-    # so that the hash is stable between processes.
-    text = re.sub(r"0x[0-9a-fA-F]{6,}", "0x", str(closed_jaxpr.jaxpr))
-    h = hashlib.sha256(text.encode())
+    jaxpr = closed_jaxpr.jaxpr
+    key = id(jaxpr)
+    if key in _JAXPR_TEXT_HASH and _JAXPR_TEXT_HASH[key][0] is jaxpr:
+        _JAXPR_TEXT_HASH.move_to_end(key)
+        h = _JAXPR_TEXT_HASH[key][1].copy()
+    else:
+        # jax prints function addresses as 0xXXXXXXXXXXXX already; strip any left to be
+        # sure, so that the hash is stable between processes.
+        text = re.sub(r"0x[0-9a-fA-F]{6,}", "0x", str(jaxpr))
+        h = hashlib.sha256(text.encode())
+        _JAXPR_TEXT_HASH[key] = (jaxpr, h.copy())  # holds `jaxpr`: its id stays unique
+        while len(_JAXPR_TEXT_HASH) > _JIT_CACHE_SIZE:
+            _JAXPR_TEXT_HASH.popitem(last=False)
     for c in closed_jaxpr.consts:  # closed-over arrays (e.g. parameters) are not printed
         c = np.asarray(c)
         h.update(f"{c.dtype.str}{c.shape}".encode())
@@ -731,8 +877,9 @@ def _now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
-def _atomic_write(path: str, write: Callable) -> None:
-    """Write `path` via a hidden temporary file in the same directory and `os.replace`."""
+def _atomic_write(path: str, write: Callable, *, durable: bool = True) -> None:
+    """Write `path` via a hidden temporary file in the same directory and `os.replace`;
+    `durable`: flushed to the disk (`fsync`) before the rename, and the rename too."""
     d, base = os.path.split(path)
     # Not `tempfile.mkstemp`: its files are private (0600); this one obeys the umask.
     tmp = os.path.join(d, f".{base}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
@@ -741,12 +888,15 @@ def _atomic_write(path: str, write: Callable) -> None:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.remove(tmp)
         raise
+    if not durable:
+        return
     with contextlib.suppress(OSError, AttributeError):  # make the rename durable (POSIX)
         dfd = os.open(d or ".", os.O_RDONLY)
         try:
@@ -755,8 +905,9 @@ def _atomic_write(path: str, write: Callable) -> None:
             os.close(dfd)
 
 
-def _write_chunk(out_dir, i, arrays, fingerprint, metadata_json, start, stop):
+def _write_chunk(out_dir, i, arrays, fingerprint, metadata_json, start, stop, chunk_size):
     meta = {
+        "__chunk_size__": np.array(chunk_size),
         "__fingerprint__": np.array(fingerprint),
         "__metadata__": np.array(metadata_json),
         "__chunk__": np.array(i),
@@ -783,7 +934,10 @@ def _load_chunk(path, out_names, fingerprint) -> dict[str, np.ndarray]:
 def _write_manifest(out_dir, manifest):
     manifest["chunks"] = dict(sorted(manifest["chunks"].items(), key=lambda kv: int(kv[0])))
     text = json.dumps(manifest, indent=1, allow_nan=False)
-    _atomic_write(os.path.join(out_dir, _MANIFEST), lambda f: f.write(text.encode()))
+    # Not flushed to the disk (`fsync`): while a sweep runs the chunk files, which are,
+    # are the source of truth.
+    _atomic_write(os.path.join(out_dir, _MANIFEST), lambda f: f.write(text.encode()),
+                  durable=False)
 
 
 def _mismatch_error(out_dir, differs):
@@ -794,16 +948,26 @@ def _mismatch_error(out_dir, differs):
     )
 
 
-def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
-    """Find the chunks an earlier run of this sweep finished. Returns (error, done, old)."""
-    done = np.zeros(n_chunks, dtype=bool)
+@dataclasses.dataclass
+class _Scan:
+    """What an earlier run left in `out_dir` (`_scan_out_dir`)."""
+
+    chunk_size: int | None = None  # of the earlier run (auto) or the one asked for
+    done: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
+    complete: bool = False  # `result.npz` of this sweep is there: nothing to compute
+    manifest: dict | None = None
+
+
+def _scan_out_dir(out_dir, fingerprint, parts, n_points, chunk_size, resume):
+    """Find what an earlier run of this sweep finished. Returns `(error, _Scan)`.
+    `chunk_size`: None for the automatic size, which is then the earlier run's."""
+    scan = _Scan(chunk_size=chunk_size)
     names = os.listdir(out_dir)
-    old = None
     if not resume:
         for name in names:
             if name in (_MANIFEST, _RESULT) or _CHUNK_RE.match(name) or _TMP_RE.match(name):
                 os.remove(os.path.join(out_dir, name))
-        return None, done, None
+        return None, scan
 
     for name in names:  # half-written files of an interrupted run
         if _TMP_RE.match(name) and (
@@ -812,6 +976,7 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
             os.remove(os.path.join(out_dir, name))
 
     path = os.path.join(out_dir, _MANIFEST)
+    old = None
     if os.path.exists(path):
         try:
             with open(path) as f:
@@ -820,15 +985,14 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
             return (
                 f"`run_sweep`: the manifest {path!r} is unreadable. Pick another `out_dir`, "
                 "or pass `resume=False` to start over.",
-                done,
-                None,
+                scan,
             )
         if old.get("format") != _FORMAT:
-            return _mismatch_error(out_dir, ["file format"]), done, None
+            return _mismatch_error(out_dir, ["file format"]), scan
         if old.get("fingerprint") != fingerprint:
             old_parts = old.get("fingerprint_parts", {})
             differs = [k for k in parts if old_parts.get(k) != parts[k]] or ["fingerprint"]
-            return _mismatch_error(out_dir, differs), done, None
+            return _mismatch_error(out_dir, differs), scan
         versions = _versions()
         if old.get("versions") != versions:
             warnings.warn(
@@ -836,7 +1000,14 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
                 f"{old.get('versions')}; now running with {versions}.",
                 stacklevel=3,
             )
+        scan.manifest = old
+        if scan.chunk_size is None and old.get("chunk_size"):
+            scan.chunk_size = int(old["chunk_size"])
+        if old.get("complete") and _RESULT in names and scan.chunk_size:
+            scan.complete = True
+            return None, scan
 
+    found = {}
     for name in sorted(names):
         m = _CHUNK_RE.match(name)
         if not m:
@@ -845,7 +1016,9 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
         try:
             with np.load(os.path.join(out_dir, name), allow_pickle=False) as z:
                 fp = str(z["__fingerprint__"])
-                ok = int(z["__chunk__"]) == i and i < n_chunks
+                ok = int(z["__chunk__"]) == i
+                start, stop = int(z["__start__"]), int(z["__stop__"])
+                size = int(z["__chunk_size__"]) if "__chunk_size__" in z.files else None
         except Exception as e:  # a damaged file: compute the chunk again
             warnings.warn(
                 f"`run_sweep`: ignoring unreadable chunk file {name!r} ({e}); its chunk will "
@@ -854,9 +1027,90 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
             )
             continue
         if fp != fingerprint or not ok:
-            return _mismatch_error(out_dir, [f"chunk file {name}"]), done, None
-        done[i] = True
-    return None, done, old
+            return _mismatch_error(out_dir, [f"chunk file {name}"]), scan
+        if scan.chunk_size is None:  # automatic size and no manifest: the files' size
+            scan.chunk_size = size
+        found[i] = (name, start, stop)
+    if scan.chunk_size is None:
+        return None, scan
+    n_chunks = math.ceil(n_points / scan.chunk_size)
+    scan.done = np.zeros(n_chunks, dtype=bool)
+    for i, (name, start, stop) in found.items():
+        expected = (i * scan.chunk_size, min((i + 1) * scan.chunk_size, n_points))
+        if i >= n_chunks or (start, stop) != expected:
+            return _mismatch_error(out_dir, [f"chunk file {name}"]), scan
+        scan.done[i] = True
+    return None, scan
+
+
+def _round_up(n: int, step: int) -> int:
+    return math.ceil(n / step) * step
+
+
+def _auto_chunk_size(n_points, block, block_seconds, out_bytes) -> int:
+    """Points per chunk for the automatic size: whole blocks, about
+    `_AUTO_CHUNK_SECONDS` of work at the first block's measured rate, at most
+    `_AUTO_CHUNK_BYTES` of outputs (and at least one block), and the points shared evenly
+    between the chunks (the last one is not a small remainder)."""
+    per_point = max(block_seconds, 1e-9) / block
+    target = _AUTO_CHUNK_SECONDS / per_point
+    target = min(target, _AUTO_CHUNK_BYTES / max(out_bytes, 1))
+    size = max(block, int(target) // block * block)
+    if size >= n_points:
+        return _round_up(n_points, block)
+    n_chunks = math.ceil(n_points / size)
+    return _round_up(math.ceil(n_points / n_chunks), block)
+
+
+def _load_result(path, out_names, fingerprint) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["__fingerprint__"]) != fingerprint:
+                raise ValueError(f"{path!r} belongs to another sweep.")
+            return {n: z[n] for n in out_names}
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            f"`run_sweep`: the finished sweep's {path!r} is not readable from process "
+            f"{jax.process_index()}. With several hosts, `out_dir` must be on a shared file "
+            "system to resume."
+        ) from None
+
+
+def _output_tree(results, shape, out_treedef):
+    if shape is not None:
+        results = [r.reshape(*shape, *r.shape[1:]) for r in results]
+    return jtu.tree_unflatten(out_treedef, results)
+
+
+def _complete(results, shape, out_names, host_grid, out_dir, manifest, status_leaves,
+              fingerprint, is_writer, keep_chunks):
+    """Write `result.npz` and the complete manifest (process 0), then delete the chunk
+    files unless they are kept: the result holds all of them."""
+    manifest["complete"] = True
+    if not is_writer:
+        return
+    arrays = dict(zip(out_names, results))
+    grid_arrays = {f"grid/{k}": v for k, v in host_grid.items()}
+    if shape is not None:
+        arrays = {k: v.reshape(*shape, *v.shape[1:]) for k, v in arrays.items()}
+        grid_arrays = {k: v.reshape(shape) for k, v in grid_arrays.items()}
+    _atomic_write(
+        os.path.join(out_dir, _RESULT),
+        lambda f: np.savez(f, **arrays, **grid_arrays, __fingerprint__=np.array(fingerprint)),
+    )
+    manifest["n_nonfinite"] = sum(c["n_nonfinite"] for c in manifest["chunks"].values())
+    failed = [c["n_failed"] for c in manifest["chunks"].values()]
+    manifest["n_failed"] = None if not status_leaves else sum(failed)
+    if not keep_chunks:
+        for c in manifest["chunks"].values():
+            c["file"] = None
+    manifest["updated"] = _now()
+    _write_manifest(out_dir, manifest)
+    if not keep_chunks:
+        for name in os.listdir(out_dir):
+            if _CHUNK_RE.match(name):
+                with contextlib.suppress(FileNotFoundError):
+                    os.remove(os.path.join(out_dir, name))
 
 
 def _versions():
@@ -870,10 +1124,11 @@ def _versions():
 
 
 def _new_manifest(
-    fingerprint, parts, metadata, host_grid, shape, n_points, chunk_size, n_chunks,
-    out_names, out_specs, mesh, old,
+    fingerprint, parts, metadata, host_grid, shape, n_points, chunk_size, out_names,
+    out_specs, mesh, old,
 ):
     devices = mesh.devices.reshape(-1)
+    n_chunks = None if chunk_size is None else math.ceil(n_points / chunk_size)
     return {
         "format": _FORMAT,
         "fingerprint": fingerprint,

@@ -321,8 +321,9 @@ def feasibility_command(args: argparse.Namespace) -> int:
     status = np.asarray(fm.status)
     t_map = time.perf_counter() - t0
     n_loaded = sum(i.loaded for i in infos)
+    size = max(i.stop - i.start for i in infos)
     sweep_line = (f"sweep: {len(infos)} chunk{'s' if len(infos) > 1 else ''} of up to "
-                  f"{settings.chunk_size} points on {jax.device_count()} device"
+                  f"{size} points on {jax.device_count()} device"
                   f"{'s' if jax.device_count() > 1 else ''} in {jax.process_count()} "
                   f"process{'es' if jax.process_count() > 1 else ''}"
                   + (f", {n_loaded} reused from an earlier run" if n_loaded else "")
