@@ -1,24 +1,44 @@
 """Chunked, sharded and resumable runner for large parameter sweeps.
 
 `run_sweep(fn, grid, ...)` evaluates a per-point function `fn` on every point of a grid.
-The grid is split into chunks of `chunk_size` points. Each chunk is sharded across all
-devices of a `jax.sharding.Mesh` (by default every device in `jax.devices()`, which under
-`jax.distributed` includes the devices of every host) and evaluated by one compiled
-`jit(vmap(fn))`. Every finished chunk is written to disk at once, so an interrupted sweep
-resumes where it stopped.
+The points are evaluated in blocks of one fixed length by one compiled `jit(vmap(fn))`,
+each block sharded across all devices of a `jax.sharding.Mesh` (by default every device
+in `jax.devices()`, which under `jax.distributed` includes the devices of every host).
+Blocks are grouped into chunks, the unit of resuming: every finished chunk is written to
+disk at once, so an interrupted sweep resumes where it stopped.
 
-Files in `out_dir` (all written atomically: to a temporary file, then `os.replace`):
+Chunk size. Given (`chunk_size=N`), a chunk is one block of N points (padded to a multiple
+of the device count). By default (`chunk_size=None`) the runner times the first block (at
+most `_AUTO_BLOCK_PER_DEVICE` points per device) and makes a chunk as many blocks as last
+about `_AUTO_CHUNK_SECONDS`, with at most `_AUTO_CHUNK_BYTES` of outputs, the points shared
+evenly between the chunks; the size is kept in the manifest and the chunk files, and a
+resumed sweep uses it again. The block length does not depend on the grouping, so the
+results are the same bit for bit however the blocks fall into chunks.
+
+Overlap. Blocks are dispatched asynchronously, two at a time: the next block runs while a
+finished one is copied to the host, and a finished chunk is written by a writer thread
+while the devices compute the next one. A chunk is final (`on_chunk_done`) once its file
+is written; the next chunk's file is only written after that.
+
+Files in `out_dir` (all written atomically: to a temporary file, then `os.replace`; the
+chunk files and `result.npz` are flushed to the disk, `np.savez`, uncompressed):
 
 - `chunk_000000.npz`, `chunk_000001.npz`, ...: the outputs of the points of one chunk
   (padding removed), plus `__fingerprint__`, `__metadata__` (the user metadata as JSON),
-  `__chunk__` and the point range `__start__` to `__stop__` (exclusive).
-  These files are the source of truth when a sweep resumes.
-- `sweep.json`: the manifest. Fingerprint of the sweep and its parts (grid, chunk size,
-  output structure, user metadata, and a hash of `fn`'s jaxpr), the user metadata, package
-  versions, devices, and for every chunk its status, wall time, points per second and the
-  number of points with non-finite outputs or a non-zero `status`.
+  `__chunk__`, the point range `__start__` to `__stop__` (exclusive) and `__chunk_size__`.
+  They are the source of truth while a sweep runs. The last chunk gets no file of its own
+  (`result.npz`, written at once, holds it), and once `result.npz` is written the chunk
+  files are deleted, unless they are kept (`keep_chunks`, by default when `chunk_size` is
+  given): what stays is what resuming needs, never the result twice.
+- `sweep.json`: the manifest. Fingerprint of the sweep and its parts (grid, chunk size or
+  `"auto"`, output structure, user metadata, and a hash of `fn`'s jaxpr), the user
+  metadata, package versions, devices, the chunk and block sizes, and for every chunk its
+  status, wall time, points per second and the number of points with non-finite outputs
+  or a non-zero `status`. Rewritten at most every `_MANIFEST_INTERVAL_S` while chunks
+  finish, and at the end.
 - `result.npz`: when the sweep is complete, every output (in point order, reshaped to the
   grid shape if the grid came from `grid_product`) and the grid itself as `grid/<key>`.
+  Running a complete sweep again reads it and computes nothing.
 
 Hidden `.*.tmp` files are half-written files of an interrupted run; they are ignored and
 deleted when the sweep resumes. Run one sweep per `out_dir` at a time.
@@ -30,7 +50,8 @@ the coordinator itself; otherwise pass `coordinator_address="host0:1234"`,
 places the slices of every chunk that belong to its own devices
 (`jax.make_array_from_callback`), the chunk runs SPMD over all devices, and the outputs are
 gathered on every process (`multihost_utils.process_allgather`). Only process 0 writes
-files and shows the progress bar; its decisions on resuming are broadcast to the others.
+files and shows the progress bar; its decisions on resuming and its automatic chunk size
+are broadcast to the others.
 Every process returns the full result; chunks finished by an earlier run are read from
 `out_dir`, which must then be on a file system that all hosts see.
 """
@@ -209,14 +230,17 @@ def run_sweep(
       `allow_nonfinite=True`.
     - `out_dir`: directory for the chunk files, the manifest `sweep.json` and `result.npz`
       (created if missing).
-    - `chunk_size`: points per chunk. A chunk is the unit of work that is lost on
-      interruption and of the progress bar; make it a multiple of the device count and
-      large enough to keep the devices busy.
-    - `batch_size`: if given, each device evaluates its share of a chunk in steps of
-      `batch_size` points (`lax.map` over blocks, each block vmapped), and chunks are padded
-      to a multiple of `batch_size` times the device count. The compiled per-point code is
-      then the same on any number of devices, so results are bitwise independent of the
-      device count. If None, each device vmaps over its whole share in one step.
+    - `chunk_size`: points per chunk, the unit of work lost on interruption and of the
+      progress bar; make it a multiple of the device count and large enough to keep the
+      devices busy. None (default): chosen from the measured cost of the work, chunks of
+      about `_AUTO_CHUNK_SECONDS` (4 s) with at most `_AUTO_CHUNK_BYTES` (512 MiB) of
+      outputs, evaluated in blocks of at most `_AUTO_BLOCK_PER_DEVICE` (65,536) points per
+      device; a resumed sweep keeps the size of the run that started it.
+    - `batch_size`: if given, each device evaluates its share of a block in steps of
+      `batch_size` points (`lax.map` over batches, each batch vmapped), and blocks are
+      padded to a multiple of `batch_size` times the device count. The compiled
+      per-point code is then the same on any number of devices, so results are bitwise
+      independent of the device count. If None, each device vmaps over its whole share in one step.
     - `metadata`: JSON-serialisable `dict` describing the sweep (model, scenario, version
       of your script...). It is stored in the manifest and is part of the fingerprint.
     - `progress`: show a `tqdm` progress bar (points, points/s).
@@ -231,6 +255,9 @@ def run_sweep(
     - `on_chunk_done`: called with a [`ChunkInfo`][] after each chunk is final (written, or
       loaded from an earlier run), in that order. An exception raised here stops the sweep;
       the chunks written so far are kept.
+    - `keep_chunks`: keep the chunk files after `result.npz` is written (and write the
+      last chunk's file too). Default: True when `chunk_size` is given, False for the
+      automatic size (the chunk files then exist only while the sweep is unfinished).
 
     **Returns:**
 
@@ -258,25 +285,26 @@ def run_sweep(
     ```
 
     !!! note
-        Chunk boundaries depend only on `chunk_size`, never on the device count, so a sweep
-        started on one machine can be resumed on another. Every chunk, the last one too, is
-        padded (by repeating its last point) to one common length, the next multiple of the
-        device count (times `batch_size` if given), so that `fn` is compiled exactly once;
-        the padding is discarded.
+        Chunk boundaries depend only on the chunk size, never on the device count, so a
+        sweep started on one machine can be resumed on another. Every block, the last one
+        too, is padded (by repeating its last point) to one common length, a multiple of
+        the device count (times `batch_size` if given), so that `fn` is compiled exactly
+        once; the padding is discarded.
 
     !!! note "Reproducibility across device counts"
-        With `batch_size=None` the vmap width is a device's share of a chunk, which depends
-        on the device count. XLA may compile a different vmap width differently: on CPU, a
-        max-reduction over a series containing inf and NaN returned NaN with a width of 8
-        but a finite value with a width of 16. Finite results were bitwise identical in our
+        With `batch_size=None` the vmap width is a device's share of a block (of a chunk,
+        with an explicit `chunk_size`), which depends on the device count. XLA may compile
+        a different vmap width differently: on CPU, a max-reduction over a series
+        containing inf and NaN returned NaN with a width of 8 but a finite value with a
+        width of 16. Finite results were bitwise identical in our
         tests, but this is not guaranteed. Give a `batch_size` (e.g. 32 to 256 on CPU, 1024
         or more on a GPU, dividing `chunk_size / device count`) when results must be bitwise
         identical on any number of devices.
 
     !!! note
-        Before a chunk is written, the next one is already running on the devices, so disk
-        writes overlap with computation. The compile time is recorded separately in the
-        manifest (`compile_seconds`).
+        While a chunk is written (by a writer thread), the next blocks are already running
+        on the devices, so disk writes overlap with computation. The compile time is
+        recorded separately in the manifest (`compile_seconds`).
     """
     if not callable(fn):
         raise TypeError(f"`run_sweep(fn=...)` must be callable; got {type(fn).__name__}.")

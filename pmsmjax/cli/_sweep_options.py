@@ -89,8 +89,8 @@ def add_sweep_options(parser: argparse.ArgumentParser, *,
 class SweepSettings:
     """The sweep options of one command, checked (`sweep_settings`).
 
-    - `chunk_size` (None: automatic), `batch_size`: of `run_sweep`; `sweep_dir`: its `out_dir`; `resume`:
-      False with `--restart`.
+    - `chunk_size` (None: automatic), `batch_size`: of `run_sweep`; `sweep_dir`: its
+      `out_dir`; `resume`: False with `--restart`.
     - `coordinator`: `"HOST:PORT"`, `"auto"` or None (one process, no `jax.distributed`);
       `num_processes`, `process_id`: None where `jax.distributed` finds them itself.
     """
