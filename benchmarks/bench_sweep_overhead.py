@@ -11,15 +11,20 @@ code):
   "command": `pmsmjax feasibility ... --no-plot --restart` called in this process (the
   sweep, its files, the command's own `feasibility.npz` and `feasibility.json`); "work":
   the command's own per-point function, `jit(vmap(point))` over the whole grid in memory;
-  "runner": `run_sweep` of that function with its default chunk size (files written).
+  "runner": `run_sweep` of that function with its default chunk size (files written);
+  "fresh process": the command as a user runs it, `python -m pmsmjax feasibility` with the
+  persistent compilation cache filled by a first run, the map time it prints
+  ("classified N designs in T s": tracing, loading the compiled code, the sweep; start-up
+  and the command's own output files excluded) and its wall time.
 - `simulation`: the comparison job's run sweep (`tuning.compare`: one closed-loop
   simulation per point, the ESO's paper design, the `--quick` grid of 60 runs, or of
   `--runs` repetitions of it). "work": `jit(vmap(point))` over the grid in memory;
   "runner": `run_sweep` with the job's chunk size.
 
-Reported: points per second of each, the command's rate over the API's, and the runner's
-overhead `runner / work - 1` (also the command's overhead over the API's). Medians of
-`--repeats` warm calls.
+Reported: points per second of each (median times), the command's rate over the API's and
+the runner's overhead `runner / work - 1`, both as medians of the ratios within a round:
+the calls are made in turn, `--repeats` rounds, so that the changing load of a shared
+machine falls on all of them alike.
 
 Usage:
 
@@ -38,6 +43,8 @@ import os
 import platform
 import re
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -50,13 +57,25 @@ HERE = Path(__file__).resolve().parent
 OUT = HERE / "out"
 
 
-def _median_time(fn, repeats):
-    times = []
+def _interleaved(fns: dict, repeats: int) -> dict:
+    """Median wall time of each of `fns` (warm: each is called once first), called in
+    turn `repeats` times, so that a change of the machine's load (shared with other jobs)
+    falls on all of them alike; also the median of each one's ratio to the first within a
+    round (`ratio/<name>`)."""
+    for f in fns.values():
+        f()
+    times = {k: [] for k in fns}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), times
+        for k, f in fns.items():
+            t0 = time.perf_counter()
+            f()
+            times[k].append(time.perf_counter() - t0)
+    first = next(iter(fns))
+    out = {k: statistics.median(v) for k, v in times.items()}
+    for k in fns:
+        out[f"ratio/{k}"] = statistics.median(
+            a / b for a, b in zip(times[k], times[first]))
+    return out
 
 
 def feasibility(n_axis, repeats, tmp):
@@ -86,10 +105,7 @@ def feasibility(n_axis, repeats, tmp):
             assert main(["feasibility", *args, "--no-plot", "--restart", "--out", out]) == 0
         printed.append(buf.getvalue())
 
-    api()  # compile
-    t_api, _ = _median_time(api, repeats)
-    command()  # compile
-    t_cmd, _ = _median_time(command, repeats)
+    command()  # compile (and make the command's per-point function)
     m = re.search(r"sweep: (\d+) chunks? of up to (\d+) points", printed[-1])
     manifest = json.loads(Path(out, "sweep", "sweep.json").read_text())
 
@@ -103,8 +119,6 @@ def feasibility(n_axis, repeats, tmp):
     def work():
         jax.tree_util.tree_map(np.asarray, jax.block_until_ready(vpoint(flat)))
 
-    work()
-    t_work, _ = _median_time(work, repeats)
     sweep_dir = os.path.join(tmp, "runner")
 
     kw = dict(out_dir=sweep_dir, resume=False, progress=False)
@@ -116,11 +130,34 @@ def feasibility(n_axis, repeats, tmp):
     def runner():
         run_sweep(point, grid, **kw)
 
-    runner()
-    t_run, _ = _median_time(runner, repeats)
+    t = _interleaved({"api": api, "command": command, "work": work, "runner": runner},
+                     repeats)
+    t_api, t_cmd, t_work, t_run = t["api"], t["command"], t["work"], t["runner"]
     files = sorted(os.listdir(sweep_dir))
     nbytes = sum(os.path.getsize(os.path.join(sweep_dir, f)) for f in files)
+    # the command as a user runs it: a fresh process, the persistent compilation cache
+    # warm (filled by a first run); its own printed time of the map ("classified N
+    # designs in T s": tracing, loading the compiled code, the sweep) and its wall time
+    env = dict(os.environ, PMSMJAX_CACHE="1", PMSMJAX_CACHE_DIR=os.path.join(tmp, "cache"))
+    env["PYTHONPATH"] = str(HERE.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, "-m", "pmsmjax", "feasibility", *args, "--no-plot", "--restart",
+           "--out", os.path.join(tmp, "fresh")]
+    fresh = []
+    for k in range(repeats + 1):
+        t0 = time.perf_counter()
+        p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
+        wall = time.perf_counter() - t0
+        if p.returncode != 0:
+            raise RuntimeError(p.stdout[-2000:] + p.stderr[-3000:])
+        t_map = float(re.search(r"classified \d+ designs in ([0-9.]+) s", p.stdout).group(1))
+        if k:  # the first run fills the cache
+            fresh.append((t_map, wall))
+    t_fresh = statistics.median(t for t, _ in fresh)
+    wall_fresh = statistics.median(w for _, w in fresh)
     return dict(workload="feasibility", points=n, api_s=t_api, command_s=t_cmd,
+                command_over_api=t["ratio/command"],
+                runner_over_work=t["ratio/runner"] / t["ratio/work"],
+                fresh_map_s=t_fresh, fresh_wall_s=wall_fresh,
                 work_s=t_work, runner_s=t_run, chunks=int(m.group(1)),
                 chunk_size=int(m.group(2)), compile_s=manifest.get("compile_seconds"),
                 runner_files=len(files), runner_bytes=nbytes)
@@ -147,8 +184,6 @@ def simulation(runs, repeats, tmp):
     def work():
         jax.tree_util.tree_map(np.asarray, jax.block_until_ready(vpoint(flat)))
 
-    work()
-    t_work, _ = _median_time(work, repeats)
     sweep_dir = os.path.join(tmp, "sim")
     kw = dict(out_dir=sweep_dir, resume=False, progress=False)
     if "chunk_size" in tc.CompareConfig.__dataclass_fields__:
@@ -162,10 +197,11 @@ def simulation(runs, repeats, tmp):
     def runner():
         run_sweep(f_runs, grid, **kw)
 
-    runner()
-    t_run, _ = _median_time(runner, repeats)
+    t = _interleaved({"work": work, "runner": runner}, repeats)
+    t_work, t_run = t["work"], t["runner"]
     manifest = json.loads(Path(sweep_dir, "sweep.json").read_text())
-    return dict(workload="simulation", points=n, api_s=None, command_s=None, work_s=t_work,
+    return dict(workload="simulation", points=n, api_s=None, command_s=None,
+                runner_over_work=t["ratio/runner"], work_s=t_work,
                 runner_s=t_run, chunks=manifest["n_chunks"], chunk_size=manifest["chunk_size"],
                 compile_s=manifest.get("compile_seconds"),
                 runner_files=len(os.listdir(sweep_dir)),
@@ -177,7 +213,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="501 x 501 designs, 60 runs")
     ap.add_argument("--repeats", type=int, default=3, help="warm calls per median")
-    ap.add_argument("--runs", type=int, default=4,
+    ap.add_argument("--runs", type=int, default=8,
                     help="repetitions of the comparison's quick grid (60 runs each)")
     ap.add_argument("--workloads", default="feasibility,simulation")
     ap.add_argument("--label", default="", help="a name for this code state (e.g. before)")
@@ -200,10 +236,12 @@ def main():
                     f"runner {n / row['runner_s']:9.3g} /s ({row['chunks']} chunks of "
                     f"{row['chunk_size']}, {row['runner_files']} files, "
                     f"{row['runner_bytes'] / 1e6:.1f} MB), runner overhead "
-                    f"{row['runner_s'] / row['work_s'] - 1:+.1%}")
+                    f"{row['runner_over_work'] - 1:+.1%}")
             if row["api_s"]:
                 line += (f"; API {n / row['api_s']:9.3g} /s, command {n / row['command_s']:9.3g}"
-                         f" /s, command/API rate {row['api_s'] / row['command_s']:.2f}")
+                         f" /s, command/API rate {1 / row['command_over_api']:.2f}; fresh "
+                         f"process (compile cache warm): map {n / row['fresh_map_s']:9.3g} /s "
+                         f"({row['fresh_map_s']:.2f} s, wall {row['fresh_wall_s']:.1f} s)")
             print(line, flush=True)
     meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                 machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version(),

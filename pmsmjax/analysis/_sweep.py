@@ -73,6 +73,7 @@ import re
 import time
 import uuid
 import warnings
+import zipfile
 from collections.abc import Callable, Mapping
 from typing import Any, NoReturn
 
@@ -451,8 +452,13 @@ def run_sweep(
                 on_chunk_done(info)
         return _output_tree(results, shape, out_treedef)
 
-    pbar = prev = None
+    pbar = prev = result_file = None
     writer = concurrent.futures.ThreadPoolExecutor(1) if is_writer else None
+    if is_writer:
+        # `result.npz` is begun now: the writer thread writes the grid into it while the
+        # devices compute; the outputs follow when every chunk is done.
+        result_file = _ResultFile(out_dir)
+        result_file.begin(writer, _grid_arrays(host_grid, shape))
     # The manifest is rewritten at most every `_MANIFEST_INTERVAL_S` while chunks finish
     # (the chunk files are the source of truth), and once at the end.
     last_manifest_write = time.perf_counter()
@@ -638,7 +644,7 @@ def run_sweep(
                 final(p)
             else:  # the last chunk: final once `result.npz` holds it
                 record(p[0], p[1], None)
-                _complete(results, shape, out_names, host_grid, out_dir, manifest,
+                _complete(results, shape, out_names, result_file, out_dir, manifest,
                           status_leaves, fingerprint, is_writer, keep_chunks)
                 notify(p[0])
     except BaseException:
@@ -646,6 +652,9 @@ def run_sweep(
             with contextlib.suppress(Exception):  # keep a chunk whose file was written
                 prev[2].result()
                 record(prev[0], prev[1], _chunk_name(prev[0].index))
+        if result_file is not None:
+            writer.shutdown(wait=True)
+            result_file.abort()
         raise
     finally:
         if pbar is not None:
@@ -656,9 +665,13 @@ def run_sweep(
             manifest["updated"] = _now()
             _write_manifest(out_dir, manifest)
 
-    if not manifest["complete"]:
-        _complete(results, shape, out_names, host_grid, out_dir, manifest, status_leaves,
-                  fingerprint, is_writer, keep_chunks)
+    try:
+        if not manifest["complete"]:
+            _complete(results, shape, out_names, result_file, out_dir, manifest,
+                      status_leaves, fingerprint, is_writer, keep_chunks)
+    finally:
+        if result_file is not None:
+            result_file.abort()  # nothing if it was committed
     return _output_tree(results, shape, out_treedef)
 
 
@@ -1110,22 +1123,83 @@ def _output_tree(results, shape, out_treedef):
     return jtu.tree_unflatten(out_treedef, results)
 
 
-def _complete(results, shape, out_names, host_grid, out_dir, manifest, status_leaves,
+def _grid_arrays(host_grid, shape) -> dict[str, np.ndarray]:
+    return {f"grid/{k}": v if shape is None else v.reshape(shape) for k, v in host_grid.items()}
+
+
+class _ResultFile:
+    """`result.npz` (as `np.savez` writes it: uncompressed `.npy` members of a zip file),
+    written in parts to a hidden temporary file that is renamed when complete."""
+
+    def __init__(self, out_dir):
+        self.path = os.path.join(out_dir, _RESULT)
+        d, base = os.path.split(self.path)
+        self.tmp = os.path.join(d, f".{base}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+        self.file = self.zip = self.started = None
+        self.done = False
+
+    def begin(self, writer, arrays):
+        """Open the file and write `arrays` (the grid) in the writer thread."""
+        fd = os.open(self.tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
+                     0o666)
+        self.file = os.fdopen(fd, "wb")
+        self.zip = zipfile.ZipFile(self.file, mode="w", compression=zipfile.ZIP_STORED,
+                                   allowZip64=True)
+        self.started = writer.submit(self.write, arrays)
+
+    def write(self, arrays):
+        for name, a in arrays.items():
+            with self.zip.open(name + ".npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+    def commit(self, arrays, *, durable):
+        """Write the rest, close, flush to the disk if `durable`, and rename."""
+        self.started.result()
+        self.write(arrays)
+        self.zip.close()
+        self.file.flush()
+        if durable:
+            os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.tmp, self.path)
+        self.done = True
+        if durable:
+            with contextlib.suppress(OSError, AttributeError):  # the rename (POSIX)
+                dfd = os.open(os.path.dirname(self.path) or ".", os.O_RDONLY)
+                try:
+                    os.fsync(dfd)
+                finally:
+                    os.close(dfd)
+
+    def abort(self):
+        if self.done or self.file is None:
+            return
+        with contextlib.suppress(Exception):
+            self.started.result()
+        with contextlib.suppress(Exception):
+            self.zip.close()
+        with contextlib.suppress(Exception):
+            self.file.close()
+        with contextlib.suppress(OSError):
+            os.remove(self.tmp)
+        self.file = None
+
+
+def _complete(results, shape, out_names, result_file, out_dir, manifest, status_leaves,
               fingerprint, is_writer, keep_chunks):
     """Write `result.npz` and the complete manifest (process 0), then delete the chunk
-    files unless they are kept: the result holds all of them."""
+    files unless they are kept: the result holds all of them. `result.npz` is flushed to
+    the disk (`fsync`) when it replaces chunk files; when no chunk file was written (one
+    chunk), it is written like the command's other outputs."""
     manifest["complete"] = True
     if not is_writer:
         return
     arrays = dict(zip(out_names, results))
-    grid_arrays = {f"grid/{k}": v for k, v in host_grid.items()}
     if shape is not None:
         arrays = {k: v.reshape(*shape, *v.shape[1:]) for k, v in arrays.items()}
-        grid_arrays = {k: v.reshape(shape) for k, v in grid_arrays.items()}
-    _atomic_write(
-        os.path.join(out_dir, _RESULT),
-        lambda f: np.savez(f, **arrays, **grid_arrays, __fingerprint__=np.array(fingerprint)),
-    )
+    chunk_files = [name for name in os.listdir(out_dir) if _CHUNK_RE.match(name)]
+    result_file.commit({**arrays, "__fingerprint__": np.array(fingerprint)},
+                       durable=bool(chunk_files) and not keep_chunks)
     manifest["n_nonfinite"] = sum(c["n_nonfinite"] for c in manifest["chunks"].values())
     failed = [c["n_failed"] for c in manifest["chunks"].values()]
     manifest["n_failed"] = None if not status_leaves else sum(failed)
@@ -1135,10 +1209,9 @@ def _complete(results, shape, out_names, host_grid, out_dir, manifest, status_le
     manifest["updated"] = _now()
     _write_manifest(out_dir, manifest)
     if not keep_chunks:
-        for name in os.listdir(out_dir):
-            if _CHUNK_RE.match(name):
-                with contextlib.suppress(FileNotFoundError):
-                    os.remove(os.path.join(out_dir, name))
+        for name in chunk_files:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(out_dir, name))
 
 
 def _versions():
