@@ -513,6 +513,8 @@ def run_sweep(
             except Exception as err:
                 failed(i, err)
 
+        bad = {}  # chunk -> [points with non-finite outputs, with a non-zero status]
+
         def collect(i, s, e, out):
             """Wait for a block; copy its outputs (padding removed) into `results`."""
             leaves = jtu.tree_leaves(out)
@@ -525,6 +527,12 @@ def run_sweep(
                 failed(i, err)
             for res, h in zip(results, host):
                 res[s:e] = np.asarray(h)[: e - s]
+            # counted now, while the devices compute the next block
+            n_nonfinite, n_failed = _count_bad([r[s:e] for r in results], status_leaves, e - s)
+            counts = bad.setdefault(i, [0, None if n_failed is None else 0])
+            counts[0] += n_nonfinite
+            if n_failed is not None:
+                counts[1] += n_failed
             return leaves
 
         # The automatic chunk size: time the first block, then make a chunk as many blocks
@@ -589,7 +597,7 @@ def run_sweep(
             start, stop = bounds(i)
             n = stop - start
             chunk = [r[start:stop] for r in results]
-            n_nonfinite, n_failed = _count_bad(chunk, status_leaves, n)
+            n_nonfinite, n_failed = bad.pop(i)
             inputs, leaves = chunk_io.pop(i)
             now = time.perf_counter()
             seconds, t_begin = now - t_begin, now
