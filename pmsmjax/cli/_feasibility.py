@@ -282,7 +282,9 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
         method = "none (standstill only)"
     w_r = float(drive.w_rated)
 
-    grid = grid_product(w_m=np.asarray(speeds, float) * w_r, x=x[1], y=y[1])
+    # points in the order of the command's file, (speed, y, x): its arrays are then the
+    # sweep's outputs as they are, without a transposed copy
+    grid = grid_product(w_m=np.asarray(speeds, float) * w_r, y=y[1], x=x[1])
     metadata = json_safe({
         "command": "pmsmjax feasibility", "motor": drive.name, "w_rated": w_r,
         "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
@@ -290,7 +292,7 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
     infos = []
     out = run_sweep_with(settings, point, grid, metadata=metadata,
                          on_chunk_done=infos.append)
-    per = {k: v[:, None] for k, v in out.items()}  # (speed, load = 1, x, y, ...)
+    per = {k: v[:, None].swapaxes(2, 3) for k, v in out.items()}  # (speed, load = 1, x, y)
     none = np.zeros((*per["design_status"].shape, 0))  # the equilibria are not kept
     fm = FeasibilityMap(
         status=per["design_status"], n_nonzero=per["n_nonzero"],
@@ -340,8 +342,9 @@ def feasibility_command(args: argparse.Namespace) -> int:
     # FeasibilityMap arrays are (speed, load, x, y); the file's are (speed, y, x), so that
     # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
     per_design = {
-        "status": status[:, 0].transpose(0, 2, 1).astype(np.int32),
-        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1).astype(np.int32),
+        "status": status[:, 0].transpose(0, 2, 1).astype(np.int32, copy=False),
+        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1).astype(np.int32,
+                                                                              copy=False),
         "stable_theta_deg": np.asarray(fm.stable_theta_deg)[:, 0].transpose(0, 2, 1),
         "principal_stable": np.asarray(fm.principal_stable)[:, 0].transpose(0, 2, 1),
         "principal_theta_deg": np.asarray(fm.principal_theta_deg)[:, 0].transpose(0, 2, 1),
