@@ -527,6 +527,7 @@ def run_sweep(
                 failed(i, err)
             for res, h in zip(results, host):
                 res[s:e] = np.asarray(h)[: e - s]
+            pbar.update(e - s)  # the bar moves with every block
             # counted now, while the devices compute the next block
             n_nonfinite, n_failed = _count_bad([r[s:e] for r in results], status_leaves, e - s)
             counts = bad.setdefault(i, [0, None if n_failed is None else 0])
@@ -587,7 +588,6 @@ def run_sweep(
             notify(info)
 
         def notify(info):
-            pbar.update(info.stop - info.start)
             pbar.set_postfix_str(f"chunk {info.index + 1}/{n_chunks}", refresh=False)
             if on_chunk_done is not None:
                 on_chunk_done(info)
