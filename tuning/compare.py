@@ -167,7 +167,9 @@ class CompareConfig:
       gradient-free (1+1) search `tuning.local_search`) or "none" (no tuned design);
       `tune_steps`: its steps (designs for "local").
     - `harmonic_orders`, `harmonic_speeds_pu`: of the harmonic sensitivity.
-    - `chunk_size`: runs per sweep chunk (the unit of resume).
+    - `chunk_size`: runs per sweep chunk (the unit of resume); None (default): chosen by
+      `run_sweep` from the measured cost (chunks of a few seconds; a sweep of the
+      comparison's size is one chunk, evaluated at one vmap width).
     - `analysis`: run the generic equilibrium analysis on the grid (its compilation is the
       largest part of a small comparison; False: `feasible_fraction` is flagged).
     """
@@ -191,7 +193,7 @@ class CompareConfig:
     tune_steps: int = 12
     harmonic_orders: tuple = (-5, 7)
     harmonic_speeds_pu: tuple = (0.1, 0.5, 1.0)
-    chunk_size: int = 128
+    chunk_size: int | None = None
     analysis: bool = True
 
     def __post_init__(self):
@@ -244,10 +246,12 @@ class CompareConfig:
                              f"got {self.tuner!r}.")
         for name in ("tune_steps", "chunk_size", "save_every", "seed"):
             v = getattr(self, name)
+            if name == "chunk_size" and v is None:
+                continue
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"`CompareConfig({name}=...)` must be an integer >= 0; got "
                                  f"{v!r}.")
-        if self.chunk_size < 1 or self.save_every < 1:
+        if (self.chunk_size is not None and self.chunk_size < 1) or self.save_every < 1:
             raise ValueError("`CompareConfig(chunk_size=..., save_every=...)` must be >= 1.")
         for name in ("lock_deg", "settle_band_deg", "T_s", "t_end"):
             v = getattr(self, name)
@@ -635,7 +639,7 @@ def _sweep(fn, grid, out_dir, config, metadata, progress, units, batch_size):
     return run_sweep(fn, grid, out_dir=out_dir, chunk_size=config.chunk_size,
                      batch_size=batch_size, metadata=metadata,
                      progress=progress and jax.process_index() == 0, resume=True,
-                     on_chunk_done=units.tick)
+                     on_chunk_done=units.tick, keep_chunks=False)
 
 
 class _Context:

@@ -1,24 +1,44 @@
 """Chunked, sharded and resumable runner for large parameter sweeps.
 
 `run_sweep(fn, grid, ...)` evaluates a per-point function `fn` on every point of a grid.
-The grid is split into chunks of `chunk_size` points. Each chunk is sharded across all
-devices of a `jax.sharding.Mesh` (by default every device in `jax.devices()`, which under
-`jax.distributed` includes the devices of every host) and evaluated by one compiled
-`jit(vmap(fn))`. Every finished chunk is written to disk at once, so an interrupted sweep
-resumes where it stopped.
+The points are evaluated in blocks of one fixed length by one compiled `jit(vmap(fn))`,
+each block sharded across all devices of a `jax.sharding.Mesh` (by default every device
+in `jax.devices()`, which under `jax.distributed` includes the devices of every host).
+Blocks are grouped into chunks, the unit of resuming: every finished chunk is written to
+disk at once, so an interrupted sweep resumes where it stopped.
 
-Files in `out_dir` (all written atomically: to a temporary file, then `os.replace`):
+Chunk size. Given (`chunk_size=N`), a chunk is one block of N points (padded to a multiple
+of the device count). By default (`chunk_size=None`) the runner times the first block (at
+most `_AUTO_BLOCK_PER_DEVICE` points per device) and makes a chunk as many blocks as last
+about `_AUTO_CHUNK_SECONDS`, with at most `_AUTO_CHUNK_BYTES` of outputs, the points shared
+evenly between the chunks; the size is kept in the manifest and the chunk files, and a
+resumed sweep uses it again. The block length does not depend on the grouping, so the
+results are the same bit for bit however the blocks fall into chunks.
+
+Overlap. Blocks are dispatched asynchronously, two at a time: the next block runs while a
+finished one is copied to the host, and a finished chunk is written by a writer thread
+while the devices compute the next one. A chunk is final (`on_chunk_done`) once its file
+is written; the next chunk's file is only written after that.
+
+Files in `out_dir` (all written atomically: to a temporary file, then `os.replace`; the
+chunk files and `result.npz` are flushed to the disk, `np.savez`, uncompressed):
 
 - `chunk_000000.npz`, `chunk_000001.npz`, ...: the outputs of the points of one chunk
   (padding removed), plus `__fingerprint__`, `__metadata__` (the user metadata as JSON),
-  `__chunk__` and the point range `__start__` to `__stop__` (exclusive).
-  These files are the source of truth when a sweep resumes.
-- `sweep.json`: the manifest. Fingerprint of the sweep and its parts (grid, chunk size,
-  output structure, user metadata, and a hash of `fn`'s jaxpr), the user metadata, package
-  versions, devices, and for every chunk its status, wall time, points per second and the
-  number of points with non-finite outputs or a non-zero `status`.
+  `__chunk__`, the point range `__start__` to `__stop__` (exclusive) and `__chunk_size__`.
+  They are the source of truth while a sweep runs. The last chunk gets no file of its own
+  (`result.npz`, written at once, holds it), and once `result.npz` is written the chunk
+  files are deleted, unless they are kept (`keep_chunks`, by default when `chunk_size` is
+  given): what stays is what resuming needs, never the result twice.
+- `sweep.json`: the manifest. Fingerprint of the sweep and its parts (grid, chunk size or
+  `"auto"`, output structure, user metadata, and a hash of `fn`'s jaxpr), the user
+  metadata, package versions, devices, the chunk and block sizes, and for every chunk its
+  status, wall time, points per second and the number of points with non-finite outputs
+  or a non-zero `status`. Rewritten at most every `_MANIFEST_INTERVAL_S` while chunks
+  finish, and at the end.
 - `result.npz`: when the sweep is complete, every output (in point order, reshaped to the
   grid shape if the grid came from `grid_product`) and the grid itself as `grid/<key>`.
+  Running a complete sweep again reads it and computes nothing.
 
 Hidden `.*.tmp` files are half-written files of an interrupted run; they are ignored and
 deleted when the sweep resumes. Run one sweep per `out_dir` at a time.
@@ -30,7 +50,8 @@ the coordinator itself; otherwise pass `coordinator_address="host0:1234"`,
 places the slices of every chunk that belong to its own devices
 (`jax.make_array_from_callback`), the chunk runs SPMD over all devices, and the outputs are
 gathered on every process (`multihost_utils.process_allgather`). Only process 0 writes
-files and shows the progress bar; its decisions on resuming are broadcast to the others.
+files and shows the progress bar; its decisions on resuming and its automatic chunk size
+are broadcast to the others.
 Every process returns the full result; chunks finished by an earlier run are read from
 `out_dir`, which must then be on a file system that all hosts see.
 """
@@ -38,6 +59,7 @@ Every process returns the full result; chunks finished by an earlier run are rea
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import contextlib
 import dataclasses
 import datetime
@@ -51,6 +73,7 @@ import re
 import time
 import uuid
 import warnings
+import zipfile
 from collections.abc import Callable, Mapping
 from typing import Any, NoReturn
 
@@ -70,6 +93,17 @@ _TMP_RE = re.compile(r"^\..+\.tmp$")
 # truth, so a manifest that lags behind loses nothing; this only bounds the cost of
 # rewriting a large manifest after every small chunk.
 _MANIFEST_INTERVAL_S = 2.0
+# The automatic chunk size (`chunk_size=None`): a chunk lasts about this long (s) at the
+# rate measured on the first block, and holds at most this many bytes of outputs.
+_AUTO_CHUNK_SECONDS = 4.0
+_AUTO_CHUNK_BYTES = 512 * 2**20
+# ... in blocks of at most this many points per device (one compiled evaluation).
+_AUTO_BLOCK_PER_DEVICE = 2**16
+# Blocks on the devices at a time (asynchronous dispatch): the next block runs while the
+# last one is copied and its chunk counted and handed to the writer thread.
+_DEPTH = 2
+_DONE: concurrent.futures.Future = concurrent.futures.Future()
+_DONE.set_result(None)
 
 
 class SweepGrid(dict):
@@ -169,7 +203,7 @@ def run_sweep(
     grid: Mapping[str, Any],
     *,
     out_dir: str | os.PathLike,
-    chunk_size: int,
+    chunk_size: int | None = None,
     batch_size: int | None = None,
     metadata: Mapping[str, Any] | None = None,
     progress: bool = True,
@@ -178,6 +212,7 @@ def run_sweep(
     dtype: Any = None,
     allow_nonfinite: bool = False,
     on_chunk_done: Callable[[ChunkInfo], None] | None = None,
+    keep_chunks: bool | None = None,
 ) -> Any:
     """Evaluate `fn` on every point of `grid`, in chunks sharded over all devices.
 
@@ -196,14 +231,17 @@ def run_sweep(
       `allow_nonfinite=True`.
     - `out_dir`: directory for the chunk files, the manifest `sweep.json` and `result.npz`
       (created if missing).
-    - `chunk_size`: points per chunk. A chunk is the unit of work that is lost on
-      interruption and of the progress bar; make it a multiple of the device count and
-      large enough to keep the devices busy.
-    - `batch_size`: if given, each device evaluates its share of a chunk in steps of
-      `batch_size` points (`lax.map` over blocks, each block vmapped), and chunks are padded
-      to a multiple of `batch_size` times the device count. The compiled per-point code is
-      then the same on any number of devices, so results are bitwise independent of the
-      device count. If None, each device vmaps over its whole share in one step.
+    - `chunk_size`: points per chunk, the unit of work lost on interruption and of the
+      progress bar; make it a multiple of the device count and large enough to keep the
+      devices busy. None (default): chosen from the measured cost of the work, chunks of
+      about `_AUTO_CHUNK_SECONDS` (4 s) with at most `_AUTO_CHUNK_BYTES` (512 MiB) of
+      outputs, evaluated in blocks of at most `_AUTO_BLOCK_PER_DEVICE` (65,536) points per
+      device; a resumed sweep keeps the size of the run that started it.
+    - `batch_size`: if given, each device evaluates its share of a block in steps of
+      `batch_size` points (`lax.map` over batches, each batch vmapped), and blocks are
+      padded to a multiple of `batch_size` times the device count. The compiled
+      per-point code is then the same on any number of devices, so results are bitwise
+      independent of the device count. If None, each device vmaps over its whole share in one step.
     - `metadata`: JSON-serialisable `dict` describing the sweep (model, scenario, version
       of your script...). It is stored in the manifest and is part of the fingerprint.
     - `progress`: show a `tqdm` progress bar (points, points/s).
@@ -218,6 +256,9 @@ def run_sweep(
     - `on_chunk_done`: called with a [`ChunkInfo`][] after each chunk is final (written, or
       loaded from an earlier run), in that order. An exception raised here stops the sweep;
       the chunks written so far are kept.
+    - `keep_chunks`: keep the chunk files after `result.npz` is written (and write the
+      last chunk's file too). Default: True when `chunk_size` is given, False for the
+      automatic size (the chunk files then exist only while the sweep is unfinished).
 
     **Returns:**
 
@@ -245,35 +286,41 @@ def run_sweep(
     ```
 
     !!! note
-        Chunk boundaries depend only on `chunk_size`, never on the device count, so a sweep
-        started on one machine can be resumed on another. Every chunk, the last one too, is
-        padded (by repeating its last point) to one common length, the next multiple of the
-        device count (times `batch_size` if given), so that `fn` is compiled exactly once;
-        the padding is discarded.
+        Chunk boundaries depend only on the chunk size, never on the device count, so a
+        sweep started on one machine can be resumed on another. Every block, the last one
+        too, is padded (by repeating its last point) to one common length, a multiple of
+        the device count (times `batch_size` if given), so that `fn` is compiled exactly
+        once; the padding is discarded.
 
     !!! note "Reproducibility across device counts"
-        With `batch_size=None` the vmap width is a device's share of a chunk, which depends
-        on the device count. XLA may compile a different vmap width differently: on CPU, a
-        max-reduction over a series containing inf and NaN returned NaN with a width of 8
-        but a finite value with a width of 16. Finite results were bitwise identical in our
+        With `batch_size=None` the vmap width is a device's share of a block (of a chunk,
+        with an explicit `chunk_size`), which depends on the device count. XLA may compile
+        a different vmap width differently: on CPU, a max-reduction over a series
+        containing inf and NaN returned NaN with a width of 8 but a finite value with a
+        width of 16. Finite results were bitwise identical in our
         tests, but this is not guaranteed. Give a `batch_size` (e.g. 32 to 256 on CPU, 1024
         or more on a GPU, dividing `chunk_size / device count`) when results must be bitwise
         identical on any number of devices.
 
     !!! note
-        Before a chunk is written, the next one is already running on the devices, so disk
-        writes overlap with computation. The compile time is recorded separately in the
-        manifest (`compile_seconds`).
+        While a chunk is written (by a writer thread), the next blocks are already running
+        on the devices, so disk writes overlap with computation. The compile time is
+        recorded separately in the manifest (`compile_seconds`).
     """
     if not callable(fn):
         raise TypeError(f"`run_sweep(fn=...)` must be callable; got {type(fn).__name__}.")
     shape = grid.shape if isinstance(grid, SweepGrid) else None
     host_grid, n_points = _validate_grid(grid, dtype=dtype, allow_nonfinite=allow_nonfinite)
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer):
-        raise ValueError(f"`run_sweep(chunk_size=...)` must be an int; got {chunk_size!r}.")
-    if chunk_size < 1:
-        raise ValueError(f"`run_sweep(chunk_size=...)` must be >= 1; got {chunk_size}.")
-    chunk_size = int(chunk_size)
+    auto = chunk_size is None
+    if not auto:
+        if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer):
+            raise ValueError(
+                f"`run_sweep(chunk_size=...)` must be an int or None; got {chunk_size!r}."
+            )
+        if chunk_size < 1:
+            raise ValueError(f"`run_sweep(chunk_size=...)` must be >= 1; got {chunk_size}.")
+        chunk_size = int(chunk_size)
+    keep_chunks = (not auto) if keep_chunks is None else bool(keep_chunks)
     if batch_size is not None:
         if isinstance(batch_size, bool) or not isinstance(batch_size, int | np.integer):
             raise ValueError(f"`run_sweep(batch_size=...)` must be an int; got {batch_size!r}.")
@@ -304,7 +351,8 @@ def run_sweep(
 
     parts = {
         "grid": _hash_grid(host_grid, shape),
-        "chunk_size": str(chunk_size),
+        # the automatic size is chosen once and kept in the manifest and the chunk files
+        "chunk_size": "auto" if auto else str(chunk_size),
         "outputs": _hash_text(
             json.dumps([[n, str(s.dtype), list(s.shape)] for n, s in zip(out_names, out_specs)])
         ),
@@ -314,47 +362,68 @@ def run_sweep(
     fingerprint = _hash_text(json.dumps(parts, sort_keys=True))
 
     n_devices = mesh.size
-    n_chunks = math.ceil(n_points / chunk_size)
-    # Common padded length of every chunk: one compiled executable for the whole sweep.
+    # Points per compiled evaluation ("block"). With an explicit `chunk_size` a block is a
+    # whole chunk, padded to a multiple of the device count (times `batch_size`); with the
+    # automatic chunk size it is at most `_AUTO_BLOCK_PER_DEVICE` points per device, and
+    # a chunk is as many blocks as last about `_AUTO_CHUNK_SECONDS`. Every block has the
+    # same padded length, so `fn` is compiled exactly once, and the block length does not
+    # depend on how blocks are grouped into chunks (the same results bit for bit).
     step = n_devices * (batch_size or 1)
-    padded = math.ceil(min(chunk_size, n_points) / step) * step
-    bounds = [(i * chunk_size, min((i + 1) * chunk_size, n_points)) for i in range(n_chunks)]
+    if auto:
+        block = min(_round_up(n_points, step),
+                    _round_up(_AUTO_BLOCK_PER_DEVICE * n_devices, step))
+    else:
+        block = _round_up(min(chunk_size, n_points), step)
+    out_bytes = sum(int(np.prod(s.shape)) * np.dtype(s.dtype).itemsize for s in out_specs)
 
     # Decide what to resume on process 0 and broadcast it, so that every process runs the
     # same chunks (and the same collectives) or raises the same error.
     error = scan_error = None
-    done = np.zeros(n_chunks, dtype=bool)
-    old_manifest = None
+    scan = _Scan(chunk_size=None if auto else chunk_size)
     if is_writer:
         try:
             os.makedirs(out_dir, exist_ok=True)
-            error, done, old_manifest = _scan_out_dir(
-                out_dir, fingerprint, parts, n_chunks, resume
+            error, scan = _scan_out_dir(
+                out_dir, fingerprint, parts, n_points, scan.chunk_size, resume
             )
         except Exception as e:  # raised below, after the other processes have been told
             scan_error = e
             error = f"Cannot use {out_dir!r}: {e!r}"
     if jax.process_count() > 1:
-        flags = np.concatenate([[error is not None], done]).astype(np.int32)
-        flags = np.asarray(multihost_utils.broadcast_one_to_all(flags))
-        if not is_writer and flags[0]:
+        head = np.array([error is not None, scan.complete, scan.chunk_size or 0], np.int64)
+        head = np.asarray(multihost_utils.broadcast_one_to_all(head))
+        if not is_writer and head[0]:
             error = f"Process 0 refused to resume the sweep in {out_dir!r}; see its error."
-        done = flags[1:].astype(bool)
+        scan.complete, scan.chunk_size = bool(head[1]), int(head[2]) or None
+        n_known = math.ceil(n_points / scan.chunk_size) if scan.chunk_size else 0
+        done = np.zeros(n_known, dtype=np.int32)
+        done[: len(scan.done)] = scan.done[:n_known]
+        if n_known:
+            done = np.asarray(multihost_utils.broadcast_one_to_all(done))
+        scan.done = done.astype(bool)
     if scan_error is not None:
         raise scan_error
     if error is not None:
         raise ValueError(error)
 
+    old_manifest = scan.manifest
+    old_chunks = (old_manifest or {}).get("chunks", {})
     manifest = _new_manifest(
-        fingerprint, parts, metadata, host_grid, shape, n_points, chunk_size, n_chunks,
-        out_names, out_specs, mesh, old_manifest,
+        fingerprint, parts, metadata, host_grid, shape, n_points, scan.chunk_size, out_names,
+        out_specs, mesh, old_manifest,
     )
+    manifest.update(chunk_size_auto=auto, block_size=block, keep_chunks=keep_chunks)
     results = [np.empty((n_points, *s.shape), dtype=s.dtype) for s in out_specs]
+    keep = ("seconds", "points_per_second", "devices", "batch_size", "finished_at")
 
-    def record(info: ChunkInfo, extra: dict):
+    def bounds(i):
+        i, c = int(i), int(manifest["chunk_size"])
+        return i * c, min((i + 1) * c, n_points)
+
+    def record(info: ChunkInfo, extra: dict, file):
         manifest["chunks"][str(info.index)] = {
             "status": "done",
-            "file": _chunk_name(info.index),
+            "file": file,
             "start": info.start,
             "stop": info.stop,
             "n_nonfinite": info.n_nonfinite,
@@ -362,56 +431,60 @@ def run_sweep(
             **extra,
         }
 
-    pbar = None
-    last_manifest_write = -math.inf
+    def loaded(i, chunk):
+        start, stop = bounds(i)
+        n_nonfinite, n_failed = _count_bad(chunk, status_leaves, stop - start)
+        info = ChunkInfo(int(i), start, stop, True, None, n_nonfinite, n_failed)
+        old = old_chunks.get(str(i), {})
+        return info, {k: old.get(k) for k in keep}
+
+    if scan.complete:
+        # A finished sweep: `result.npz` holds every output; nothing is computed or written.
+        arrays = _load_result(os.path.join(out_dir, _RESULT), out_names, fingerprint)
+        for res, name in zip(results, out_names):
+            res[...] = arrays[name].reshape(res.shape)
+        del arrays
+        for i in range(manifest["n_chunks"]):
+            start, stop = bounds(i)
+            info, extra = loaded(i, [r[start:stop] for r in results])
+            record(info, extra, old_chunks.get(str(i), {}).get("file"))
+            if on_chunk_done is not None:
+                on_chunk_done(info)
+        return _output_tree(results, shape, out_treedef)
+
+    pbar = prev = result_file = None
+    writer = concurrent.futures.ThreadPoolExecutor(1) if is_writer else None
+    if is_writer:
+        # `result.npz` is begun now: the writer thread writes the grid into it while the
+        # devices compute; the outputs follow when every chunk is done.
+        result_file = _ResultFile(out_dir)
+        result_file.begin(writer, _grid_arrays(host_grid, shape))
+    # The manifest is rewritten at most every `_MANIFEST_INTERVAL_S` while chunks finish
+    # (the chunk files are the source of truth), and once at the end.
+    last_manifest_write = time.perf_counter()
     try:
         # Chunks finished by an earlier run.
-        for i in np.flatnonzero(done):
-            start, stop = bounds[i]
+        n_done_points = 0
+        for i in np.flatnonzero(scan.done):
+            start, stop = bounds(i)
             arrays = _load_chunk(os.path.join(out_dir, _chunk_name(i)), out_names, fingerprint)
             for res, name in zip(results, out_names):
                 res[start:stop] = arrays[name]
-            n_nonfinite, n_failed = _count_bad(
-                [arrays[n] for n in out_names], status_leaves, stop - start
-            )
-            info = ChunkInfo(int(i), start, stop, True, None, n_nonfinite, n_failed)
-            old = (old_manifest or {}).get("chunks", {}).get(str(i), {})
-            keep = ("seconds", "points_per_second", "devices", "batch_size", "finished_at")
-            record(info, {k: old.get(k) for k in keep})
+            info, extra = loaded(i, [arrays[n] for n in out_names])
+            record(info, extra, _chunk_name(int(i)))
+            n_done_points += stop - start
             if on_chunk_done is not None:
                 on_chunk_done(info)
-        todo = [int(i) for i in np.flatnonzero(~done)]
 
-        if todo:
-            sharding = NamedSharding(mesh, PartitionSpec(mesh.axis_names))
-            vfn = _jitted_chunk_fn(fn, parts["fn"], mesh, padded, batch_size)
-            in_spec = {
-                k: jax.ShapeDtypeStruct((padded,), v.dtype, sharding=sharding)
-                for k, v in host_grid.items()
-            }
-            t0 = time.perf_counter()
-            compiled = vfn.lower(in_spec).compile()
-            manifest["compile_seconds"] = time.perf_counter() - t0
+        sharding = NamedSharding(mesh, PartitionSpec(mesh.axis_names))
+        t0 = time.perf_counter()
+        compiled = _compiled_chunk_fn(fn, parts["fn"], mesh, block, batch_size, host_grid)
+        manifest["compile_seconds"] = time.perf_counter() - t0
 
-        pbar = _make_pbar(progress and is_writer, n_points, n_points - _n_todo(todo, bounds))
-
-        def dispatch(i):
-            start, stop = bounds[i]
-            # Pad by repeating the last point: real, finite inputs, discarded afterwards.
-            idx = np.minimum(np.arange(start, start + padded), stop - 1)
-            # Every process holds the whole grid; the callback is asked only for the slices
-            # of this process's own devices.
-            inputs = {
-                k: jax.make_array_from_callback((padded,), sharding, lambda s, c=v[idx]: c[s])
-                for k, v in host_grid.items()
-            }
-            try:
-                return i, inputs, compiled(inputs)
-            except Exception as e:
-                failed(i, e)
+        pbar = _make_pbar(progress and is_writer, n_points, n_done_points)
 
         def failed(i, e) -> NoReturn:
-            start, stop = bounds[i]
+            start, stop = bounds(i) if manifest["chunk_size"] else (0, n_points)
             manifest["chunks"][str(i)] = {
                 "status": "error", "start": start, "stop": stop, "error": repr(e)[:2000]
             }
@@ -422,94 +495,192 @@ def run_sweep(
                 f"are kept in {out_dir!r}; fix `fn` and run again to resume."
             ) from e
 
-        def finish(i, inputs, out, t_begin):
-            nonlocal last_manifest_write
-            start, stop = bounds[i]
-            n = stop - start
+        def dispatch(i, s, e):
+            """Start points [s, e) of chunk i on the devices (asynchronously)."""
+            if e - s == block:  # views of the grid, no copy
+                cols = {k: v[s:e] for k, v in host_grid.items()}
+            else:  # pad by repeating the last point: real, finite inputs, discarded
+                idx = np.minimum(np.arange(s, s + block), e - 1)
+                cols = {k: v[idx] for k, v in host_grid.items()}
+            # Every process holds the whole grid; the callback is asked only for the slices
+            # of this process's own devices.
+            inputs = {
+                k: jax.make_array_from_callback((block,), sharding, lambda sl, c=c: c[sl])
+                for k, c in cols.items()
+            }
+            try:
+                return inputs, compiled(inputs)
+            except Exception as err:
+                failed(i, err)
+
+        bad = {}  # chunk -> [points with non-finite outputs, with a non-zero status]
+
+        def collect(i, s, e, out):
+            """Wait for a block; copy its outputs (padding removed) into `results`."""
             leaves = jtu.tree_leaves(out)
             try:
                 if jax.process_count() > 1:
                     host = multihost_utils.process_allgather(leaves, tiled=True)
                 else:
                     host = jax.device_get(leaves)
-            except Exception as e:
-                failed(i, e)
-            host = [np.asarray(h)[:n] for h in host]
-            n_nonfinite, n_failed = _count_bad(host, status_leaves, n)
-            if is_writer:
-                _write_chunk(
-                    out_dir, i, dict(zip(out_names, host)), fingerprint, metadata_json, start, stop
-                )
-            seconds = time.perf_counter() - t_begin
+            except Exception as err:
+                failed(i, err)
             for res, h in zip(results, host):
-                res[start:stop] = h
+                res[s:e] = np.asarray(h)[: e - s]
+            pbar.update(e - s)  # the bar moves with every block
+            # counted now, while the devices compute the next block
+            n_nonfinite, n_failed = _count_bad([r[s:e] for r in results], status_leaves, e - s)
+            counts = bad.setdefault(i, [0, None if n_failed is None else 0])
+            counts[0] += n_nonfinite
+            if n_failed is not None:
+                counts[1] += n_failed
+            return leaves
+
+        # The automatic chunk size: time the first block, then make a chunk as many blocks
+        # as last about `_AUTO_CHUNK_SECONDS`, within `_AUTO_CHUNK_BYTES` of outputs.
+        # Process 0 decides for all.
+        first = None
+        if manifest["chunk_size"] is None:
+            e0 = min(block, n_points)
+            t_first = time.perf_counter()
+            inputs0, out0 = dispatch(0, 0, e0)
+            leaves0 = collect(0, 0, e0, out0)
+            seconds = time.perf_counter() - t_first
+            size = _auto_chunk_size(n_points, block, seconds, out_bytes)
+            if jax.process_count() > 1:
+                size = int(multihost_utils.broadcast_one_to_all(np.int64(size)))
+            manifest["chunk_size"] = size
+            manifest["n_chunks"] = math.ceil(n_points / size)
+            manifest["first_block_seconds"] = seconds
+            first = (e0, inputs0, leaves0)
+        n_chunks = manifest["n_chunks"]
+        todo = [i for i in range(n_chunks) if not (i < len(scan.done) and scan.done[i])]
+        last = todo[-1] if todo else None
+
+        # One queue of blocks over every chunk to do, at most `_DEPTH` of them on the
+        # devices at a time: the next blocks run while a finished chunk is counted and
+        # handed to the writer thread, which writes it while the devices compute. A chunk
+        # is final (`on_chunk_done`) once its file is written, and the next chunk's file is
+        # only written after that. The last chunk gets no file unless chunk files are kept:
+        # `result.npz`, written at once, holds it.
+        queue = collections.deque()
+        remaining = {}
+        for i in todo:
+            start, stop = bounds(i)
+            s = first[0] if (first is not None and i == 0) else start
+            remaining[i] = stop - s
+            for b in range(s, stop, block):
+                queue.append((i, b, min(b + block, stop)))
+        chunk_io = {} if first is None else {0: first[1:]}
+        in_flight = collections.deque()
+        t_begin = time.perf_counter() if first is None else t_first
+        # prev: (info, extra, future of the file write) of the last finished chunk
+
+        def final(prev):
+            nonlocal last_manifest_write
+            info, extra, fut = prev
+            fut.result()
+            record(info, extra, _chunk_name(info.index))
+            now = time.perf_counter()
+            if is_writer and now - last_manifest_write > _MANIFEST_INTERVAL_S:
+                _write_manifest(out_dir, manifest)
+                last_manifest_write = now
+            notify(info)
+
+        def notify(info):
+            pbar.set_postfix_str(f"chunk {info.index + 1}/{n_chunks}", refresh=False)
+            if on_chunk_done is not None:
+                on_chunk_done(info)
+
+        def chunk_done(i):
+            nonlocal t_begin, prev
+            start, stop = bounds(i)
+            n = stop - start
+            chunk = [r[start:stop] for r in results]
+            n_nonfinite, n_failed = bad.pop(i)
+            inputs, leaves = chunk_io.pop(i)
+            now = time.perf_counter()
+            seconds, t_begin = now - t_begin, now
             info = ChunkInfo(
                 i, start, stop, False, seconds, n_nonfinite, n_failed,
                 input_sharding=next(iter(inputs.values())).sharding,
                 output_sharding=leaves[0].sharding if leaves else None,
             )
-            record(info, {
+            extra = {
                 "seconds": seconds,
                 "points_per_second": n / seconds if seconds > 0 else None,
                 "devices": n_devices,
                 "batch_size": batch_size,
                 "finished_at": _now(),
-            })
-            now = time.perf_counter()
-            if is_writer and now - last_manifest_write > _MANIFEST_INTERVAL_S:
-                _write_manifest(out_dir, manifest)
-                last_manifest_write = now
-            pbar.update(n)
-            pbar.set_postfix_str(f"chunk {i + 1}/{n_chunks}", refresh=False)
-            if on_chunk_done is not None:
-                on_chunk_done(info)
+            }
+            if prev is not None:  # the previous chunk's file is written: it is final
+                p, prev = prev, None
+                final(p)
+            if keep_chunks or i != last:
+                fut = writer.submit(
+                    _write_chunk, out_dir, i, dict(zip(out_names, chunk)), fingerprint,
+                    metadata_json, start, stop, manifest["chunk_size"],
+                ) if is_writer else _DONE
+                prev = (info, extra, fut)
+            else:
+                prev = (info, extra, None)
 
-        # Depth-1 pipeline: chunk k+1 runs on the devices while chunk k is gathered and
-        # written. Wall time per chunk is measured between successive completions.
-        pending = None
-        t_begin = time.perf_counter()
-        for i in todo:
-            try:
-                nxt = dispatch(i)
-            except Exception:
-                if pending is not None:  # keep the previous chunk, which did succeed
-                    finish(*pending, t_begin)
-                raise
-            if pending is not None:
-                finish(*pending, t_begin)
-                t_begin = time.perf_counter()
-            pending = nxt
-        if pending is not None:
-            finish(*pending, t_begin)
+        def next_block():
+            i, s, e, inputs, out = in_flight.popleft()
+            leaves = collect(i, s, e, out)
+            chunk_io.setdefault(i, (inputs, leaves))
+            remaining[i] -= e - s
+            if remaining[i] == 0:
+                chunk_done(i)
+
+        if first is not None and remaining.get(0) == 0:
+            chunk_done(0)
+        while queue or in_flight:
+            while queue and len(in_flight) < _DEPTH:
+                i, s, e = queue.popleft()
+                try:
+                    inputs, out = dispatch(i, s, e)
+                except Exception:
+                    while in_flight:  # keep the blocks started before, which did succeed
+                        next_block()
+                    raise
+                in_flight.append((i, s, e, inputs, out))
+            next_block()
+        if prev is not None:
+            p, prev = prev, None
+            if p[2] is not None:
+                final(p)
+            else:  # the last chunk: final once `result.npz` holds it
+                record(p[0], p[1], None)
+                _complete(results, shape, out_names, result_file, out_dir, manifest,
+                          status_leaves, fingerprint, is_writer, keep_chunks)
+                notify(p[0])
+    except BaseException:
+        if prev is not None and prev[2] is not None:
+            with contextlib.suppress(Exception):  # keep a chunk whose file was written
+                prev[2].result()
+                record(prev[0], prev[1], _chunk_name(prev[0].index))
+        if result_file is not None:
+            writer.shutdown(wait=True)
+            result_file.abort()
+        raise
     finally:
         if pbar is not None:
             pbar.close()
-        if is_writer:
+        if writer is not None:
+            writer.shutdown(wait=True)
+        if is_writer and not manifest["complete"]:
             manifest["updated"] = _now()
             _write_manifest(out_dir, manifest)
 
-    out_leaves = results
-    arrays = dict(zip(out_names, results))
-    if shape is not None:
-        out_leaves = [r.reshape(*shape, *r.shape[1:]) for r in results]
-        arrays = dict(zip(out_names, out_leaves))
-    if is_writer:
-        grid_arrays = {
-            f"grid/{k}": v if shape is None else v.reshape(shape) for k, v in host_grid.items()
-        }
-        _atomic_write(
-            os.path.join(out_dir, _RESULT),
-            lambda f: np.savez(
-                f, **arrays, **grid_arrays, __fingerprint__=np.array(fingerprint)
-            ),
-        )
-        manifest["complete"] = True
-        manifest["n_nonfinite"] = sum(c["n_nonfinite"] for c in manifest["chunks"].values())
-        failed = [c["n_failed"] for c in manifest["chunks"].values()]
-        manifest["n_failed"] = None if not status_leaves else sum(failed)
-        manifest["updated"] = _now()
-        _write_manifest(out_dir, manifest)
-    return jtu.tree_unflatten(out_treedef, out_leaves)
+    try:
+        if not manifest["complete"]:
+            _complete(results, shape, out_names, result_file, out_dir, manifest,
+                      status_leaves, fingerprint, is_writer, keep_chunks)
+    finally:
+        if result_file is not None:
+            result_file.abort()  # nothing if it was committed
+    return _output_tree(results, shape, out_treedef)
 
 
 # The last few compiled chunk functions, so that running the same sweep again in one
@@ -520,8 +691,12 @@ _JIT_CACHE: collections.OrderedDict = collections.OrderedDict()
 _JIT_CACHE_SIZE = 8
 
 
-def _jitted_chunk_fn(fn, fn_hash, mesh, padded, batch_size):
-    key = (id(fn), fn_hash, mesh, padded, batch_size)
+def _compiled_chunk_fn(fn, fn_hash, mesh, padded, batch_size, host_grid):
+    """The compiled function of one padded block, from the cache when the same sweep
+    function ran before in this process (lowering a simulation again costs more than a
+    small sweep's work)."""
+    dtypes = tuple((k, v.dtype.str) for k, v in host_grid.items())
+    key = (id(fn), fn_hash, mesh, padded, batch_size, dtypes)
     if key in _JIT_CACHE:
         _JIT_CACHE.move_to_end(key)
         return _JIT_CACHE[key][1]
@@ -529,10 +704,15 @@ def _jitted_chunk_fn(fn, fn_hash, mesh, padded, batch_size):
     jitted = jax.jit(
         _chunk_fn(fn, mesh, padded, batch_size), in_shardings=sharding, out_shardings=sharding
     )
-    _JIT_CACHE[key] = (fn, jitted)
+    in_spec = {
+        k: jax.ShapeDtypeStruct((padded,), v.dtype, sharding=sharding)
+        for k, v in host_grid.items()
+    }
+    compiled = jitted.lower(in_spec).compile()
+    _JIT_CACHE[key] = (fn, compiled)  # holds `fn`: its id stays unique
     while len(_JIT_CACHE) > _JIT_CACHE_SIZE:
         _JIT_CACHE.popitem(last=False)
-    return jitted
+    return compiled
 
 
 def _chunk_fn(fn, mesh, padded, batch_size):
@@ -652,15 +832,30 @@ def _hash_grid(host_grid, shape) -> str:
     for key in sorted(host_grid):
         a = host_grid[key]
         h.update(json.dumps([key, a.dtype.str, a.size]).encode())
-        h.update(a.tobytes())
+        h.update(memoryview(a).cast("B"))  # the bytes of `a.tobytes()`, without a copy
     return h.hexdigest()
 
 
+# Hashes of the printed jaxprs of recent sweeps, by the jaxpr object: `make_jaxpr` of the
+# same function returns the same (cached) jaxpr, and printing a large one (a simulation)
+# costs more than a small sweep's work.
+_JAXPR_TEXT_HASH: collections.OrderedDict = collections.OrderedDict()
+
+
 def _hash_jaxpr(closed_jaxpr) -> str:
-    # jax prints function addresses as 0xXXXXXXXXXXXX already; strip any left to be sure,
-    # so that the hash is stable between processes.
-    text = re.sub(r"0x[0-9a-fA-F]{6,}", "0x", str(closed_jaxpr.jaxpr))
-    h = hashlib.sha256(text.encode())
+    jaxpr = closed_jaxpr.jaxpr
+    key = id(jaxpr)
+    if key in _JAXPR_TEXT_HASH and _JAXPR_TEXT_HASH[key][0] is jaxpr:
+        _JAXPR_TEXT_HASH.move_to_end(key)
+        h = _JAXPR_TEXT_HASH[key][1].copy()
+    else:
+        # jax prints function addresses as 0xXXXXXXXXXXXX already; strip any left to be
+        # sure, so that the hash is stable between processes.
+        text = re.sub(r"0x[0-9a-fA-F]{6,}", "0x", str(jaxpr))
+        h = hashlib.sha256(text.encode())
+        _JAXPR_TEXT_HASH[key] = (jaxpr, h.copy())  # holds `jaxpr`: its id stays unique
+        while len(_JAXPR_TEXT_HASH) > _JIT_CACHE_SIZE:
+            _JAXPR_TEXT_HASH.popitem(last=False)
     for c in closed_jaxpr.consts:  # closed-over arrays (e.g. parameters) are not printed
         c = np.asarray(c)
         h.update(f"{c.dtype.str}{c.shape}".encode())
@@ -731,8 +926,9 @@ def _now() -> str:
     return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
 
 
-def _atomic_write(path: str, write: Callable) -> None:
-    """Write `path` via a hidden temporary file in the same directory and `os.replace`."""
+def _atomic_write(path: str, write: Callable, *, durable: bool = True) -> None:
+    """Write `path` via a hidden temporary file in the same directory and `os.replace`;
+    `durable`: flushed to the disk (`fsync`) before the rename, and the rename too."""
     d, base = os.path.split(path)
     # Not `tempfile.mkstemp`: its files are private (0600); this one obeys the umask.
     tmp = os.path.join(d, f".{base}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
@@ -741,12 +937,15 @@ def _atomic_write(path: str, write: Callable) -> None:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             os.remove(tmp)
         raise
+    if not durable:
+        return
     with contextlib.suppress(OSError, AttributeError):  # make the rename durable (POSIX)
         dfd = os.open(d or ".", os.O_RDONLY)
         try:
@@ -755,8 +954,9 @@ def _atomic_write(path: str, write: Callable) -> None:
             os.close(dfd)
 
 
-def _write_chunk(out_dir, i, arrays, fingerprint, metadata_json, start, stop):
+def _write_chunk(out_dir, i, arrays, fingerprint, metadata_json, start, stop, chunk_size):
     meta = {
+        "__chunk_size__": np.array(chunk_size),
         "__fingerprint__": np.array(fingerprint),
         "__metadata__": np.array(metadata_json),
         "__chunk__": np.array(i),
@@ -783,7 +983,10 @@ def _load_chunk(path, out_names, fingerprint) -> dict[str, np.ndarray]:
 def _write_manifest(out_dir, manifest):
     manifest["chunks"] = dict(sorted(manifest["chunks"].items(), key=lambda kv: int(kv[0])))
     text = json.dumps(manifest, indent=1, allow_nan=False)
-    _atomic_write(os.path.join(out_dir, _MANIFEST), lambda f: f.write(text.encode()))
+    # Not flushed to the disk (`fsync`): while a sweep runs the chunk files, which are,
+    # are the source of truth.
+    _atomic_write(os.path.join(out_dir, _MANIFEST), lambda f: f.write(text.encode()),
+                  durable=False)
 
 
 def _mismatch_error(out_dir, differs):
@@ -794,16 +997,26 @@ def _mismatch_error(out_dir, differs):
     )
 
 
-def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
-    """Find the chunks an earlier run of this sweep finished. Returns (error, done, old)."""
-    done = np.zeros(n_chunks, dtype=bool)
+@dataclasses.dataclass
+class _Scan:
+    """What an earlier run left in `out_dir` (`_scan_out_dir`)."""
+
+    chunk_size: int | None = None  # of the earlier run (auto) or the one asked for
+    done: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
+    complete: bool = False  # `result.npz` of this sweep is there: nothing to compute
+    manifest: dict | None = None
+
+
+def _scan_out_dir(out_dir, fingerprint, parts, n_points, chunk_size, resume):
+    """Find what an earlier run of this sweep finished. Returns `(error, _Scan)`.
+    `chunk_size`: None for the automatic size, which is then the earlier run's."""
+    scan = _Scan(chunk_size=chunk_size)
     names = os.listdir(out_dir)
-    old = None
     if not resume:
         for name in names:
             if name in (_MANIFEST, _RESULT) or _CHUNK_RE.match(name) or _TMP_RE.match(name):
                 os.remove(os.path.join(out_dir, name))
-        return None, done, None
+        return None, scan
 
     for name in names:  # half-written files of an interrupted run
         if _TMP_RE.match(name) and (
@@ -812,6 +1025,7 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
             os.remove(os.path.join(out_dir, name))
 
     path = os.path.join(out_dir, _MANIFEST)
+    old = None
     if os.path.exists(path):
         try:
             with open(path) as f:
@@ -820,15 +1034,14 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
             return (
                 f"`run_sweep`: the manifest {path!r} is unreadable. Pick another `out_dir`, "
                 "or pass `resume=False` to start over.",
-                done,
-                None,
+                scan,
             )
         if old.get("format") != _FORMAT:
-            return _mismatch_error(out_dir, ["file format"]), done, None
+            return _mismatch_error(out_dir, ["file format"]), scan
         if old.get("fingerprint") != fingerprint:
             old_parts = old.get("fingerprint_parts", {})
             differs = [k for k in parts if old_parts.get(k) != parts[k]] or ["fingerprint"]
-            return _mismatch_error(out_dir, differs), done, None
+            return _mismatch_error(out_dir, differs), scan
         versions = _versions()
         if old.get("versions") != versions:
             warnings.warn(
@@ -836,7 +1049,14 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
                 f"{old.get('versions')}; now running with {versions}.",
                 stacklevel=3,
             )
+        scan.manifest = old
+        if scan.chunk_size is None and old.get("chunk_size"):
+            scan.chunk_size = int(old["chunk_size"])
+        if old.get("complete") and _RESULT in names and scan.chunk_size:
+            scan.complete = True
+            return None, scan
 
+    found = {}
     for name in sorted(names):
         m = _CHUNK_RE.match(name)
         if not m:
@@ -845,7 +1065,9 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
         try:
             with np.load(os.path.join(out_dir, name), allow_pickle=False) as z:
                 fp = str(z["__fingerprint__"])
-                ok = int(z["__chunk__"]) == i and i < n_chunks
+                ok = int(z["__chunk__"]) == i
+                start, stop = int(z["__start__"]), int(z["__stop__"])
+                size = int(z["__chunk_size__"]) if "__chunk_size__" in z.files else None
         except Exception as e:  # a damaged file: compute the chunk again
             warnings.warn(
                 f"`run_sweep`: ignoring unreadable chunk file {name!r} ({e}); its chunk will "
@@ -854,9 +1076,150 @@ def _scan_out_dir(out_dir, fingerprint, parts, n_chunks, resume):
             )
             continue
         if fp != fingerprint or not ok:
-            return _mismatch_error(out_dir, [f"chunk file {name}"]), done, None
-        done[i] = True
-    return None, done, old
+            return _mismatch_error(out_dir, [f"chunk file {name}"]), scan
+        if scan.chunk_size is None:  # automatic size and no manifest: the files' size
+            scan.chunk_size = size
+        found[i] = (name, start, stop)
+    if scan.chunk_size is None:
+        return None, scan
+    n_chunks = math.ceil(n_points / scan.chunk_size)
+    scan.done = np.zeros(n_chunks, dtype=bool)
+    for i, (name, start, stop) in found.items():
+        expected = (i * scan.chunk_size, min((i + 1) * scan.chunk_size, n_points))
+        if i >= n_chunks or (start, stop) != expected:
+            return _mismatch_error(out_dir, [f"chunk file {name}"]), scan
+        scan.done[i] = True
+    return None, scan
+
+
+def _round_up(n: int, step: int) -> int:
+    return math.ceil(n / step) * step
+
+
+def _auto_chunk_size(n_points, block, block_seconds, out_bytes) -> int:
+    """Points per chunk for the automatic size: whole blocks, about
+    `_AUTO_CHUNK_SECONDS` of work at the first block's measured rate, at most
+    `_AUTO_CHUNK_BYTES` of outputs (and at least one block), and the points shared evenly
+    between the chunks (the last one is not a small remainder)."""
+    per_point = max(block_seconds, 1e-9) / block
+    target = _AUTO_CHUNK_SECONDS / per_point
+    target = min(target, _AUTO_CHUNK_BYTES / max(out_bytes, 1))
+    size = max(block, int(target) // block * block)
+    if size >= n_points:
+        return _round_up(n_points, block)
+    n_chunks = math.ceil(n_points / size)
+    return _round_up(math.ceil(n_points / n_chunks), block)
+
+
+def _load_result(path, out_names, fingerprint) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["__fingerprint__"]) != fingerprint:
+                raise ValueError(f"{path!r} belongs to another sweep.")
+            return {n: z[n] for n in out_names}
+    except FileNotFoundError:
+        raise FileNotFoundError(
+            f"`run_sweep`: the finished sweep's {path!r} is not readable from process "
+            f"{jax.process_index()}. With several hosts, `out_dir` must be on a shared file "
+            "system to resume."
+        ) from None
+
+
+def _output_tree(results, shape, out_treedef):
+    if shape is not None:
+        results = [r.reshape(*shape, *r.shape[1:]) for r in results]
+    return jtu.tree_unflatten(out_treedef, results)
+
+
+def _grid_arrays(host_grid, shape) -> dict[str, np.ndarray]:
+    return {f"grid/{k}": v if shape is None else v.reshape(shape) for k, v in host_grid.items()}
+
+
+class _ResultFile:
+    """`result.npz` (as `np.savez` writes it: uncompressed `.npy` members of a zip file),
+    written in parts to a hidden temporary file that is renamed when complete."""
+
+    def __init__(self, out_dir):
+        self.path = os.path.join(out_dir, _RESULT)
+        d, base = os.path.split(self.path)
+        self.tmp = os.path.join(d, f".{base}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+        self.file = self.zip = self.started = None
+        self.done = False
+
+    def begin(self, writer, arrays):
+        """Open the file and write `arrays` (the grid) in the writer thread."""
+        fd = os.open(self.tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
+                     0o666)
+        self.file = os.fdopen(fd, "wb")
+        self.zip = zipfile.ZipFile(self.file, mode="w", compression=zipfile.ZIP_STORED,
+                                   allowZip64=True)
+        self.started = writer.submit(self.write, arrays)
+
+    def write(self, arrays):
+        for name, a in arrays.items():
+            with self.zip.open(name + ".npy", "w", force_zip64=True) as f:
+                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+
+    def commit(self, arrays, *, durable):
+        """Write the rest, close, flush to the disk if `durable`, and rename."""
+        self.started.result()
+        self.write(arrays)
+        self.zip.close()
+        self.file.flush()
+        if durable:
+            os.fsync(self.file.fileno())
+        self.file.close()
+        os.replace(self.tmp, self.path)
+        self.done = True
+        if durable:
+            with contextlib.suppress(OSError, AttributeError):  # the rename (POSIX)
+                dfd = os.open(os.path.dirname(self.path) or ".", os.O_RDONLY)
+                try:
+                    os.fsync(dfd)
+                finally:
+                    os.close(dfd)
+
+    def abort(self):
+        if self.done or self.file is None:
+            return
+        with contextlib.suppress(Exception):
+            self.started.result()
+        with contextlib.suppress(Exception):
+            self.zip.close()
+        with contextlib.suppress(Exception):
+            self.file.close()
+        with contextlib.suppress(OSError):
+            os.remove(self.tmp)
+        self.file = None
+
+
+def _complete(results, shape, out_names, result_file, out_dir, manifest, status_leaves,
+              fingerprint, is_writer, keep_chunks):
+    """Write `result.npz` and the complete manifest (process 0), then delete the chunk
+    files unless they are kept: the result holds all of them. `result.npz` is flushed to
+    the disk (`fsync`) when it replaces chunk files; when no chunk file was written (one
+    chunk), it is written like the command's other outputs."""
+    manifest["complete"] = True
+    if not is_writer:
+        return
+    arrays = dict(zip(out_names, results))
+    if shape is not None:
+        arrays = {k: v.reshape(*shape, *v.shape[1:]) for k, v in arrays.items()}
+    chunk_files = [name for name in os.listdir(out_dir) if _CHUNK_RE.match(name)]
+    result_file.commit({**arrays, "__fingerprint__": np.array(fingerprint)},
+                       durable=bool(chunk_files) and not keep_chunks)
+    manifest["n_nonfinite"] = sum(c["n_nonfinite"] for c in manifest["chunks"].values())
+    failed = [c["n_failed"] for c in manifest["chunks"].values()]
+    manifest["n_failed"] = None if not status_leaves else sum(failed)
+    if not keep_chunks:
+        for c in manifest["chunks"].values():
+            c["file"] = None
+    manifest["updated"] = _now()
+    _write_manifest(out_dir, manifest)
+    if not keep_chunks:
+        for name in chunk_files:
+            with contextlib.suppress(FileNotFoundError):
+                os.remove(os.path.join(out_dir, name))
 
 
 def _versions():
@@ -870,10 +1233,11 @@ def _versions():
 
 
 def _new_manifest(
-    fingerprint, parts, metadata, host_grid, shape, n_points, chunk_size, n_chunks,
-    out_names, out_specs, mesh, old,
+    fingerprint, parts, metadata, host_grid, shape, n_points, chunk_size, out_names,
+    out_specs, mesh, old,
 ):
     devices = mesh.devices.reshape(-1)
+    n_chunks = None if chunk_size is None else math.ceil(n_points / chunk_size)
     return {
         "format": _FORMAT,
         "fingerprint": fingerprint,

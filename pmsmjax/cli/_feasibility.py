@@ -253,7 +253,9 @@ def _point_key(choice, drive, x_name, y_name, i_pu) -> str:
 def _map(choice, drive, speeds, x, y, i_pu, settings):
     """The `FeasibilityMap` over `speeds` (p.u.), evaluated point by point by `run_sweep`
     (chunked, resumable, sharded over every device of every process); `(map, chunk
-    infos)`. Only process 0 writes the sweep's files."""
+    infos)`. Only process 0 writes the sweep's files. The map holds what the command
+    writes: its `theta_deg` and `stable` (every non-designed equilibrium) are empty (last
+    axis of length 0), so that the sweep neither computes, holds nor stores them."""
     import jax.numpy as jnp
 
     from pmsmjax.analysis import FeasibilityMap, grid_product
@@ -263,11 +265,14 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
         fn, method = _point_fn(choice, drive, x, y, i_pu)
 
         def point(p):
+            # what the command writes, in its units and types (the angles in degrees,
+            # the counts as int32): the sweep holds and stores no more than that
             res = fn(p)
-            return {"design_status": res.status, "n_nonzero": res.n_nonzero,
-                    "stable_theta": res.stable_theta, "theta": res.theta,
-                    "stable": res.stable, "principal_stable": res.principal_stable,
-                    "principal_theta": res.principal_theta}
+            return {"design_status": res.status.astype(jnp.int32),
+                    "n_nonzero": res.n_nonzero.astype(jnp.int32),
+                    "stable_theta_deg": jnp.degrees(res.stable_theta),
+                    "principal_stable": res.principal_stable,
+                    "principal_theta_deg": jnp.degrees(res.principal_theta)}
 
         if len(_POINT_FNS) >= 16:
             _POINT_FNS.clear()
@@ -277,7 +282,9 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
         method = "none (standstill only)"
     w_r = float(drive.w_rated)
 
-    grid = grid_product(w_m=np.asarray(speeds, float) * w_r, x=x[1], y=y[1])
+    # points in the order of the command's file, (speed, y, x): its arrays are then the
+    # sweep's outputs as they are, without a transposed copy
+    grid = grid_product(w_m=np.asarray(speeds, float) * w_r, y=y[1], x=x[1])
     metadata = json_safe({
         "command": "pmsmjax feasibility", "motor": drive.name, "w_rated": w_r,
         "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
@@ -285,13 +292,12 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
     infos = []
     out = run_sweep_with(settings, point, grid, metadata=metadata,
                          on_chunk_done=infos.append)
-    per = {k: v[:, None] for k, v in out.items()}  # (speed, load = 1, x, y, ...)
-    for k in ("stable_theta", "theta", "principal_theta"):  # rad -> deg
-        per[k + "_deg"] = np.asarray(jnp.degrees(per[k]))
+    per = {k: v[:, None].swapaxes(2, 3) for k, v in out.items()}  # (speed, load = 1, x, y)
+    none = np.zeros((*per["design_status"].shape, 0))  # the equilibria are not kept
     fm = FeasibilityMap(
         status=per["design_status"], n_nonzero=per["n_nonzero"],
-        stable_theta_deg=per["stable_theta_deg"], theta_deg=per["theta_deg"],
-        stable=per["stable"], principal_stable=per["principal_stable"],
+        stable_theta_deg=per["stable_theta_deg"], theta_deg=none,
+        stable=none.astype(bool), principal_stable=per["principal_stable"],
         principal_theta_deg=per["principal_theta_deg"], speeds=np.asarray(speeds, float),
         i_dq=np.asarray([i_pu], float), x=x[1], y=y[1], w_rated=w_r,
         I_b=float(drive.base.I_b), method=method, frame="observer", x_name=x[0],
@@ -321,8 +327,9 @@ def feasibility_command(args: argparse.Namespace) -> int:
     status = np.asarray(fm.status)
     t_map = time.perf_counter() - t0
     n_loaded = sum(i.loaded for i in infos)
+    size = max(i.stop - i.start for i in infos)
     sweep_line = (f"sweep: {len(infos)} chunk{'s' if len(infos) > 1 else ''} of up to "
-                  f"{settings.chunk_size} points on {jax.device_count()} device"
+                  f"{size} points on {jax.device_count()} device"
                   f"{'s' if jax.device_count() > 1 else ''} in {jax.process_count()} "
                   f"process{'es' if jax.process_count() > 1 else ''}"
                   + (f", {n_loaded} reused from an earlier run" if n_loaded else "")
@@ -335,8 +342,9 @@ def feasibility_command(args: argparse.Namespace) -> int:
     # FeasibilityMap arrays are (speed, load, x, y); the file's are (speed, y, x), so that
     # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
     per_design = {
-        "status": status[:, 0].transpose(0, 2, 1).astype(np.int32),
-        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1).astype(np.int32),
+        "status": status[:, 0].transpose(0, 2, 1).astype(np.int32, copy=False),
+        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1).astype(np.int32,
+                                                                              copy=False),
         "stable_theta_deg": np.asarray(fm.stable_theta_deg)[:, 0].transpose(0, 2, 1),
         "principal_stable": np.asarray(fm.principal_stable)[:, 0].transpose(0, 2, 1),
         "principal_theta_deg": np.asarray(fm.principal_theta_deg)[:, 0].transpose(0, 2, 1),

@@ -25,9 +25,9 @@ import jax
 from ._options import CLIError, keep_on_failure, nonneg_int, positive_int
 
 
-#: Default points per chunk: a few seconds of work for the cheapest per-point functions on
-#: one CPU core, so that an interruption loses little and the progress bar moves.
-DEFAULT_CHUNK_SIZE = 4096
+#: Default points per chunk: None, chosen by `run_sweep` from the measured cost of the
+#: work (a chunk of a few seconds, within a memory bound).
+DEFAULT_CHUNK_SIZE = None
 #: `--coordinator auto`: let `jax.distributed.initialize` find the coordinator, the number
 #: of processes and this process's id in the environment (SLURM, Open MPI, Kubernetes,
 #: Cloud TPU, or `JAX_COORDINATOR_ADDRESS`).
@@ -35,7 +35,7 @@ AUTO = "auto"
 
 
 def add_sweep_options(parser: argparse.ArgumentParser, *,
-                      default_chunk_size: int = DEFAULT_CHUNK_SIZE) -> None:
+                      default_chunk_size: int | None = DEFAULT_CHUNK_SIZE) -> None:
     """Add the groups "sweep" (`--chunk-size`, `--batch-size`, `--sweep-dir`, `--restart`)
     and "several processes or hosts" (`--coordinator`, `--num-processes`, `--process-id`)
     to `parser`."""
@@ -48,8 +48,12 @@ def add_sweep_options(parser: argparse.ArgumentParser, *,
     g.add_argument("--chunk-size", type=positive_int, default=default_chunk_size,
                    metavar="N",
                    help="points per chunk: the unit of work lost on interruption and of the "
-                        "progress bar; a multiple of the device count (default: "
-                        "%(default)s)")
+                        "progress bar; a multiple of the device count; with it the chunk "
+                        "files stay in --sweep-dir after the sweep (default: "
+                        + ("%(default)s" if default_chunk_size is not None else
+                           "chosen from the measured cost of the work, chunks of a few "
+                           "seconds, and the chunk files deleted once result.npz holds "
+                           "them") + ")")
     g.add_argument("--batch-size", type=positive_int, default=None, metavar="N",
                    help="each device evaluates its share of a chunk N points at a time, "
                         "which makes the results bitwise independent of the device and "
@@ -85,13 +89,13 @@ def add_sweep_options(parser: argparse.ArgumentParser, *,
 class SweepSettings:
     """The sweep options of one command, checked (`sweep_settings`).
 
-    - `chunk_size`, `batch_size`: of `run_sweep`; `sweep_dir`: its `out_dir`; `resume`:
-      False with `--restart`.
+    - `chunk_size` (None: automatic), `batch_size`: of `run_sweep`; `sweep_dir`: its
+      `out_dir`; `resume`: False with `--restart`.
     - `coordinator`: `"HOST:PORT"`, `"auto"` or None (one process, no `jax.distributed`);
       `num_processes`, `process_id`: None where `jax.distributed` finds them itself.
     """
 
-    chunk_size: int
+    chunk_size: int | None
     batch_size: int | None
     sweep_dir: str
     resume: bool
@@ -132,11 +136,13 @@ def sweep_settings(args: argparse.Namespace, *, out: str | None = None) -> Sweep
     not below `--num-processes P`; a malformed `--coordinator`; `--batch-size` larger
     than `--chunk-size`; no `--sweep-dir` and no output folder.
     """
-    chunk_size = int(args.chunk_size)
+    chunk_size = None if args.chunk_size is None else int(args.chunk_size)
     batch_size = args.batch_size
-    if chunk_size < 1:  # argparse checks this; for direct callers
+    if chunk_size is not None and chunk_size < 1:  # argparse checks this; direct callers
         raise CLIError(f"--chunk-size {chunk_size}: allowed: an integer >= 1")
-    if batch_size is not None and not 1 <= batch_size <= chunk_size:
+    if batch_size is not None and batch_size < 1:
+        raise CLIError(f"--batch-size {batch_size}: allowed: an integer >= 1")
+    if batch_size is not None and chunk_size is not None and batch_size > chunk_size:
         raise CLIError(f"--batch-size {batch_size} with --chunk-size {chunk_size}: allowed: "
                        f"1 <= batch size <= chunk size (a divisor of the chunk size per "
                        f"device avoids padding)")
