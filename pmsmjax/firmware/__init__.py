@@ -1,0 +1,18 @@
+"""C99 code generation for the observers: the discrete step exactly as `pmsmjax.replay`
+computes it, for firmware.
+
+`export_c(observer, T_s, out_dir, float32=False)` writes `pmsm_observer.h` (state,
+inputs, units, sampling period), `pmsm_observer.c` (the step, no allocation, libm only)
+and `replay_main.c` (reads a CSV recording `t,u_a,u_b,i_a,i_b` in the stationary
+alpha-beta frame on standard input and prints `theta_hat,w_hat` per sample).
+
+One module per observer family; `emitter_for(observer)` picks it. Supported today: the
+zhang2022 flux observers (`eso`, `leso`, `afo`) with any of their gain schedules
+(`ESODesign`: zhang38, fixed_ratio, fixed_w1; `FixedGains`; a tuned `TabulatedDesign`).
+"""
+
+from __future__ import annotations
+
+from ._emit import SUPPORTED, export_c, render
+
+__all__ = ["SUPPORTED", "export_c", "render"]
