@@ -99,3 +99,49 @@ def test_c_observer_equals_replay(case, tmp_path):
           f"max |w| {np.abs(w_32 - w_py).max():.3g} rad/s "
           f"(float64 C: {d_theta.max():.3g} rad)")
     assert np.all(np.isfinite(theta_32)) and np.all(np.isfinite(w_32))
+
+
+def test_cli_export_c_tuned_design(tmp_path):
+    """`pmsmjax export-c --design DIR` for a speed-scheduled gains table (as the tuner
+    writes it): the C code equals `replay` of the observer the table gives, in double,
+    and the header documents the sampling period and the table."""
+    from pmsmjax.cli.__main__ import main
+
+    drive = pj.preset("zhang750")
+    wr = float(drive.w_rated)
+    w = np.array([-0.5, 0.0, 0.3, 0.6]) * wr  # the recording spans 0.2 .. 0.7 p.u.
+    sched = pj.TabulatedDesign(
+        w_m=w, zeta1=np.array([1.6, 1.5, 1.8, 2.1]), w1=np.array([300.0, 0.0, 200.0, 400.0]),
+        zeta2=np.array([1.0, 0.9, 1.2, 1.1]), w2=np.array([250.0, 300.0, 350.0, 280.0]),
+        nu2=np.array([0.0, 0.1, -0.2, 0.0]), nu3=np.array([0.0, 0.0, 0.1, 0.05]))
+    table = pj.gains_table_scheduled("eso", sched, drive.three_phase_motor, drive=drive.name)
+    pj.write_gains_table(table, tmp_path / "tuned")
+    out = tmp_path / "c"
+    assert main(["export-c", "--motor", "zhang750", "--design", str(tmp_path / "tuned"),
+                 "--T-s", repr(T_S), "--out", str(out)]) == 0
+    header = (out / "pmsm_observer.h").read_text()
+    assert f"PMSM_OBS_T_S PMSM_R({T_S!r})" in header and "4 rows" in header
+    obs = pj.apply_gains_table(pj.load_gains_table(tmp_path / "tuned"),
+                               make_observer("eso", drive))
+    t, u_ab, i_ab = _recording(drive)
+    theta_py, w_py = (np.asarray(x) for x in pj.replay(obs, t=t, u_ab=u_ab, i_ab=i_ab,
+                                                       T_s=T_S, theta0=0.2))
+    exe = out / "replay"
+    subprocess.run(["gcc", "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-o", str(exe),
+                    str(out / "replay_main.c"), str(out / "pmsm_observer.c"), "-lm"],
+                   check=True, capture_output=True, text=True)
+    res = subprocess.run([str(exe), "0.2"], input=_csv(t, u_ab, i_ab), check=True,
+                         capture_output=True, text=True)
+    a = np.loadtxt(res.stdout.splitlines(), delimiter=",", ndmin=2)
+    np.testing.assert_array_less(np.abs(np.asarray(pj.wrap_angle(a[:, 0] - theta_py))), 1e-6)
+    np.testing.assert_array_less(np.abs(a[:, 1] - w_py), 1e-6 * np.maximum(1.0, abs(w_py)))
+
+
+def test_cli_export_c_rejects_unsupported(tmp_path):
+    from pmsmjax.cli.__main__ import main
+
+    unsupported = [n for n in pj.observers.observer_names() if n not in SUPPORTED]
+    if not unsupported:
+        pytest.skip("every registered observer is supported")
+    assert main(["export-c", "--observer", unsupported[0], "--out",
+                 str(tmp_path / "c")]) == 2

@@ -22,6 +22,7 @@ from . import (
     _cache,
     _certify,
     _equilibria,
+    _export_c,
     _feasibility,
     _motor,
     _plant,
@@ -36,7 +37,7 @@ from ._options import CLIError, Command, out_dir_transaction
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
     for m in (_simulate, _plant, _replay, _feasibility, _equilibria, _certify, _cache)
-    + (_response,)
+    + (_response, _export_c)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
 
