@@ -132,8 +132,13 @@ def test_cli_export_c_tuned_design(tmp_path):
                    check=True, capture_output=True, text=True)
     res = subprocess.run([str(exe), "0.2"], input=_csv(t, u_ab, i_ab), check=True,
                          capture_output=True, text=True)
+    assert res.stderr == ""
     a = np.loadtxt(res.stdout.splitlines(), delimiter=",", ndmin=2)
     np.testing.assert_array_less(np.abs(np.asarray(pj.wrap_angle(a[:, 0] - theta_py))), 1e-6)
+    # a recording at another sampling period is flagged on stderr
+    res = subprocess.run([str(exe)], input=_csv(2.0 * t, u_ab, i_ab), check=True,
+                         capture_output=True, text=True)
+    assert "not PMSM_OBS_T_S" in res.stderr
     np.testing.assert_array_less(np.abs(a[:, 1] - w_py), 1e-6 * np.maximum(1.0, abs(w_py)))
 
 

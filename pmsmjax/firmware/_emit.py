@@ -146,13 +146,15 @@ REPLAY_MAIN = r"""/* replay_main.c -- run the generated observer over a recordin
  * stdin:  CSV with one header line, then one line per sample
  *         t,u_a,u_b,i_a,i_b   (s, V, V, A, A; stationary alpha-beta frame, as
  *         `pmsmjax replay` and `pmsmjax.save_recording` use: u_ab applied over
- *         [t_k, t_(k+1)), i_ab sampled at t_k). Samples must be PMSM_OBS_T_S apart.
+ *         [t_k, t_(k+1)), i_ab sampled at t_k). Samples must be PMSM_OBS_T_S apart
+ *         (a warning on stderr otherwise); columns after the fifth are ignored.
  * stdout: theta_hat,w_hat per sample (rad, rad/s), no header.
  * argv:   optional initial estimate: theta0 (rad) and w0 (rad/s), default 0 0.
  * Build:  cc -std=c99 -O2 -Wall -o replay replay_main.c pmsm_observer.c -lm
  */
 #include <stdio.h>
 #include <stdlib.h>
+#include <math.h>
 #include "pmsm_observer.h"
 
 int main(int argc, char **argv)
@@ -163,6 +165,7 @@ int main(int argc, char **argv)
     double theta0 = argc > 1 ? strtod(argv[1], NULL) : 0.0;
     double w0 = argc > 2 ? strtod(argv[2], NULL) : 0.0;
     long lineno = 1;
+    double t_prev = 0.0;
 
     if (fgets(line, sizeof line, stdin) == NULL) {
         fprintf(stderr, "replay_main: empty input (expected a header line)\n");
@@ -193,6 +196,12 @@ int main(int argc, char **argv)
                 p++;
             }
         }
+        if (lineno == 3 && fabs((v[0] - t_prev) - (double)PMSM_OBS_T_S)
+                               > 1e-6 * (double)PMSM_OBS_T_S)
+            fprintf(stderr, "replay_main: warning: the recording's sampling period %g s "
+                    "is not PMSM_OBS_T_S = %g s the code was generated for\n",
+                    v[0] - t_prev, (double)PMSM_OBS_T_S);
+        t_prev = v[0];
         i_ab[0] = (pmsm_real)v[3];
         i_ab[1] = (pmsm_real)v[4];
         pmsm_obs_step(&s, i_ab, u_prev, &theta_hat, &w_hat);
