@@ -11,7 +11,7 @@ import pathlib
 from .._validate import check_positive
 
 #: registered observer names the emitter supports (the others raise `ValueError`)
-SUPPORTED = ("eso", "leso", "afo")
+SUPPORTED = ("eso", "leso", "afo", "rotor-flux")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +44,7 @@ def lit(x) -> str:
 
 
 def _math_macros(float32: bool) -> str:
-    fns = ("sin", "cos", "sqrt", "fabs", "pow", "fmod")
+    fns = ("sin", "cos", "sqrt", "fabs", "pow", "fmod", "atan2")
     suffix = "f" if float32 else ""
     real = "float" if float32 else "double"
     lines = [f"typedef {real} pmsm_real;", "#define PMSM_R(x) ((pmsm_real)(x))"]
@@ -218,9 +218,14 @@ def render(observer, T_s: float, *, float32: bool = False) -> dict[str, str]:
     """The generated files `{name: text}` for `observer` (a registered observer of
     `SUPPORTED`) at sampling period `T_s` (s)."""
     check_positive("export_c", "T_s", T_s, "s")
+    from ..observers import RotorFluxObserver
+    from ._morawiec2023 import emit as emit_morawiec
     from ._zhang2022 import emit as emit_zhang
 
-    obs = emit_zhang(observer)
+    if isinstance(observer, RotorFluxObserver):
+        obs = emit_morawiec(observer)
+    else:
+        obs = emit_zhang(observer)
     return {"pmsm_observer.h": _header(obs, float(T_s), float32),
             "pmsm_observer.c": _source(obs),
             "replay_main.c": REPLAY_MAIN}
