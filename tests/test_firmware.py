@@ -69,8 +69,9 @@ def run_c(observer, tmp_path, csv, *, float32=False, theta0=0.2, w0=0.0):
 
 def _case(case):
     """(drive, observer) of a test case: the registered observers with their default
-    design (rotor-flux on its paper's IPM machine), and other gain schedules."""
-    drive = pj.preset("morawiec_ipm3k5" if case == "rotor-flux" else "zhang750")
+    design (rotor-flux and parallel-model on their papers' machines), and other gain schedules."""
+    drive = pj.preset({"rotor-flux": "morawiec_ipm3k5", "parallel-model": "stumper_mt5"}
+                      .get(case, "zhang750"))
     if case in SUPPORTED:
         return drive, make_observer(case, drive)
     return drive, {

@@ -9,7 +9,8 @@ alpha-beta frame on standard input and prints `theta_hat,w_hat` per sample).
 One module per observer family; `render` picks it by the observer's class. Supported today: the
 zhang2022 flux observers (`eso`, `leso`, `afo`; `_zhang2022`) with any of their gain
 schedules (`ESODesign`: zhang38, fixed_ratio, fixed_w1; `FixedGains`; a tuned
-`TabulatedDesign`) and morawiec2023's rotor-flux observer (`rotor-flux`; `_morawiec2023`).
+`TabulatedDesign`) morawiec2023's rotor-flux observer (`rotor-flux`; `_morawiec2023`) and stumper's
+parallel-model estimator (`parallel-model`; `_stumper`).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ import pathlib
 from .._validate import check_positive
 
 #: registered observer names the emitter supports (the others raise `ValueError`)
-SUPPORTED = ("eso", "leso", "afo", "rotor-flux")
+SUPPORTED = ("eso", "leso", "afo", "rotor-flux", "parallel-model")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,7 +44,7 @@ def lit(x) -> str:
 
 
 def _math_macros(float32: bool) -> str:
-    fns = ("sin", "cos", "sqrt", "fabs", "pow", "fmod", "atan2")
+    fns = ("sin", "cos", "sqrt", "fabs", "pow", "fmod", "atan2", "asin")
     suffix = "f" if float32 else ""
     real = "float" if float32 else "double"
     lines = [f"typedef {real} pmsm_real;", "#define PMSM_R(x) ((pmsm_real)(x))"]
@@ -93,6 +93,17 @@ void pmsm_obs_step(pmsm_obs_state *s, const pmsm_real i_ab[2],
 """
 
 
+_ROTATE_C = """/* y = exp(theta J) x: rotate the 2-vector x by theta (rad) */
+static void pmsm_rotate(const pmsm_real x[2], pmsm_real theta, pmsm_real y[2])
+{
+    pmsm_real c = PMSM_COS(theta), s = PMSM_SIN(theta);
+    pmsm_real y0 = c * x[0] - s * x[1];
+    pmsm_real y1 = s * x[0] + c * x[1];
+    y[0] = y0;
+    y[1] = y1;
+}
+"""
+
 _COMMON_C = """#define PMSM_PI PMSM_R(3.141592653589793)
 
 /* wrap to (-pi, pi]: floor remainder of theta + pi by 2 pi, minus pi; -pi -> +pi */
@@ -107,15 +118,6 @@ static pmsm_real pmsm_wrap(pmsm_real x)
     return w;
 }
 
-/* y = exp(theta J) x: rotate the 2-vector x by theta (rad) */
-static void pmsm_rotate(const pmsm_real x[2], pmsm_real theta, pmsm_real y[2])
-{
-    pmsm_real c = PMSM_COS(theta), s = PMSM_SIN(theta);
-    pmsm_real y0 = c * x[0] - s * x[1];
-    pmsm_real y1 = s * x[0] + c * x[1];
-    y[0] = y0;
-    y[1] = y1;
-}
 """
 
 
@@ -125,7 +127,7 @@ def _source(obs: CObserver) -> str:
 #include <math.h>
 #include "pmsm_observer.h"
 
-{_COMMON_C}
+{_COMMON_C}{_ROTATE_C if "pmsm_rotate(" in obs.helpers + obs.step else ""}
 {obs.helpers}
 void pmsm_obs_init(pmsm_obs_state *s, pmsm_real theta0, pmsm_real w0)
 {{
@@ -218,11 +220,14 @@ def render(observer, T_s: float, *, float32: bool = False) -> dict[str, str]:
     """The generated files `{name: text}` for `observer` (a registered observer of
     `SUPPORTED`) at sampling period `T_s` (s)."""
     check_positive("export_c", "T_s", T_s, "s")
-    from ..observers import RotorFluxObserver
+    from ..observers import ParallelModelObserver, RotorFluxObserver
+    from ._stumper import emit as emit_stumper
     from ._morawiec2023 import emit as emit_morawiec
     from ._zhang2022 import emit as emit_zhang
 
-    if isinstance(observer, RotorFluxObserver):
+    if isinstance(observer, ParallelModelObserver):
+        obs = emit_stumper(observer, float(T_s))
+    elif isinstance(observer, RotorFluxObserver):
         obs = emit_morawiec(observer)
     else:
         obs = emit_zhang(observer)
