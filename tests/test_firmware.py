@@ -70,7 +70,8 @@ def run_c(observer, tmp_path, csv, *, float32=False, theta0=0.2, w0=0.0):
 def _case(case):
     """(drive, observer) of a test case: the registered observers with their default
     design (rotor-flux and parallel-model on their papers' machines), and other gain schedules."""
-    drive = pj.preset({"rotor-flux": "morawiec_ipm3k5", "parallel-model": "stumper_mt5"}
+    drive = pj.preset({"rotor-flux": "morawiec_ipm3k5", "parallel-model": "stumper_mt5",
+                       "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}
                       .get(case, "zhang750"))
     if case in SUPPORTED:
         return drive, make_observer(case, drive)
@@ -148,11 +149,11 @@ def test_cli_export_c_tuned_design(tmp_path):
     np.testing.assert_array_less(np.abs(a[:, 1] - w_py), 1e-6 * np.maximum(1.0, abs(w_py)))
 
 
-def test_cli_export_c_rejects_unsupported(tmp_path):
+def test_cli_export_c_refuses_unstable_sampling(tmp_path, capsys):
+    """The parallel-model observer's forward-Euler filters need T_s < 2 min(T_LP, T_w)
+    (1 ms with its defaults): export-c refuses a longer period, naming the limit."""
     from pmsmjax.cli.__main__ import main
 
-    unsupported = [n for n in pj.observers.observer_names() if n not in SUPPORTED]
-    if not unsupported:
-        pytest.skip("every registered observer is supported")
-    assert main(["export-c", "--observer", unsupported[0], "--out",
-                 str(tmp_path / "c")]) == 2
+    assert main(["export-c", "--motor", "stumper_mt5", "--observer", "parallel-model",
+                 "--T-s", "2e-3", "--out", str(tmp_path / "c")]) == 2
+    assert "2 min(T_LP, T_w)" in capsys.readouterr().err

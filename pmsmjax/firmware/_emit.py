@@ -11,7 +11,8 @@ import pathlib
 from .._validate import check_positive
 
 #: registered observer names the emitter supports (the others raise `ValueError`)
-SUPPORTED = ("eso", "leso", "afo", "rotor-flux", "parallel-model")
+SUPPORTED = ("eso", "leso", "afo", "rotor-flux", "parallel-model", "c-leso", "gi-leso",
+             "fa-leso")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -221,11 +222,15 @@ def render(observer, T_s: float, *, float32: bool = False) -> dict[str, str]:
     `SUPPORTED`) at sampling period `T_s` (s)."""
     check_positive("export_c", "T_s", T_s, "s")
     from ..observers import ParallelModelObserver, RotorFluxObserver
+    from ..observers._leso import AbstractBackEMFLESO
+    from ._li import emit as emit_li
     from ._stumper import emit as emit_stumper
     from ._morawiec2023 import emit as emit_morawiec
     from ._zhang2022 import emit as emit_zhang
 
-    if isinstance(observer, ParallelModelObserver):
+    if isinstance(observer, AbstractBackEMFLESO):
+        obs = emit_li(observer)
+    elif isinstance(observer, ParallelModelObserver):
         obs = emit_stumper(observer, float(T_s))
     elif isinstance(observer, RotorFluxObserver):
         obs = emit_morawiec(observer)
