@@ -23,6 +23,7 @@ from . import (
     _cache,
     _certify,
     _equilibria,
+    _export_c,
     _feasibility,
     _gains,
     _identify,
@@ -40,7 +41,7 @@ from ._options import CLIError, Command, out_dir_transaction
 COMMANDS: dict[str, Command] = {
     m.COMMAND.name: m.COMMAND
     for m in (_simulate, _plant, _replay, _identify, _feasibility, _equilibria, _certify,
-              _cache) + (_response,)
+              _cache) + (_response, _export_c)
 }
 COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
 COMMANDS[_gains.COMMAND.name] = _gains.COMMAND

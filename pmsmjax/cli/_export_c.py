@@ -1,0 +1,67 @@
+"""`pmsmjax export-c`: C99 code of an observer's discrete step, exactly as `pmsmjax
+replay` computes it (`pmsmjax.firmware`), with its gains or tuned gains table."""
+
+from __future__ import annotations
+
+import argparse
+
+from pmsmjax.firmware import SUPPORTED, export_c
+
+from ._design import add_design_option, observer_with_design
+from ._options import (
+    CLIError,
+    Command,
+    add_drive_options,
+    add_observer_options,
+    add_output_options,
+    drive_from_args,
+    positive_float,
+    prepare_out_dir,
+)
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    add_drive_options(p)
+    add_observer_options(p, default="eso")
+    add_design_option(p)
+    g = add_output_options(p, None, plot=False)
+    g.add_argument("--T-s", dest="T_s", type=positive_float, default=125e-6, metavar="S",
+                   help="sampling period compiled into the code (s, default: %(default)s); "
+                        "the recording replayed must have this sampling period")
+    g.add_argument("--float32", action="store_true",
+                   help="generate float (single precision) arithmetic instead of double")
+
+
+def export_c_command(args: argparse.Namespace) -> int:
+    if args.observer not in SUPPORTED:
+        raise CLIError(f"--observer {args.observer}: export-c supports "
+                       f"{', '.join(SUPPORTED)} today")
+    drive = drive_from_args(args)
+    choice = observer_with_design(args, drive, default="eso")
+    try:
+        paths = export_c(choice.observer, args.T_s, prepare_out_dir(args.out), float32=args.float32)
+    except ValueError as e:
+        raise CLIError(str(e)) from e
+    print(f"pmsmjax export-c: {drive.name}, {choice.describe()}; T_s = {args.T_s:g} s, "
+          f"{'float' if args.float32 else 'double'}")
+    print(f"wrote {', '.join(paths.values())}")
+    print(f"build: cc -std=c99 -O2 -o replay {args.out}/replay_main.c "
+          f"{args.out}/pmsm_observer.c -lm; run: ./replay < recording.csv")
+    return 0
+
+
+COMMAND = Command(
+    name="export-c",
+    help="write C99 code of an observer's discrete step (as replay computes it)",
+    description=(
+        "Write plain C99 (no allocation, libm only) of the observer's discrete step exactly "
+        "as `pmsmjax replay` computes it, with its gains (or the tuned gains table of "
+        "--design), into --out: pmsm_observer.h (state, inputs, units, sampling period), "
+        "pmsm_observer.c (pmsm_obs_init, pmsm_obs_step) and replay_main.c, which reads a "
+        "CSV recording t,u_a,u_b,i_a,i_b (one header line, SI units, stationary "
+        "alpha-beta frame) on standard input and prints theta_hat,w_hat per sample. "
+        f"Observers: {', '.join(SUPPORTED)}. See docs/firmware.md."
+    ),
+    add_arguments=_arguments,
+    run=export_c_command,
+)
