@@ -255,8 +255,11 @@ class AbstractBackEMFLESO(AbstractObserver):
         x1_new = jnp.where(go, x1_new, i_k).astype(state.x1.dtype)
         eps_k = x1_new - i_k
         e_hat = -m.L_q * (C @ s_new + Dx @ eps_k)
+        # the estimate one period earlier, from the previous state (zero before the
+        # first two samples: the PLL's acquisition assist is off until then)
+        e_prev = -m.L_q * (C @ state.s + Dx @ (state.x1 - state.i_prev))
         theta, w = self.pll.step(state.theta, state.w, e_hat,
-                                 lambda th: self._psi_ex(i_k, th), T_s)
+                                 lambda th: self._psi_ex(i_k, th), T_s, e_prev=e_prev)
         theta = jnp.where(go, theta, state.theta).astype(state.theta.dtype)
         w = jnp.where(go, w, state.w).astype(state.w.dtype)
         new = LESOState(s=s_new, x1=x1_new, theta=theta, w=w, i_prev=i_k,
