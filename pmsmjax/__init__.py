@@ -22,6 +22,7 @@ from . import (  # noqa: E402
 )
 from ._control import (  # noqa: E402
     FOC as FOC,
+    IfStartup as IfStartup,
     CurrentController as CurrentController,
     CurrentRefs as CurrentRefs,
     SpeedController as SpeedController,
