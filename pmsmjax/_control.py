@@ -275,7 +275,9 @@ class IfStartup(eqx.Module):
     $(1 - s)\,i_{if} + s\,i_{speed}$, the speed loop's (fed with the controller speed).
     Bumpless: until the handover starts, the speed loop's integrator is held at the
     torque that the open-loop current makes in the observer's frame, so that the speed
-    loop takes over from the torque being produced.
+    loop takes over from the torque being produced. (The blend turns the shorter way
+    from the open-loop angle to the observer's, which rotate together; were they half
+    a turn apart at the handover, the direction would be arbitrary.)
 
     Pure and scan friendly; every branch is a `jnp.where`/clip, so a run stays
     differentiable (almost everywhere) in the parameters. Only speed-controlled runs

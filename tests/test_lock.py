@@ -1,7 +1,9 @@
-"""Lock acquisition: the back-EMF PLL's acquisition assist (li-fa-leso's C-LESO, GI-LESO,
-FA-LESO) leaves the designed lock's linearisation unchanged, acquires from a zero or
-wrong-signed speed estimate on a turning rotor at either sign of speed (where the bare PI
-loop stays at zero for ever), and `analysis.lock_basin` / `lock_time` measure it."""
+"""Lock acquisition: the back-EMF PLL (li-fa-leso's C-LESO, GI-LESO, FA-LESO): its
+acquisition assist leaves the designed lock's linearisation unchanged, its phase detector
+matches its closed form (the old one near the designed lock, the back-EMF axis below
+w_min where the signs disagree); it acquires from a zero or wrong-signed speed estimate
+on a turning rotor at either sign of speed; `analysis.lock_basin` / `lock_time` measure
+it."""
 
 import math
 
@@ -82,20 +84,35 @@ def test_back_emf_observers_acquire_a_turning_rotor_from_zero_speed(name, sign):
     assert np.all(b.t_lock < 0.15)
 
 
-def test_bare_pi_loop_stays_at_zero_speed():
-    """The defect the assist removes (and so a check that the test above can fail): with
-    the assist off, the PLL started at w_hat = 0 never moves on a turning rotor."""
-    obs = eqx.tree_at(lambda o: o.pll.fll, make_observer("c-leso", DTP), 0.0)
-    b = analysis.lock_basin(obs, DTP, w_m=0.5 * W, theta_err0=[1.5], w_hat0=[0.0],
-                            t_end=0.1, progress=False)
-    assert not b.locked.any()
-    sc = pj.Scenario(t_end=0.05, i_d_ref=pj.Profile.constant(0.0),
-                     i_q_ref=pj.Profile.constant(2.0),
-                     w_m_imposed=pj.Profile.constant(0.5 * W))
-    tr = pj.simulate(DTP, pj.FOC.from_drive(DTP), pj.observers.SensoredObserver(), sc,
-                     w_m0=0.5 * W)
-    _, w_hat = pj.replay(obs, tr, theta0=0.0, w0=0.0)
-    assert np.all(np.asarray(w_hat) == 0.0)
+@pytest.mark.parametrize("w, w_hat", [(150.0, 0.0), (-150.0, 0.0), (30.0, 20.0),
+                                       (-30.0, 25.0), (30.0, -5.0), (400.0, 300.0),
+                                       (-400.0, 300.0)])
+def test_phase_detector_against_its_closed_form(w, w_hat):
+    """The detector on an exact back-EMF $e = \\omega\\psi[-\\sin\\theta, \\cos\\theta]$,
+    over the whole circle of angle errors: $(\\omega/\\hat\\omega)\\sin\\tilde\\theta$
+    above w_min; below it the old $\\omega\\hat\\omega\\sin\\tilde\\theta/w_{min}^2$
+    where sign(e_q) = sign(w_hat), and the back-EMF axis' sign otherwise, including at
+    w_hat = 0, where the bare PI loop (the factor w_hat) had no gain at all."""
+    pll = pj.observers.QuadraturePLL(w_pll=100.0, zeta_pll=1.0, w_min=50.0)
+    psi, theta = 0.2, 0.7
+    th_err = np.linspace(-3.1, 3.1, 41)
+    th_hat = theta - th_err
+    e = w * psi * np.array([-np.sin(theta), np.cos(theta)])
+    eps = np.asarray(pll.error(jnp.asarray(np.broadcast_to(e, (41, 2))),
+                               jnp.asarray(th_hat), w_hat, psi))
+    r = abs(w_hat) / pll.w_min
+    s_q = np.sign(w * np.cos(th_err))
+    if r >= 1:
+        want = (w / w_hat) * np.sin(th_err)
+    else:
+        bracket = w_hat / pll.w_min + (1 - r) * (s_q - np.sign(w_hat))
+        want = w * np.sin(th_err) / pll.w_min * bracket
+    np.testing.assert_allclose(eps, want, rtol=1e-12, atol=1e-12)
+    # near the designed lock (sign(e_q) = sign(w) = sign(w_hat)) it is the old detector
+    if np.sign(w) == np.sign(w_hat):
+        near = np.abs(th_err) < 1.0
+        old = w * w_hat * np.sin(th_err) / max(w_hat ** 2, pll.w_min ** 2)
+        np.testing.assert_allclose(eps[near], old[near], rtol=1e-12, atol=1e-15)
 
 
 def test_closed_loop_flying_start_locks():

@@ -40,6 +40,30 @@ enough again. The lock at $\tilde\theta = \pi$ is the other equilibrium of any
 back-EMF PLL (the back-EMF of $-\omega$ at $\theta + \pi$ is the same): it is unstable
 while $\hat\omega$ and $\omega$ have the same sign.
 
+*Reversals* (a standard design choice, not from the paper). With the factor
+$\hat\omega$ alone, the loop gain changes sign whenever the speed passes through zero
+before its estimate does: the angle error then grows (positive feedback) and the drive
+stalls near zero speed with up to 180 deg error (every back-EMF PLL observer did, in
+the closed-loop reversal). Below $\omega_{min}$ the detector is therefore
+
+$$\varepsilon = \frac{\hat e_\perp}{\hat\psi_{ex}\omega_{min}}\Big[
+\frac{\hat\omega}{\omega_{min}} + \Big(1 - \frac{|\hat\omega|}{\omega_{min}}\Big)
+\big(\mathrm{sign}\,\hat e_q - \mathrm{sign}\,\hat\omega\big)\Big],$$
+
+$\hat e_q$ the back-EMF's component along the estimated q axis ($= \omega\psi_{ex}
+\cos\tilde\theta$). Where the signs agree (at the designed lock, and everywhere near it)
+the bracket is $\hat\omega/\omega_{min}$: the detector above, so its equilibria and its
+linearisation at the designed lock are unchanged at every speed. Where they disagree
+(the speed has reversed and its estimate has not yet, or the false lock) the bracket
+is $3|\hat\omega|/\omega_{min} - 2$ times $\mathrm{sign}\,\hat\omega$: for
+$|\hat\omega| < 2\omega_{min}/3$ the loop follows the back-EMF's axis instead, which
+turns with the rotor whichever the sign of the speed, so the angle estimate passes
+through the reversal continuously and the speed estimate follows the speed to the new
+sign; at $\hat\omega = 0$ the gain is $|\omega|/\omega_{min}$ instead of zero. The
+price: below $2\omega_{min}/3$ the false lock $\tilde\theta = \pi$ is stable too (the
+back-EMF's axis cannot tell $\theta$ from $\theta + \pi$); above it, it is not, and
+the assist below pulls the speed estimate out of it.
+
 **Discretisation** (at $t_k$, from the state at $t_{k-1}$): the angle is predicted with
 the speed estimate, $\hat\theta^- = \hat\theta_{k-1} + T_s\hat\omega_{k-1}$, the phase
 detector is evaluated at $\hat\theta^-$ with $\hat e_k$, and both integrators take a
@@ -56,12 +80,14 @@ $\hat\omega = 0$. The usual remedy (a standard PLL design, not from the paper) i
 frequency discriminator: the rotation of the estimated back-EMF vector between two
 samples,
 
-$$\omega_e = \frac{1}{T_s}\,\mathrm{atan2}(\hat e_{k-1}\times\hat e_k,\;
-\hat e_{k-1}\cdot\hat e_k)$$
+$$\omega_e = \frac{1}{T_s}\,\mathrm{atan2}(s\,\hat e_{k-1}\times\hat e_k,\;
+|\hat e_{k-1}\cdot\hat e_k|),\qquad s = \mathrm{sign}(\hat e_{k-1}\cdot\hat e_k)$$
 
 ($= \omega$ for a back-EMF turning with the rotor, either sign, independent of the
-angle estimate; the exact increment rather than $\hat e_{k-1}\times\hat e_k/(T_s
-|\hat e|^2)$, which saturates at large $\omega T_s$), pulls the speed estimate towards it,
+angle estimate: the exact increment, where $\hat e_{k-1}\times\hat e_k/(T_s
+|\hat e|^2)$ would be $\sin(\omega T_s)/T_s$; taken modulo $\pi$, so that a back-EMF
+that flips through zero in a speed reversal, a jump of $\pi$, does not read as a speed
+of $\pi/T_s$; valid for $|\omega| T_s < \pi/2$), pulls the speed estimate towards it,
 
 $$\hat\omega_k \mathrel{+}= T_s\,k_f\,g_k\,(\omega_e - \hat\omega_{k-1}),\qquad
 g = \frac{m}{2}\Big(1 - \sigma\frac{\hat e_q}{|\hat e|}\Big),\quad
@@ -151,7 +177,12 @@ class QuadraturePLL(eqx.Module):
         e_perp = -(e_ab_hat[..., 0] * jnp.cos(theta_hat)
                    + e_ab_hat[..., 1] * jnp.sin(theta_hat))
         psi = jnp.where(jnp.abs(psi_ex_hat) > 1e-12, psi_ex_hat, 1e-12)
-        return e_perp * w_hat / (psi * jnp.maximum(w_hat ** 2, self.w_min ** 2))
+        eps = e_perp * w_hat / (psi * jnp.maximum(w_hat ** 2, self.w_min ** 2))
+        # below w_min: the sign of the back-EMF's q component where it disagrees with
+        # the speed estimate's (see "Low speed and zero speed")
+        e_q = -e_ab_hat[..., 0] * jnp.sin(theta_hat) + e_ab_hat[..., 1] * jnp.cos(theta_hat)
+        fade = jnp.maximum(1.0 - jnp.abs(w_hat) / self.w_min, 0.0)
+        return eps + e_perp * fade * (jnp.sign(e_q) - jnp.sign(w_hat)) / (psi * self.w_min)
 
     def rates(self, w_hat, eps):
         """Continuous-time `(d theta_hat/dt, d w_hat/dt)` for phase error `eps`."""
@@ -168,8 +199,12 @@ class QuadraturePLL(eqx.Module):
         n2_prev = jnp.sum(e_prev ** 2, -1)
         n2 = jnp.sum(e_ab_hat ** 2, -1)
         tiny = jnp.finfo(jnp.result_type(n2, float)).tiny
-        # atan2 of (0, 0) has an infinite gradient: nudge the denominator (m ~ 0 there)
-        w_e = jnp.arctan2(cross, jnp.where((cross == 0) & (dot == 0), 1.0, dot)) / T_s
+        # the increment modulo pi: a back-EMF that passes through zero (a speed reversal)
+        # flips by pi in one sample, which is no rotation; atan2 of (0, 0) has an
+        # infinite gradient: nudge the denominator there (m ~ 0 then)
+        sgn = jnp.where(dot < 0, -1.0, 1.0)
+        adot = jnp.abs(dot)
+        w_e = jnp.arctan2(sgn * cross, jnp.where((cross == 0) & (adot == 0), 1.0, adot)) / T_s
         e_min2 = (psi_ex_hat * self.w_min) ** 2
         prod = jnp.sqrt(n2_prev * n2 + tiny)
         m = prod / (prod + e_min2)
