@@ -131,6 +131,23 @@ def test_simulate_with_a_sensorless_observer(tmp_path, capsys):
     assert traj["psi_ab_hat"].shape == (summary["steps"], 2)
 
 
+def test_simulate_starts_a_sensorless_drive_with_the_if_start(tmp_path, capsys):
+    """`--startup auto` picks the I/f start for a sensorless observer from standstill
+    (and none for a rotor that starts turning); from an unknown angle the C-LESO drive
+    reaches the set-point."""
+    assert main(["simulate", "--observer", "c-leso", "--scenario", "ramp", "--t-end", "0.6",
+                 "--theta-hat0", "2.0", "--no-plot", "--out", str(tmp_path)]) == 0
+    assert "start-up: I/f" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["controller"]["startup"]["type"] == "I/f"
+    assert summary["theta_hat0_rad"] == 2.0
+    assert abs(summary["final_speed"]["pu"] - 0.5) < 0.01
+    assert main(["simulate", "--observer", "c-leso", "--scenario", "load-step", "--t-end",
+                 "0.02", "--no-plot", "--out", str(tmp_path / "b")]) == 0
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["controller"]["startup"] is None
+
+
 def test_python_m_pmsmjax():
     """`python -m pmsmjax` (the shim `pmsmjax/__main__.py`) runs the same command line."""
     import subprocess
@@ -259,6 +276,7 @@ def _write_bad_csv(tmp_path):
         (["simulate", "--observer", "eso", "--observer-set", "J=1"],
          "--observer-set J=1: unknown parameter 'J' of the observer's machine model; "
          "allowed: R_s (Ohm), L_d (H), L_q (H), psi_f (V s)"),
+        (["simulate", "--startup", "if"], "--startup if needs a sensorless observer"),
         (["simulate", "--observer", "eso", "--observer-set", "psi_f=-0.1"],
          "--observer-set psi_f=-0.1: `PMSMParams(psi_f=...)` (V s) must be finite and >= 0"),
         (["replay", "--data", "DIR/none.npz", "--out", "OUT", "--observer", "afo", "--gain",

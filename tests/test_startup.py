@@ -70,8 +70,9 @@ def test_without_the_startup_an_unknown_angle_stalls_the_eso():
 
 
 def test_startup_frame_hands_over_smoothly():
-    """The controller frame follows the open-loop frame until the handover speed, then
-    turns to the observer's angle within `t_blend`, continuously (no step larger than
+    """The controller frame stands still for the alignment, follows the open-loop frame
+    until the handover speed, then turns to the observer's angle within `t_blend`,
+    continuously (no step larger than
     the open-loop rotation per sample plus the blend's share)."""
     su = pj.IfStartup.from_drive(DRIVE)
     T_s = 1e-4
@@ -87,9 +88,9 @@ def test_startup_frame_hands_over_smoothly():
     ths, lams = np.array(ths), np.array(lams)
     assert lams[0] == 0.0 and lams[-1] == 1.0
     assert np.all(np.diff(lams) >= 0.0)
-    # w_if ramps at a_max and reaches w_hand at w_hand / a_max
+    # after the alignment w_if ramps at a_max and reaches w_hand w_hand / a_max later
     k_hand = np.argmax(lams > 0)
-    assert k_hand * T_s == pytest.approx(su.w_hand / su.a_max, abs=2 * T_s)
+    assert k_hand * T_s == pytest.approx(su.t_align + su.w_hand / su.a_max, abs=2 * T_s)
     assert ths[-1] == pytest.approx(hats[-1], abs=1e-6)
     assert ths[k_hand - 1] == pytest.approx(float(pj.wrap_angle(hats[k_hand - 1] - offset)),
                                             abs=0.1)
