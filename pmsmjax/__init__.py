@@ -60,6 +60,7 @@ from ._gains_table import (  # noqa: E402
     load_gains_table as load_gains_table,
     write_gains_table as write_gains_table,
 )
+from ._flying_start import FlyingStart as FlyingStart, flying_start as flying_start  # noqa: E402
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
 from ._io import (  # noqa: E402
     RecordedData as RecordedData,
