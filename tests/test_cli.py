@@ -95,6 +95,29 @@ def test_replay_writes_every_estimate(sim_dir, tmp_path, capsys):
     assert stats["observer_details"]["design"]["w2"] == pytest.approx(2 * np.pi * 50)
 
 
+def test_replay_flying_start_catches_a_turning_rotor(tmp_path, capsys):
+    """`replay --flying-start` on a log that starts with the rotor turning at 0.5 p.u.:
+    the ESO starts at the angle and speed read off the first samples and is locked
+    (within 5 deg, the load steps included) from the start; from the default zero
+    estimate it is not."""
+    rec_dir = tmp_path / "sim"
+    assert main(["simulate", "--scenario", "load-step", "--t-end", "0.1", "--no-plot",
+                 "--out", str(rec_dir)]) == 0
+    errs = {}
+    for flag in ([], ["--flying-start"]):
+        out = tmp_path / ("fs" if flag else "zero")
+        assert main(["replay", "--observer", "eso", "--data",
+                     str(rec_dir / "recording.npz"), "--no-plot", "--out", str(out),
+                     *flag]) == 0
+        with np.load(out / "replay.npz") as f:
+            errs[bool(flag)] = np.abs(np.asarray(pj.wrap_angle(f["theta"] - f["theta_hat"])))
+        stats = json.loads((out / "stats.json").read_text())
+        assert stats["initial_estimate"]["flying_start"] is bool(flag)
+    assert "flying start: theta0" in capsys.readouterr().out
+    assert errs[True].max() < np.radians(5.0)  # the lock tolerance of lock_basin
+    assert errs[False][-100:].max() > np.radians(30.0)
+
+
 def test_replay_observer_model_and_gains(sim_dir, tmp_path):
     """--observer-set changes the observer's machine model (not the plant's), --gain a
     design parameter; the shorthand --bandwidth HZ is --gain w2=2 pi HZ."""

@@ -36,6 +36,10 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="initial angle estimate (deg, electrical, default: %(default)s)")
     g.add_argument("--w0", type=finite_float, default=0.0, metavar="RAD_S",
                    help="initial speed estimate (rad/s, electrical, default: %(default)s)")
+    g.add_argument("--flying-start", action="store_true",
+                   help="start the observer from the angle and speed read off the model "
+                        "back-EMF of the first 64 samples (pmsmjax.flying_start), for a "
+                        "log that starts with the rotor turning; replaces --theta0/--w0")
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
@@ -81,8 +85,17 @@ def replay_command(args: argparse.Namespace) -> int:
                        f"0 <= S <= {duration:.6g}")
     print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
           f"{data.T_s:g} s from {args.data}")
-    est = pj.replay_estimates(choice.observer, data, theta0=math.radians(args.theta0),
-                              w0=args.w0)
+    theta0, w0 = math.radians(args.theta0), float(args.w0)
+    if args.flying_start:
+        model = choice.observer.motor
+        if not isinstance(model, pj.PMSMParams):
+            model = drive.three_phase_motor
+        fs = pj.flying_start(model, data.u_ab, data.i_ab, data.T_s,
+                             n=min(64, data.n - 1))
+        theta0, w0 = float(fs.theta0), float(fs.w0)
+        print(f"flying start: theta0 = {math.degrees(theta0):.4g} deg, w0 = {w0:.5g} rad/s "
+              f"(back-EMF {float(fs.e_mag):.3g} V)")
+    est = pj.replay_estimates(choice.observer, data, theta0=theta0, w0=w0)
     theta_hat, w_hat = np.asarray(est.theta_hat), np.asarray(est.w_hat)
     extras = {k: np.asarray(v) for k, v in est.extras.items()}
     clash = sorted(set(extras) & (set(pj.RecordedData.__dataclass_fields__) | {"t"}))
@@ -108,7 +121,8 @@ def replay_command(args: argparse.Namespace) -> int:
         "design_file": getattr(args, "design", None),
         "data": str(args.data),
         "T_s": data.T_s,
-        "initial_estimate": {"theta0_deg": float(args.theta0), "w0_rad_s": float(args.w0)},
+        "initial_estimate": {"theta0_deg": math.degrees(theta0), "w0_rad_s": w0,
+                             "flying_start": bool(args.flying_start)},
         "arrays": {"theta_hat": "rad, estimated electrical angle at t_k, wrapped",
                    "w_hat": "rad/s, estimated electrical speed at t_k",
                    **{k: choice.cls.extras.get(k, "") for k in extras}},
