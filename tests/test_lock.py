@@ -133,3 +133,22 @@ def test_lock_basin_rejects_bad_arguments():
         analysis.lock_basin(obs, DTP, mode="flying")
     with pytest.raises(ValueError, match="sensorless"):
         analysis.lock_basin(pj.observers.SensoredObserver(), DTP)
+
+
+def test_plot_lock_basin_marks_the_starts_that_did_not_lock():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from pmsmjax.plotting_analysis import plot_lock_basin
+
+    locked = np.array([[True, False], [True, True], [False, True]])
+    b = analysis.LockBasin(
+        theta_err0=np.array([-1.0, 0.0, 1.0]), w_hat0=np.array([0.0, 100.0]), w_m=100.0,
+        i_q=1.0, locked=locked, t_lock=np.where(locked, 0.05, np.nan),
+        final_err=np.zeros((3, 2)), theta_design=0.0, tol=0.1, t_end=0.2, mode="replay")
+    ax = plot_lock_basin(b)
+    crosses = ax.collections[-1].get_offsets()
+    # the two starts without a lock, at (w_hat0 / w_m, theta_err0 in deg)
+    np.testing.assert_allclose(sorted(map(tuple, np.asarray(crosses))),
+                               sorted([(1.0, np.degrees(-1.0)), (0.0, np.degrees(1.0))]))
+    assert "67 % locked" in ax.get_title()
