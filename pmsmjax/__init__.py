@@ -22,6 +22,7 @@ from . import (  # noqa: E402
 )
 from ._control import (  # noqa: E402
     FOC as FOC,
+    IfStartup as IfStartup,
     CurrentController as CurrentController,
     CurrentRefs as CurrentRefs,
     SpeedController as SpeedController,
@@ -60,6 +61,7 @@ from ._gains_table import (  # noqa: E402
     verdict_warning as verdict_warning,
     write_gains_table as write_gains_table,
 )
+from ._flying_start import FlyingStart as FlyingStart, flying_start as flying_start  # noqa: E402
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
 from ._identify import (  # noqa: E402
     IDENTIFIABLE as IDENTIFIABLE,

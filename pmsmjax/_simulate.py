@@ -207,6 +207,11 @@ def simulate(
     if key is None and is_concrete(sensing.noise_std) and np.any(
             np.asarray(sensing.noise_std) > 0):
         raise ValueError("`Sensing(noise_std > 0)` needs a PRNG `key` in `simulate`.")
+    if getattr(controller, "startup", None) is not None and getattr(
+            controller, "dual", None) is not None:
+        raise ValueError("`FOC(startup=...)` (the I/f start) is not implemented with "
+                         "dual three-phase current control (`FOC.dual`); use one or the "
+                         "other.")
     if getattr(controller, "dual", None) is not None and not drive.dual:
         raise ValueError(
             f"`controller.dual` ({controller.dual.mode!r} control) needs a dual three-phase "
@@ -285,7 +290,8 @@ def _simulate(arguments: dict) -> Trajectory:
     zero = jnp.zeros((), dtype)
     carry0 = dict(
         plant=split_state(y0),  # in component form (2-vectors as tuples)
-        ctrl=_cast_floats(controller.init(), dtype),
+        ctrl=_cast_floats(controller.init(th_hat0) if getattr(controller, "startup", None)
+                          is not None else controller.init(), dtype),
         obs=_cast_floats(observer.init(theta0=th_hat0, w0=w_hat0_), dtype),
         u_prev=jnp.zeros(2, dtype),  # applied over [t_{k-1}, t_k)
         u_pending=u_zero,  # computed at k-1, applied over [t_k, t_{k+1}) if delayed
@@ -339,15 +345,19 @@ def _simulate(arguments: dict) -> Trajectory:
             obs = eqx.tree_at(lambda o: o.motor, observer,
                               scale_motor(observer.motor, inp["observer_scale"]))
         obs_state, est = obs.step(carry["obs"], meas, T_s)
-        # --- control in the estimated frame
-        adv = (0.5 + (1.0 if drive.inverter.delay else 0.0)) * est.w_hat * T_s \
+        # --- control in the estimated frame (or the start-up's frame while it runs)
+        ctrl_carry, th_c, w_c = carry["ctrl"], est.theta_hat, est.w_hat
+        if speed_mode and getattr(controller, "startup", None) is not None:
+            ctrl_carry, th_c, w_c = controller.frame(ctrl_carry, th_c, w_c,
+                                                     inp["w_m_ref"], T_s)
+        adv = (0.5 + (1.0 if drive.inverter.delay else 0.0)) * w_c * T_s \
             if controller.angle_advance else 0.0
         u_xy_cmd = None
         if dual_ctrl is None:
-            c_hat, s_hat = cos_sin(est.theta_hat)
-            i_c = jnp.stack(_rotate(c_hat, -s_hat, i_a, i_b), -1)  # park(i_meas, th_hat)
+            c_hat, s_hat = cos_sin(th_c)
+            i_c = jnp.stack(_rotate(c_hat, -s_hat, i_a, i_b), -1)  # park(i_meas, th_c)
             ctrl_state, out = controller.step(
-                carry["ctrl"], i_c, est.w_hat, inp["w_m_ref"], T_s,
+                ctrl_carry, i_c, w_c, inp["w_m_ref"], T_s,
                 i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
                 speed_mode=speed_mode,
             )
@@ -358,7 +368,7 @@ def _simulate(arguments: dict) -> Trajectory:
                 i_ref_override=jnp.stack([inp["i_d_ref"], inp["i_q_ref"]]),
                 speed_mode=speed_mode,
             )
-        c_u, s_u = cos_sin(est.theta_hat + adv)
+        c_u, s_u = cos_sin(th_c + adv)
         u_cmd = jnp.stack(_rotate(c_u, s_u, out.u_dq[..., 0], out.u_dq[..., 1]), -1)
         if u_xy_cmd is not None:  # the x-y voltage goes through the same inverter delay
             u_cmd = jnp.concatenate([u_cmd, u_xy_cmd], -1)

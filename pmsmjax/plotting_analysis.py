@@ -154,3 +154,28 @@ def plot_response(curves: dict, *, title: str = ""):
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     return fig
+
+
+def plot_lock_basin(basin, *, ax=None, title=None, t_max=None):
+    """Basin of attraction from `analysis.lock_basin`: time to lock (ms, colour) over
+    the initial angle error (deg) x initial speed estimate (relative to the rotor speed);
+    starts that never locked (or did not keep the lock) are crossed out in grey."""
+    if ax is None:
+        _, ax = plt.subplots(figsize=(5.0, 4.0))
+    th = np.degrees(np.asarray(basin.theta_err0))
+    wr = np.asarray(basin.w_hat0) / float(basin.w_m)
+    t_ms = 1e3 * np.asarray(basin.t_lock, float)
+    vmax = 1e3 * float(basin.t_end) if t_max is None else 1e3 * float(t_max)
+    m = ax.pcolormesh(wr, th, np.ma.masked_invalid(t_ms), shading="nearest",
+                      cmap="viridis", vmin=0.0, vmax=vmax)
+    bad = ~np.asarray(basin.locked, bool)
+    if bad.any():
+        W, T = np.meshgrid(wr, th)
+        ax.scatter(W[bad], T[bad], marker="x", color="0.5", s=25, label="no lock")
+        ax.legend(loc="upper right", fontsize=7, framealpha=0.8)
+    plt.colorbar(m, ax=ax, label="time to lock (ms)")
+    ax.set_xlabel("initial speed estimate / rotor speed")
+    ax.set_ylabel("initial angle error (deg)")
+    ax.set_title(title or f"lock basin ({basin.mode}), {100 * basin.fraction_locked:.0f} % "
+                          f"locked", fontsize=10)
+    return ax

@@ -95,6 +95,29 @@ def test_replay_writes_every_estimate(sim_dir, tmp_path, capsys):
     assert stats["observer_details"]["design"]["w2"] == pytest.approx(2 * np.pi * 50)
 
 
+def test_replay_flying_start_catches_a_turning_rotor(tmp_path, capsys):
+    """`replay --flying-start` on a log that starts with the rotor turning at 0.5 p.u.:
+    the ESO starts at the angle and speed read off the first samples and is locked
+    (within 5 deg, the load steps included) from the start; from the default zero
+    estimate it is not."""
+    rec_dir = tmp_path / "sim"
+    assert main(["simulate", "--scenario", "load-step", "--t-end", "0.1", "--no-plot",
+                 "--out", str(rec_dir)]) == 0
+    errs = {}
+    for flag in ([], ["--flying-start"]):
+        out = tmp_path / ("fs" if flag else "zero")
+        assert main(["replay", "--observer", "eso", "--data",
+                     str(rec_dir / "recording.npz"), "--no-plot", "--out", str(out),
+                     *flag]) == 0
+        with np.load(out / "replay.npz") as f:
+            errs[bool(flag)] = np.abs(np.asarray(pj.wrap_angle(f["theta"] - f["theta_hat"])))
+        stats = json.loads((out / "stats.json").read_text())
+        assert stats["initial_estimate"]["flying_start"] is bool(flag)
+    assert "flying start: theta0" in capsys.readouterr().out
+    assert errs[True].max() < np.radians(5.0)  # the lock tolerance of lock_basin
+    assert errs[False][-100:].max() > np.radians(30.0)
+
+
 def test_replay_observer_model_and_gains(sim_dir, tmp_path):
     """--observer-set changes the observer's machine model (not the plant's), --gain a
     design parameter; the shorthand --bandwidth HZ is --gain w2=2 pi HZ."""
@@ -129,6 +152,23 @@ def test_simulate_with_a_sensorless_observer(tmp_path, capsys):
     assert summary["observer_details"]["design"]["w2"] == 400
     traj = np.load(tmp_path / "trajectory.npz")
     assert traj["psi_ab_hat"].shape == (summary["steps"], 2)
+
+
+def test_simulate_starts_a_sensorless_drive_with_the_if_start(tmp_path, capsys):
+    """`--startup auto` picks the I/f start for a sensorless observer from standstill
+    (and none for a rotor that starts turning); from an unknown angle the C-LESO drive
+    reaches the set-point."""
+    assert main(["simulate", "--observer", "c-leso", "--scenario", "ramp", "--t-end", "0.6",
+                 "--theta-hat0", "114.59", "--no-plot", "--out", str(tmp_path)]) == 0
+    assert "start-up: I/f" in capsys.readouterr().out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["controller"]["startup"]["type"] == "I/f"
+    assert summary["theta_hat0_deg"] == 114.59
+    assert abs(summary["final_speed"]["pu"] - 0.5) < 0.01
+    assert main(["simulate", "--observer", "c-leso", "--scenario", "load-step", "--t-end",
+                 "0.02", "--no-plot", "--out", str(tmp_path / "b")]) == 0
+    summary = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert summary["controller"]["startup"] is None
 
 
 def test_python_m_pmsmjax():
@@ -259,6 +299,7 @@ def _write_bad_csv(tmp_path):
         (["simulate", "--observer", "eso", "--observer-set", "J=1"],
          "--observer-set J=1: unknown parameter 'J' of the observer's machine model; "
          "allowed: R_s (Ohm), L_d (H), L_q (H), psi_f (V s)"),
+        (["simulate", "--startup", "if"], "--startup if needs a sensorless observer"),
         (["simulate", "--observer", "eso", "--observer-set", "psi_f=-0.1"],
          "--observer-set psi_f=-0.1: `PMSMParams(psi_f=...)` (V s) must be finite and >= 0"),
         (["replay", "--data", "DIR/none.npz", "--out", "OUT", "--observer", "afo", "--gain",

@@ -46,6 +46,11 @@ from ._generic import (
     linearization as linearization,
     stability as stability,
 )
+from ._lock import (
+    LockBasin as LockBasin,
+    lock_basin as lock_basin,
+    lock_time as lock_time,
+)
 from ._linearize import (
     charpoly as charpoly,
     eso_linearization as eso_linearization,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 
 import numpy as np
@@ -38,6 +39,10 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                         "(default), or the one the drive's controller commanded; with "
                         "'commanded' the observer sees it less the drive's inverter error "
                         "model (u_dt, i_dt of the motor file's [inverter] or --set u_dt=V)")
+    g.add_argument("--flying-start", action="store_true",
+                   help="start the observer from the angle and speed read off the model "
+                        "back-EMF of the first 64 samples (pmsmjax.flying_start), for a "
+                        "log that starts with the rotor turning; replaces --theta0/--speed0")
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
@@ -95,6 +100,15 @@ def replay_command(args: argparse.Namespace) -> int:
     print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
           f"{data.T_s:g} s from {args.data}")
     theta0, w0 = initial_state_from_args(args, drive)
+    if args.flying_start:
+        model = choice.observer.motor
+        if not isinstance(model, pj.PMSMParams):
+            model = drive.three_phase_motor
+        fs = pj.flying_start(model, data.u_ab, data.i_ab, data.T_s,
+                             n=min(64, data.n - 1))
+        theta0, w0 = float(fs.theta0), float(fs.w0)
+        print(f"flying start: theta0 = {math.degrees(theta0):.4g} deg, w0 = {w0:.5g} rad/s "
+              f"(back-EMF {float(fs.e_mag):.3g} V)")
     est = pj.replay_estimates(choice.observer, data, theta0=theta0, w0=w0,
                               inverter=inverter)
     theta_hat, w_hat = np.asarray(est.theta_hat), np.asarray(est.w_hat)
@@ -125,7 +139,8 @@ def replay_command(args: argparse.Namespace) -> int:
         "voltage": args.voltage,
         "inverter_model": None if inverter is None else {
             "u_dt": float(inverter.u_dt), "i_dt": float(inverter.i_dt)},
-        "initial_estimate": {"theta0_deg": float(args.theta0), "w0_rad_s": w0},
+        "initial_estimate": {"theta0_deg": math.degrees(theta0), "w0_rad_s": w0,
+                             "flying_start": bool(args.flying_start)},
         "arrays": {"theta_hat": "rad, estimated electrical angle at t_k, wrapped",
                    "w_hat": "rad/s, estimated electrical speed at t_k",
                    **{k: choice.cls.extras.get(k, "") for k in extras}},

@@ -105,6 +105,20 @@ SCENARIOS: dict[str, _ScenarioSpec] = {
 }
 
 
+def _startup_info(su) -> dict | None:
+    if su is None:
+        return None
+    return {"type": "I/f", "i_start_A": float(su.i_start), "a_max_rad_s2": float(su.a_max),
+            "w_hand_rad_s": float(su.w_hand), "t_blend_s": float(su.t_blend)}
+
+
+def _startup_text(su) -> str:
+    if su is None:
+        return "none (the observer's frame from the first sample)"
+    return (f"I/f, {float(su.i_start):.3g} A open loop, handover at {float(su.w_hand):.4g} "
+            f"rad/s over {float(su.t_blend):.3g} s")
+
+
 def _speed_error_stats(x: np.ndarray, scale: float) -> dict:
     """`pj.error_stats` of the settled speed error (rad/s) and the same in p.u. of
     `scale`; None everywhere when no sample has settled."""
@@ -157,6 +171,16 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="seed of the noise generator (integer, default: %(default)s)")
     g.add_argument("--substeps", type=positive_int, default=1, metavar="N",
                    help="RK4 steps of the plant per sampling period (default: %(default)s)")
+    g.add_argument("--startup", default="auto", choices=("auto", "if", "none"),
+                   help="start-up of a sensorless drive (speed-controlled scenarios): 'if' "
+                        "an open-loop current-vector (I/f) start with a handover to the "
+                        "observer at 0.1 p.u. (pmsmjax.IfStartup.from_drive; a drive's "
+                        "practice, not the papers'), 'none' the observer's frame from the "
+                        "first sample, 'auto' (default) 'if' for a sensorless observer "
+                        "when the rotor starts at standstill, else 'none'")
+    g.add_argument("--theta-hat0", type=finite_float, default=None, metavar="DEG",
+                   help="the observer's initial angle estimate (deg, electrical; default: "
+                        "the rotor's initial angle 0, i.e. a known angle)")
     add_observer_options(p, default="sensored", sensored=True, mismatch=True,
                          old_mismatch=False, default_note=": the encoder angle and speed")
     add_design_option(p)
@@ -178,9 +202,18 @@ def simulate_command(args: argparse.Namespace) -> int:
                                     u_dt=inv.u_dt, i_dt=inv.i_dt))
     scenario, description, w_m0 = spec.build(drive, args.t_end, args.speed, load)
     alpha_c, alpha_s = 2 * math.pi * args.current_bw, 2 * math.pi * args.speed_bw
-    controller = pj.FOC.from_drive(drive, alpha_c=alpha_c, alpha_s=alpha_s)
     choice = observer_with_design(args, drive, default="sensored")
     observer = choice.observer
+    startup = args.startup
+    if startup == "auto":
+        startup = ("if" if args.observer != "sensored" and scenario.speed_mode
+                   and w_m0 == 0.0 else "none")
+    if startup == "if" and args.observer == "sensored":
+        raise CLIError("--startup if needs a sensorless observer (--observer NAME): the "
+                       "sensored drive knows its angle from the start")
+    controller = pj.FOC.from_drive(
+        drive, alpha_c=alpha_c, alpha_s=alpha_s,
+        startup=pj.IfStartup.from_drive(drive) if startup == "if" else None)
     sensing = pj.Sensing(noise_std=args.noise)
     n_steps = scenario.n_steps(args.T_s)
     out = prepare_out_dir(args.out)
@@ -189,11 +222,13 @@ def simulate_command(args: argparse.Namespace) -> int:
           f"{description}")
     if args.observer != "sensored":
         print(choice.describe())
+        print(f"start-up: {_startup_text(controller.startup)}")
     print(f"{n_steps} steps at T_s = {args.T_s:g} s")
     traj, t_compile, t_run = compile_and_run(
         pj.simulate, drive, controller, observer, scenario, T_s=args.T_s,
         n_substeps=args.substeps, sensing=sensing, key=jax.random.PRNGKey(args.seed),
-        w_m0=w_m0, throw=False, observer_u_dt=args.observer_u_dt)
+        w_m0=w_m0, theta_hat0=None if args.theta_hat0 is None else math.radians(
+            args.theta_hat0), throw=False, observer_u_dt=args.observer_u_dt)
 
     ok = bool(traj.ok)
     arrays = {f.name: np.asarray(getattr(traj, f.name)) for f in dataclasses.fields(traj)
@@ -229,7 +264,9 @@ def simulate_command(args: argparse.Namespace) -> int:
                      "t_end_s": float(args.t_end), "speed_pu": float(args.speed),
                      "load_pu": float(load) if spec.uses_load else None},
         "controller": {"type": "FOC", "strategy": "id_const (i_d = 0)",
-                       "current_bandwidth_rad_s": alpha_c, "speed_bandwidth_rad_s": alpha_s},
+                       "current_bandwidth_rad_s": alpha_c, "speed_bandwidth_rad_s": alpha_s,
+                       "startup": _startup_info(controller.startup)},
+        "theta_hat0_deg": args.theta_hat0,
         "observer": args.observer,
         "observer_details": choice.info() if args.observer != "sensored" else None,
         "design_file": getattr(args, "design", None),

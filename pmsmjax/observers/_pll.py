@@ -40,12 +40,80 @@ enough again. The lock at $\tilde\theta = \pi$ is the other equilibrium of any
 back-EMF PLL (the back-EMF of $-\omega$ at $\theta + \pi$ is the same): it is unstable
 while $\hat\omega$ and $\omega$ have the same sign.
 
+*Reversals* (a standard design choice, not from the paper). With the factor
+$\hat\omega$ alone, the loop gain changes sign whenever the speed passes through zero
+before its estimate does: the angle error then grows (positive feedback) and the drive
+stalls near zero speed with up to 180 deg error (every back-EMF PLL observer did, in
+the closed-loop reversal). Below $\omega_{min}$ the detector is therefore
+
+$$\varepsilon = \frac{\hat e_\perp}{\hat\psi_{ex}\omega_{min}}\Big[
+\frac{\hat\omega}{\omega_{min}} + \Big(1 - \frac{|\hat\omega|}{\omega_{min}}\Big)
+\big(\mathrm{sign}\,\hat e_q - \mathrm{sign}\,\hat\omega\big)\Big],$$
+
+$\hat e_q$ the back-EMF's component along the estimated q axis ($= \omega\psi_{ex}
+\cos\tilde\theta$). Where the signs agree (at the designed lock, and everywhere near it)
+the bracket is $\hat\omega/\omega_{min}$: the detector above, so its equilibria and its
+linearisation at the designed lock are unchanged at every speed. Where they disagree
+(the speed has reversed and its estimate has not yet, or the false lock) the bracket
+is $3|\hat\omega|/\omega_{min} - 2$ times $\mathrm{sign}\,\hat\omega$: for
+$|\hat\omega| < 2\omega_{min}/3$ the loop follows the back-EMF's axis instead, which
+turns with the rotor whichever the sign of the speed, so the angle estimate passes
+through the reversal continuously and the speed estimate follows the speed to the new
+sign; at $\hat\omega = 0$ the gain is $|\omega|/\omega_{min}$ instead of zero. The
+price: below $2\omega_{min}/3$ the false lock $\tilde\theta = \pi$ is stable too (the
+back-EMF's axis cannot tell $\theta$ from $\theta + \pi$); above it, it is not, and
+the assist below pulls the speed estimate out of it.
+
 **Discretisation** (at $t_k$, from the state at $t_{k-1}$): the angle is predicted with
 the speed estimate, $\hat\theta^- = \hat\theta_{k-1} + T_s\hat\omega_{k-1}$, the phase
 detector is evaluated at $\hat\theta^-$ with $\hat e_k$, and both integrators take a
 forward step: $\hat\theta_k = \hat\theta^- + T_s k_p\varepsilon_k$,
 $\hat\omega_k = \hat\omega_{k-1} + T_s k_i\varepsilon_k$. At constant speed with
 $\hat e_k$ on the true back-EMF direction this is exact ($\varepsilon_k = 0$).
+
+**Acquisition: the frequency-locked-loop assist.** The phase detector above carries the
+factor $\hat\omega$ (it sets the sign of the loop gain): a speed estimate of exactly 0 is
+a fixed point of the PI loop whatever the back-EMF does, and from a small or wrong-signed
+$\hat\omega$ the loop gain $\omega\hat\omega/\omega_{min}^2$ is small or negative. A
+drive started on a turning rotor, or a replay of a log that starts mid-run, never leaves
+$\hat\omega = 0$. The usual remedy (a standard PLL design, not from the paper) is a
+frequency discriminator: the rotation of the estimated back-EMF vector between two
+samples,
+
+$$\omega_e = \frac{1}{T_s}\,\mathrm{atan2}(s\,\hat e_{k-1}\times\hat e_k,\;
+|\hat e_{k-1}\cdot\hat e_k|),\qquad s = \mathrm{sign}(\hat e_{k-1}\cdot\hat e_k)$$
+
+($= \omega$ for a back-EMF turning with the rotor, either sign, independent of the
+angle estimate: the exact increment, where $\hat e_{k-1}\times\hat e_k/(T_s
+|\hat e|^2)$ would be $\sin(\omega T_s)/T_s$; taken modulo $\pi$, so that a back-EMF
+that flips through zero in a speed reversal, a jump of $\pi$, does not read as a speed
+of $\pi/T_s$; valid for $|\omega| T_s < \pi/2$), pulls the speed estimate towards it,
+
+$$\hat\omega_k \mathrel{+}= T_s\,k_f\,g_k\,(\omega_e - \hat\omega_{k-1}),\qquad
+g = \frac{m}{2}\Big(1 - \sigma\frac{\hat e_q}{|\hat e|}\Big),\quad
+m = \frac{|\hat e_{k-1}||\hat e_k|}{|\hat e_{k-1}||\hat e_k| + (\hat\psi_{ex}
+\omega_{min})^2},\quad \sigma = \tanh(\omega_e/\omega_{min}),$$
+
+$k_f$ = `fll` $\cdot\,\omega_{pll}$ (`fll = 0` switches it off), $\hat e_q = -\hat
+e_\alpha\sin\hat\theta^- + \hat e_\beta\cos\hat\theta^-$ the component along the
+estimated q axis ($= \omega\psi_{ex}\cos\tilde\theta$). The gate $g$ is
+$\approx(1 - \cos\tilde\theta)/2$ at speed: 0 at lock, 1 at the false lock
+$\tilde\theta = \pi$, 1/2 on average while the angle slips; $m$ fades it out where the
+back-EMF (and so $\omega_e$) is too small to be trusted. From $\hat\omega = 0$ (or any
+sign) the speed estimate is pulled to $\omega$ within a few $1/k_f$, and then the PI
+loop locks the phase at $\tilde\theta = 0$ (the false lock at $\pi$ is unstable once
+$\hat\omega$ has the sign of $\omega$).
+
+*What the analysis sees.* At every equilibrium of the error dynamics $\hat\omega =
+\omega$ and $\hat e$ turns at $\omega$, so $\omega_e - \hat\omega = 0$: the assist
+adds nothing there, and the equilibria of `pmsmjax.analysis` are those of the PI loop.
+At an equilibrium with the lock in the direction of rotation (the designed branch,
+$\hat e$ along $+\sigma$ times the estimated q axis) $g$ is itself zero and
+quadratic in the deviation, so the assist's term is of third order: the linearised
+error dynamics are exactly those of the PI loop (`rates`), and the error model
+(`error_rhs` of the observers) leaves it out. Only at the unstable false lock
+($\tilde\theta = \pi$, $g = 1$) does it change the linearisation (it adds damping to
+$\hat\omega$; the lock stays a saddle, $\det = -k_pk_f - k_i < 0$).
 """
 
 from __future__ import annotations
@@ -64,6 +132,8 @@ PLL_UNITS = {
     "w_min": "rad/s, speed below which the PLL's normalisation is frozen (low-speed "
              "fade-out of the loop gain)",
 }
+#: The frequency-locked-loop assist's gain, k_f = fll * w_pll (see the module docstring).
+DEFAULT_FLL = 2.0
 
 
 class QuadraturePLL(eqx.Module):
@@ -74,16 +144,20 @@ class QuadraturePLL(eqx.Module):
     - `w_pll`: natural frequency (rad/s), > 0.
     - `zeta_pll`: damping (-), > 0.
     - `w_min`: normalisation floor (rad/s, electrical), > 0.
+    - `fll`: gain of the acquisition assist, $k_f = $ `fll` $\\omega_{pll}$ (-), >= 0;
+      0 switches it off (the bare PI loop, which cannot leave $\\hat\\omega = 0$).
     """
 
     w_pll: float
     zeta_pll: float = 1.0
     w_min: float = 10.0
+    fll: float = DEFAULT_FLL
 
     def __check_init__(self):
         check_positive("QuadraturePLL", "w_pll", self.w_pll, "rad/s")
         check_positive("QuadraturePLL", "zeta_pll", self.zeta_pll, "-")
         check_positive("QuadraturePLL", "w_min", self.w_min, "rad/s")
+        check_positive("QuadraturePLL", "fll", self.fll, "-", allow_zero=True)
 
     @classmethod
     def for_speed(cls, w_rated, w_pll_pu=0.4, zeta_pll=1.0, w_min_pu=0.05):
@@ -103,24 +177,61 @@ class QuadraturePLL(eqx.Module):
         e_perp = -(e_ab_hat[..., 0] * jnp.cos(theta_hat)
                    + e_ab_hat[..., 1] * jnp.sin(theta_hat))
         psi = jnp.where(jnp.abs(psi_ex_hat) > 1e-12, psi_ex_hat, 1e-12)
-        return e_perp * w_hat / (psi * jnp.maximum(w_hat ** 2, self.w_min ** 2))
+        eps = e_perp * w_hat / (psi * jnp.maximum(w_hat ** 2, self.w_min ** 2))
+        # below w_min: the sign of the back-EMF's q component where it disagrees with
+        # the speed estimate's (see "Low speed and zero speed")
+        e_q = -e_ab_hat[..., 0] * jnp.sin(theta_hat) + e_ab_hat[..., 1] * jnp.cos(theta_hat)
+        fade = jnp.maximum(1.0 - jnp.abs(w_hat) / self.w_min, 0.0)
+        return eps + e_perp * fade * (jnp.sign(e_q) - jnp.sign(w_hat)) / (psi * self.w_min)
 
     def rates(self, w_hat, eps):
         """Continuous-time `(d theta_hat/dt, d w_hat/dt)` for phase error `eps`."""
         k_p, k_i = self.gains()
         return w_hat + k_p * eps, k_i * eps
 
-    def step(self, theta_prev, w_prev, e_ab_hat, psi_ex_fn, T_s):
-        """One sampling period (see "Discretisation"): `psi_ex_fn(theta)` gives the model
-        extended flux at the predicted angle. Returns `(theta_k, w_k)`."""
+    def fll_gate(self, e_prev, e_ab_hat, theta_hat, psi_ex_hat, T_s):
+        """The assist's `(g, w_e)`: gate `g` in [0, 1] and the back-EMF's rotation rate
+        `w_e` (rad/s) between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one
+        period `T_s` (s) apart, at the angle estimate `theta_hat` (rad) and model
+        extended flux `psi_ex_hat` (V s) (see "Acquisition" in the module docstring)."""
+        cross = e_prev[..., 0] * e_ab_hat[..., 1] - e_prev[..., 1] * e_ab_hat[..., 0]
+        dot = e_prev[..., 0] * e_ab_hat[..., 0] + e_prev[..., 1] * e_ab_hat[..., 1]
+        n2_prev = jnp.sum(e_prev ** 2, -1)
+        n2 = jnp.sum(e_ab_hat ** 2, -1)
+        tiny = jnp.finfo(jnp.result_type(n2, float)).tiny
+        # the increment modulo pi: a back-EMF that passes through zero (a speed reversal)
+        # flips by pi in one sample, which is no rotation; atan2 of (0, 0) has an
+        # infinite gradient: nudge the denominator there (m ~ 0 then)
+        sgn = jnp.where(dot < 0, -1.0, 1.0)
+        adot = jnp.abs(dot)
+        w_e = jnp.arctan2(sgn * cross, jnp.where((cross == 0) & (adot == 0), 1.0, adot)) / T_s
+        e_min2 = (psi_ex_hat * self.w_min) ** 2
+        prod = jnp.sqrt(n2_prev * n2 + tiny)
+        m = prod / (prod + e_min2)
+        e_q = -e_ab_hat[..., 0] * jnp.sin(theta_hat) + e_ab_hat[..., 1] * jnp.cos(theta_hat)
+        sigma = jnp.tanh(w_e / self.w_min)
+        g = 0.5 * m * (1.0 - sigma * e_q / jnp.sqrt(n2 + tiny))
+        return g, w_e
+
+    def step(self, theta_prev, w_prev, e_ab_hat, psi_ex_fn, T_s, e_prev=None):
+        """One sampling period (see "Discretisation" and "Acquisition"):
+        `psi_ex_fn(theta)` gives the model extended flux at the predicted angle,
+        `e_prev` is the estimated back-EMF one period earlier (V; None or zero: no
+        assist this step). Returns `(theta_k, w_k)`."""
         k_p, k_i = self.gains()
         theta_pred = theta_prev + T_s * w_prev
-        eps = self.error(e_ab_hat, theta_pred, w_prev, psi_ex_fn(theta_pred))
-        return wrap_angle(theta_pred + T_s * k_p * eps), w_prev + T_s * k_i * eps
+        psi = psi_ex_fn(theta_pred)
+        eps = self.error(e_ab_hat, theta_pred, w_prev, psi)
+        w_k = w_prev + T_s * k_i * eps
+        if e_prev is not None:
+            g, w_e = self.fll_gate(e_prev, e_ab_hat, theta_pred, psi, T_s)
+            w_k = w_k + (T_s * self.fll * self.w_pll) * g * (w_e - w_prev)
+        return wrap_angle(theta_pred + T_s * k_p * eps), w_k
 
 
 def default_pll_design(w_rated) -> dict:
-    """`{w_pll, zeta_pll, w_min}` of `QuadraturePLL.for_speed(w_rated)` (SI)."""
+    """`{w_pll, zeta_pll, w_min}` of `QuadraturePLL.for_speed(w_rated)` (SI; the
+    assist's `fll` keeps its default and is not a design parameter)."""
     p = QuadraturePLL.for_speed(float(w_rated))
     return {"w_pll": p.w_pll, "zeta_pll": p.zeta_pll, "w_min": p.w_min}
 
