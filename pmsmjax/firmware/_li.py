@@ -73,6 +73,7 @@ def emit(observer: AbstractBackEMFLESO) -> CObserver:
     R_s, L_d, L_q, psi_f = (_f(m.R_s), _f(m.L_d), _f(m.L_q), _f(m.psi_f))
     p = observer.pll
     w_pll, zeta_pll, w_min = _f(p.w_pll), _f(p.zeta_pll), _f(p.w_min)
+    fll = _f(p.fll)
     wc2 = _f(observer.w_c) ** 2 if isinstance(observer, GILESOObserver) else 0.0
     fits = _fit_matrices(observer, wc2)
     n = observer.n_s
@@ -105,6 +106,15 @@ def emit(observer: AbstractBackEMFLESO) -> CObserver:
 #define PMSM_WPLL {lit(w_pll)}
 #define PMSM_ZPLL {lit(zeta_pll)}
 #define PMSM_WMIN {lit(w_min)}
+#define PMSM_FLL {lit(fll)}
+/* the smallest normal number of pmsm_real (jnp.finfo(dtype).tiny) */
+#define PMSM_TINY (sizeof(pmsm_real) == sizeof(float) ? (pmsm_real)FLT_MIN \\
+                   : (pmsm_real)DBL_MIN)
+/* sign(x) as jnp.sign: -1, 0 or +1 */
+static pmsm_real pmsm_sign(pmsm_real x)
+{{
+    return x > PMSM_R(0.0) ? PMSM_R(1.0) : (x < PMSM_R(0.0) ? PMSM_R(-1.0) : PMSM_R(0.0));
+}}
 #define PMSM_N {N}   /* augmented state [x1, s, i, delta, c] */
 #define PMSM_NS {n}
 
@@ -250,9 +260,38 @@ static void pmsm_expm(pmsm_real M[PMSM_N][PMSM_N])
         pmsm_real psi = PMSM_FABS(psi_ex) > PMSM_R(1e-12) ? psi_ex : PMSM_R(1e-12);
         pmsm_real w2 = s->w * s->w > PMSM_WMIN * PMSM_WMIN ? s->w * s->w
                                                               : PMSM_WMIN * PMSM_WMIN;
-        pmsm_real e_pll = e_perp * s->w / (psi * w2);
-        theta = pmsm_wrap(th_p + PMSM_OBS_T_S * k_p * e_pll);
+        pmsm_real e_q = -e_hat[0] * sp + e_hat[1] * cp;
+        pmsm_real fade = PMSM_R(1.0) - PMSM_FABS(s->w) / PMSM_WMIN;
+        pmsm_real e_pll, e_prev[2], cross, dot, n2p, n2, w_e, prod, mg, g, sgn, adot, tiny;
+        if (fade < PMSM_R(0.0)) fade = PMSM_R(0.0);
+        /* below w_min: the sign of the back-EMF's q component where it disagrees with
+           the speed estimate's */
+        e_pll = e_perp * s->w / (psi * w2)
+                + e_perp * fade * (pmsm_sign(e_q) - pmsm_sign(s->w)) / (psi * PMSM_WMIN);
         w = s->w + PMSM_OBS_T_S * k_i * e_pll;
+        /* frequency-locked-loop assist: the back-EMF's rotation since the last sample,
+           gated off near lock */
+        for (i = 0; i < 2; i++) {{
+            pmsm_real acc = Dx[i][0] * (s->x1[0] - s->i_prev[0])
+                            + Dx[i][1] * (s->x1[1] - s->i_prev[1]);
+            for (j = 0; j < PMSM_NS; j++) acc += C[i][j] * s->s[j];
+            e_prev[i] = -PMSM_LQ * acc;
+        }}
+        cross = e_prev[0] * e_hat[1] - e_prev[1] * e_hat[0];
+        dot = e_prev[0] * e_hat[0] + e_prev[1] * e_hat[1];
+        n2p = e_prev[0] * e_prev[0] + e_prev[1] * e_prev[1];
+        n2 = e_hat[0] * e_hat[0] + e_hat[1] * e_hat[1];
+        tiny = PMSM_TINY;
+        sgn = dot < PMSM_R(0.0) ? PMSM_R(-1.0) : PMSM_R(1.0);
+        adot = PMSM_FABS(dot);
+        w_e = PMSM_ATAN2(sgn * cross, (cross == PMSM_R(0.0) && adot == PMSM_R(0.0))
+                         ? PMSM_R(1.0) : adot) / PMSM_OBS_T_S;
+        prod = PMSM_SQRT(n2p * n2 + tiny);
+        mg = prod / (prod + (psi_ex * PMSM_WMIN) * (psi_ex * PMSM_WMIN));
+        g = PMSM_R(0.5) * mg * (PMSM_R(1.0) - PMSM_TANH(w_e / PMSM_WMIN) * e_q
+                                / PMSM_SQRT(n2 + tiny));
+        w += (PMSM_OBS_T_S * PMSM_FLL * PMSM_WPLL) * g * (w_e - s->w);
+        theta = pmsm_wrap(th_p + PMSM_OBS_T_S * k_p * e_pll);
     }}
     for (j = 0; j < PMSM_NS; j++) s->s[j] = sn[j];
     for (j = 0; j < 2; j++) {{
@@ -277,7 +316,8 @@ static void pmsm_expm(pmsm_real M[PMSM_N][PMSM_N])
         "(expm of the augmented matrix, recomputed every sample); then",
         "e_hat = -L_q (C s + D_x (x1 - i_k)) and the PLL at theta + T_s w:",
         "eps = -(e_hat . [cos, sin]) w / (psi_ex max(w^2, w_min^2)),",
-        "theta = wrap(theta + T_s w + T_s k_p eps), w += T_s k_i eps.",
+        "theta = wrap(theta + T_s w + T_s k_p eps), w += T_s k_i eps, plus the",
+        "low-speed detector term and the gated FLL assist of QuadraturePLL.step.",
         "First sample: x1 = i_0, s = 0; theta, w unchanged.",
     )
     return CObserver(name=name, title=title, doc=doc, fields=fields, helpers=helpers,
