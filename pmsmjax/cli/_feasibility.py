@@ -26,9 +26,9 @@ from ._options import (
     dumps_json,
     grid,
     grid_values,
+    json_safe,
     named_grid,
     observer_from_args,
-    json_safe,
     prepare_out_dir,
 )
 from ._sweep_options import (

@@ -35,6 +35,7 @@ from ._options import (
     write_json,
 )
 
+
 #: Speeds of the check for a constant design (p.u. of the rated speed, both signs).
 CONSTANT_SPEEDS_PU = np.arange(0.05, 1.5001, 0.05)
 

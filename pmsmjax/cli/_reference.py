@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import argparse
 
+
 #: Where the generated reference goes in docs/cli.md.
 MARKER = "<!-- cli-reference -->"
 
 
 def _parsers() -> dict[str, argparse.ArgumentParser]:
-    from ._tuning import tuning_module
     from .__main__ import build_parser
+    from ._tuning import tuning_module
 
     root = build_parser()
     sub = next(a for a in root._actions if isinstance(a, argparse._SubParsersAction))

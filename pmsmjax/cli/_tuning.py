@@ -14,6 +14,7 @@ import argparse
 
 from ._options import CLIError, Command
 
+
 #: The commands handed over to `tuning`, and what they run.
 HANDOVER = {"tune": "tuning.__main__", "compare": "tuning._compare_cli"}
 

@@ -19,4 +19,5 @@ from __future__ import annotations
 
 from ._emit import SUPPORTED, export_c, render
 
+
 __all__ = ["SUPPORTED", "export_c", "render"]

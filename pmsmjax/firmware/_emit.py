@@ -8,7 +8,10 @@ import dataclasses
 import math
 import pathlib
 
+import numpy as np
+
 from .._validate import check_positive
+
 
 #: registered observer names the emitter supports (the others raise `ValueError`)
 SUPPORTED = ("eso", "leso", "afo", "rotor-flux", "parallel-model", "c-leso", "gi-leso",
@@ -34,6 +37,21 @@ class CObserver:
     helpers: str
     init: str
     step: str
+
+
+def scalar(x) -> float:
+    """A concrete parameter leaf (Python or array scalar) as a float, for generated code."""
+    return float(np.asarray(x))
+
+
+#: `pmsm_obs_init` of the flux observers (zhang2022's and morawiec2023's, same state).
+FLUX_STATE_INIT = """    s->psi_ab[0] = PMSM_R(0.0);
+    s->psi_ab[1] = PMSM_R(0.0);
+    s->theta = pmsm_wrap(theta0);
+    s->w = w0;
+    s->i_prev[0] = PMSM_R(0.0);
+    s->i_prev[1] = PMSM_R(0.0);
+    s->started = 0;"""
 
 
 def lit(x) -> str:
@@ -225,8 +243,8 @@ def render(observer, T_s: float, *, float32: bool = False) -> dict[str, str]:
     from ..observers import ParallelModelObserver, RotorFluxObserver
     from ..observers._leso import AbstractBackEMFLESO
     from ._li import emit as emit_li
-    from ._stumper import emit as emit_stumper
     from ._morawiec2023 import emit as emit_morawiec
+    from ._stumper import emit as emit_stumper
     from ._zhang2022 import emit as emit_zhang
 
     if isinstance(observer, AbstractBackEMFLESO):

@@ -18,14 +18,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..observers._leso import AbstractBackEMFLESO, GILESOObserver
-from ._emit import CObserver, lit
+from ._emit import CObserver, lit, scalar as _f
+
 
 _W_FIT = np.array([-5000.0, -900.0, -80.0, -3.0, 0.0, 0.4, 60.0, 700.0, 4200.0])
 _W_CHECK = np.array([-2500.0, -33.0, 1.7, 150.0, 3100.0])
-
-
-def _f(x) -> float:
-    return float(np.asarray(x))
 
 
 def _basis(w, wc2):

@@ -10,10 +10,9 @@ while it turns by $\Delta\theta$ (exact integral, sinc rule).
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..observers._rotor_flux import _SIGNS, RotorFluxObserver
-from ._emit import CObserver, lit
+from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f
+
 
 _FIELDS = (
     ("pmsm_real psi_ab[2]", "estimated stator flux, stationary frame (V s)"),
@@ -22,19 +21,6 @@ _FIELDS = (
     ("pmsm_real i_prev[2]", "current sampled at the previous instant (A, alpha-beta)"),
     ("int started", "0 until the first sample has been seen"),
 )
-
-_INIT = """    s->psi_ab[0] = PMSM_R(0.0);
-    s->psi_ab[1] = PMSM_R(0.0);
-    s->theta = pmsm_wrap(theta0);
-    s->w = w0;
-    s->i_prev[0] = PMSM_R(0.0);
-    s->i_prev[1] = PMSM_R(0.0);
-    s->started = 0;"""
-
-
-def _f(x) -> float:
-    return float(np.asarray(x))
-
 
 def emit(observer: RotorFluxObserver) -> CObserver:
     m = observer.motor
@@ -188,4 +174,4 @@ static void pmsm_rates(pmsm_real th, pmsm_real w, const pmsm_real psi[2],
         "First sample: psi = L_ab(theta0) i_0 + psi_f e^(theta0 J)[1,0]; theta, w unchanged.",
     )
     return CObserver(name="rotor-flux", title=title, doc=doc, fields=_FIELDS,
-                     helpers=helpers, init=_INIT, step=step)
+                     helpers=helpers, init=FLUX_STATE_INIT, step=step)

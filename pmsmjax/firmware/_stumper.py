@@ -8,10 +8,9 @@ tracking filter and the speed low-pass (forward Euler).
 
 from __future__ import annotations
 
-import numpy as np
-
 from ..observers._parallel_model import E_MIN, RHO_MIN, ParallelModelObserver
-from ._emit import CObserver, lit
+from ._emit import CObserver, lit, scalar as _f
+
 
 _FIELDS = (
     ("pmsm_real rho_prev", "current magnitude at the previous instant (A)"),
@@ -32,10 +31,6 @@ _INIT = """    s->rho_prev = PMSM_R(0.0);
     s->z = w0;
     s->w = w0;
     s->started = 0;"""
-
-
-def _f(x) -> float:
-    return float(np.asarray(x))
 
 
 def emit(observer: ParallelModelObserver, T_s: float) -> CObserver:

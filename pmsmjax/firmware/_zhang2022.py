@@ -17,7 +17,8 @@ import numpy as np
 from .._gains_table import TabulatedDesign
 from ..observers import AFOObserver, ESOObserver, LESOObserver
 from ..observers._eso import ESODesign, FixedGains
-from ._emit import CObserver, lit
+from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f
+
 
 _FIELDS = (
     ("pmsm_real psi_ab[2]", "estimated stator flux, stationary frame (V s)"),
@@ -27,19 +28,6 @@ _FIELDS = (
     ("pmsm_real i_prev[2]", "current sampled at the previous instant (A, alpha-beta)"),
     ("int started", "0 until the first sample has been seen"),
 )
-
-_INIT = """    s->psi_ab[0] = PMSM_R(0.0);
-    s->psi_ab[1] = PMSM_R(0.0);
-    s->theta = pmsm_wrap(theta0);
-    s->w = w0;
-    s->i_prev[0] = PMSM_R(0.0);
-    s->i_prev[1] = PMSM_R(0.0);
-    s->started = 0;"""
-
-
-def _f(x) -> float:
-    return float(np.asarray(x))
-
 
 def _schedule_c(design) -> tuple[str, list[str]]:
     """C function `pmsm_gains(w0, pa, G1, g2, g3, kp_ki)` for the design, and doc lines."""
@@ -337,4 +325,4 @@ def emit(observer) -> CObserver:
         "unchanged.",
     )
     return CObserver(name=name, title=title, doc=doc, fields=_FIELDS,
-                     helpers="\n".join(helpers), init=_INIT, step="\n".join(body))
+                     helpers="\n".join(helpers), init=FLUX_STATE_INIT, step="\n".join(body))
