@@ -966,7 +966,9 @@ def _write_chunk(out_dir, i, arrays, fingerprint, metadata_json, start, stop, ch
     _atomic_write(os.path.join(out_dir, _chunk_name(i)), lambda f: np.savez(f, **arrays, **meta))
 
 
-def _load_chunk(path, out_names, fingerprint) -> dict[str, np.ndarray]:
+def _load_outputs(path, out_names, fingerprint, what: str) -> dict[str, np.ndarray]:
+    """The outputs `out_names` of a finished file of this sweep (`what` names it in the
+    error when another host cannot read it)."""
     try:
         with np.load(path, allow_pickle=False) as z:
             if str(z["__fingerprint__"]) != fingerprint:
@@ -974,10 +976,14 @@ def _load_chunk(path, out_names, fingerprint) -> dict[str, np.ndarray]:
             return {n: z[n] for n in out_names}
     except FileNotFoundError:
         raise FileNotFoundError(
-            f"`run_sweep`: finished chunk {path!r} is not readable from process "
+            f"`run_sweep`: {what} {path!r} is not readable from process "
             f"{jax.process_index()}. With several hosts, `out_dir` must be on a shared file "
             "system to resume."
         ) from None
+
+
+def _load_chunk(path, out_names, fingerprint) -> dict[str, np.ndarray]:
+    return _load_outputs(path, out_names, fingerprint, "finished chunk")
 
 
 def _write_manifest(out_dir, manifest):
@@ -1112,17 +1118,7 @@ def _auto_chunk_size(n_points, block, block_seconds, out_bytes) -> int:
 
 
 def _load_result(path, out_names, fingerprint) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["__fingerprint__"]) != fingerprint:
-                raise ValueError(f"{path!r} belongs to another sweep.")
-            return {n: z[n] for n in out_names}
-    except FileNotFoundError:
-        raise FileNotFoundError(
-            f"`run_sweep`: the finished sweep's {path!r} is not readable from process "
-            f"{jax.process_index()}. With several hosts, `out_dir` must be on a shared file "
-            "system to resume."
-        ) from None
+    return _load_outputs(path, out_names, fingerprint, "the finished sweep's")
 
 
 def _output_tree(results, shape, out_treedef):

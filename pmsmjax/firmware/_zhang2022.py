@@ -151,6 +151,18 @@ def _schedule_c(design) -> tuple[str, list[str]]:
     return head + "\n".join(body) + "\n}\n", doc
 
 
+#: The new state written back at the end of every zhang2022 family's step.
+_STORE_STATE = [
+    "    for (j = 0; j < 2; j++) {",
+    "        s->psi_ab[j] = psi[j];",
+    "        s->i_prev[j] = i_ab[j];",
+    "    }",
+    "    s->theta = theta;",
+    "    s->w = w;",
+    "    s->started = 1;",
+]
+
+
 def emit(observer) -> CObserver:
     """The `CObserver` of an ESO, LESO or AFO."""
     if type(observer) not in (ESOObserver, LESOObserver, AFOObserver):
@@ -256,13 +268,7 @@ def emit(observer) -> CObserver:
         ] + flux_update + [
             "        w = s->w - PMSM_OBS_T_S * pi_k[1] * e[1];",
             "    }",
-            "    for (j = 0; j < 2; j++) {",
-            "        s->psi_ab[j] = psi[j];",
-            "        s->i_prev[j] = i_ab[j];",
-            "    }",
-            "    s->theta = theta;",
-            "    s->w = w;",
-            "    s->started = 1;",
+        ] + _STORE_STATE + [
             "    /* speed estimate: the PI output at t_k, x_I - k_p e_q(t_k) */",
             "    pmsm_error(psi, theta, i_ab, e, i_dq);",
             "    pmsm_psi_a(i_dq, pa);",
@@ -285,13 +291,7 @@ def emit(observer) -> CObserver:
         ] + flux_update + [
             "        w = s->w + PMSM_OBS_T_S * (g3[0] * f[0] + g3[1] * f[1]);",
             "    }",
-            "    for (j = 0; j < 2; j++) {",
-            "        s->psi_ab[j] = psi[j];",
-            "        s->i_prev[j] = i_ab[j];",
-            "    }",
-            "    s->theta = theta;",
-            "    s->w = w;",
-            "    s->started = 1;",
+        ] + _STORE_STATE + [
             "    *theta_hat = theta;",
             "    *w_hat = w;",
         ]
