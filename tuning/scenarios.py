@@ -142,8 +142,11 @@ def _draw(problem: TuningProblem, split: str, n: int) -> ScenarioSet:
     w_r = float(drive.w_rated)
     t_end = float(problem.t_end)
     t0 = np.full(n, 0.1 * t_end)
-    # the ramp takes |s1 - s0| w_r / a, at most half the run (a faster ramp then)
-    t1 = t0 + np.clip(np.abs(s1 - s0) * w_r / a, 2 * problem.T_s, 0.5 * t_end)
+    # the ramp takes |s1 - s0| w_r / a, at most half the run (then faster, but never
+    # faster than a_max: the reference stays within what the torque limit can follow)
+    dw = np.abs(s1 - s0) * w_r
+    dur = np.maximum(np.minimum(dw / a, 0.5 * t_end), dw / max_acceleration(drive, foc))
+    t1 = t0 + np.maximum(dur, 2 * problem.T_s)
     load = np.where(kind == 2, rng.uniform(0.5, 1.0, size=n),
                     rng.uniform(0.0, 0.5, size=n)) * problem.load_max_pu
     t_load = np.where(kind == 2, 0.3 * t_end, 0.75 * t_end)
