@@ -78,3 +78,30 @@ def tree_max_abs_diff(a, b):
     lb = [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(b, eqx.is_array))]
     assert len(la) == len(lb)
     return max(float(np.max(np.abs(x - y))) if x.size else 0.0 for x, y in zip(la, lb))
+
+
+def scheduled_gains_table(drive, T_s, *, w2_factor=1.2, zeta2=1.1, verdict=None):
+    """A speed-scheduled ESO gains table (`pmsmjax.gains_table_scheduled`) of zhang2022's
+    flux schedule (38) with w2 = `w2_factor` x 2 pi 50 rad/s and `zeta2`, rows every
+    0.025 p.u. up to 1.5 p.u., and the observer it tabulates (`make_observer("eso",
+    drive, w2=..., zeta2=...)`, whose schedule the observer evaluates exactly)."""
+    import math
+
+    import jax.numpy as jnp
+
+    import pmsmjax as pj
+    from pmsmjax.observers import make_observer
+    from pmsmjax.observers._eso_design import zhang38
+
+    w_r = float(drive.w_rated)
+    w = pj.gains_speed_grid(w_r, 1.5, 60)
+    zeta1, w1 = zhang38(jnp.asarray(w), w_r)
+    n = len(w)
+    w2 = w2_factor * 2 * math.pi * 50.0
+    sched = pj.TabulatedDesign(w_m=jnp.asarray(w), zeta1=zeta1, w1=w1,
+                               zeta2=jnp.full(n, zeta2), w2=jnp.full(n, w2),
+                               nu2=jnp.zeros(n), nu3=jnp.zeros(n))
+    table = pj.gains_table_scheduled("eso", sched, drive.three_phase_motor,
+                                     drive=drive.name, notes=["test schedule"], T_s=T_s,
+                                     objective="cvar", verdict=verdict)
+    return table, make_observer("eso", drive, w2=w2, zeta2=zeta2)

@@ -195,6 +195,7 @@ class TuningProblem:
                   "damping_range"):
             set_(k, tuple(tuple(x) if isinstance(x, list) else x for x in getattr(self, k)))
         set_("val_cases", tuple(tuple(float(v) for v in row) for row in self.val_cases))
+        self.drive()  # a bad motor file or replacement is an error now, named
         for k in ("T_s", "t_end", "val_t_end", "noise_unit_rad_s", "theta_unit_deg",
                   "peak_unit_deg", "ramp_lag_deg", "w_T_s_max", "lock_deg"):
             v = getattr(self, k)
