@@ -36,7 +36,9 @@ from .problem import (
     VALIDATION_CASES as VALIDATION_CASES,
     TuningProblem as TuningProblem,
 )
+from . import report as report
 from .report import (
+    REQUIRED_KEYS as REQUIRED_KEYS,
     gains_table as gains_table,
     load_design as load_design,
     plot_report as plot_report,

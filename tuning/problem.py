@@ -27,7 +27,7 @@ FAMILY_MOTOR = {"eso": "zhang750", "leso": "zhang750", "afo": "zhang750",
                 "parallel-model": "stumper_mt5", "rotor-flux": "morawiec_ipm3k5",
                 "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}
 #: Sampling period of each preset's paper drive (s).
-MOTOR_T_S = {"zhang750": 125e-6, "stumper_mt5": 62.5e-6, "morawiec_ipm3k5": 1e-4,
+MOTOR_T_S = {"zhang750": 125e-6, "stumper_mt5": 62.5e-6, "morawiec_ipm3k5": 1 / 6600,
              "li_dtp": 1e-4}
 #: The search strategies (`tuning.search`).
 SEARCHES = ("hybrid", "gradient", "cmaes", "random", "local")
