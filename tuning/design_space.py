@@ -28,8 +28,11 @@ observer through the contract (`from_drive` + `with_design`).
   li's FA-LESO $k_1$, $k_2$): no physical rule here; its bounds are the observer
   contract's factor box around the paper's value (`tunable`), and the report says so.
 
-The paper's design is the starting point, projected into the bounds if it lies outside
-(the report gives both).
+The paper's design is the starting point. Where it lies outside the derived bounds (stumper's
+tracking filter and li's PLL are slower than the ramp-lag rule asks at their drives'
+largest acceleration), the bounds are widened to hold it with a factor `PAPER_MARGIN` of
+room, and `why` says so: a search that cannot return the baseline cannot promise no
+regression.
 """
 
 from __future__ import annotations
@@ -65,6 +68,9 @@ class Coordinate:
 #: Per family: the tunable coordinates and how they map to the observer's design.
 #: Each entry: coordinate name -> (kind, unit). Families not listed use the contract's
 #: `tunable` names directly ("tracking"/"damping"/"estimator" where recognised).
+#: Where the paper's design lies outside the derived bounds, they are widened to hold it
+#: with this factor of room (the search must be able to return the baseline).
+PAPER_MARGIN = 1.25
 #: Bounds of zhang2022's flux loop (fixed-ratio schedule): damping and w1/|w0|.
 FLUX_DAMPING = (0.5, 4.0)
 FLUX_RATIO = (0.2, 2.0)
@@ -150,6 +156,10 @@ class DesignSpace:
             lo, hi = paper * box[0], paper * box[1]
             why = (f"no physical rule: the observer contract's box {box[0]:g}..{box[1]:g}"
                    f" x the paper's value")
+        if not lo <= paper <= hi:  # the baseline must stay reachable: no regression
+            lo, hi = min(lo, paper / PAPER_MARGIN), max(hi, paper * PAPER_MARGIN)
+            why += (f"; widened to hold the paper's value {paper:.4g} {unit} (x/"
+                    f"{PAPER_MARGIN:g} of it), which lies outside the derived bounds")
         return Coordinate(name, unit, float(lo), float(hi), kind, why, float(paper))
 
     # --- coordinates ------------------------------------------------------------------
