@@ -64,6 +64,25 @@ class Evaluator:
         self._value_and_grad = jax.jit(jax.value_and_grad(value))
         self._values = jax.jit(jax.vmap(value, in_axes=(0, None)))
 
+    def perturbed_reference(self, eps: float) -> Metrics:
+        """The metrics of the paper's design with every tunable design parameter of the
+        observer contract (`tunable`) multiplied by `1 + eps` (its own parametrisation:
+        zhang2022's schedule (38) stays)."""
+        from pmsmjax.observers import make_observer, observer_class
+
+        problem, space = self.problem, self.space
+        drive, foc = problem.drive(), problem.controller()
+        vals = {k: space.paper_design[k] * (1.0 + eps)
+                for k in observer_class(problem.observer).tunable}
+
+        def build(motor):
+            return make_observer(problem.observer, drive, motor=motor).with_design(**vals)
+
+        traj = jax.jit(lambda: simulate_set(build, drive, foc, self.sset, T_s=problem.T_s,
+                                            noise_std=problem.noise_std,
+                                            save_every=problem.save_every))()
+        return run_metrics(traj, problem)
+
     def with_noise_weight(self, w_noise: float) -> Evaluator:
         """The same runs and reference, scored with another noise weight (a point of the
         tracking-versus-noise front)."""

@@ -136,7 +136,7 @@ class TuningProblem:
     t_end: float = 0.3
     n_train: int = 24
     n_heldout: int = 24
-    speed_range: tuple = (0.1, 1.0)
+    speed_range: tuple = (0.05, 1.0)
     accel_range: tuple = (0.2, 0.8)
     load_max_pu: float = 1.0
     mismatch_range: tuple = (0.7, 1.3)

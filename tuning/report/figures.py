@@ -43,6 +43,8 @@ def plot_report(report, out) -> None:
     fig, ax = plt.subplots(figsize=(6, 4))
     mv = report.metrics["validation"]
     for name, m in mv.items():
+        if name == "paper-perturbed":
+            continue
         x = float(np.mean(np.asarray(m.noise_rad_s)))
         y = float(np.mean(np.asarray(m.rms_deg)))
         mk = "*" if name == report.default else ("s" if name == "paper" else "o")

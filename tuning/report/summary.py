@@ -70,7 +70,9 @@ def summary(report) -> dict:
             report.metrics["validation"][name].lost_lock)))
         if x is None:
             row["coordinates"] = None
-            row["description"] = "the paper's published design"
+            row["description"] = ("the paper's published design" if name == "paper" else
+                                  "the paper's design with its gains changed by 1e-9 "
+                                  "(relative): the floor of the per-run rule")
         else:
             row["coordinates"] = space.as_dict(x)
             row["design"] = {k: float(np.asarray(v))
