@@ -52,6 +52,8 @@ VALIDATION_CASES = (
 
 
 def _mtime(path) -> int:
+    if path is None:
+        return 0
     try:
         return os.stat(path).st_mtime_ns
     except OSError:
