@@ -80,6 +80,9 @@ from ._io import (  # noqa: E402
     save_recording as save_recording,
 )
 from ._metrics import (  # noqa: E402
+    LOCK_DEG as LOCK_DEG,
+    LOCK_DWELL_S as LOCK_DWELL_S,
+    lock_status as lock_status,
     error_stats as error_stats,
     replay_stats as replay_stats,
     settled_mask as settled_mask,

@@ -105,3 +105,32 @@ def scheduled_gains_table(drive, T_s, *, w2_factor=1.2, zeta2=1.1, verdict=None)
                                      drive=drive.name, notes=["test schedule"], T_s=T_s,
                                      objective="cvar", verdict=verdict)
     return table, make_observer("eso", drive, w2=w2, zeta2=zeta2)
+
+
+def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3):
+    """`pmsmjax.lock_status` of one run by a plain loop over the samples (an independent
+    reference): `(acquired, t_acquired, lost, t_lost)`."""
+    import math
+
+    import numpy as np
+
+    t = np.asarray(t, float)
+    e = np.asarray(theta_err, float)
+    n = len(t)
+    k = max(1, min(n, int(round(dwell_s / ((t[-1] - t[0]) / max(n - 1, 1))))))
+    wrapped = np.abs((e + math.pi) % (2 * math.pi) - math.pi)
+    bad = ~np.isfinite(e)
+    inside = [(not bad[j]) and wrapped[j] <= math.radians(lock_deg) for j in range(n)]
+    acq = next((j for j in range(n - k + 1) if all(inside[j:j + k])), None)
+    lost_j = None
+    if acq is not None:
+        lost_j = next((j for j in range(acq + 1, n - k + 1) if not any(inside[j:j + k])),
+                      None)
+    first_bad = next((j for j in range(n) if bad[j]), None)
+    if first_bad is not None or not ok:
+        end = first_bad if first_bad is not None else n - 1
+        lost_j = end if lost_j is None else min(lost_j, end)
+        return acq is not None, (t[acq] if acq is not None else math.nan), True, t[lost_j]
+    lost = acq is not None and lost_j is not None
+    return (acq is not None, t[acq] if acq is not None else math.nan, lost,
+            t[lost_j] if lost else math.nan)

@@ -61,7 +61,8 @@ def test_one_spelling_one_unit_across_commands():
                 continue
             if opt in ("--theta0",):
                 assert action.metavar == "DEG", (name, opt)
-            if opt in ("--speed", "--speeds", "--speed0", "--loads", "--nodes"):
+            if opt in ("--speed", "--speeds", "--speed0", "--loads", "--nodes",
+                       "--val-speeds"):
                 assert action.metavar == "PU", (name, opt)
             if opt == "--out":
                 assert action.metavar == "DIR", (name, opt)
@@ -71,8 +72,8 @@ def test_one_spelling_one_unit_across_commands():
             else:
                 seen[opt] = (name, meta)
     # lists: space-separated (nargs "+") everywhere
-    for name, opt in (("feasibility", "--speeds"), ("tune", "--speeds"), ("tune", "--loads"),
-                      ("tune", "--tune"), ("compare", "--observers"),
+    for name, opt in (("feasibility", "--speeds"), ("tune", "--val-speeds"),
+                      ("tune", "--peers"), ("compare", "--observers"),
                       ("response", "--orders")):
         assert _options_of(_all_parsers()[name])[opt].nargs == "+", (name, opt)
 

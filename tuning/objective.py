@@ -9,9 +9,10 @@ estimate, in deg; $\tilde\omega = \omega - \hat\omega$):
   few per cent of the maximum for a transient that lasts a few per cent of the run);
 - `static_deg`: mean of $\tilde\theta$ over the last 20 % of the run;
 - `noise_rad_s`: standard deviation of $\tilde\omega$ over the last 20 % (electrical);
-- `lost_lock`: the run lost lock: $|\tilde\theta|$ exceeded `lock_deg` at some sample,
-  or the run diverged; `out_of_lock`: the fraction of samples above `lock_deg`, smooth
-  (a logistic of width 2 deg), which is what the objective differentiates.
+- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
+  $|\tilde\theta|$ above `lock_deg` for 10 ms after lock, or the run diverged);
+  `out_of_lock`: the fraction of samples above `lock_deg`, smooth (a logistic of width
+  2 deg), which is what the objective differentiates.
 
 **Loss of a run**: $L = \mathrm{rms}/\theta_u + w_{peak}\,\mathrm{peak}/\theta_{pk}
 + w_{noise}\,\sigma_\omega/\sigma_u$. A run that diverged or produced a non-finite sample
@@ -92,7 +93,7 @@ def run_metrics(traj: pj.Trajectory, problem: TuningProblem) -> Metrics:
     we = w_err[..., k0:]
     noise = jnp.sqrt(jnp.var(we, axis=-1) + 1e-12)
     out = jnp.mean(jax.nn.sigmoid((jnp.abs(th) - problem.lock_deg) / 2.0), axis=-1)
-    lost = jnp.any(jnp.abs(th) > problem.lock_deg, axis=-1) | ~ok
+    lost = pj.lock_status(traj.t, traj.theta_err, ok=ok, lock_deg=problem.lock_deg)["lost"]
     loss = (rms / problem.theta_unit_deg + problem.w_peak * peak / problem.peak_unit_deg
             + problem.w_noise * noise / problem.noise_unit_rad_s)
     worst = (180.0 / problem.theta_unit_deg + problem.w_peak * 180.0 /

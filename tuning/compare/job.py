@@ -29,8 +29,9 @@ and $\tilde\omega = \omega - \hat\omega$, rad/s, on the saved samples):
   last sample is outside the band (never settled);
 - `noise_rad_s`: speed-estimate noise, the standard deviation of $\tilde\omega$ over the
   static window;
-- `lost_lock`: the run lost lock: $|\tilde\theta|$ exceeded `lock_deg` at some sample, or
-  the run diverged (`simulate`'s status) or produced a non-finite sample.
+- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
+  $|\tilde\theta|$ above `lock_deg`, default 45 deg, for 10 ms after lock was acquired,
+  or the run diverged or produced a non-finite sample).
 
 **Per-observer metrics** (`aggregate`), over the runs that kept lock (runs that lost lock
 are counted and located instead, their angle error is meaningless):
@@ -193,7 +194,7 @@ class CompareConfig:
     start_frac: float = 0.6
     noise_std: float = 0.02
     seed: int = 0
-    lock_deg: float = 90.0
+    lock_deg: float = pj.LOCK_DEG
     settle_band_deg: float = 2.0
     tuner: str = "hybrid"
     tune_steps: int = 12
@@ -379,7 +380,8 @@ def run_metrics(traj: pj.Trajectory, config: CompareConfig) -> dict:
     t_set = jnp.take_along_axis(t, jnp.clip(last_out + 1, 0, n - 1)[..., None], -1)[..., 0]
     settle = jnp.where(last_out < 0, 0.0, t_set - t0)
     settle = jnp.where(last_out >= n - 1, jnp.nan, settle)
-    lost = (~traj.ok) | ~jnp.all(fin, -1) | (max_abs > config.lock_deg)
+    lost = pj.lock_status(t, traj.theta_err, ok=traj.ok & jnp.all(fin, -1),
+                          lock_deg=config.lock_deg)["lost"]
     return dict(static_deg=static, rms_deg=rms, max_abs_deg=max_abs, settle_s=settle,
                 noise_rad_s=noise, lost_lock=lost)
 
