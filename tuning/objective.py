@@ -59,6 +59,8 @@ STATIC_WINDOW = 0.2
 #: The training constraint holds the RMS error within this fraction of the tolerance
 #: (a margin for runs the tuner does not see).
 MARGIN = 0.5
+#: A run counts as better when its loss is lower by more than this (relative).
+BETTER = 1e-3
 #: Sharpness of the constraint's softplus.
 SHARPNESS = 50.0
 
@@ -130,7 +132,9 @@ def objective(m: Metrics, ref: Metrics, problem: TuningProblem):
 
 def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
     """Per-metric comparison of `m` with `ref` over the same runs (plain numbers):
-    runs improved / worse (loss changed by more than `tol`, relative), the worst change
+    runs better (loss lower by more than `BETTER`, 0.1 %: a change at the level of
+    rounding is a tie, not an improvement), improved / worse (loss changed by more than
+    `tol`, relative), the worst change
     of the RMS angle error (%), runs whose RMS error is worse by more than `tol`, lock
     lost where the reference holds it."""
     import numpy as np
@@ -143,8 +147,8 @@ def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
     worst = int(np.argmax(rms_rel))
     return {"n": int(loss.size),
             "improved": int(np.sum(rel < -tol)), "worse": int(np.sum(rel > tol)),
-            "improved_frac": float(np.mean(rel < 0)),
-            "better": int(np.sum(rel < 0)),
+            "improved_frac": float(np.mean(rel < -BETTER)),
+            "better": int(np.sum(rel < -BETTER)),
             "tolerance_pct": 100.0 * tol,
             "worst_rms_change_pct": float(100.0 * rms_rel[worst]), "worst_run": worst,
             "rms_worse_than_tol": int(np.sum(rms_rel > tol)),

@@ -172,7 +172,8 @@ def _choose(acc_val: dict, vset: ScenarioSet) -> tuple[str, dict]:
     return "tuned", {"holds": False, "design": "tuned", "where_not": why, "rule": RULE}
 
 
-RULE = ("better than the paper's design (lower validation loss) in at least 75 % of the "
+RULE = ("better than the paper's design (validation loss lower by more than 0.1 %) in at "
+        "least 75 % of the "
         "validation runs, no run's RMS angle error worse by more than the tolerance, no "
         "run losing lock that the paper's design holds")
 
