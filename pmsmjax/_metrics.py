@@ -34,12 +34,14 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
     r"""Whether an observer acquired and kept lock: **the one definition of loss of lock**
     (`simulate` and `replay` summaries, the tuner, the comparison job).
 
-    The observer is *in lock* at a sample where the wrapped angle error (true minus
-    estimate) is at most `lock_deg` in magnitude. It *acquired lock* at the first sample
-    after which it stays in lock for `dwell_s`; it *lost lock* when, after acquiring it,
-    the error stays above `lock_deg` for `dwell_s` (the time of the loss is the start of
-    that interval), or when the run diverged or produced a non-finite error (`ok` False:
-    lost at the first non-finite sample, or at the end for a diverged run).
+    Over a window of `dwell_s`, the observer is *in lock* where the mean magnitude of the
+    wrapped angle error (true minus estimate) is at most `lock_deg`. It *acquired lock*
+    at the start of the first such window; it *lost lock* at the start of the first later
+    window whose mean exceeds `lock_deg`, or when the run diverged or produced a
+    non-finite error (`ok` False: lost at the first non-finite sample, or at the end for a
+    diverged run; a non-finite sample counts as 180 deg). A mean, not "every sample
+    above": an estimate that spins through every angle is out of lock although some of
+    its samples pass near the true angle.
 
     Why these numbers: at 45 deg the current control, which runs in the estimated frame,
     produces cos 45 = 71 % of the torque per ampere it intends and as much again in the
@@ -65,22 +67,17 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
     k = jnp.maximum(1, jnp.round(dwell_s / jnp.maximum(dt, 1e-300))).astype(jnp.int32)
     k = jnp.minimum(k, n)
     lim = jnp.deg2rad(lock_deg)
-
-    def windows(mask):
-        # window[j] = True where samples j .. j+k-1 all satisfy `mask`
-        c = jnp.concatenate([jnp.zeros(mask.shape[:-1] + (1,), jnp.int32),
-                             jnp.cumsum(mask.astype(jnp.int32), -1)], -1)
-        idx = jnp.arange(n)
-        end = jnp.minimum(idx + k[..., None], n)
-        s = jnp.take_along_axis(c, end, -1) - c[..., :n]
-        return (s == k[..., None]) & (idx + k[..., None] <= n)
-
+    # mean |error| over the window of k samples that starts at each sample
+    c = jnp.concatenate([jnp.zeros(err.shape[:-1] + (1,), err.dtype),
+                         jnp.cumsum(err, -1)], -1)
     idx = jnp.arange(n)
+    end = jnp.minimum(idx + k[..., None], n)
+    mean = (jnp.take_along_axis(c, end, -1) - c[..., :n]) / k[..., None]
+    whole = idx + k[..., None] <= n
     big = jnp.int32(n)
-    w_in = windows(~(err > lim) & fin)
-    j_acq = jnp.min(jnp.where(w_in, idx, big), -1)
-    w_out = windows((err > lim) | ~fin)
-    j_lost = jnp.min(jnp.where(w_out & (idx > j_acq[..., None]), idx, big), -1)
+    j_acq = jnp.min(jnp.where(whole & (mean <= lim), idx, big), -1)
+    j_lost = jnp.min(jnp.where(whole & (mean > lim) & (idx > j_acq[..., None]), idx, big),
+                     -1)
     j_bad = jnp.min(jnp.where(~fin, idx, big), -1)
     ok = jnp.asarray(ok) & (j_bad == big)
     j_lost = jnp.where(ok, j_lost, jnp.minimum(j_lost, jnp.where(j_bad < big, j_bad,

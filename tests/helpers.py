@@ -118,14 +118,14 @@ def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3):
     e = np.asarray(theta_err, float)
     n = len(t)
     k = max(1, min(n, int(round(dwell_s / ((t[-1] - t[0]) / max(n - 1, 1))))))
-    wrapped = np.abs((e + math.pi) % (2 * math.pi) - math.pi)
     bad = ~np.isfinite(e)
-    inside = [(not bad[j]) and wrapped[j] <= math.radians(lock_deg) for j in range(n)]
-    acq = next((j for j in range(n - k + 1) if all(inside[j:j + k])), None)
+    mag = [math.pi if bad[j] else abs(math.remainder(e[j], 2 * math.pi)) for j in range(n)]
+    lim = math.radians(lock_deg)
+    means = [sum(mag[j:j + k]) / k for j in range(n - k + 1)]
+    acq = next((j for j, m in enumerate(means) if m <= lim), None)
     lost_j = None
     if acq is not None:
-        lost_j = next((j for j in range(acq + 1, n - k + 1) if not any(inside[j:j + k])),
-                      None)
+        lost_j = next((j for j in range(acq + 1, len(means)) if means[j] > lim), None)
     first_bad = next((j for j in range(n) if bad[j]), None)
     if first_bad is not None or not ok:
         end = first_bad if first_bad is not None else n - 1

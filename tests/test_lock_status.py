@@ -26,16 +26,16 @@ def test_constructed_cases():
     e = np.zeros(1000)
     assert not _check(t, e)["lost"]
     spike = e.copy()
-    spike[100:105] = 1.5  # 5 ms above 45 deg: a transient, not a loss
+    spike[100:105] = 1.5  # 5 ms at 86 deg: a transient (10 ms mean 43 deg), not a loss
     assert not _check(t, spike)["lost"]
     slip = e.copy()
     slip[500:520] = 1.2  # 20 ms
     g = _check(t, slip)
-    assert g["lost"] and g["t_lost"] == pytest.approx(0.5)
+    assert g["lost"] and g["t_lost"] == pytest.approx(0.5, abs=5e-3)
     late = np.full(1000, 2.0)
     late[300:] = 0.1  # acquires at 0.3 s, never loses it: an unknown start is no loss
     g = _check(t, late)
-    assert g["acquired"] and g["t_acquired"] == pytest.approx(0.3) and not g["lost"]
+    assert g["acquired"] and g["t_acquired"] == pytest.approx(0.3, abs=5e-3) and not g["lost"]
     never = np.full(1000, 2.5)
     g = _check(t, never)
     assert not g["acquired"] and not g["lost"]
@@ -47,6 +47,10 @@ def test_constructed_cases():
     assert g["lost"]
     wrapped = e + 2 * math.pi  # the error is wrapped first
     assert not _check(t, wrapped)["lost"]
+    spin = np.zeros(1000)
+    spin[600:] = np.linspace(0, 40 * 2 * math.pi, 400)  # the estimate spins: some of its
+    g = _check(t, spin)  # samples pass near the true angle, none stays: out of lock
+    assert g["lost"] and g["t_lost"] == pytest.approx(0.6, abs=5e-3)
 
 
 def test_random_sequences_and_batches():

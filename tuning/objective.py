@@ -10,7 +10,7 @@ estimate, in deg; $\tilde\omega = \omega - \hat\omega$):
 - `static_deg`: mean of $\tilde\theta$ over the last 20 % of the run;
 - `noise_rad_s`: standard deviation of $\tilde\omega$ over the last 20 % (electrical);
 - `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
-  $|\tilde\theta|$ above `lock_deg` for 10 ms after lock, or the run diverged);
+  the mean $|\tilde\theta|$ over 10 ms above `lock_deg` after lock, or the run diverged);
   `out_of_lock`: the fraction of samples above `lock_deg`, smooth (a logistic of width
   2 deg), which is what the objective differentiates.
 

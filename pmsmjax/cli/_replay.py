@@ -173,7 +173,8 @@ def replay_command(args: argparse.Namespace) -> int:
     print(f"wrote {', '.join(files.values())}")
     if lock is not None and lock["lost"] and finite:
         print(f"pmsmjax replay: the observer lost lock at t = {lock['t_lost_s']:.4g} s "
-              f"(|angle error| > {lock['lock_deg']:g} deg for {1e3 * lock['dwell_s']:g} ms)",
+              f"(mean |angle error| over {1e3 * lock['dwell_s']:g} ms above "
+              f"{lock['lock_deg']:g} deg)",
               file=sys.stderr)
     return 0
 

@@ -117,8 +117,8 @@ def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None) -> dict:
         start = int(fast[0]) if fast.size else len(t) - 1
     st = {k: np.asarray(v).item() for k, v in pj.lock_status(
         t[start:], np.asarray(theta_err)[start:], ok=ok).items()}
-    out = {"definition": f"|angle error| > {pj.LOCK_DEG:g} deg for {1e3 * pj.LOCK_DWELL_S:g} "
-                         f"ms after lock was acquired, or a diverged run "
+    out = {"definition": f"mean |angle error| over {1e3 * pj.LOCK_DWELL_S:g} ms above "
+                         f"{pj.LOCK_DEG:g} deg after lock was acquired, or a diverged run "
                          f"(pmsmjax.lock_status)",
            "lock_deg": pj.LOCK_DEG, "dwell_s": pj.LOCK_DWELL_S, "judged_from_s": float(t[start]),
            "acquired": bool(st["acquired"]), "lost": bool(st["lost"]),
@@ -349,8 +349,9 @@ def simulate_command(args: argparse.Namespace) -> int:
     print(f"wrote {', '.join(files.values())}")
     if ok and lock["lost"]:
         print(f"pmsmjax simulate: the observer lost lock at t = {lock['t_lost_s']:.4g} s "
-              f"(|angle error| > {lock['lock_deg']:g} deg for {1e3 * lock['dwell_s']:g} "
-              f"ms): its estimates after that are not an angle", file=sys.stderr)
+              f"(mean |angle error| over {1e3 * lock['dwell_s']:g} ms above "
+              f"{lock['lock_deg']:g} deg): its estimates after that are not an angle",
+              file=sys.stderr)
     if not ok:
         print(f"pmsmjax simulate: the run diverged: {summary['status_message']}",
               file=sys.stderr)

@@ -30,7 +30,7 @@ and $\tilde\omega = \omega - \hat\omega$, rad/s, on the saved samples):
 - `noise_rad_s`: speed-estimate noise, the standard deviation of $\tilde\omega$ over the
   static window;
 - `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
-  $|\tilde\theta|$ above `lock_deg`, default 45 deg, for 10 ms after lock was acquired,
+  the mean $|\tilde\theta|$ over 10 ms above `lock_deg`, default 45 deg, after lock was acquired,
   or the run diverged or produced a non-finite sample).
 
 **Per-observer metrics** (`aggregate`), over the runs that kept lock (runs that lost lock
