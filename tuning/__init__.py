@@ -63,3 +63,8 @@ from .search import (
     local_search as local_search,
     random_search as random_search,
 )
+from .compare import (
+    CompareConfig as CompareConfig,
+    plot_comparison as plot_comparison,
+    run_comparison as run_comparison,
+)
