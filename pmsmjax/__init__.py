@@ -9,9 +9,10 @@ import importlib.metadata
 import jax
 
 
-# The one process-wide setting a library import makes: analysis needs float64. Everything
-# else that changes the whole process (XLA flags, the compilation cache) belongs to the
-# entry points, which call `pmsmjax.runtime.configure()` (see that module).
+# The process-wide settings a library import makes: analysis needs float64, and the XLA
+# flags of fast single runs go into XLA_FLAGS while JAX's backend has not started (a
+# one-time warning otherwise; `pmsmjax.runtime`). The compilation cache belongs to the
+# entry points, which call `pmsmjax.runtime.configure()`.
 jax.config.update("jax_enable_x64", True)
 
 from . import (  # noqa: E402
@@ -20,6 +21,8 @@ from . import (  # noqa: E402
     papers as papers,
     runtime as runtime,
 )
+
+runtime.apply_xla_flags(stacklevel=3)
 from ._control import (  # noqa: E402
     FOC as FOC,
     IfStartup as IfStartup,
@@ -80,6 +83,9 @@ from ._io import (  # noqa: E402
     save_recording as save_recording,
 )
 from ._metrics import (  # noqa: E402
+    LOCK_DEG as LOCK_DEG,
+    LOCK_DWELL_S as LOCK_DWELL_S,
+    lock_status as lock_status,
     error_stats as error_stats,
     replay_stats as replay_stats,
     settled_mask as settled_mask,

@@ -23,6 +23,73 @@ from ._frames import wrap_angle
 
 _EPS = 1e-12  # added under the square roots of `trajectory_metrics` (finite gradient at 0)
 
+#: Loss of lock: the angle error's magnitude above this (deg) ...
+LOCK_DEG = 45.0
+#: ... for longer than this (s).
+LOCK_DWELL_S = 10e-3
+
+
+def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
+                dwell_s: float = LOCK_DWELL_S) -> dict:
+    r"""Whether an observer acquired and kept lock: **the one definition of loss of lock**
+    (`simulate` and `replay` summaries, the tuner, the comparison job).
+
+    Over a window of `dwell_s`, the observer is *in lock* where the mean magnitude of the
+    wrapped angle error (true minus estimate) is at most `lock_deg`. It *acquired lock*
+    at the start of the first such window; it *lost lock* at the start of the first later
+    window whose mean exceeds `lock_deg`, or when the run diverged or produced a
+    non-finite error (`ok` False: lost at the first non-finite sample, or at the end for a
+    diverged run; a non-finite sample counts as 180 deg). A mean, not "every sample
+    above": an estimate that spins through every angle is out of lock although some of
+    its samples pass near the true angle.
+
+    Why these numbers: at 45 deg the current control, which runs in the estimated frame,
+    produces cos 45 = 71 % of the torque per ampere it intends and as much again in the
+    wrong axis; beyond that a speed loop pushes the error further (at 90 deg the torque
+    vanishes). 10 ms is longer than the current loop's response (0.3 ms at the default
+    500 Hz bandwidth), so a spike through a load step or a reversal does not count, and
+    shorter than the speed loop's time constant (32 ms at 5 Hz), so a slip is caught
+    before the speed controller has reacted to it.
+
+    **Arguments:** `t` (s), `theta_err` (rad, wrapped or not), samples on the last axis,
+    any leading batch axes (NumPy or JAX arrays; jit and vmap safe); `ok`: the run did
+    not diverge (a bool or an array of the batch shape).
+
+    **Returns:** a dict of arrays with the batch shape: `acquired` (bool), `t_acquired`
+    (s; NaN if never), `lost` (bool), `t_lost` (s; NaN if not lost).
+    """
+    t = jnp.asarray(t)
+    th = jnp.asarray(theta_err)
+    fin = jnp.isfinite(th)
+    err = jnp.abs(wrap_angle(jnp.where(fin, th, jnp.pi)))
+    n = th.shape[-1]
+    dt = (t[..., -1] - t[..., 0]) / max(n - 1, 1)
+    k = jnp.maximum(1, jnp.round(dwell_s / jnp.maximum(dt, 1e-300))).astype(jnp.int32)
+    k = jnp.minimum(k, n)
+    lim = jnp.deg2rad(lock_deg)
+    # mean |error| over the window of k samples that starts at each sample
+    c = jnp.concatenate([jnp.zeros(err.shape[:-1] + (1,), err.dtype),
+                         jnp.cumsum(err, -1)], -1)
+    idx = jnp.arange(n)
+    end = jnp.minimum(idx + k[..., None], n)
+    mean = (jnp.take_along_axis(c, end, -1) - c[..., :n]) / k[..., None]
+    whole = idx + k[..., None] <= n
+    big = jnp.int32(n)
+    j_acq = jnp.min(jnp.where(whole & (mean <= lim), idx, big), -1)
+    j_lost = jnp.min(jnp.where(whole & (mean > lim) & (idx > j_acq[..., None]), idx, big),
+                     -1)
+    j_bad = jnp.min(jnp.where(~fin, idx, big), -1)
+    ok = jnp.asarray(ok) & (j_bad == big)
+    j_lost = jnp.where(ok, j_lost, jnp.minimum(j_lost, jnp.where(j_bad < big, j_bad,
+                                                                  n - 1)))
+    acquired = j_acq < big
+    lost = (acquired & (j_lost < big)) | ~ok
+    tt = jnp.broadcast_to(t, th.shape)
+    at = lambda j: jnp.take_along_axis(tt, jnp.minimum(j, n - 1)[..., None], -1)[..., 0]  # noqa
+    return {"acquired": acquired, "t_acquired": jnp.where(acquired, at(j_acq), jnp.nan),
+            "lost": lost, "t_lost": jnp.where(lost, at(jnp.minimum(j_lost, n - 1)),
+                                               jnp.nan)}
+
 
 def settling_time(t, err, tol):
     """Time after which `|err| <= tol` for good; `nan` if it never settles (the last

@@ -222,6 +222,13 @@ def simulate(
             "`simulate(observer_u_dt=...)`: dead-time compensation of the observer's voltage "
             "is modelled for three-phase drives only; pass `observer_u_dt=0` for a dual "
             "three-phase drive with `inverter.u_dt > 0`.")
+    # Python numbers as initial values become arrays, so that a new initial state runs
+    # the compiled program again instead of compiling another one (filter_jit treats
+    # Python numbers as static); the run's dtype casts them inside
+    for k in ("theta0", "w_m0", "theta_hat0", "w_hat0", "i_dq0"):
+        v = arguments[k]
+        if v is not None and is_concrete(v) and not isinstance(v, jax.Array):
+            arguments[k] = np.asarray(v, dtype=np.float64)
     return _simulate(arguments)
 
 

@@ -1,6 +1,10 @@
 """Process-wide settings for the programs that use pmsmjax: the entry points call
 `configure()` once at start-up (the `pmsmjax` command line, `python -m tuning`, the test
-suite and the notebooks' first cell); a library import changes only `jax_enable_x64`.
+suite and the notebooks' first cell). A plain `import pmsmjax` enables `jax_enable_x64`
+and puts the XLA flags below into `XLA_FLAGS` (`apply_xla_flags`) when JAX has not
+started its backend yet, so a script that only imports pmsmjax gets fast single runs;
+if JAX already computed something, it warns once and says how. The compilation cache is
+the entry points' (`configure`) alone.
 
 What `configure()` sets, and why (measurements in BENCHMARKS.md):
 
@@ -144,6 +148,38 @@ def _backend_started() -> bool:
     from jax._src import xla_bridge
 
     return xla_bridge.backends_are_initialized()
+
+
+_LATE_WARNED = False
+
+
+def apply_xla_flags(fast_loops: bool | None = None, *, stacklevel: int = 2) -> bool:
+    """Put `SAFE_FLAGS` and (unless `fast_loops` is False, default from
+    `PMSMJAX_FAST_LOOPS`) `FAST_LOOP_FLAGS` into `XLA_FLAGS` if JAX has not started its
+    backend yet. `import pmsmjax` calls it, so that a plain script gets fast single runs
+    without `configure()`. If the backend already runs (JAX computed something before
+    pmsmjax was imported), the flags cannot take effect: a one-time warning says how to
+    get them. Returns whether the flags are in effect."""
+    global _LATE_WARNED
+    if fast_loops is None:
+        fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True)
+    flags = list(SAFE_FLAGS) + (list(FAST_LOOP_FLAGS) if fast_loops else [])
+    current = os.environ.get("XLA_FLAGS", "")
+    missing = [f for f in flags if f.split("=")[0] not in current]
+    if not missing:
+        return True
+    if _backend_started():
+        if fast_loops and not _LATE_WARNED:
+            _LATE_WARNED = True
+            warnings.warn(
+                "pmsmjax: JAX started its backend before pmsmjax set its XLA flags, so "
+                "single closed-loop runs are several times slower than they can be. "
+                "Import pmsmjax before running any JAX computation, or start Python with "
+                f"XLA_FLAGS='{' '.join(flags)}' (PMSMJAX_FAST_LOOPS=0 silences this).",
+                RuntimeWarning, stacklevel=stacklevel)
+        return False
+    os.environ["XLA_FLAGS"] = " ".join([current, *missing]).strip()
+    return True
 
 
 def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> dict:

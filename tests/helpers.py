@@ -78,3 +78,59 @@ def tree_max_abs_diff(a, b):
     lb = [np.asarray(x) for x in jax.tree_util.tree_leaves(eqx.filter(b, eqx.is_array))]
     assert len(la) == len(lb)
     return max(float(np.max(np.abs(x - y))) if x.size else 0.0 for x, y in zip(la, lb))
+
+
+def scheduled_gains_table(drive, T_s, *, w2_factor=1.2, zeta2=1.1, verdict=None):
+    """A speed-scheduled ESO gains table (`pmsmjax.gains_table_scheduled`) of zhang2022's
+    flux schedule (38) with w2 = `w2_factor` x 2 pi 50 rad/s and `zeta2`, rows every
+    0.025 p.u. up to 1.5 p.u., and the observer it tabulates (`make_observer("eso",
+    drive, w2=..., zeta2=...)`, whose schedule the observer evaluates exactly)."""
+    import math
+
+    import jax.numpy as jnp
+
+    import pmsmjax as pj
+    from pmsmjax.observers import make_observer
+    from pmsmjax.observers._eso_design import zhang38
+
+    w_r = float(drive.w_rated)
+    w = pj.gains_speed_grid(w_r, 1.5, 60)
+    zeta1, w1 = zhang38(jnp.asarray(w), w_r)
+    n = len(w)
+    w2 = w2_factor * 2 * math.pi * 50.0
+    sched = pj.TabulatedDesign(w_m=jnp.asarray(w), zeta1=zeta1, w1=w1,
+                               zeta2=jnp.full(n, zeta2), w2=jnp.full(n, w2),
+                               nu2=jnp.zeros(n), nu3=jnp.zeros(n))
+    table = pj.gains_table_scheduled("eso", sched, drive.three_phase_motor,
+                                     drive=drive.name, notes=["test schedule"], T_s=T_s,
+                                     objective="cvar", verdict=verdict)
+    return table, make_observer("eso", drive, w2=w2, zeta2=zeta2)
+
+
+def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3):
+    """`pmsmjax.lock_status` of one run by a plain loop over the samples (an independent
+    reference): `(acquired, t_acquired, lost, t_lost)`."""
+    import math
+
+    import numpy as np
+
+    t = np.asarray(t, float)
+    e = np.asarray(theta_err, float)
+    n = len(t)
+    k = max(1, min(n, int(round(dwell_s / ((t[-1] - t[0]) / max(n - 1, 1))))))
+    bad = ~np.isfinite(e)
+    mag = [math.pi if bad[j] else abs(math.remainder(e[j], 2 * math.pi)) for j in range(n)]
+    lim = math.radians(lock_deg)
+    means = [sum(mag[j:j + k]) / k for j in range(n - k + 1)]
+    acq = next((j for j, m in enumerate(means) if m <= lim), None)
+    lost_j = None
+    if acq is not None:
+        lost_j = next((j for j in range(acq + 1, len(means)) if means[j] > lim), None)
+    first_bad = next((j for j in range(n) if bad[j]), None)
+    if first_bad is not None or not ok:
+        end = first_bad if first_bad is not None else n - 1
+        lost_j = end if lost_j is None else min(lost_j, end)
+        return acq is not None, (t[acq] if acq is not None else math.nan), True, t[lost_j]
+    lost = acq is not None and lost_j is not None
+    return (acq is not None, t[acq] if acq is not None else math.nan, lost,
+            t[lost_j] if lost else math.nan)

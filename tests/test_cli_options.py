@@ -15,8 +15,8 @@ import pytest
 import pmsmjax as pj
 from pmsmjax.cli import _options
 from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
-from tuning.__main__ import build_parser as tuning_parser, config_from_args
-from tuning._compare_cli import build_parser as compare_parser
+from tuning.__main__ import build_parser as tuning_parser, problem_from_args
+from tuning.compare.cli import build_parser as compare_parser
 
 
 def _subparsers(parser):
@@ -61,7 +61,8 @@ def test_one_spelling_one_unit_across_commands():
                 continue
             if opt in ("--theta0",):
                 assert action.metavar == "DEG", (name, opt)
-            if opt in ("--speed", "--speeds", "--speed0", "--loads", "--nodes"):
+            if opt in ("--speed", "--speeds", "--speed0", "--loads", "--nodes",
+                       "--val-speeds"):
                 assert action.metavar == "PU", (name, opt)
             if opt == "--out":
                 assert action.metavar == "DIR", (name, opt)
@@ -71,8 +72,8 @@ def test_one_spelling_one_unit_across_commands():
             else:
                 seen[opt] = (name, meta)
     # lists: space-separated (nargs "+") everywhere
-    for name, opt in (("feasibility", "--speeds"), ("tune", "--speeds"), ("tune", "--loads"),
-                      ("tune", "--tune"), ("compare", "--observers"),
+    for name, opt in (("feasibility", "--speeds"), ("tune", "--val-speeds"),
+                      ("tune", "--peers"), ("compare", "--observers"),
                       ("response", "--orders")):
         assert _options_of(_all_parsers()[name])[opt].nargs == "+", (name, opt)
 
@@ -93,10 +94,11 @@ def test_lists_parse_space_separated_and_commas_are_deprecated(capsys):
     assert a.orders == [1, -5, 7]
     with pytest.raises(_options.CLIError, match="--orders"):
         p.parse_args(["response", "--orders", "1", "0"])
-    t = tuning_parser().parse_args(["--speeds", "0.2", "0.6", "--tune", "w2", "zeta2"])
-    assert t.speeds == [0.2, 0.6] and t.tune == ["w2", "zeta2"]
-    t = tuning_parser().parse_args(["--tune", "w2,zeta2"])
-    assert t.tune == ["w2", "zeta2"] and "deprecated" in capsys.readouterr().err
+    t = tuning_parser().parse_args(["--val-speeds", "0.2", "0.6", "--peers", "cmaes",
+                                    "gradient"])
+    assert t.val_speeds == [0.2, 0.6] and t.peers == ["cmaes", "gradient"]
+    t = tuning_parser().parse_args(["--val-speeds", "0.2,0.6"])
+    assert t.val_speeds == [0.2, 0.6] and "deprecated" in capsys.readouterr().err
     c = compare_parser().parse_args(["--observers", "eso", "leso"])
     assert c.observers == ["eso", "leso"]
 
@@ -129,11 +131,6 @@ def test_mismatch_is_one_ratio_per_parameter(capsys):
         args = p.parse_args([*cmd, "--mismatch", "L_q=1.3"])
         m = _options.observer_from_args(args, drive).observer.motor
         assert float(m.L_q) == pytest.approx(1.3 * L_q, rel=1e-15)
-    t = tuning_parser()
-    assert t.parse_args(["--mismatch-range", "0.7", "1.3"]).mismatch == [0.7, 1.3]
-    capsys.readouterr()
-    assert t.parse_args(["--mismatch", "0.7", "1.3"]).mismatch == [0.7, 1.3]
-    assert "--mismatch-range" in capsys.readouterr().err
 
 
 def test_initial_state_in_degrees_and_per_unit(capsys):
@@ -195,14 +192,13 @@ def test_tune_and_compare_hand_over_to_tuning(tmp_path, capsys):
     assert "compare --help" in tuning_parser().format_help()
     # a motor file (and --set) in the tuner and the comparison
     pj.save_motor_file(pj.replace_params(pj.preset("zhang750"), R_s=1.1), tmp_path / "m.toml")
-    cfg = config_from_args(tuning_parser().parse_args(
+    cfg = problem_from_args(tuning_parser().parse_args(
         ["--quick", "--motor-file", str(tmp_path / "m.toml"), "--set", "J=0.01"]))
     assert cfg.drive().name == "zhang750" and float(cfg.drive().mechanics.J) == 0.01
     from tuning.compare import CompareConfig
 
     c = CompareConfig.quick(motor_file=str(tmp_path / "m.toml"), set_params=(("J", 0.01),))
     assert c.motor == "zhang750" and float(c.drive().mechanics.J) == 0.01
-    assert c.run_config("eso").drive() == c.drive()
     assert CompareConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
     capsys.readouterr()
     assert main(["compare", "--motor-file", str(tmp_path / "nope.toml"), "--quick",

@@ -14,10 +14,11 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from tuning import compare
+from tuning.compare import job as compare
 from tuning.compare import CompareConfig, CompareInterrupted, run_comparison
-from tuning.scenarios import make_observer
-from tuning.validation import RAMP, observer_model, validation_scenario
+from tuning.scenarios import VAL_LOAD_STEP, VAL_RAMP, observer_model
+
+from .helpers import lock_status_loop
 
 
 OBSERVER = "parallel-model"
@@ -40,20 +41,28 @@ def job(tmp_path_factory):
     return config, out, summary
 
 
-def _direct(config, design):
-    """Every run of the grid by direct `pmsmjax.simulate` calls (vmapped over points)."""
+def _direct(config):
+    """Every run of the grid with the paper design by direct `pmsmjax.simulate` calls
+    (vmapped over points; the scenario built here from `pmsmjax.Scenario`)."""
     drive = config.drive()
-    tcfg = config.run_config(OBSERVER)
+    foc = pj.FOC.from_drive(drive)
+    w_r = float(drive.w_rated)
+    q = lambda f: round(f * config.t_end / config.T_s) * config.T_s  # noqa: E731
     grid = config.grid()
     n = len(grid["case"])
     cases = np.asarray(config.cases)[grid["case"]]
 
     def one(j, speed, load, k):
-        obs = make_observer(OBSERVER, drive, design,
-                            motor=observer_model(drive, k[0], k[1], k[2], k[3]))
-        sc = validation_scenario(tcfg, speed, config.start_frac * speed, load)
+        obs = pj.observers.make_observer(
+            OBSERVER, drive, motor=observer_model(drive, k[0], k[1], k[2], k[3]))
+        tau = load * float(drive.tau_rated) * jnp.sign(speed)
+        sc = pj.Scenario(t_end=config.t_end,
+                         w_m_ref=pj.Profile([q(VAL_RAMP[0]), q(VAL_RAMP[1])],
+                                            jnp.stack([config.start_frac * speed * w_r,
+                                                       speed * w_r])),
+                         tau_L=pj.Profile([q(VAL_LOAD_STEP)] * 2, jnp.stack([0 * tau, tau])))
         key = jr.fold_in(jr.PRNGKey(config.seed), j.astype(jnp.uint32))
-        return pj.simulate(drive, tcfg.controller(), obs, sc, T_s=config.T_s,
+        return pj.simulate(drive, foc, obs, sc, T_s=config.T_s,
                            sensing=pj.Sensing(noise_std=config.noise_std), key=key,
                            theta0=0.0, w_m0=config.start_frac * speed * float(drive.w_rated),
                            theta_hat0=0.0, save_every=config.save_every, throw=False)
@@ -64,8 +73,7 @@ def _direct(config, design):
 
 def test_metrics_equal_direct_simulate(job):
     config, out, summary = job
-    design = config.tuning_config(OBSERVER).initial_schedule()  # the paper design
-    grid, traj = _direct(config, design)
+    grid, traj = _direct(config)
     runs = {k: np.asarray(v) for k, v in compare.run_metrics(traj, config).items()}
     feas = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz"))
     want = compare.aggregate(runs, feas, config, grid)
@@ -93,7 +101,7 @@ def test_metrics_equal_direct_simulate(job):
     th = np.degrees(np.asarray(traj.theta_err))
     for j in range(th.shape[0]):
         assert runs["rms_deg"][j] == pytest.approx(np.sqrt(np.mean(th[j] ** 2)), rel=1e-9)
-        t0 = RAMP[0] * config.t_end
+        t0 = VAL_RAMP[0] * config.t_end
         outside = np.nonzero((t[j] >= t0 - 1e-9)
                              & (np.abs(th[j] - runs["static_deg"][j])
                                 > config.settle_band_deg))[0]
@@ -104,7 +112,9 @@ def test_metrics_equal_direct_simulate(job):
         else:
             settle = t[j][outside[-1] + 1] - t0
         assert runs["settle_s"][j] == pytest.approx(settle, abs=1e-12, nan_ok=True)
-        assert bool(runs["lost_lock"][j]) == bool(np.max(np.abs(th[j])) > config.lock_deg)
+        ref = lock_status_loop(t[j], np.asarray(traj.theta_err)[j],
+                               ok=bool(np.asarray(traj.ok)[j]), lock_deg=config.lock_deg)
+        assert bool(runs["lost_lock"][j]) == ref[2]
     # the tiny grid is not trivial: the mismatched case moves the static error
     assert np.ptp(runs["static_deg"]) > 0.1
 
@@ -154,7 +164,7 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
     with pytest.raises(CompareInterrupted):
         run_comparison(config, part, progress=False, log=None, batch_size=2)
     assert not (part / "comparison.json").exists()
-    assert (part / "tuned" / f"{OBSERVER}.eqx").is_file()
+    assert (part / "tuned" / f"{OBSERVER}.json").is_file()
     monkeypatch.delenv(compare.STOP_ENV)
     run_comparison(config, part, progress=False, log=None, batch_size=2)
     for f in ("comparison.json", "comparison.md"):
@@ -170,7 +180,7 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
 
 
 def test_worker_processes_and_devices_give_the_same_files(job, tmp_path, monkeypatch):
-    """`jobs` > 1: the observer's part runs in a worker process (`tuning._compare_worker`),
+    """`jobs` > 1: the observer's part runs in a worker process (`tuning.compare.worker`),
     here with two CPU devices over which its sweeps are sharded, and the parent assembles
     the same files as the one-process, one-device job. Equal to rounding, not bitwise:
     with `batch_size` the vmap width is the same, but XLA compiles the program sharded
@@ -227,7 +237,7 @@ def test_config_errors():
 
 
 def test_figures(job):
-    from tuning._compare_plots import hardest_point, plot_comparison
+    from tuning.compare.plots import hardest_point, plot_comparison
 
     config, out, summary = job
     paths = plot_comparison(summary, out)
@@ -254,7 +264,7 @@ def test_cli_dispatch(capsys):
     with pytest.raises(SystemExit) as e:
         main(["compare", "--jobs", "0", "--no-plot"])
     assert e.value.code == 2 and "--jobs" in capsys.readouterr().err
-    from tuning._compare_cli import jobs_for
+    from tuning.compare.cli import jobs_for
 
     assert jobs_for("auto", distributed=True) == 1 and jobs_for(3, distributed=False) == 3
     assert 1 <= jobs_for("auto", distributed=False) <= 4
@@ -274,7 +284,7 @@ def test_cli_starts_no_jax_backend_before_jax_distributed():
     code = ("import pmsmjax as pj\n"
             "pj.runtime.configure()\n"
             "from jax._src import xla_bridge as xb\n"
-            "from tuning._compare_cli import build_parser\n"
+            "from tuning.compare.cli import build_parser\n"
             "from pmsmjax.cli._sweep_options import sweep_settings\n"
             "a = build_parser().parse_args(['--coordinator', 'localhost:1', "
             "'--num-processes', '2', '--process-id', '0', '--quick'])\n"

@@ -16,6 +16,8 @@ from pmsmjax import analysis
 from pmsmjax.cli.__main__ import main
 from pmsmjax.observers import make_observer
 
+from .helpers import scheduled_gains_table
+
 
 @pytest.mark.parametrize("name,motor", [("eso", "zhang750"), ("parallel-model",
                                                                "stumper_mt5")])
@@ -37,14 +39,9 @@ def test_discrete_poles_approach_the_continuous_ones(name, motor):
 @pytest.fixture(scope="module")
 def table(tmp_path_factory):
     """A tuned-looking ESO schedule's gains table whose verdict does not hold."""
-    cfg = tg.TuningConfig.quick()
-    d = cfg.initial_schedule()
-    gs = tg.GainSchedule.from_factors(
-        d.s_nodes, d.w_rated, d.w2_paper,
-        dict(zeta1=[1.1, 0.9], ratio=[1.2, 0.9], zeta2=[1.1, 0.9], w2=[1.3, 0.8],
-             nu2=[0.05, -0.05], nu3=[0.02, 0.05]), d.bounds)
-    t = tg.gains_table(gs, cfg, verdict={"holds": False, "baseline": "zhang2022 (38)/(25)",
-                                         "where_not": ["validation: worse"]})
+    cfg = tg.TuningProblem.quick()
+    t, _ = scheduled_gains_table(cfg.drive(), cfg.T_s, verdict={
+        "holds": False, "baseline": "zhang2022 (38)/(25)", "where_not": ["validation: worse"]})
     folder = tmp_path_factory.mktemp("tuned")
     pj.write_gains_table(t, folder)
     return cfg, t, folder

@@ -225,15 +225,17 @@ def test_response_command_json(capsys):
 
 
 def test_tuning_defaults_for_li_dtp_and_the_tunable_design():
-    from tuning.__main__ import build_parser, config_from_args
+    """The li observers tune on li's machine at its 10 kHz by default, in the PLL's
+    bandwidth and damping and the LESO's own gains; an option still wins."""
+    import tuning as tg
+    from tuning.__main__ import build_parser, problem_from_args
 
-    cfg = config_from_args(build_parser().parse_args(["--motor", "li_dtp", "--observer",
-                                                      "fa-leso"]))
-    assert cfg.speeds_pu == (0.5, 1.0, 1.4) and cfg.T_s == 1e-4
-    # an option still wins over the motor's default
-    cfg = config_from_args(build_parser().parse_args(["--motor", "li_dtp", "--observer",
-                                                      "fa-leso", "--speeds", "0.7"]))
-    assert cfg.speeds_pu == (0.7,)
-    from tuning.scenarios import design_quantities
-
-    assert set(design_quantities("fa-leso")) == {"k1", "k2", "w_pll", "zeta_pll"}
+    cfg = problem_from_args(build_parser().parse_args(["--observer", "fa-leso"]))
+    assert cfg.motor == "li_dtp" and cfg.T_s == 1e-4
+    cfg = problem_from_args(build_parser().parse_args(["--observer", "fa-leso",
+                                                       "--T-s", "5e-5"]))
+    assert cfg.T_s == 5e-5
+    space = tg.DesignSpace(cfg)
+    assert set(space.names) == {"k1", "k2", "w_pll", "zeta_pll"}
+    kinds = {c.name: c.kind for c in space.coordinates}
+    assert kinds["w_pll"] == "tracking" and kinds["zeta_pll"] == "damping"

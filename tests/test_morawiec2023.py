@@ -117,30 +117,22 @@ def test_unknown_experiment_is_named():
         mp.experiment("fig99")
 
 
-def test_tuning_has_a_default_grid_for_the_motor_and_leaves_others_alone():
+def test_tuning_defaults_to_the_papers_drive_and_leaves_others_alone():
     import tuning
-    from tuning.__main__ import build_parser, config_from_args
+    from tuning.__main__ import build_parser, problem_from_args
 
-    c = config_from_args(build_parser().parse_args(
-        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5"]))
-    assert c.T_s == pytest.approx(1 / 6600) and c.mismatch == (0.7, 1.1)
-    assert c.observer == "rotor-flux" and c.speeds_pu == (0.2, 0.5, 1.0)
-    assert c.theta_err0_deg == 3.0
-    z = config_from_args(build_parser().parse_args(["--motor", "zhang750"]))
-    assert z == tuning.TuningConfig()
+    c = problem_from_args(build_parser().parse_args(["--observer", "rotor-flux"]))
+    assert c.motor == "morawiec_ipm3k5" and c.T_s == pytest.approx(1 / 6600)
+    z = problem_from_args(build_parser().parse_args(["--motor", "zhang750"]))
+    assert z == tuning.TuningProblem()
     # an explicit option still wins over the motor's default
-    c2 = config_from_args(build_parser().parse_args(
-        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5", "--speeds", "0.3"]))
-    assert c2.speeds_pu == (0.3,) and c2.T_s == pytest.approx(1 / 6600)
-    # --quick keeps its tiny grid but takes the motor's sampling rate, initial error and
-    # mismatch range; other motors' --quick is unchanged
-    q = config_from_args(build_parser().parse_args(
-        ["--observer", "rotor-flux", "--motor", "morawiec_ipm3k5", "--quick"]))
-    assert q.T_s == pytest.approx(1 / 6600) and q.theta_err0_deg == 3.0
-    assert q.mismatch == (0.8, 1.1) and q.steps == tuning.TuningConfig.quick().steps
-    assert q.motor == "morawiec_ipm3k5" and q.observer == "rotor-flux"
-    zq = config_from_args(build_parser().parse_args(["--quick"]))
-    assert zq == tuning.TuningConfig.quick()
+    c2 = problem_from_args(build_parser().parse_args(
+        ["--observer", "rotor-flux", "--motor", "zhang750"]))
+    assert c2.motor == "zhang750" and c2.T_s == 125e-6
+    q = problem_from_args(build_parser().parse_args(["--observer", "rotor-flux", "--quick"]))
+    assert q.T_s == pytest.approx(1 / 6600) and q.budget == tuning.TuningProblem.quick().budget
+    assert problem_from_args(build_parser().parse_args(["--quick"])) == \
+        tuning.TuningProblem.quick()
 
 
 def test_cli_simulates_and_replays_the_rotor_flux_observer(tmp_path):

@@ -18,6 +18,8 @@ import tuning as tg
 from pmsmjax.cli.__main__ import main
 from pmsmjax.observers import make_observer
 
+from .helpers import scheduled_gains_table
+
 
 # ---------------------------------------------------------------------------------------
 # Motor files
@@ -114,26 +116,23 @@ def test_every_command_accepts_a_motor_file(tmp_path, capsys):
     assert len(err.strip().splitlines()) == 1
 
 
-def test_tuning_config_from_a_motor_file(tmp_path):
-    """TuningConfig(motor_file=..., set_params=...) tunes the file's drive (the same
+def test_tuning_problem_from_a_motor_file(tmp_path):
+    """TuningProblem(motor_file=..., set_params=...) tunes the file's drive (the same
     drive as the preset with the same replacement); the whole tuner on a motor file runs
     in tests/test_readme_commands.py (the README's "your own drive" example)."""
     path = tmp_path / "mine.toml"
     path.write_text(_edit('name = "zhang750"', 'name = "mine"'))
-    cfg = tg.TuningConfig.quick(motor_file=str(path), set_params=(("J", 2e-3),))
-    ref = tg.TuningConfig.quick(set_params={"J": 2e-3})
-    assert cfg.motor == "mine" and cfg.motor_file == str(path)
+    cfg = tg.TuningProblem.quick(motor_file=str(path), set_params=(("J", 2e-3),))
+    ref = tg.TuningProblem.quick(set_params=(("J", 2e-3),))
+    assert cfg.drive().name == "mine" and cfg.motor_file == str(path)
     assert float(cfg.drive().mechanics.J) == 2e-3
     assert bool(eqx.tree_equal(cfg.drive().motor, ref.drive().motor))
-    assert bool(eqx.tree_equal(cfg.initial_schedule(), ref.initial_schedule()))
-    # the stored configuration comes back (set_params as pairs)
-    back = tg.config_from_summary({"config": json.loads(json.dumps(cfg.to_dict()))})
-    assert back == cfg
+    assert tg.DesignSpace(cfg).bounds_table() == tg.DesignSpace(ref).bounds_table()
     with pytest.raises(ValueError, match=r"\[motor\] R_s = -1.0"):
         path.write_text(_edit("R_s = 0.78", "R_s = -1.0"))
-        tg.TuningConfig.quick(motor_file=str(path))
+        tg.TuningProblem.quick(motor_file=str(path)).drive()
     with pytest.raises(ValueError, match="Unknown parameter 'X'"):
-        tg.TuningConfig.quick(set_params=(("X", 1.0),))
+        tg.TuningProblem.quick(set_params=(("X", 1.0),)).drive()
 
 
 def test_tuner_command_line_motor_file_errors(tmp_path, capsys):
@@ -161,14 +160,10 @@ def test_tuner_command_line_motor_file_errors(tmp_path, capsys):
 
 @pytest.fixture(scope="module")
 def tuned():
-    """A tuned-looking schedule (non-trivial corrections at two nodes), its table."""
-    cfg = tg.TuningConfig.quick()
-    d = cfg.initial_schedule()
-    gs = tg.GainSchedule.from_factors(
-        d.s_nodes, d.w_rated, d.w2_paper,
-        dict(zeta1=[1.1, 0.9], ratio=[1.2, 0.9], zeta2=[1.1, 0.9], w2=[1.3, 0.8],
-             nu2=[0.05, -0.05], nu3=[0.02, 0.05]), d.bounds)
-    return cfg, gs, tg.gains_table(gs, cfg)
+    """A speed-scheduled table (zhang2022 (38) with other w2, zeta2) and its observer."""
+    cfg = tg.TuningProblem.quick()
+    table, obs = scheduled_gains_table(cfg.drive(), cfg.T_s)
+    return cfg, obs, table
 
 
 def test_gains_table_gives_the_tuned_gains(tuned):
@@ -179,7 +174,7 @@ def test_gains_table_gives_the_tuned_gains(tuned):
     cfg, gs, table = tuned
     drive = cfg.drive()
     m = drive.three_phase_motor
-    a = tg.make_observer("eso", drive, gs)
+    a = gs
     b = pj.apply_gains_table(table, make_observer("eso", drive))
     cols = {c: np.array([r[j] for r in table["rows"]]) for j, c in
             enumerate(table["columns"])}
@@ -221,7 +216,7 @@ def test_gains_table_round_trip_estimates(tuned, tmp_path):
                        sc, T_s=cfg.T_s, w_m0=0.3 * w_r)
     rec = pj.RecordedData.from_trajectory(traj)
     kw = dict(theta0=-0.5, w0=float(rec.w_m[0]))  # converge from a 29 deg angle error
-    ea = pj.replay_estimates(tg.make_observer("eso", drive, gs), rec, **kw)
+    ea = pj.replay_estimates(gs, rec, **kw)
     eb = pj.replay_estimates(pj.apply_gains_table(back, make_observer("eso", drive)), rec,
                              **kw)
     d_theta = np.degrees(np.abs(np.asarray(pj.wrap_angle(ea.theta_hat - eb.theta_hat))))
@@ -275,10 +270,11 @@ def test_gains_table_carries_sampling_period_objective_and_verdict(tuned, tmp_pa
     cfg, gs, _ = tuned
     failed = {"holds": False, "baseline": "zhang2022 (38)/(25)",
               "where_not": ["validation: 85 of 88 scenarios worse", "held-out: worse"]}
-    table = tg.gains_table(gs, cfg, verdict=failed)
-    assert table["T_s"] == cfg.T_s and table["objective"] == cfg.objective
+    table, _ = scheduled_gains_table(cfg.drive(), cfg.T_s, verdict=failed)
+    assert table["T_s"] == cfg.T_s and table["objective"] == "cvar"
     assert table["verdict"] == failed
-    ok = tg.gains_table(gs, cfg, verdict=dict(failed, holds=True, where_not=[]))
+    ok, _ = scheduled_gains_table(cfg.drive(), cfg.T_s,
+                                  verdict=dict(failed, holds=True, where_not=[]))
     assert pj.verdict_warning(ok) is None
     msg = pj.verdict_warning(table)
     assert "did NOT beat zhang2022 (38)/(25)" in msg and "85 of 88" in msg

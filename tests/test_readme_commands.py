@@ -38,7 +38,7 @@ SMALL = {
     "plant": ["--no-plot"],
     "feasibility": ["--no-plot"],
     "certify": ["--quick"],
-    "tuning": ["--quick", "--steps", "1", "--no-ablation", "--no-plot", "--no-progress"],
+    "tuning": ["--quick", "--budget", "12", "--peers", "cmaes", "--no-plot", "--no-progress"],
 }
 SMALL["tune"] = SMALL["tuning"]
 #: The pages whose command lines run (the others are parsed).

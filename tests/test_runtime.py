@@ -140,3 +140,46 @@ def test_the_mapping_limit_kills_compilation_and_release_compiled_prevents_it():
     assert dies["compiled"] < 12
     lives = map_limit.run(headroom=60, programs=12, release=True, timeout=280)
     assert lives["finished"] and lives["returncode"] == 0 and lives["compiled"] == 12, lives
+
+
+def test_a_plain_import_gets_the_fast_settings(env):
+    """`import pmsmjax` alone puts the XLA flags in place before JAX starts its backend
+    (a plain script's single runs are fast without `configure()`); imported after JAX
+    computed something it warns once and says how."""
+    code = ("import os, jax, pmsmjax\n"
+            "jax.numpy.ones(3).block_until_ready()\n"
+            "print(os.environ.get('XLA_FLAGS', ''))\n")
+    res = _run(["-c", code], env)
+    assert res.returncode == 0, res.stderr
+    flags = res.stdout.strip().splitlines()[-1].split()
+    assert "--xla_cpu_multi_thread_eigen=false" in flags
+    assert any("xla_cpu_small_while_loop_byte_threshold=65536" in f for f in flags)
+    assert "RuntimeWarning" not in res.stderr
+    late = ("import jax\njax.numpy.ones(3).block_until_ready()\n"
+            "import pmsmjax\nimport importlib\n"
+            "pmsmjax.runtime.apply_xla_flags()\n")  # a second call: no second warning
+    res = _run(["-c", late], env)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.count("JAX started its backend before pmsmjax set its XLA flags") == 1
+    assert "XLA_FLAGS='" in res.stderr
+
+
+def test_new_initial_values_do_not_compile_again():
+    """Python numbers as initial values (angle, speed, estimate, current) run the
+    program already compiled."""
+    from pmsmjax import _simulate as S
+
+    d = pj.preset("zhang750")
+    foc = pj.FOC.from_drive(d)
+    obs = pj.observers.make_observer("eso", d)
+    sc = pj.Scenario(t_end=0.01, w_m_ref=pj.Profile.constant(300.0))
+    runs = []
+    for th in (0.0, 0.3, -1.2):
+        pj.simulate(d, foc, obs, sc, theta0=th, w_m0=100.0 + th, theta_hat0=th + 0.1,
+                    w_hat0=90.0, i_dq0=(0.0, th))
+        runs.append(S._simulate._cached._cache_size())
+    assert runs[1] == runs[2] == runs[0]
+    # and the values are used: a different initial angle gives a different run
+    a = pj.simulate(d, foc, obs, sc, theta0=0.0)
+    b = pj.simulate(d, foc, obs, sc, theta0=0.4)
+    assert float(b.theta[0]) == pytest.approx(0.4) and float(a.theta[0]) == 0.0

@@ -92,7 +92,12 @@ def gains_check(table: dict, drive: pj.Drive, T_s: float, i_pu) -> dict:
     i_a = jnp.asarray(np.asarray(i_pu, float) * float(drive.base.I_b))
     out = {"w_m": w.tolist(), "speed_pu": (w / float(drive.w_rated)).tolist(),
            "i_dq_pu": list(i_pu), "T_s": T_s}
-    if table["kind"] == "scheduled":
+    from pmsmjax.observers import AbstractGainSchedule
+
+    # a speed-scheduled observer (zhang2022's) has gains over speed whether its table
+    # is scheduled or a constant design of its schedule (the closed-loop tuner's)
+    if table["kind"] == "scheduled" or isinstance(getattr(paper, "design", None),
+                                                  AbstractGainSchedule):
         a = gain_columns(tuned.design, plant, w)
         b = gain_columns(paper.design, plant, w)
         out["gains"] = {k: {"tuned": a[k].tolist(), "paper": b[k].tolist(),

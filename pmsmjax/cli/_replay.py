@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 
 import numpy as np
 
@@ -127,6 +128,16 @@ def replay_command(args: argparse.Namespace) -> int:
     with open(files["data"], "wb") as f:
         np.savez(f, **rec.arrays(), **extras)
     stats = pj.replay_stats(data.t, theta_hat, w_hat, data.theta, data.w_m, t_settle=t_settle)
+    finite = bool(np.all(np.isfinite(theta_hat)) and np.all(np.isfinite(w_hat)))
+    if data.theta is not None:
+        from ._simulate import run_lock_status
+
+        lock = run_lock_status(data.t, np.asarray(data.theta) - theta_hat, finite)
+        status = lock["status"]
+    else:
+        lock = None
+        status = ("successful (the recording has no true angle: lock not checked)"
+                  if finite else "diverged")
     report = {
         "command": "replay",
         "pmsmjax_version": pj.__version__,
@@ -145,6 +156,8 @@ def replay_command(args: argparse.Namespace) -> int:
                    "w_hat": "rad/s, estimated electrical speed at t_k",
                    **{k: choice.cls.extras.get(k, "") for k in extras}},
         **stats,
+        "status": status,
+        "lock": lock,
     }
     if not args.no_plot:
         files["plot"] = os.path.join(out, "replay.png")
@@ -156,7 +169,13 @@ def replay_command(args: argparse.Namespace) -> int:
         print(f"angle error after {stats['t_settle']:g} s: mean "
               f"{stats['theta_err_mean_deg']:.4g} deg, std {stats['theta_err_std_deg']:.4g} "
               f"deg, max {stats['theta_err_max_deg']:.4g} deg")
+    print(f"status: {status}")
     print(f"wrote {', '.join(files.values())}")
+    if lock is not None and lock["lost"] and finite:
+        print(f"pmsmjax replay: the observer lost lock at t = {lock['t_lost_s']:.4g} s "
+              f"(mean |angle error| over {1e3 * lock['dwell_s']:g} ms above "
+              f"{lock['lock_deg']:g} deg)",
+              file=sys.stderr)
     return 0
 
 

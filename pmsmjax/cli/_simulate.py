@@ -105,6 +105,36 @@ SCENARIOS: dict[str, _ScenarioSpec] = {
 }
 
 
+def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None) -> dict:
+    """The lock status of a run (`pmsmjax.lock_status`, the one definition) as plain data
+    with the run's status: "successful", "lost lock at t = ... s", "never locked" or
+    "diverged". With an I/f start-up the observer is judged from the first sample at
+    which the rotor turns at the handover speed (before it the drive runs open loop)."""
+    t = np.asarray(t, float)
+    start = 0
+    if startup is not None and w_m is not None:
+        fast = np.flatnonzero(np.abs(np.asarray(w_m)) >= float(startup.w_hand))
+        start = int(fast[0]) if fast.size else len(t) - 1
+    st = {k: np.asarray(v).item() for k, v in pj.lock_status(
+        t[start:], np.asarray(theta_err)[start:], ok=ok).items()}
+    out = {"definition": f"mean |angle error| over {1e3 * pj.LOCK_DWELL_S:g} ms above "
+                         f"{pj.LOCK_DEG:g} deg after lock was acquired, or a diverged run "
+                         f"(pmsmjax.lock_status)",
+           "lock_deg": pj.LOCK_DEG, "dwell_s": pj.LOCK_DWELL_S, "judged_from_s": float(t[start]),
+           "acquired": bool(st["acquired"]), "lost": bool(st["lost"]),
+           "t_acquired_s": None if np.isnan(st["t_acquired"]) else float(st["t_acquired"]),
+           "t_lost_s": None if np.isnan(st["t_lost"]) else float(st["t_lost"])}
+    if not ok:
+        out["status"] = "diverged"
+    elif out["lost"]:
+        out["status"] = f"lost lock at t = {out['t_lost_s']:.4g} s"
+    elif not out["acquired"]:
+        out["status"] = "never locked"
+    else:
+        out["status"] = "successful"
+    return out
+
+
 def _startup_info(su) -> dict | None:
     if su is None:
         return None
@@ -251,6 +281,7 @@ def simulate_command(args: argparse.Namespace) -> int:
 
     w_b, I_b = float(drive.w_rated), float(drive.base.I_b)
     t = arrays["t"]
+    lock = run_lock_status(t, arrays["theta_err"], ok, arrays["w_m"], controller.startup)
     t_settle = 5.0 / alpha_s
     mask = pj.settled_mask(t, arrays["w_m_ref"], arrays["tau_L"], t_settle=t_settle)
     e_w = (arrays["w_m_ref"] - arrays["w_m"])[mask]
@@ -299,8 +330,9 @@ def simulate_command(args: argparse.Namespace) -> int:
                             "max_abs": float(np.degrees(np.max(np.abs(arrays["theta_err"]))))},
         "max_current": {"A": float(np.max(i_abs)), "pu": float(np.max(i_abs)) / I_b,
                         "i_max_A": float(drive.i_max)},
-        "status": "successful" if ok else "diverged",
+        "status": lock["status"],
         "status_message": pj.RESULTS[traj.status],
+        "lock": lock,
         "files": {k: os.path.basename(v) for k, v in files.items()},
     }
     summary["wall_time_s"] = time.perf_counter() - t_start
@@ -315,6 +347,11 @@ def simulate_command(args: argparse.Namespace) -> int:
               f"{se['max_abs_pu']:.2e} p.u. ({se['samples']} samples)")
     print(f"status: {summary['status']}")
     print(f"wrote {', '.join(files.values())}")
+    if ok and lock["lost"]:
+        print(f"pmsmjax simulate: the observer lost lock at t = {lock['t_lost_s']:.4g} s "
+              f"(mean |angle error| over {1e3 * lock['dwell_s']:g} ms above "
+              f"{lock['lock_deg']:g} deg): its estimates after that are not an angle",
+              file=sys.stderr)
     if not ok:
         print(f"pmsmjax simulate: the run diverged: {summary['status_message']}",
               file=sys.stderr)

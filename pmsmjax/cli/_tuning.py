@@ -4,7 +4,7 @@ the `tuning` package, under the one command line.
 `tuning` imports `pmsmjax`, never the reverse: these commands import it only when they
 run (`handover`), so `import pmsmjax` and every other command never load it. Their
 options are the `tuning` parsers' own (`tuning.__main__.build_parser`,
-`tuning._compare_cli.build_parser`), shown by `pmsmjax tune --help` and `pmsmjax compare
+`tuning.compare.cli.build_parser`), shown by `pmsmjax tune --help` and `pmsmjax compare
 --help`; `python -m tuning` and `python -m tuning compare` run the same code.
 """
 
@@ -16,7 +16,7 @@ from ._options import CLIError, Command
 
 
 #: The commands handed over to `tuning`, and what they run.
-HANDOVER = {"tune": "tuning.__main__", "compare": "tuning._compare_cli"}
+HANDOVER = {"tune": "tuning.__main__", "compare": "tuning.compare.cli"}
 
 
 def tuning_module(name: str):

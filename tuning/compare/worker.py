@@ -14,13 +14,13 @@ import pmsmjax as pj
 
 def main(argv=None) -> int:
     pj.runtime.configure()
-    p = argparse.ArgumentParser(prog="python -m tuning._compare_worker")
+    p = argparse.ArgumentParser(prog="python -m tuning.compare.worker")
     p.add_argument("--out", required=True)
     p.add_argument("--observer", required=True)
     p.add_argument("--sweep-dir", required=True)
     p.add_argument("--batch-size", type=int, default=None)
     args = p.parse_args(argv)
-    from .compare import CompareConfig, _Context, _Units, observer_entry
+    from .job import CompareConfig, _Context, _Units, observer_entry
 
     out = pathlib.Path(args.out)
     config = CompareConfig.from_dict(json.loads((out / "job.json").read_text())["config"])

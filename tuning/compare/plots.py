@@ -20,7 +20,7 @@ import pathlib
 
 import numpy as np
 
-from .compare import TRACE_SAMPLES
+from .job import TRACE_SAMPLES
 
 
 #: (key, label) of the bar charts.

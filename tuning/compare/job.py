@@ -2,7 +2,7 @@ r"""Which observer for my drive? Every registered observer, paper design and tun
 common grid (`python -m tuning compare`).
 
 **The common grid.** Every observer runs the same closed-loop, speed-controlled,
-sensorless runs, built by `tuning.validation` (the tuner's validation runs): the speed
+sensorless runs, built like the tuner's validation runs (`tuning.scenarios`): the speed
 loop is fed by the observer's $\hat\omega$ and the current control runs in its frame
 $\hat\theta$; the run starts at `start_frac` x the final speed (observer on the true
 state), the speed reference ramps to the final speed over $[0.1, 0.3]\,t_{end}$, and a
@@ -29,8 +29,9 @@ and $\tilde\omega = \omega - \hat\omega$, rad/s, on the saved samples):
   last sample is outside the band (never settled);
 - `noise_rad_s`: speed-estimate noise, the standard deviation of $\tilde\omega$ over the
   static window;
-- `lost_lock`: the run lost lock: $|\tilde\theta|$ exceeded `lock_deg` at some sample, or
-  the run diverged (`simulate`'s status) or produced a non-finite sample.
+- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
+  the mean $|\tilde\theta|$ over 10 ms above `lock_deg`, default 45 deg, after lock was acquired,
+  or the run diverged or produced a non-finite sample).
 
 **Per-observer metrics** (`aggregate`), over the runs that kept lock (runs that lost lock
 are counted and located instead, their angle error is meaningless):
@@ -55,9 +56,12 @@ are counted and located instead, their angle error is meaningless):
 A metric that cannot be computed is `null` in the JSON with its reason in `flags`.
 
 **Designs.** "paper": the observer's paper design (`make_observer`, `from_drive`);
-"tuned": the existing tuner (`tuning.optimise`, `tuner`) from it, on a small training
-problem (`tuning_config`: `TuningConfig.quick` with `tune_steps` steps), cached in the job
-folder so that a resumed job does not tune again.
+"tuned": the closed-loop tuner's search (`tuning.search`, strategy `tuner`, default its
+hybrid of CMA-ES and the gradient) from it, on the tuner's small problem
+(`tuning_problem`: `TuningProblem.quick` for the drive, `tune_steps` evaluations of its
+training batch), in the tuner's design space (`tuning.DesignSpace`), cached in the job
+folder (`tuned/NAME.json`, the physical coordinates) so that a resumed job does not tune
+again.
 
 **Which observers apply.** Every registered observer estimates from the alpha-beta
 subspace (for a dual three-phase machine, the alpha-beta subspace of the VSD), so every
@@ -98,25 +102,27 @@ from pmsmjax.observers import (
     observer_names,
 )
 
-from ._report import _clean
-from .objectives import evaluate, report_objective
-from .optimise import optimise
-from .scenarios import (
-    MOTOR_DEFAULTS,
-    TuningConfig,
-    _drive,
-    _mtime,
-    make_observer,
-    operating_current,
+from ..design_space import DesignSpace
+from ..evaluate import Evaluator
+from ..objective import objective
+from ..problem import TuningProblem, _drive, _mtime
+from ..report.summary import _clean
+from ..scenarios import (
+    VAL_LOAD_STEP,
+    VAL_RAMP,
+    ScenarioSet,
+    observer_model,
+    simulate_set,
+    training_set,
 )
-from .validation import RAMP, ValidationSet, observer_model, simulate_validation
+from ..search import STRATEGIES
 
 
 FORMAT = "pmsmjax-compare/1"
 #: The static window: the last fraction of each run (after the ramp and the load step).
 STATIC_WINDOW = 0.2
 DESIGNS = ("paper", "tuned")
-TUNERS = ("adam", "bfgs", "lm", "local", "none")
+TUNERS = ("hybrid", "gradient", "cmaes", "random", "local", "none")
 #: Observer-model mismatch cases `(k_d, k_q, k_R, k_psi)` (observer value / plant value):
 #: matched; both inductances low and high; crossed; R_s high (hot winding) and low;
 #: psi_f high and low (hot magnet); everything at once.
@@ -155,7 +161,7 @@ class CompareConfig:
     - `motor_file`: a motor file (TOML) of your own drive instead of a preset (stored as
       an absolute path; `motor` becomes the name the file gives its drive);
       `set_params`: `((name, value), ...)` drive parameters replaced (SI units), as
-      `TuningConfig`'s.
+      `TuningProblem`'s.
     - `T_s` (s), `t_end` (s): sampling period and length of each run; `save_every`: samples
       kept (every n-th).
     - `speeds_pu` (p.u., > 0, each run with both signs), `loads_pu` (p.u. of rated torque,
@@ -163,9 +169,10 @@ class CompareConfig:
     - `start_frac`: the run starts at this fraction of its final speed.
     - `noise_std`: current noise (A per component); `seed`: of the noise keys.
     - `lock_deg` (deg), `settle_band_deg` (deg): loss-of-lock threshold and settling band.
-    - `tuner`: "adam", "bfgs", "lm" (gradient-based, `tuning.optimise`), "local" (the
-      gradient-free (1+1) search `tuning.local_search`) or "none" (no tuned design);
-      `tune_steps`: its steps (designs for "local").
+    - `tuner`: the closed-loop tuner's search strategy (`tuning.search`: "hybrid",
+      "gradient", "cmaes", "random", "local") or "none" (no tuned design);
+      `tune_steps`: its budget in evaluations of the training batch (simulations:
+      `tune_steps` x the batch size).
     - `harmonic_orders`, `harmonic_speeds_pu`: of the harmonic sensitivity.
     - `chunk_size`: runs per sweep chunk (the unit of resume); None (default): chosen by
       `run_sweep` from the measured cost (chunks of a few seconds; a sweep of the
@@ -187,9 +194,9 @@ class CompareConfig:
     start_frac: float = 0.6
     noise_std: float = 0.02
     seed: int = 0
-    lock_deg: float = 90.0
+    lock_deg: float = pj.LOCK_DEG
     settle_band_deg: float = 2.0
-    tuner: str = "local"
+    tuner: str = "hybrid"
     tune_steps: int = 12
     harmonic_orders: tuple = (-5, 7)
     harmonic_speeds_pu: tuple = (0.1, 0.5, 1.0)
@@ -258,8 +265,8 @@ class CompareConfig:
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"`CompareConfig({name}=...)` must be a finite number > 0; "
                                  f"got {v!r}.")
-        # the validation runs check the rest (whole number of periods, load within limits)
-        self.run_config(observer_names()[0])
+        # the tuner's problem checks the rest (run length against the sampling period)
+        self.tuning_problem(observer_names()[0])
 
     @classmethod
     def quick(cls, **changes) -> CompareConfig:
@@ -303,28 +310,18 @@ class CompareConfig:
                       _mtime(self.motor_file))
 
     def _drive_kw(self) -> dict:
-        """The drive of a `TuningConfig`: the preset, or the motor file, and `--set`."""
+        """The drive of a `TuningProblem`: the preset, or the motor file, and `--set`."""
         if self.motor_file is None:
             return dict(motor=self.motor, set_params=self.set_params)
         return dict(motor_file=self.motor_file, set_params=self.set_params)
 
-    def run_config(self, observer: str) -> TuningConfig:
-        """The `TuningConfig` whose validation runs are this comparison's runs."""
-        load = max(self.loads_pu)
-        return TuningConfig(**self._drive_kw(), observer=observer, T_s=self.T_s,
-                            noise_std=self.noise_std, seed=self.seed,
-                            save_every=self.save_every, val_t_end=self.t_end,
-                            val_start_frac=self.start_frac, val_load_pu=load,
-                            t_end=self.t_end, t_transient=0.5 * self.t_end)
-
-    def tuning_config(self, observer: str) -> TuningConfig:
-        """The tuner's small training problem: `TuningConfig.quick` for the motor (its
-        `MOTOR_DEFAULTS` initial angle error and mismatch range), `tune_steps` steps."""
-        md = MOTOR_DEFAULTS.get(self.motor, {})
-        kw = {k: md[k] for k in ("theta_err0_deg", "mismatch", "T_s") if k in md}
-        return TuningConfig.quick(**self._drive_kw(), observer=observer,
-                                  steps=max(self.tune_steps, 1), patience=0,
-                                  seed=self.seed, **kw)
+    def tuning_problem(self, observer: str) -> TuningProblem:
+        """The tuner's small problem for `observer` on this comparison's drive, sampling
+        period, noise and seed (`TuningProblem.quick`), with a budget of `tune_steps`
+        evaluations of its training batch."""
+        q = TuningProblem.quick(**self._drive_kw(), observer=observer, T_s=self.T_s,
+                                noise_std=self.noise_std, seed=self.seed)
+        return q.replace(budget=max(self.tune_steps, 2) * q.n_train)
 
     def grid(self, index: bool = False):
         """The common grid as a `SweepGrid` (axes: signed speed, load, case index);
@@ -346,7 +343,7 @@ def applicable_observers(config: CompareConfig) -> tuple[dict, dict]:
     for n in names:
         try:
             registry_observer(n, drive)
-            config.run_config(n)
+            config.tuning_problem(n)
         except ValueError as e:
             skipped[n] = str(e)
         else:
@@ -374,7 +371,7 @@ def run_metrics(traj: pj.Trajectory, config: CompareConfig) -> dict:
     noise = jnp.sqrt(jnp.sum(jnp.where(win, (w_err - w_mean[..., None]) ** 2, 0.0), -1) / nw)
     rms = jnp.sqrt(jnp.mean(th ** 2, -1))
     max_abs = jnp.max(jnp.abs(th), -1)
-    t0 = RAMP[0] * config.t_end
+    t0 = VAL_RAMP[0] * config.t_end
     after = t >= t0 - half
     out = after & (jnp.abs(th - static[..., None]) > config.settle_band_deg)
     idx = jnp.arange(t.shape[-1])
@@ -383,56 +380,66 @@ def run_metrics(traj: pj.Trajectory, config: CompareConfig) -> dict:
     t_set = jnp.take_along_axis(t, jnp.clip(last_out + 1, 0, n - 1)[..., None], -1)[..., 0]
     settle = jnp.where(last_out < 0, 0.0, t_set - t0)
     settle = jnp.where(last_out >= n - 1, jnp.nan, settle)
-    lost = (~traj.ok) | ~jnp.all(fin, -1) | (max_abs > config.lock_deg)
+    lost = pj.lock_status(t, traj.theta_err, ok=traj.ok & jnp.all(fin, -1),
+                          lock_deg=config.lock_deg)["lost"]
     return dict(static_deg=static, rms_deg=rms, max_abs_deg=max_abs, settle_s=settle,
                 noise_rad_s=noise, lost_lock=lost)
 
 
-def _design_columns(design) -> tuple[dict, object]:
-    """The design's floating-point leaves as grid columns `design_000`, ... (one value per
-    column, the same at every point) and the function that rebuilds the design from a
-    point: the paper and the tuned design then share one compiled sweep function."""
-    params, static = eqx.partition(design, eqx.is_inexact_array)
-    flat, unravel = jax.flatten_util.ravel_pytree(params)
-    names = [f"design_{i:03d}" for i in range(flat.shape[0])]
-
-    def rebuild(point):
-        vec = jnp.stack([point[n] for n in names]) if names else flat
-        return eqx.combine(unravel(vec), static)
-
-    return {n: float(v) for n, v in zip(names, np.asarray(flat))}, rebuild
+def _design_columns(x) -> dict:
+    """The design's physical coordinates as grid columns `design_000`, ... (one value per
+    column, the same at every point; none for the paper's design, `x` None)."""
+    if x is None:
+        return {}
+    return {f"design_{i:03d}": float(v) for i, v in enumerate(np.asarray(x))}
 
 
 @functools.lru_cache(maxsize=32)
-def _sweep_fns(config: CompareConfig, name: str):
-    """The per-point functions of the two sweeps of observer `name`: one function object
-    per observer and kind of sweep, so that the paper and the tuned design (grid columns)
-    share one compilation, and a resumed job in the same process compiles nothing."""
-    _, rebuild = _design_columns(config.tuning_config(name).initial_schedule())
+def _space(config: CompareConfig, name: str) -> DesignSpace:
+    return DesignSpace(config.tuning_problem(name))
+
+
+@functools.lru_cache(maxsize=64)
+def _sweep_fns(config: CompareConfig, name: str, n_coords: int):
+    """The per-point functions of the two sweeps of observer `name` for a design of
+    `n_coords` coordinates (0: the paper's design): one function object per observer,
+    kind of design and kind of sweep, so that a resumed job in the same process compiles
+    nothing."""
+    def design(p):
+        return None if n_coords == 0 else jnp.stack(
+            [p[f"design_{i:03d}"] for i in range(n_coords)])
 
     def f_runs(p):
-        return run_point(rebuild(p), config, name, p)
+        return run_point(design(p), config, name, p)
 
     def f_feas(p):
-        return feasibility_point(rebuild(p), config, name, p)
+        return feasibility_point(design(p), config, name, p)
 
     return f_runs, f_feas
 
 
 def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
-    """Simulate one point of the common grid (`tuning.validation.simulate_validation`)
-    and return its `run_metrics`. `point`: `speed_pu` (signed), `load_pu`, `case` (index
-    into `config.cases`), `index` (of the noise key)."""
-    tcfg = config.run_config(kind)
+    """Simulate one point of the common grid (`tuning.scenarios.simulate_set`, the runs
+    of the tuner's validation set) with the design `design` (physical coordinates of the
+    tuner's design space; None: the paper's) and return its `run_metrics`. `point`:
+    `speed_pu` (signed), `load_pu`, `case` (index into `config.cases`), `index` (of the
+    noise key)."""
+    drive = config.drive()
+    space = _space(config, kind)
     cases = jnp.asarray(config.cases)
     k = cases[point["case"].astype(int)]
     sp = jnp.asarray(point["speed_pu"])[None]
     key = jr.fold_in(jr.PRNGKey(config.seed), point["index"].astype(jnp.uint32))
-    vset = ValidationSet(speed_pu=sp, start_pu=config.start_frac * sp,
-                         load_pu=jnp.asarray(point["load_pu"])[None],
-                         k_d=k[0:1], k_q=k[1:2], k_R=k[2:3], k_psi=k[3:4],
-                         k_noise=jnp.ones(1, sp.dtype), keys=key[None])
-    traj = simulate_validation(design, tcfg, vset, kind=kind)
+    q = lambda f: jnp.full(1, round(f * config.t_end / config.T_s) * config.T_s)  # noqa
+    sset = ScenarioSet(s0=config.start_frac * sp, s1=sp, t0=q(VAL_RAMP[0]),
+                       t1=q(VAL_RAMP[1]), t_load=q(VAL_LOAD_STEP),
+                       load_pu=jnp.asarray(point["load_pu"])[None],
+                       k_d=k[0:1], k_q=k[1:2], k_R=k[2:3], k_psi=k[3:4],
+                       k_noise=jnp.ones(1, sp.dtype), keys=key[None],
+                       kind=jnp.full(1, 3), t_end=config.t_end)
+    traj = simulate_set(lambda motor: space.observer(design, motor), drive,
+                        pj.FOC.from_drive(drive), sset, T_s=config.T_s,
+                        noise_std=config.noise_std, save_every=config.save_every)
     out = jax.tree_util.tree_map(lambda a: a[0], run_metrics(traj, config))
     # decimated traces for the figures (at most about `TRACE_SAMPLES` samples)
     stride = max(1, traj.t.shape[-1] // TRACE_SAMPLES)
@@ -441,13 +448,20 @@ def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     return out
 
 
+def operating_current(drive: pj.Drive, load_pu):
+    """Controlled current $(i_d, i_q) = (0, \\tau_L / (k_\\tau\\psi_f))$ (A) for a load
+    in p.u. of rated torque ($i_d = 0$)."""
+    i_q = load_pu * drive.tau_rated / (drive.k_tau * drive.three_phase_motor.psi_f)
+    return jnp.stack([jnp.zeros_like(i_q), i_q], -1)
+
+
 def feasibility_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     """The generic analysis at one point of the grid at constant speed and current
     (`feasible`, `status`; see the module docstring)."""
     drive = config.drive()
     k = jnp.asarray(config.cases)[point["case"].astype(int)]
-    obs = make_observer(kind, drive, design,
-                        motor=observer_model(drive, k[0], k[1], k[2], k[3]))
+    obs = _space(config, kind).observer(
+        design, motor=observer_model(drive, k[0], k[1], k[2], k[3]))
     op = OperatingPoint(point["speed_pu"] * float(drive.w_rated),
                         operating_current(drive, point["load_pu"]))
     plant = drive.three_phase_motor
@@ -492,47 +506,38 @@ def _atomic_write(path: pathlib.Path, data: bytes):
 
 
 def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progress, log):
-    """The tuned design of `name` and its record, from the cache or tuned now."""
-    tcfg = config.tuning_config(name)
-    init = tcfg.initial_schedule()
-    meta_path, eqx_path = folder / f"{name}.json", folder / f"{name}.eqx"
+    """The tuned design of `name` (physical coordinates of the tuner's design space) and
+    its record, from the cache or tuned now."""
+    meta_path = folder / f"{name}.json"
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text())
-        design = eqx.tree_deserialise_leaves(eqx_path, init) if meta["tuned"] else None
-        return design, meta
+        return (np.asarray(meta["x"], dtype=float) if meta["tuned"] else None), meta
     if config.tuner == "none":
         return None, dict(tuned=False, reason="no tuner (tuner = none)")
     folder.mkdir(parents=True, exist_ok=True)
-    log(f"tuning {name} ({config.tuner}, {config.tune_steps} steps) ...")
+    problem = config.tuning_problem(name)
+    space = _space(config, name)
+    log(f"tuning {name} ({config.tuner}, {problem.budget} closed-loop simulations) ...")
     t = time.perf_counter()
-    train = _training(tcfg)
-    value, ref = evaluate(init, tcfg, train, chunk=train.n, objective=report_objective(tcfg))
-    method = "local_search" if config.tuner == "local" else config.tuner
-    if method == "local_search":
-        from .optimise import local_search
-
-        res = local_search(init, tcfg, train, n_designs=config.tune_steps,
-                           progress=progress, reference=ref.loss)
-    else:
-        res = optimise(init, tcfg, train, method=method, progress=progress,
-                       reference=ref.loss)
-    meta = dict(tuned=True, tuner=method, steps=config.tune_steps,
-                quantities=list(tcfg.tuned), result=str(res.result),
-                objective=tcfg.objective, train_loss_paper=float(value),
-                train_loss_tuned=float(res.loss), design=res.value.table(),
+    ev = Evaluator(problem, space, training_set(problem))
+    z0 = space.to_unconstrained(space.paper_point())
+    res = STRATEGIES[config.tuner](ev, z0, budget=problem.budget,
+                                   population=problem.population,
+                                   key=jr.PRNGKey(config.seed),
+                                   learning_rate=problem.learning_rate,
+                                   clip_norm=problem.clip_norm, progress=progress)
+    x = np.asarray(space.to_physical(jnp.asarray(res.z)))
+    meta = dict(tuned=True, tuner=config.tuner, budget=problem.budget, sims=res.sims,
+                objective="cvar (tuning.objective)",
+                train_objective_paper=float(objective(ev.reference, ev.reference,
+                                                      problem)[0]),
+                train_objective_tuned=float(res.value), x=x.tolist(),
+                coordinates=space.as_dict(x),
+                design={k: float(v) for k, v in space.design(x).items()},
                 seconds=time.perf_counter() - t)
-    buf = folder / f".{name}.eqx.{os.getpid()}.tmp"
-    eqx.tree_serialise_leaves(buf, res.value)
-    os.replace(buf, eqx_path)
     _atomic_write(meta_path, json.dumps(_clean(meta), indent=1).encode())
     units.tick()
-    return res.value, meta
-
-
-def _training(tcfg):
-    from .scenarios import training_scenarios
-
-    return training_scenarios(tcfg)
+    return x, meta
 
 
 @eqx.filter_jit
@@ -572,7 +577,7 @@ def harmonic_sensitivity(design, config: CompareConfig, name: str):
     (`pmsmjax.analysis.harmonic_ripple`), or `(None, reason)` where it is not finite (an
     unstable or resonant linearisation at one of the speeds)."""
     drive = config.drive()
-    obs = make_observer(name, drive, design)
+    obs = _space(config, name).observer(design)
     orders = jnp.asarray(config.harmonic_orders)
 
     def one(s):
@@ -672,14 +677,13 @@ def observer_entry(ctx: _Context, name: str, units, *, class_name: str | None = 
     # measured on this machine: differs between any two runs (`TIMING_KEYS`)
     entry = {"class": class_name or observer_class(name).__name__, "designs": {},
              "tuning": meta, "observer_us_per_step": tim["observer_us_per_step"]}
-    paper = config.tuning_config(name).initial_schedule()
-    f_runs, f_feas = _sweep_fns(config, name)
-    for dname, design in (("paper", paper), ("tuned", design_t)):
+    for dname, design in (("paper", None), ("tuned", design_t)):
         if dname == "tuned" and design is None:
             entry["designs"][dname] = dict(flags={"all": "tuned design not available: "
                                                   + meta.get("reason", "")})
             continue
-        cols, _ = _design_columns(design)
+        cols = _design_columns(design)
+        f_runs, f_feas = _sweep_fns(config, name, len(cols))
         sweep_dir = sweeps / name / dname
         md = dict(observer=name, design=dname, config=config.fingerprint())
         log(f"{name}, {dname} design: {n_runs} runs ...")
@@ -711,7 +715,7 @@ def observer_entry(ctx: _Context, name: str, units, *, class_name: str | None = 
 
 def _run_workers(ctx: _Context, names: list, jobs: int):
     """Run `observer_entry` for `names` in `jobs` worker processes at a time (`python -m
-    tuning._compare_worker`); each writes `OUT/observers/NAME.json` and its log to
+    tuning.compare.worker`); each writes `OUT/observers/NAME.json` and its log to
     `OUT/logs/NAME.log`. Compilation, which dominates a small comparison, is per observer
     and runs on one or two cores per process, so the observers compile side by side."""
     import subprocess
@@ -721,7 +725,7 @@ def _run_workers(ctx: _Context, names: list, jobs: int):
         return
     logs = ctx.out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    cmd = [sys.executable, "-m", "tuning._compare_worker", "--out", str(ctx.out),
+    cmd = [sys.executable, "-m", "tuning.compare.worker", "--out", str(ctx.out),
            "--sweep-dir", str(ctx.sweeps)]
     if ctx.batch_size:
         cmd += ["--batch-size", str(ctx.batch_size)]
@@ -771,7 +775,7 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
     of `comparison.json`). Resumable: tuned designs, cost measurements and every sweep
     chunk are kept in `out`, and a second call continues where the first stopped.
     `restart`: start over (`ValueError` if `out` holds a job of another configuration
-    unless `restart`). `plot`: also write the figures (`tuning._compare_plots`).
+    unless `restart`). `plot`: also write the figures (`tuning.compare.plots`).
     `sweep_dir`: folder of the sweeps (default `out/sweeps`: one sweep of the runs and
     one of the analysis per observer and design, `NAME/DESIGN/runs`, `.../analysis`);
     `batch_size`: of `run_sweep` (bitwise the same results on any device count).
@@ -841,7 +845,7 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
         _atomic_write(out / "timing.json", json.dumps(_clean(timing), indent=1).encode())
     summary["timing"] = _clean(timing)
     if plot and writer:
-        from ._compare_plots import plot_comparison
+        from .plots import plot_comparison
 
         plot_comparison(summary, out, sweeps)
     return summary

@@ -18,14 +18,14 @@ from pmsmjax.observers import observer_names
 
 
 def build_parser(prog: str = "python -m tuning compare") -> argparse.ArgumentParser:
-    from .compare import TUNERS, CompareConfig
+    from .job import TUNERS, CompareConfig
 
     p = argparse.ArgumentParser(
         prog=prog,
         description=(
             "Which observer for my drive? Runs every registered observer that applies to "
             "the motor (or --observers), with its paper design and the design tuned by "
-            "the existing tuner, on one common grid of closed-loop speed-controlled "
+            "the closed-loop tuner (python -m tuning), on one common grid of closed-loop speed-controlled "
             "sensorless runs (speeds in both directions, no load to rated load, a speed "
             "ramp and a load step, observer-model mismatch of L_d, L_q, R_s and psi_f, "
             "current noise), checks the same grid with the generic equilibrium analysis, "
@@ -42,17 +42,17 @@ def build_parser(prog: str = "python -m tuning compare") -> argparse.ArgumentPar
                    help="a first look, about 80 s on a 2-core CPU from an empty "
                         "compilation cache (CompareConfig.quick; BENCHMARKS.md): a small "
                         "grid, the paper designs only, no equilibrium analysis (add "
-                        "--tuner local and --analysis for the tuned designs and the "
+                        "--tuner hybrid and --analysis for the tuned designs and the "
                         "feasible fraction)")
     p.add_argument("--tuner", default=None, choices=TUNERS,
-                   help="tuner of the 'tuned' design (default: local, the gradient-free "
-                        "(1+1) search of tuning.local_search; adam/bfgs/lm: the gradient "
-                        "tuner, whose compilation takes minutes for some observers)")
+                   help="search strategy of the closed-loop tuner for the 'tuned' design "
+                        "(default: hybrid, CMA-ES then the gradient polish, as python -m "
+                        "tuning; none: the paper designs only)")
     p.add_argument("--analysis", action=argparse.BooleanOptionalAction, default=None,
                    help="run the generic equilibrium analysis of the grid (the feasible "
                         "fraction; default: on, off with --quick)")
     p.add_argument("--tune-steps", type=int, default=None, metavar="N",
-                   help="tuner steps (designs for the local search)")
+                   help="the tuner's budget in evaluations of its training batch")
     p.add_argument("--jobs", type=_jobs, default="auto", metavar="N",
                    help="observers computed side by side in N worker processes (each "
                         "compiles its own observer's programs; the results do not depend "
@@ -92,7 +92,7 @@ def jobs_for(value, distributed: bool) -> int:
 def main(argv=None, prog: str = "python -m tuning compare") -> int:
     pj.runtime.configure()
     args = build_parser(prog).parse_args(argv)
-    from .compare import CompareConfig, CompareInterrupted, markdown, run_comparison
+    from .job import CompareConfig, CompareInterrupted, markdown, run_comparison
 
     kw = {"motor": args.motor or "zhang750"}
     if args.motor_file is not None:

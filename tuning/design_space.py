@@ -1,0 +1,226 @@
+r"""The design space in physical terms: bandwidths and damping, bounds from the drive.
+
+A design is a point $x$ of physical coordinates (a tracking bandwidth in rad/s, a
+damping ratio, an estimator bandwidth, a filter time constant, ...); the search moves an
+unconstrained vector $z$ and sees $x_i = \exp(\ln l_i + (\ln h_i - \ln l_i)\,
+\sigma(z_i))$ (log space, so that a step is a ratio; $\sigma$ the logistic function), so
+every design it proposes is inside the bounds. `DesignSpace.observer(x, motor)` builds the
+observer through the contract (`from_drive` + `with_design`).
+
+**Bounds, derived from the drive** (`problem` fields in brackets):
+
+- *tracking bandwidth* (the loop that turns the back-EMF / flux angle into angle and
+  speed: zhang2022's $\omega_2$ (25), li's PLL $\omega_{pll}$, stumper's tracking filter
+  $\sqrt{v_1}$): a type-2 loop lags a speed ramp $a$ by $a/\omega^2$ (rad), so the lowest
+  bandwidth is $\sqrt{a_{max}/\theta_{lag}}$ with $a_{max} = n_p\tau_{max}/J$ (what the
+  torque limit gives the unloaded rotor) and $\theta_{lag}$ = `ramp_lag_deg`; the
+  highest is `w_T_s_max / T_s` (the discrete loop stays within a few per cent of the
+  continuous one designed);
+- *damping* (zhang2022's $\zeta_2$, the PLL's $\zeta_{pll}$, the tracking filter's
+  $v_2 / (2\sqrt{v_1})$): `damping_range`;
+- *estimator bandwidth* (li's LESO $\omega_0$ (16)): from the lowest tracking bandwidth
+  (an estimator slower than the loop it feeds adds its lag to the loop's) to $1/T_s$
+  (the LESOs are discretised exactly, so this is a noise bound, not a stability one);
+- *filter time constant* (stumper's $T_{LP}$): from $T_s$ (the forward-Euler filter's
+  stability limit) to $1/\omega_{min}$ of the tracking loop (a slower filter than that
+  lags more than the allowed ramp lag);
+- any other tunable gain (morawiec2023's $c_\alpha$, $k_c$, $c_\theta$, $\gamma$;
+  li's FA-LESO $k_1$, $k_2$): no physical rule here; its bounds are the observer
+  contract's factor box around the paper's value (`tunable`), and the report says so.
+
+The paper's design is the starting point. Where it lies outside the derived bounds (stumper's
+tracking filter and li's PLL are slower than the ramp-lag rule asks at their drives'
+largest acceleration), the bounds are widened to hold it with a factor `PAPER_MARGIN` of
+room, and `why` says so: a search that cannot return the baseline cannot promise no
+regression.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from pmsmjax.observers import make_observer, observer_class
+
+from .problem import TuningProblem
+from .scenarios import max_acceleration
+
+
+@dataclasses.dataclass(frozen=True)
+class Coordinate:
+    """One physical coordinate: `name`, `unit`, bounds `lo` < `hi`, `kind` (tracking,
+    damping, estimator, time, contract), `why` (how the bounds were derived), `paper`
+    (the paper design's value)."""
+
+    name: str
+    unit: str
+    lo: float
+    hi: float
+    kind: str
+    why: str
+    paper: float
+
+
+#: Per family: the tunable coordinates and how they map to the observer's design.
+#: Each entry: coordinate name -> (kind, unit). Families not listed use the contract's
+#: `tunable` names directly ("tracking"/"damping"/"estimator" where recognised).
+#: Where the paper's design lies outside the derived bounds, they are widened to hold it
+#: with this factor of room (the search must be able to return the baseline).
+PAPER_MARGIN = 1.25
+#: Bounds of zhang2022's flux loop (fixed-ratio schedule): damping and w1/|w0|.
+FLUX_DAMPING = (0.5, 4.0)
+FLUX_RATIO = (0.2, 2.0)
+_TRACKING = {"w2", "w_pll"}
+_DAMPING = {"zeta2", "zeta_pll"}
+_ESTIMATOR = {"w0"}
+_TIME = {"T_LP"}
+
+
+def _kind(name: str) -> str:
+    for kind, names in (("tracking", _TRACKING), ("damping", _DAMPING),
+                        ("estimator", _ESTIMATOR), ("time", _TIME)):
+        if name in names:
+            return kind
+    return "contract"
+
+
+class DesignSpace:
+    """The physical design space of `problem.observer` on `problem.drive()` (see the
+    module docstring). Immutable after construction."""
+
+    def __init__(self, problem: TuningProblem):
+        self.observer_name = problem.observer
+        self._drive = problem.drive()
+        cls = observer_class(problem.observer)
+        paper = make_observer(problem.observer, self._drive).design_parameters()
+        self.paper_design = {k: float(v) for k, v in paper.items()
+                             if v is not None and np.ndim(v) == 0}
+        foc = problem.controller()
+        a_max = max_acceleration(self._drive, foc)
+        lag = math.radians(problem.ramp_lag_deg)
+        w_lo = math.sqrt(a_max / lag)
+        w_hi = problem.w_T_s_max / problem.T_s
+        if w_lo >= w_hi:
+            raise ValueError(
+                f"`TuningProblem`: the tracking bandwidth needed for a ramp lag of "
+                f"{problem.ramp_lag_deg:g} deg at a_max = {a_max:.4g} rad/s^2 "
+                f"({w_lo:.4g} rad/s) exceeds the discrete limit w_T_s_max / T_s = "
+                f"{w_hi:.4g} rad/s; allow more lag (ramp_lag_deg) or sample faster (T_s)")
+        self.a_max = a_max
+        self.w_track = (w_lo, w_hi)
+        coords = []
+        tunable = dict(cls.tunable)
+        if problem.observer == "parallel-model":  # (v1, v2) -> bandwidth and damping
+            v1, v2 = self.paper_design["v1"], self.paper_design["v2"]
+            tunable.pop("v1"), tunable.pop("v2")
+            coords.append(self._coord("w_tf", "rad/s", "tracking", math.sqrt(v1),
+                                      problem))
+            coords.append(self._coord("zeta_tf", "-", "damping",
+                                      v2 / (2 * math.sqrt(v1)), problem))
+        if {"zeta1", "ratio"} <= set(cls.speed_scheduled):
+            # zhang2022's flux loop as a fixed-ratio schedule; the paper's (38) is
+            # zeta1 = 1.5 + |w0|/w_rated, w1/|w0| = 1.5/zeta1: its values at half the
+            # rated speed stand for it as the "paper" point
+            coords.append(Coordinate("zeta1", "-", *FLUX_DAMPING, "flux",
+                                     "flux damping of zhang2022 (17); (38) spans 1.5..2.5",
+                                     2.0))
+            coords.append(Coordinate("ratio", "-", *FLUX_RATIO, "flux",
+                                     "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6", 0.75))
+        for name, box in tunable.items():
+            unit = cls.design_units[name].split(",")[0]
+            coords.append(self._coord(name, unit, _kind(name), self.paper_design[name],
+                                      problem, box))
+        self.coordinates = tuple(coords)
+
+    def _coord(self, name, unit, kind, paper, problem, box=None) -> Coordinate:
+        w_lo, w_hi = self.w_track
+        if kind == "tracking":
+            lo, hi = w_lo, w_hi
+            why = (f"ramp lag <= {problem.ramp_lag_deg:g} deg at a_max = "
+                   f"{self.a_max:.4g} rad/s^2 (sqrt(a_max / lag)); w T_s <= "
+                   f"{problem.w_T_s_max:g}")
+        elif kind == "damping":
+            lo, hi = problem.damping_range
+            why = "damping_range"
+        elif kind == "estimator":
+            lo, hi = w_lo, 1.0 / problem.T_s
+            why = "at least the lowest tracking bandwidth; at most 1/T_s (noise)"
+        elif kind == "time":
+            lo, hi = problem.T_s, 1.0 / w_lo
+            why = "T_s (forward-Euler stability) to 1/(lowest tracking bandwidth)"
+        else:
+            lo, hi = paper * box[0], paper * box[1]
+            why = (f"no physical rule: the observer contract's box {box[0]:g}..{box[1]:g}"
+                   f" x the paper's value")
+        if not lo <= paper <= hi:  # the baseline must stay reachable: no regression
+            lo, hi = min(lo, paper / PAPER_MARGIN), max(hi, paper * PAPER_MARGIN)
+            why += (f"; widened to hold the paper's value {paper:.4g} {unit} (x/"
+                    f"{PAPER_MARGIN:g} of it), which lies outside the derived bounds")
+        return Coordinate(name, unit, float(lo), float(hi), kind, why, float(paper))
+
+    # --- coordinates ------------------------------------------------------------------
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.coordinates)
+
+    @property
+    def n(self) -> int:
+        return len(self.coordinates)
+
+    def _logs(self):
+        lo = jnp.asarray([math.log(c.lo) for c in self.coordinates])
+        hi = jnp.asarray([math.log(c.hi) for c in self.coordinates])
+        return lo, hi
+
+    def to_physical(self, z) -> jnp.ndarray:
+        """Unconstrained `z` (n,) -> physical coordinates (n,), inside the bounds."""
+        lo, hi = self._logs()
+        return jnp.exp(lo + (hi - lo) * jax.nn.sigmoid(z))
+
+    def to_unconstrained(self, x) -> jnp.ndarray:
+        """Physical coordinates (n,) -> `z`; values outside the bounds are projected to
+        just inside them."""
+        lo, hi = self._logs()
+        u = (jnp.log(jnp.asarray(x, dtype=float)) - lo) / (hi - lo)
+        u = jnp.clip(u, 1e-3, 1 - 1e-3)
+        return jnp.log(u) - jnp.log1p(-u)
+
+    def paper_point(self) -> np.ndarray:
+        """The paper design's physical coordinates (possibly outside the bounds)."""
+        return np.array([c.paper for c in self.coordinates])
+
+    def paper_inside(self) -> bool:
+        return all(c.lo <= c.paper <= c.hi for c in self.coordinates)
+
+    def as_dict(self, x) -> dict:
+        """`{name: float}` of physical coordinates `x`."""
+        return {c.name: float(v) for c, v in zip(self.coordinates, np.asarray(x))}
+
+    def design(self, x) -> dict:
+        """The observer's design parameters (`design_units` names) of coordinates `x`
+        (may be traced)."""
+        x = jnp.asarray(x)
+        d = {c.name: x[i] for i, c in enumerate(self.coordinates)}
+        if "w_tf" in d:  # stumper's tracking filter: v1 = w^2, v2 = 2 zeta w
+            w, zeta = d.pop("w_tf"), d.pop("zeta_tf")
+            d["v1"], d["v2"] = w ** 2, 2 * zeta * w
+        return d
+
+    def observer(self, x, motor=None):
+        """The observer with the design `x` (physical coordinates; may be traced; None:
+        the paper's design as published, e.g. zhang2022's speed schedule (38)) and the
+        machine model `motor` (default the drive's)."""
+        obs = make_observer(self.observer_name, self._drive, motor=motor)
+        return obs if x is None else obs.with_design(**self.design(x))
+
+    def bounds_table(self) -> list[dict]:
+        """The coordinates, their bounds and how they were derived (for the report)."""
+        return [dataclasses.asdict(c) | {"paper_inside": c.lo <= c.paper <= c.hi}
+                for c in self.coordinates]
+
+
+__all__ = ["Coordinate", "DesignSpace"]

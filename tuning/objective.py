@@ -1,0 +1,178 @@
+r"""Per-run metrics -> per-run losses -> a tail-risk aggregate with per-metric constraints.
+
+**Metrics of one run** (`run_metrics`; $\tilde\theta$ the wrapped angle error, true minus
+estimate, in deg; $\tilde\omega = \omega - \hat\omega$):
+
+- `rms_deg`: RMS of $\tilde\theta$ over the whole run (ramps, reversal, load step);
+- `peak_deg`: a smooth peak of $|\tilde\theta|$, the $p$-norm mean
+  $(\mathrm{mean}|\tilde\theta|^p)^{1/p}$ with $p = 8$ (differentiable, within a
+  few per cent of the maximum for a transient that lasts a few per cent of the run);
+- `static_deg`: mean of $\tilde\theta$ over the last 20 % of the run;
+- `noise_rad_s`: standard deviation of $\tilde\omega$ over the last 20 % (electrical);
+- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
+  the mean $|\tilde\theta|$ over 10 ms above `lock_deg` after lock, or the run diverged);
+  `out_of_lock`: the fraction of samples above `lock_deg`, smooth (a logistic of width
+  2 deg), which is what the objective differentiates.
+
+**Loss of a run**: $L = \mathrm{rms}/\theta_u + w_{peak}\,\mathrm{peak}/\theta_{pk}
++ w_{noise}\,\sigma_\omega/\sigma_u$. A run that diverged or produced a non-finite sample
+gets the loss of a run that is wrong by 180 deg everywhere with no gradient (the
+non-finite samples are replaced before any arithmetic, so no NaN reaches a gradient). A
+run that merely loses lock stays finite (the wrapped error is bounded) and enters
+through its large RMS and peak errors, its `out_of_lock` fraction (below) and the
+constraint.
+
+**Aggregate** (`objective`), relative to a reference design (the paper's) run on the same
+scenarios, $r_i = L_i / L_{ref,i}$:
+
+$$J = \tfrac12\,\overline{r} + \tfrac12\,\mathrm{CVaR}_\beta(r)
+ + w_c\sum_i\mathrm{softplus}_k(\mathrm{rms}_i/\mathrm{rms}_{ref,i} - 1 - tol/2)
+ + w_c\sum_i[\mathrm{ref}_i\ \mathrm{in\ lock}]\ \mathrm{out\_of\_lock}_i$$
+
+$\mathrm{CVaR}_\beta$ is the mean of the worst fraction $\beta$ (`cvar_fraction`) of the
+ratios: the tail that a mean hides, but unlike a maximum it does not hang the whole
+objective on one run's noise. The mean keeps every run pulling (the target is to improve
+most runs, not only the worst). Ratios make runs of very different difficulty
+(0.1 p.u. with wrong $R_s$ and 0.8 p.u. matched) count alike. The two constraint terms
+are the no-regression rule per metric: no run's RMS angle error worse than the
+reference's by more than half of `regression_tol` (half: a margin for the runs the tuner
+never sees), and no run out of lock where the reference holds it; they are sums, not
+means, so that one violating run costs as much in a large batch as in a small one;
+`softplus_k` is a softplus of sharpness k = 50 (zero well inside, linear outside).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+import pmsmjax as pj
+
+from .problem import TuningProblem
+
+
+#: The p of the smooth peak.
+PEAK_P = 8
+#: Fraction of the run over which the static error and the noise are measured.
+STATIC_WINDOW = 0.2
+#: The training constraint holds the RMS error within this fraction of the tolerance
+#: (a margin for runs the tuner does not see).
+MARGIN = 0.5
+#: A run counts as better when its loss is lower by more than this (relative).
+BETTER = 1e-3
+#: Sharpness of the constraint's softplus.
+SHARPNESS = 50.0
+
+
+class Metrics(eqx.Module):
+    """Per-run metrics (arrays with the batch shape; see the module docstring)."""
+
+    rms_deg: jnp.ndarray
+    peak_deg: jnp.ndarray
+    static_deg: jnp.ndarray
+    noise_rad_s: jnp.ndarray
+    out_of_lock: jnp.ndarray
+    lost_lock: jnp.ndarray
+    ok: jnp.ndarray
+    loss: jnp.ndarray
+
+
+def run_metrics(traj: pj.Trajectory, problem: TuningProblem) -> Metrics:
+    """`Metrics` of a (batched) trajectory (samples on the last axis)."""
+    th = traj.theta_err
+    w_err = traj.w_m - traj.w_hat
+    fin = jnp.isfinite(th) & jnp.isfinite(w_err)
+    ok = traj.ok & jnp.all(fin, axis=-1)
+    th = jnp.rad2deg(jnp.where(fin, th, jnp.pi))
+    w_err = jnp.where(fin, w_err, 0.0)
+    n = th.shape[-1]
+    rms = jnp.sqrt(jnp.mean(th ** 2, axis=-1) + 1e-12)
+    a = jnp.abs(th) + 1e-6
+    peak = jnp.mean(a ** PEAK_P, axis=-1) ** (1.0 / PEAK_P)
+    k0 = int(round((1 - STATIC_WINDOW) * n))
+    static = jnp.mean(th[..., k0:], axis=-1)
+    we = w_err[..., k0:]
+    noise = jnp.sqrt(jnp.var(we, axis=-1) + 1e-12)
+    out = jnp.mean(jax.nn.sigmoid((jnp.abs(th) - problem.lock_deg) / 2.0), axis=-1)
+    lost = pj.lock_status(traj.t, traj.theta_err, ok=ok, lock_deg=problem.lock_deg)["lost"]
+    loss = (rms / problem.theta_unit_deg + problem.w_peak * peak / problem.peak_unit_deg
+            + problem.w_noise * noise / problem.noise_unit_rad_s)
+    worst = (180.0 / problem.theta_unit_deg + problem.w_peak * 180.0 /
+             problem.peak_unit_deg)
+    loss = jnp.where(ok, loss, jax.lax.stop_gradient(jnp.maximum(loss, worst)))
+    return Metrics(rms_deg=rms, peak_deg=peak, static_deg=static, noise_rad_s=noise,
+                   out_of_lock=out, lost_lock=lost, ok=ok, loss=loss)
+
+
+def cvar(r, fraction: float):
+    """Mean of the largest `ceil(fraction * n)` entries of `r` (last axis)."""
+    n = r.shape[-1]
+    k = max(1, int(-(-fraction * n // 1)))
+    return jnp.mean(jax.lax.top_k(r, k)[0], axis=-1)
+
+
+def _softplus(x, k=SHARPNESS):
+    return jax.nn.softplus(k * x) / k
+
+
+def objective(m: Metrics, ref: Metrics, problem: TuningProblem):
+    """The scalar objective $J$ of metrics `m` against the reference `ref` (same runs)
+    and its parts `{"mean", "cvar", "rms_constraint", "lock_constraint"}`."""
+    r = m.loss / ref.loss
+    rms_excess = m.rms_deg / ref.rms_deg - 1.0 - MARGIN * problem.regression_tol
+    held = (~ref.lost_lock).astype(r.dtype)
+    parts = {"mean": jnp.mean(r, axis=-1), "cvar": cvar(r, problem.cvar_fraction),
+             "rms_constraint": jnp.sum(_softplus(rms_excess), axis=-1),
+             "lock_constraint": jnp.sum(held * m.out_of_lock, axis=-1)}
+    J = (0.5 * parts["mean"] + 0.5 * parts["cvar"]
+         + problem.w_constraint * (parts["rms_constraint"] + parts["lock_constraint"]))
+    return J, parts
+
+
+def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
+    """Per-metric comparison of `m` with `ref` over the same runs (plain numbers):
+    runs better (loss lower by more than `BETTER`, 0.1 %: a change at the level of
+    rounding is a tie, not an improvement), improved / worse (loss changed by more than
+    `tol`, relative), the worst change
+    of the RMS angle error (%), runs whose RMS error is worse by more than `tol`, lock
+    lost where the reference holds it."""
+    import numpy as np
+
+    loss, loss_r = np.asarray(m.loss), np.asarray(ref.loss)
+    rms, rms_r = np.asarray(m.rms_deg), np.asarray(ref.rms_deg)
+    lost, lost_r = np.asarray(m.lost_lock), np.asarray(ref.lost_lock)
+    rel = loss / loss_r - 1.0
+    rms_rel = rms / rms_r - 1.0
+    worst = int(np.argmax(rms_rel))
+    return {"n": int(loss.size),
+            "improved": int(np.sum(rel < -tol)), "worse": int(np.sum(rel > tol)),
+            "improved_frac": float(np.mean(rel < -BETTER)),
+            "better": int(np.sum(rel < -BETTER)),
+            "tolerance_pct": 100.0 * tol,
+            "worst_rms_change_pct": float(100.0 * rms_rel[worst]), "worst_run": worst,
+            "rms_worse_than_tol": int(np.sum(rms_rel > tol)),
+            "lost_lock": int(np.sum(lost)), "lost_lock_reference": int(np.sum(lost_r)),
+            "new_lost_lock": int(np.sum(lost & ~lost_r)),
+            "median_loss_change_pct": float(100.0 * np.median(rel)),
+            "mean_rms_deg": float(np.mean(rms)), "mean_rms_deg_reference":
+                float(np.mean(rms_r))}
+
+
+def holds(acc: dict, min_frac: float = 0.75) -> tuple[bool, list[str]]:
+    """The validation rule: better than the reference in at least `min_frac` of the
+    runs, no run's RMS angle error worse by more than the tolerance, no lock lost that
+    the reference holds. Returns `(holds, reasons it does not)`."""
+    why = []
+    if acc["better"] < min_frac * acc["n"]:
+        why.append(f"better in {acc['better']} of {acc['n']} runs (< {100 * min_frac:g} %)")
+    if acc["rms_worse_than_tol"]:
+        why.append(f"{acc['rms_worse_than_tol']} runs with the RMS angle error worse by more "
+                   f"than {acc['tolerance_pct']:g} % (worst {acc['worst_rms_change_pct']:+.1f}"
+                   f" %)")
+    if acc["new_lost_lock"]:
+        why.append(f"{acc['new_lost_lock']} runs lose lock that the reference holds")
+    return not why, why
+
+
+__all__ = ["Metrics", "accounting", "cvar", "holds", "objective", "run_metrics"]

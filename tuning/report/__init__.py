@@ -1,0 +1,12 @@
+"""The report: accounting, figures, gains tables and `summary.json` of a `TuningReport`;
+it knows nothing of how the designs were found."""
+
+from .export import gains_table as gains_table
+from .figures import plot_report as plot_report
+from .figures import PLOTS as PLOTS
+from .summary import (
+    REQUIRED_KEYS as REQUIRED_KEYS,
+    load_design as load_design,
+    summary as summary,
+    write_report as write_report,
+)
