@@ -15,7 +15,9 @@ code):
   "fresh process": the command as a user runs it, `python -m pmsmjax feasibility` with the
   persistent compilation cache filled by a first run, the map time it prints
   ("classified N designs in T s": tracing, loading the compiled code, the sweep; start-up
-  and the command's own output files excluded) and its wall time.
+  and the command's own output files excluded) and its wall time, next to the API as a
+  script calls it in a fresh process with the same cache (its first call: tracing,
+  loading the compiled code, the map), the two run in turn.
 - `simulation`: the comparison job's run sweep (`tuning.compare`: one closed-loop
   simulation per point, the ESO's paper design, the `--quick` grid of 60 runs, or of
   `--runs` repetitions of it). "work": `jit(vmap(point))` over the grid in memory;
@@ -142,7 +144,11 @@ def feasibility(n_axis, repeats, tmp):
     env["PYTHONPATH"] = str(HERE.parent) + os.pathsep + env.get("PYTHONPATH", "")
     cmd = [sys.executable, "-m", "pmsmjax", "feasibility", *args, "--no-plot", "--restart",
            "--out", os.path.join(tmp, "fresh")]
-    fresh = []
+    # the API as a script runs it: a fresh process, the same cache, the time of the first
+    # `feasibility_map` call (tracing, loading the compiled code, the map), made in turn
+    # with the command's runs so that both see the same load
+    api_script = _FRESH_API.format(n_axis=n_axis)
+    fresh, fresh_api = [], []
     for k in range(repeats + 1):
         t0 = time.perf_counter()
         p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
@@ -150,28 +156,51 @@ def feasibility(n_axis, repeats, tmp):
         if p.returncode != 0:
             raise RuntimeError(p.stdout[-2000:] + p.stderr[-3000:])
         t_map = float(re.search(r"classified \d+ designs in ([0-9.]+) s", p.stdout).group(1))
+        q = subprocess.run([sys.executable, "-c", api_script], env=env, capture_output=True,
+                           text=True, timeout=1800)
+        if q.returncode != 0:
+            raise RuntimeError(q.stdout[-2000:] + q.stderr[-3000:])
         if k:  # the first run fills the cache
             fresh.append((t_map, wall))
+            fresh_api.append(float(q.stdout.split()[-1]))
     t_fresh = statistics.median(t for t, _ in fresh)
     wall_fresh = statistics.median(w for _, w in fresh)
+    t_fresh_api = statistics.median(fresh_api)
+    fresh_ratio = statistics.median(a / c for a, (c, _) in zip(fresh_api, fresh))
     return dict(workload="feasibility", points=n, api_s=t_api, command_s=t_cmd,
                 command_over_api=t["ratio/command"],
                 runner_over_work=t["ratio/runner"] / t["ratio/work"],
-                fresh_map_s=t_fresh, fresh_wall_s=wall_fresh,
-                work_s=t_work, runner_s=t_run, chunks=int(m.group(1)),
+                fresh_map_s=t_fresh, fresh_wall_s=wall_fresh, fresh_api_s=t_fresh_api,
+                fresh_command_over_api=fresh_ratio, work_s=t_work, runner_s=t_run, chunks=int(m.group(1)),
                 chunk_size=int(m.group(2)), compile_s=manifest.get("compile_seconds"),
                 runner_files=len(files), runner_bytes=nbytes)
 
 
+_FRESH_API = """
+import time
+import numpy as np
+import pmsmjax as pj
+pj.runtime.configure()
+from pmsmjax import analysis
+n = {n_axis}
+z, r = np.linspace(0, 5, n), np.linspace(0, 2, n)
+drive = pj.replace_params(pj.preset("zhang750"), L_q=12.3e-3)
+t0 = time.perf_counter()
+fm = analysis.feasibility_map(drive, [0.5], z, r, i_dq=(0.0, 1.0))
+np.asarray(fm.status), np.asarray(fm.stable_theta_deg)
+print(time.perf_counter() - t0)
+"""
+
+
 def simulation(runs, repeats, tmp):
     from pmsmjax.analysis import SweepGrid, run_sweep
-    from tuning import compare as tc
+    from tuning.compare import job as tc
 
     config = tc.CompareConfig.quick()
     base = config.grid(index=True)
     name = "eso"
-    cols, _ = tc._design_columns(config.tuning_config(name).initial_schedule())
-    f_runs, _ = tc._sweep_fns(config, name)
+    cols = tc._design_columns(None)  # the paper's design
+    f_runs, _ = tc._sweep_fns(config, name, len(cols))
     n0 = len(base["case"])
     g = {k: np.tile(v, runs) for k, v in base.items()}
     g["index"] = np.arange(len(g["index"]))
@@ -241,7 +270,9 @@ def main():
                 line += (f"; API {n / row['api_s']:9.3g} /s, command {n / row['command_s']:9.3g}"
                          f" /s, command/API rate {1 / row['command_over_api']:.2f}; fresh "
                          f"process (compile cache warm): map {n / row['fresh_map_s']:9.3g} /s "
-                         f"({row['fresh_map_s']:.2f} s, wall {row['fresh_wall_s']:.1f} s)")
+                         f"({row['fresh_map_s']:.2f} s, wall {row['fresh_wall_s']:.1f} s), API's first "
+                         f"call {n / row['fresh_api_s']:9.3g} /s ({row['fresh_api_s']:.2f} s), "
+                         f"command/API rate {row['fresh_command_over_api']:.2f}")
             print(line, flush=True)
     meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                 machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version(),
