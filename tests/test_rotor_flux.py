@@ -299,3 +299,44 @@ def test_period_average_is_exact_with_eight_angles():
         x, OperatingPoint(op.w_m, op.i_dq, t), M))(th), 0)
     np.testing.assert_allclose(np.asarray(obs.error_rhs(x, op, M)), np.asarray(f64),
                                rtol=1e-12)
+
+
+def _worst_discrete_pole(obs, drive, T_s, speed_pu=0.5, i_pu=(0.05, 0.5), n_angles=12):
+    """Largest |pole| of one real step over an electrical period of rotor angles."""
+    from pmsmjax import analysis
+
+    W, Ib = float(drive.w_rated), float(drive.base.I_b)
+    w, i_dq = speed_pu * W, (i_pu[0] * Ib, i_pu[1] * Ib)
+    return max(float(np.abs(np.asarray(analysis.discrete_poles(
+        obs, drive.three_phase_motor, w, i_dq, T_s, theta_k=th))).max())
+        for th in np.linspace(0.0, 2 * np.pi, n_angles, endpoint=False))
+
+
+@pytest.mark.parametrize("T_s", [62.5e-6, 125e-6])
+def test_default_gamma_keeps_the_discrete_speed_loop_stable_on_stumper_mt5(T_s):
+    """On stumper_mt5 ((psi_f/L_d)^2 six times the paper machine's in p.u.) the paper's
+    gamma = 1.0 p.u. puts a pole of the real discrete step outside the unit circle (a
+    replay from the true state ran away after 0.1 s); the default design's scaled gamma
+    (`gamma_pu_for`) keeps every pole inside, and the replay of a run turning from the
+    first sample, started at zero speed and a wrong angle, locks and stays finite."""
+    from pmsmjax.observers import RotorFluxObserver
+    from pmsmjax.observers._rotor_flux import gamma_pu_for
+
+    drive = pj.preset("stumper_mt5")
+    assert gamma_pu_for(pj.preset("morawiec_ipm3k5")) == 1.0
+    assert gamma_pu_for(drive) < 0.2
+    paper = RotorFluxObserver.from_pu(drive, gamma=1.0)
+    default = RotorFluxObserver.from_drive(drive)
+    assert _worst_discrete_pole(paper, drive, T_s) > 1.005
+    assert _worst_discrete_pole(default, drive, T_s) < 0.9995
+    W = float(drive.w_rated)
+    sc = pj.Scenario(t_end=0.3, w_m_ref=pj.Profile.constant(0.3 * W))
+    tr = pj.simulate(drive, pj.FOC.from_drive(drive), pj.SensoredObserver(), sc, T_s=T_s,
+                     w_m0=0.3 * W, theta0=2.0)
+    th, wh = pj.replay(default, tr, theta0=0.0, w0=0.0)
+    err = np.asarray(pj.wrap_angle(np.asarray(tr.theta) - np.asarray(th)))
+    assert np.all(np.isfinite(np.asarray(th))) and np.all(np.isfinite(np.asarray(wh)))
+    st = pj.lock_status(np.asarray(tr.t), err)
+    assert bool(st["acquired"]) and not bool(st["lost"])
+    t = np.asarray(tr.t)
+    assert np.abs(err[t > 0.2]).max() < np.radians(0.5)

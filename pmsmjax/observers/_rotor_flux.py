@@ -173,6 +173,32 @@ N_AVERAGE = 8
 #: docstring, "Choice of gamma", gives the spectra and simulations behind it).
 PAPER_GAINS_PU = {"c_alpha": 3.0, "c_lambda": 0.001, "k_c": 0.1, "c_theta": 0.15,
                   "gamma": 1.0}
+#: The test machine's $(\psi_f / L_d)^2$ in p.u. (morawiec2023 Table I: psi_f = 0.89 p.u.,
+#: L_d = 0.28 p.u.), the machine on which gamma = 1.0 p.u. was chosen.
+PAPER_PSI_OVER_LD_PU2 = (0.89 / 0.28) ** 2
+
+
+def gamma_pu_for(drive: Drive) -> float:
+    r"""The default speed-law gain gamma (p.u.) for `drive`: the paper's 1.0 p.u. (see
+    "Choice of gamma"), lowered in proportion where the machine's $(\psi_f / L_d)^2$ in
+    p.u. exceeds that of morawiec2023's test machine (10.1), never raised.
+
+    Why (derived, not from the paper): near the designed lock the speed loop's gain is
+    $k = \gamma\psi_f^2 / (L_d^2(a^2 + \omega^2))$ (the derivation of the speed law's
+    sign above), so gamma in p.u. alone does not fix the loop: on stumper_mt5
+    ($(\psi_f/L_d)^2$ = 60.9 p.u.) gamma = 1.0 p.u. gives a loop six times as fast as on
+    the paper's machine, and its forward-Euler speed update is unstable at 16 kHz (the
+    largest pole of one real step over an electrical period, `analysis.discrete_poles`,
+    is 1.008 at 62.5 us and 1.06 at 125 us: a replay from the true state runs away after
+    0.1 s); with this rule (0.166 p.u.) it is 0.999 and 0.998 (`test_rotor_flux.py`).
+    On the paper's machine the rule gives the paper's 1.0 p.u. exactly."""
+    b = drive.base
+    m = drive.three_phase_motor
+    L_b = float(b.U_b) / (float(b.w_b) * float(b.I_b))
+    ratio = (float(m.psi_f) / (L_b * float(b.I_b)) / (float(m.L_d) / L_b)) ** 2
+    factor = PAPER_PSI_OVER_LD_PU2 / ratio
+    # the paper's machine's preset reproduces its p.u. values to rounding
+    return PAPER_GAINS_PU["gamma"] * (1.0 if factor > 1.0 - 1e-6 else factor)
 
 
 # ---------------------------------------------------------------------------------------
@@ -366,15 +392,16 @@ class RotorFluxObserver(AbstractObserver):
                    speed_sign: str = "derived", theta_sign: str = "derived", **design):
         """morawiec2023's gains (c_alpha 3.0, c_lambda 0.001, k_c 0.1, c_theta 0.15 p.u.)
         converted to SI with `drive.base` (see the module docstring). The paper gives no
-        gamma with them (Figs. 3-5 sweep 0.01-2 p.u.); 1.0 p.u. is chosen (module
-        docstring, "Choice of gamma").
+        gamma with them (Figs. 3-5 sweep 0.01-2 p.u.); 1.0 p.u. is chosen on the paper's
+        machine (module docstring, "Choice of gamma") and scaled to keep the speed loop's
+        gain on machines of larger psi_f / L_d (`gamma_pu_for`).
         `design` overrides gains by name in SI (`design_units`)."""
         motor = drive.three_phase_motor if motor is None else motor
         b = drive.base
         pu = PAPER_GAINS_PU
         obs = cls(motor=motor, c_alpha=pu["c_alpha"], c_lambda=pu["c_lambda"] / b.I_b,
                   k_c=pu["k_c"], c_theta=pu["c_theta"] * b.w_b,
-                  gamma=pu["gamma"] * b.w_b ** 2 / b.I_b ** 2, speed_sign=speed_sign,
+                  gamma=gamma_pu_for(drive) * b.w_b ** 2 / b.I_b ** 2, speed_sign=speed_sign,
                   theta_sign=theta_sign)
         return obs.with_design(**design) if design else obs
 
