@@ -64,7 +64,11 @@ from ._gains_table import (  # noqa: E402
     verdict_warning as verdict_warning,
     write_gains_table as write_gains_table,
 )
-from ._flying_start import FlyingStart as FlyingStart, flying_start as flying_start  # noqa: E402
+from ._flying_start import (  # noqa: E402
+    FlyingStart as FlyingStart,
+    flying_start as flying_start,
+    unknown_start as unknown_start,
+)
 from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
 from ._identify import (  # noqa: E402
     IDENTIFIABLE as IDENTIFIABLE,
@@ -84,6 +88,7 @@ from ._io import (  # noqa: E402
 )
 from ._metrics import (  # noqa: E402
     LOCK_DEG as LOCK_DEG,
+    LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,
     LOCK_DWELL_S as LOCK_DWELL_S,
     lock_status as lock_status,
     error_stats as error_stats,
@@ -113,7 +118,12 @@ from ._params import (  # noqa: E402
     preset as preset,
     replace_params as replace_params,
 )
-from ._replay import replay as replay, replay_estimates as replay_estimates  # noqa: E402
+from ._replay import (  # noqa: E402
+    NonFiniteInputError as NonFiniteInputError,
+    initial_estimate as initial_estimate,
+    replay as replay,
+    replay_estimates as replay_estimates,
+)
 from ._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
 from ._simulate import (  # noqa: E402
     PlantTrace as PlantTrace,

@@ -31,6 +31,17 @@ import jax.numpy as jnp
 
 from ._frames import wrap_angle
 from ._params import PMSMParams
+from ._validate import is_concrete
+
+
+#: `replay` with no initial estimate takes a recording to start with the rotor turning
+#: when the model back-EMF of its first samples (`FlyingStart.e_mag`) exceeds this
+#: fraction of the mean voltage magnitude over the same samples: at standstill the
+#: voltage is the resistive drop and the inductive one, which the model takes off
+#: (`e_mag` ~ the model error), while on a turning rotor the back-EMF is most of it.
+TURNING_FRACTION = 0.2
+#: Samples of the flying start's window in `replay` (fewer in a shorter recording).
+WINDOW = 64
 
 
 class FlyingStart(eqx.Module):
@@ -71,7 +82,7 @@ def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart
     if not (isinstance(n, int) and 2 <= n < u_ab.shape[0]):
         raise ValueError(f"`flying_start(n=...)` must be an integer with 2 <= n < N = "
                          f"{u_ab.shape[0]}; got {n!r}.")
-    if not float(T_s) > 0:
+    if is_concrete(T_s) and not float(T_s) > 0:
         raise ValueError(f"`flying_start(T_s=...)` (s) must be > 0; got {T_s!r}.")
     u = u_ab[:n]
     i0, i1 = i_ab[:n], i_ab[1:n + 1]
@@ -86,3 +97,26 @@ def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart
     theta0 = jnp.arctan2(jnp.mean(jnp.sin(d)), jnp.mean(jnp.cos(d)))
     return FlyingStart(theta0=wrap_angle(theta0), w0=w0,
                        e_mag=jnp.mean(jnp.sqrt(jnp.sum(e ** 2, -1))))
+
+
+def unknown_start(motor: PMSMParams, u_ab, i_ab, T_s):
+    """The initial estimate `(theta0, w0, turning)` of a drive that does not know its
+    rotor's state (what `replay` uses when it is given none): the `flying_start` of the
+    first `WINDOW` samples where they show a turning rotor (back-EMF above
+    `TURNING_FRACTION` of the voltage), else 0 rad and 0 rad/s (a rotor at rest, or
+    too slow for its back-EMF to be read: every observer starts from zero speed there).
+    `u_ab`: the applied voltage held over each period (V, (N, 2)); `i_ab` (A, (N, 2));
+    `T_s` (s). Traceable (`jnp.where`, no Python branch on values)."""
+    u_ab, i_ab = jnp.asarray(u_ab), jnp.asarray(i_ab)
+    n = min(WINDOW, u_ab.shape[0] - 1)
+    dtype = jnp.result_type(u_ab.dtype, i_ab.dtype, float)
+    if n < 2:
+        zero = jnp.zeros((), dtype)
+        return zero, zero, jnp.asarray(False)
+    fs = flying_start(motor, u_ab, i_ab, T_s, n=n)
+    u_mag = jnp.mean(jnp.sqrt(jnp.sum(u_ab[:n] ** 2, -1)))
+    turning = (fs.e_mag > TURNING_FRACTION * u_mag) & jnp.isfinite(fs.w0) & \
+        jnp.isfinite(fs.theta0)
+    zero = jnp.zeros((), dtype)
+    return (jnp.where(turning, fs.theta0, zero).astype(dtype),
+            jnp.where(turning, fs.w0, zero).astype(dtype), turning)

@@ -27,17 +27,22 @@ _EPS = 1e-12  # added under the square roots of `trajectory_metrics` (finite gra
 LOCK_DEG = 45.0
 #: ... for longer than this (s).
 LOCK_DWELL_S = 10e-3
+#: Lock is acquired where it then holds for this long (s): five dwells.
+LOCK_ACQUIRE_S = 50e-3
 
 
 def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
-                dwell_s: float = LOCK_DWELL_S) -> dict:
+                dwell_s: float = LOCK_DWELL_S, acquire_s: float = LOCK_ACQUIRE_S) -> dict:
     r"""Whether an observer acquired and kept lock: **the one definition of loss of lock**
     (`simulate` and `replay` summaries, the tuner, the comparison job).
 
     Over a window of `dwell_s`, the observer is *in lock* where the mean magnitude of the
     wrapped angle error (true minus estimate) is at most `lock_deg`. It *acquired lock*
-    at the start of the first such window; it *lost lock* at the start of the first later
-    window whose mean exceeds `lock_deg`, or when the run diverged or produced a
+    at the start of the first such window from which every window starting within the
+    next `acquire_s` (or up to the last whole window, near the end of the run) is in lock
+    too: an acquisition's overshoot that passes through the band and out again (the ESO
+    catching a rotor that starts to turn does) is not a lock. It *lost lock* at the
+    start of the first later window whose mean exceeds `lock_deg`, or when the run diverged or produced a
     non-finite error (`ok` False: lost at the first non-finite sample, or at the end for a
     diverged run; a non-finite sample counts as 180 deg). A mean, not "every sample
     above": an estimate that spins through every angle is out of lock although some of
@@ -75,7 +80,15 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
     mean = (jnp.take_along_axis(c, end, -1) - c[..., :n]) / k[..., None]
     whole = idx + k[..., None] <= n
     big = jnp.int32(n)
-    j_acq = jnp.min(jnp.where(whole & (mean <= lim), idx, big), -1)
+    # in lock at every window start of [j, min(j + m, n_whole)): a count over that range
+    inside = (whole & (mean <= lim)).astype(jnp.int32)
+    m = jnp.maximum(1, jnp.round(acquire_s / jnp.maximum(dt, 1e-300))).astype(jnp.int32)
+    n_whole = n - k + 1
+    ci = jnp.concatenate([jnp.zeros(inside.shape[:-1] + (1,), jnp.int32),
+                          jnp.cumsum(inside, -1)], -1)
+    stop = jnp.minimum(idx + m[..., None], n_whole[..., None])
+    held = (jnp.take_along_axis(ci, jnp.clip(stop, 0, n), -1) - ci[..., :n]) == stop - idx
+    j_acq = jnp.min(jnp.where(whole & (inside > 0) & held, idx, big), -1)
     j_lost = jnp.min(jnp.where(whole & (mean > lim) & (idx > j_acq[..., None]), idx, big),
                      -1)
     j_bad = jnp.min(jnp.where(~fin, idx, big), -1)

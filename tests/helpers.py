@@ -107,7 +107,8 @@ def scheduled_gains_table(drive, T_s, *, w2_factor=1.2, zeta2=1.1, verdict=None)
     return table, make_observer("eso", drive, w2=w2, zeta2=zeta2)
 
 
-def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3):
+def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3,
+                     acquire_s=50e-3):
     """`pmsmjax.lock_status` of one run by a plain loop over the samples (an independent
     reference): `(acquired, t_acquired, lost, t_lost)`."""
     import math
@@ -122,7 +123,10 @@ def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3):
     mag = [math.pi if bad[j] else abs(math.remainder(e[j], 2 * math.pi)) for j in range(n)]
     lim = math.radians(lock_deg)
     means = [sum(mag[j:j + k]) / k for j in range(n - k + 1)]
-    acq = next((j for j, m in enumerate(means) if m <= lim), None)
+    dt = (t[-1] - t[0]) / max(n - 1, 1)
+    m = max(1, int(round(acquire_s / dt)))
+    acq = next((j for j in range(len(means))
+                if all(means[i] <= lim for i in range(j, min(j + m, len(means))))), None)
     lost_j = None
     if acq is not None:
         lost_j = next((j for j in range(acq + 1, len(means)) if means[j] > lim), None)

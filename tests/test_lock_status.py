@@ -36,6 +36,18 @@ def test_constructed_cases():
     late[300:] = 0.1  # acquires at 0.3 s, never loses it: an unknown start is no loss
     g = _check(t, late)
     assert g["acquired"] and g["t_acquired"] == pytest.approx(0.3, abs=5e-3) and not g["lost"]
+    overshoot = np.full(1000, 2.0)
+    overshoot[150:170] = 0.3  # an acquisition passes through the band for 20 ms ...
+    overshoot[200:] = 0.05  # ... and locks at 0.2 s: acquired there, no loss
+    g = _check(t, overshoot)
+    assert g["acquired"] and g["t_acquired"] == pytest.approx(0.2, abs=5e-3)
+    assert not g["lost"]
+    g = _check(t, overshoot, acquire_s=10e-3)  # without the hold it was a "loss"
+    assert g["lost"] and g["t_acquired"] == pytest.approx(0.15, abs=5e-3)
+    near_end = np.full(1000, 2.0)
+    near_end[975:] = 0.0  # locks 25 ms before the end: held to the last whole window
+    g = _check(t, near_end)
+    assert g["acquired"] and g["t_acquired"] == pytest.approx(0.975, abs=5e-3)
     never = np.full(1000, 2.5)
     g = _check(t, never)
     assert not g["acquired"] and not g["lost"]
@@ -64,6 +76,7 @@ def test_random_sequences_and_batches():
             e[a:a + rng.integers(1, 60)] = rng.choice([-1, 1]) * rng.uniform(0.5, 3.0)
         es.append(e)
         _check(t, e, dwell_s=5e-3)
+        _check(t, e, dwell_s=5e-3, acquire_s=20e-3)
     es = np.stack(es)
     batch = jax.jit(lambda t, e: pj.lock_status(t, e, dwell_s=5e-3))(
         np.broadcast_to(t, es.shape), es)

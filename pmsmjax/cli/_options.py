@@ -273,17 +273,19 @@ class ListOption(argparse.Action):
         setattr(namespace, self.dest, cur + ([items] if self.groups else items))
 
 
-def add_initial_state_options(group, *, what: str, old_speed: str | None = None) -> None:
+def add_initial_state_options(group, *, what: str, old_speed: str | None = None,
+                              unknown: str | None = None) -> None:
     """`--theta0 DEG` and `--speed0 PU`: the initial angle and speed of `what` (the rotor,
     or the observer's estimate), in the units of every command (degrees, p.u. of the
     rated electrical speed). `old_speed`: the old spelling (rad/s) kept with a
-    deprecation message. `initial_state_from_args` reads them."""
-    group.add_argument("--theta0", type=finite_float, default=0.0, metavar="DEG",
-                       help=f"initial electrical angle of {what} (deg, default: "
-                            "%(default)s)")
+    deprecation message. `unknown`: what happens when neither is given (the defaults
+    are then 0). `initial_state_from_args` reads them."""
+    default = f"default: {unknown}" if unknown else "default: 0"
+    group.add_argument("--theta0", type=finite_float, default=None, metavar="DEG",
+                       help=f"initial electrical angle of {what} (deg; {default})")
     group.add_argument("--speed0", type=finite_float, default=None, metavar="PU",
                        help=f"initial electrical speed of {what} (p.u. of the rated speed "
-                            "Drive.w_rated, any sign; default: 0)")
+                            f"Drive.w_rated, any sign; {default})")
     if old_speed is not None:
         group.add_argument(old_speed, dest="speed0_rad_s", type=finite_float, default=None,
                            metavar="RAD_S", action=DeprecatedOption,
@@ -299,7 +301,13 @@ def initial_state_from_args(args, drive: pj.Drive) -> tuple[float, float]:
         raise CLIError(f"--speed0 {args.speed0:g} and the deprecated rad/s option "
                        f"{old:g} both set the initial speed; give --speed0 only")
     w0 = old if old is not None else float(args.speed0 or 0.0) * float(drive.w_rated)
-    return math.radians(float(args.theta0)), float(w0)
+    return math.radians(float(args.theta0 or 0.0)), float(w0)
+
+
+def initial_state_given(args) -> bool:
+    """Whether `--theta0` or `--speed0` (or its old spelling) was given."""
+    return (args.theta0 is not None or args.speed0 is not None
+            or getattr(args, "speed0_rad_s", None) is not None)
 
 
 # Let values that start with a minus sign but are not plain numbers (-0.5,0.5 or -1:1 or

@@ -22,6 +22,7 @@ from ._options import (
     drive_from_args,
     drive_info,
     initial_state_from_args,
+    initial_state_given,
     nonneg_float,
     prepare_out_dir,
     write_json,
@@ -34,7 +35,10 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--data", required=True, metavar="FILE",
                    help="recorded drive data (.npz or .csv, format in docs/conventions.md) "
                         "with t, u_ab, i_ab (and optionally theta, w_m to score the estimates)")
-    add_initial_state_options(g, what="the observer's estimate", old_speed="--w0")
+    add_initial_state_options(
+        g, what="the observer's estimate", old_speed="--w0",
+        unknown="unknown: a rotor that turns from the first samples is caught from their "
+                "back-EMF (as --flying-start), otherwise 0")
     g.add_argument("--voltage", choices=("applied", "commanded"), default="applied",
                    help="what the recording's u_ab is: the voltage the inverter applied "
                         "(default), or the one the drive's controller commanded; with "
@@ -42,8 +46,9 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                         "model (u_dt, i_dt of the motor file's [inverter] or --set u_dt=V)")
     g.add_argument("--flying-start", action="store_true",
                    help="start the observer from the angle and speed read off the model "
-                        "back-EMF of the first 64 samples (pmsmjax.flying_start), for a "
-                        "log that starts with the rotor turning; replaces --theta0/--speed0")
+                        "back-EMF of the first 64 samples (pmsmjax.flying_start) even "
+                        "where they do not look like a turning rotor; replaces "
+                        "--theta0/--speed0")
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
@@ -101,7 +106,17 @@ def replay_command(args: argparse.Namespace) -> int:
     print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
           f"{data.T_s:g} s from {args.data}")
     theta0, w0 = initial_state_from_args(args, drive)
+    start = "given"
+    if not args.flying_start and not initial_state_given(args):
+        th, w, turning = pj.initial_estimate(choice.observer, data, inverter=inverter)
+        theta0, w0 = float(th), float(w)
+        start = "caught turning" if bool(turning) else "at rest"
+        what = ("a turning rotor caught from the first samples" if bool(turning) else
+                "the first samples show no turning rotor")
+        print(f"start: {what}: theta0 = {math.degrees(theta0):.4g} deg, w0 = {w0:.5g} rad/s "
+              "(--theta0/--speed0 to choose)")
     if args.flying_start:
+        start = "flying start"
         model = choice.observer.motor
         if not isinstance(model, pj.PMSMParams):
             model = drive.three_phase_motor
@@ -151,7 +166,7 @@ def replay_command(args: argparse.Namespace) -> int:
         "inverter_model": None if inverter is None else {
             "u_dt": float(inverter.u_dt), "i_dt": float(inverter.i_dt)},
         "initial_estimate": {"theta0_deg": math.degrees(theta0), "w0_rad_s": w0,
-                             "flying_start": bool(args.flying_start)},
+                             "flying_start": bool(args.flying_start), "start": start},
         "arrays": {"theta_hat": "rad, estimated electrical angle at t_k, wrapped",
                    "w_hat": "rad/s, estimated electrical speed at t_k",
                    **{k: choice.cls.extras.get(k, "") for k in extras}},

@@ -118,9 +118,11 @@ def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None) -> dict:
     st = {k: np.asarray(v).item() for k, v in pj.lock_status(
         t[start:], np.asarray(theta_err)[start:], ok=ok).items()}
     out = {"definition": f"mean |angle error| over {1e3 * pj.LOCK_DWELL_S:g} ms above "
-                         f"{pj.LOCK_DEG:g} deg after lock was acquired, or a diverged run "
+                         f"{pj.LOCK_DEG:g} deg after lock was acquired (held for "
+                         f"{1e3 * pj.LOCK_ACQUIRE_S:g} ms), or a diverged run "
                          f"(pmsmjax.lock_status)",
-           "lock_deg": pj.LOCK_DEG, "dwell_s": pj.LOCK_DWELL_S, "judged_from_s": float(t[start]),
+           "lock_deg": pj.LOCK_DEG, "dwell_s": pj.LOCK_DWELL_S,
+           "acquire_s": pj.LOCK_ACQUIRE_S, "judged_from_s": float(t[start]),
            "acquired": bool(st["acquired"]), "lost": bool(st["lost"]),
            "t_acquired_s": None if np.isnan(st["t_acquired"]) else float(st["t_acquired"]),
            "t_lost_s": None if np.isnan(st["t_lost"]) else float(st["t_lost"])}
