@@ -40,6 +40,10 @@ from ._validate import is_concrete
 #: voltage is the resistive drop and the inductive one, which the model takes off
 #: (`e_mag` ~ the model error), while on a turning rotor the back-EMF is most of it.
 TURNING_FRACTION = 0.2
+#: ... and its angles, referred to the first sample with the estimated speed, agree
+#: (`FlyingStart.coherence` above this): the current's noise, differentiated, can be as
+#: large as the resistive drop at standstill, but it does not turn at one speed.
+TURNING_COHERENCE = 0.9
 #: Samples of the flying start's window in `replay` (fewer in a shorter recording).
 WINDOW = 64
 
@@ -51,11 +55,15 @@ class FlyingStart(eqx.Module):
     - `w0`: electrical speed (rad/s), mean over the window.
     - `e_mag`: mean magnitude of the model back-EMF over the window (V): compare it with
       the noise on the voltage; near standstill the estimate is meaningless.
+    - `coherence`: the length of the circular mean of the window's angles referred to
+      `t_0` (-, 0..1): 1 for a back-EMF that turns at the estimated speed, small for one
+      made of noise (the differentiated current's, at standstill).
     """
 
     theta0: jnp.ndarray
     w0: jnp.ndarray
     e_mag: jnp.ndarray
+    coherence: jnp.ndarray
 
 
 def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart:
@@ -94,16 +102,19 @@ def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart
     th_mid = jnp.arctan2(-sg * e[:, 0], sg * e[:, 1])
     k = jnp.arange(n) + 0.5
     d = th_mid - w0 * k * T_s
-    theta0 = jnp.arctan2(jnp.mean(jnp.sin(d)), jnp.mean(jnp.cos(d)))
+    s_, c_ = jnp.mean(jnp.sin(d)), jnp.mean(jnp.cos(d))
+    theta0 = jnp.arctan2(s_, c_)
     return FlyingStart(theta0=wrap_angle(theta0), w0=w0,
-                       e_mag=jnp.mean(jnp.sqrt(jnp.sum(e ** 2, -1))))
+                       e_mag=jnp.mean(jnp.sqrt(jnp.sum(e ** 2, -1))),
+                       coherence=jnp.sqrt(s_ ** 2 + c_ ** 2))
 
 
 def unknown_start(motor: PMSMParams, u_ab, i_ab, T_s):
     """The initial estimate `(theta0, w0, turning)` of a drive that does not know its
     rotor's state (what `replay` uses when it is given none): the `flying_start` of the
     first `WINDOW` samples where they show a turning rotor (back-EMF above
-    `TURNING_FRACTION` of the voltage), else 0 rad and 0 rad/s (a rotor at rest, or
+    `TURNING_FRACTION` of the voltage, turning at one speed: coherence above
+    `TURNING_COHERENCE`), else 0 rad and 0 rad/s (a rotor at rest, or
     too slow for its back-EMF to be read: every observer starts from zero speed there).
     `u_ab`: the applied voltage held over each period (V, (N, 2)); `i_ab` (A, (N, 2));
     `T_s` (s). Traceable (`jnp.where`, no Python branch on values)."""
@@ -115,8 +126,8 @@ def unknown_start(motor: PMSMParams, u_ab, i_ab, T_s):
         return zero, zero, jnp.asarray(False)
     fs = flying_start(motor, u_ab, i_ab, T_s, n=n)
     u_mag = jnp.mean(jnp.sqrt(jnp.sum(u_ab[:n] ** 2, -1)))
-    turning = (fs.e_mag > TURNING_FRACTION * u_mag) & jnp.isfinite(fs.w0) & \
-        jnp.isfinite(fs.theta0)
+    turning = (fs.e_mag > TURNING_FRACTION * u_mag) & \
+        (fs.coherence > TURNING_COHERENCE) & jnp.isfinite(fs.w0) & jnp.isfinite(fs.theta0)
     zero = jnp.zeros((), dtype)
     return (jnp.where(turning, fs.theta0, zero).astype(dtype),
             jnp.where(turning, fs.w0, zero).astype(dtype), turning)
