@@ -53,10 +53,17 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   the frame that turns at the speed estimate $\hat\omega_{k-1}$: the current as
   $i(t) = e^{\hat\omega tJ}(i_{k-1} + t\delta)$ with $\delta$ chosen so that it ends at
   $i_k$ (a first-order hold in the turning frame), $\dot\lambda$ as
-  $e^{\hat\omega tJ}c$ with $c$ chosen so that its integral is $\Delta\lambda$: one matrix
-  exponential of the augmented system (`_propagator`, balanced before `expm`). The observer's
-  own dynamics (at a given speed estimate) are integrated exactly, so they stay stable for
-  any bandwidth and $T_s$ (only the PLL's update is explicit); the
+  $e^{\hat\omega tJ}c$ with $c$ chosen so that its integral is $\Delta\lambda$. In that
+  turning frame the inputs are polynomials in $t$, so the exact solution needs only
+  $e^X$, $\varphi_1(X)$, $\varphi_2(X)$ of the observer's own matrix
+  $X = (A_o - j\hat\omega I)T_s$ in complex form (`_transition`; size $1 + n_s/2$: 2 for
+  the C-LESO and FA-LESO, whose functions are pairs of complex numbers in the algebra of
+  $I$ and $X - \tfrac12\mathrm{tr}X$, 4 for the GI-LESO), by a Taylor polynomial and
+  doublings with static shapes and no division: exact to round-off for $|X|$ up to about
+  8 (`_propagator` assembles the real transition matrix; the tests check it against
+  `scipy.linalg.expm` of the real augmented system). The observer's own dynamics (at a
+  given speed estimate) are integrated exactly, so they stay stable for any bandwidth and
+  $T_s$ (only the PLL's update is explicit); the
   one-step Jacobian in error coordinates is $I + T_sA + O(T_s^2)$ (the contract test).
 
 In steady state at constant speed every signal turns at $\omega = \hat\omega$, and then
