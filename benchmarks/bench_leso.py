@@ -5,8 +5,10 @@ recorded run of the `li_dtp` drive (sensored, 600 rpm, half load, 0.02 A current
 batch 1 and 256 (`jax.vmap` over recordings with different noise), float64, for `eso`,
 `c-leso`, `gi-leso`, `fa-leso`, each with its default design for `li_dtp`. Reported in
 samples per second (batch x samples / best wall time after compilation) and the compile
-time. The li-fa-leso observers integrate their internal dynamics exactly with one matrix
-exponential per step (8 x 8, GI-LESO 12 x 12), which is what they pay for.
+time. The li-fa-leso observers integrate their internal dynamics exactly every step: the
+exponential and two phi functions of their own matrix in complex form, shifted by the
+speed estimate (2 x 2, pairs of complex numbers, for the C-LESO and FA-LESO; a 4 x 4
+complex matrix for the GI-LESO), which is what they pay for.
 
 Usage:
 

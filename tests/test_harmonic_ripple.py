@@ -2,6 +2,7 @@
 harmonic causes, from the linearisation, against simulations with that harmonic in the
 plant (speed imposed, fast current control), for several observer families."""
 
+import copy
 import math
 
 import equinox as eqx
@@ -229,3 +230,40 @@ def test_response_command_reports_the_ripple_for_every_observer(capsys):
     for r, rip, g in zip(rows, np.asarray(want), gains):
         assert float(r[2]) == pytest.approx(float(rip), abs=1e-5)
         assert float(r[3]) == pytest.approx(abs(g), abs=1e-5)
+
+
+@pytest.mark.parametrize("name", sorted(pj.observers.observer_names()))
+def test_angle_dependent_flag_tells_whether_the_error_dynamics_depend_on_the_angle(name):
+    """`angle_dependent` (the contract's class flag) is what `harmonic_ripple` trusts to
+    evaluate the linearisation at one angle: check it against `error_rhs` itself."""
+    drive = pj.preset("morawiec_ipm3k5") if name == "rotor-flux" else DRIVE
+    obs = make_observer(name, drive)
+    plant = drive.three_phase_motor
+    op = analysis.OperatingPoint(0.5 * drive.w_rated, jnp.asarray(I_DQ))
+    x0 = obs.designed_error(op, plant)
+    A = [np.asarray(jax.jacfwd(lambda x, t=t: obs.error_rhs(
+        x, analysis.OperatingPoint(op.w_m, op.i_dq, t), plant))(x0))
+        for t in (0.0, 0.7, 2.1)]
+    same = all(np.allclose(a, A[0], rtol=1e-9, atol=1e-9 * np.abs(A[0]).max()) for a in A)
+    assert same != obs.angle_dependent
+
+
+@pytest.mark.parametrize("name", ["eso", "fa-leso"])
+def test_one_angle_for_angle_independent_observers_equals_the_full_balance(name):
+    """An observer whose error dynamics do not depend on the angle is evaluated at one
+    angle; the 16-angle harmonic balance (forced by a subclass that declares
+    `angle_dependent`) gives the same ripple, continuous and discrete."""
+    obs = make_observer(name, DRIVE)
+    assert not obs.angle_dependent
+
+    class Forced(type(obs)):
+        angle_dependent = True
+
+    forced = copy.copy(obs)
+    object.__setattr__(forced, "__class__", Forced)
+    assert forced.angle_dependent
+    orders = (1, -5, 7, 13)
+    for T_s in (None, T_S):
+        one = np.asarray(analysis.harmonic_ripple(obs, DRIVE, OP, orders, T_s=T_s))
+        full = np.asarray(analysis.harmonic_ripple(forced, DRIVE, OP, orders, T_s=T_s))
+        np.testing.assert_allclose(one, full, rtol=1e-11, atol=1e-12 * np.abs(full).max())

@@ -6,6 +6,7 @@ both signs of speed, the C-LESO's lag as its designed equilibrium, replay = in-l
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -239,3 +240,61 @@ def test_tuning_defaults_for_li_dtp_and_the_tunable_design():
     assert set(space.names) == {"k1", "k2", "w_pll", "zeta_pll"}
     kinds = {c.name: c.kind for c in space.coordinates}
     assert kinds["w_pll"] == "tracking" and kinds["zeta_pll"] == "damping"
+
+
+def _reference_propagator(obs, w, T_s):
+    """The exact transition over one period from the real augmented system
+    `[x1, s, i, delta, c]` (the inputs turning at `w`), by `scipy.linalg.expm`."""
+    sl = pytest.importorskip("scipy.linalg")
+    A, B, C, Dx, D1 = (np.asarray(M, float) for M in obs._matrices(np.float64(w)))
+    n = obs.n_s
+    K, I2, wJ = Dx + D1, np.eye(2), np.array([[0.0, -w], [w, 0.0]])
+    i_, d_, c_ = n + 2, n + 4, n + 6
+    M = np.zeros((n + 8, n + 8))
+    M[:2, :2], M[:2, 2:i_], M[:2, i_:d_], M[:2, c_:] = K, C, -K, I2 / obs.motor.L_q
+    M[2:i_, :2], M[2:i_, 2:i_], M[2:i_, i_:d_] = B, A, -B
+    M[i_:d_, i_:d_], M[i_:d_, d_:c_], M[d_:c_, d_:c_], M[c_:, c_:] = wJ, I2, wJ, wJ
+    return sl.expm(M * T_s)[:i_]
+
+
+def _meas(i, u, dtype):
+    nan = jnp.full((), jnp.nan, dtype)
+    return pj.observers.Measurement(i_ab=jnp.asarray(i, dtype), u_ab=jnp.asarray(u, dtype),
+                                    theta=nan, w_m=nan)
+
+
+@pytest.mark.parametrize("name", NAMES + ("gi-fixed",))
+def test_exact_transition_against_the_real_augmented_exponential(name):
+    """The step's half-size complex transition (`_transition`, `_propagator`) is the
+    exponential of the real augmented system to float64 round-off at every speed
+    (standstill included) and sampling period, and `step` runs it in float32 too."""
+    obs = (make_observer("gi-leso", DTP, resonance="fixed") if name == "gi-fixed"
+           else make_observer(name, DTP))
+    prop = jax.jit(lambda w, T: obs._propagator(w, T))
+    rng = np.random.default_rng(7)
+    for T_s in (1e-5, 1e-4, 3e-4, 1e-3):
+        for w in np.array([-2.0, -1.0, -1e-3, 0.0, 1e-6, 0.37, 1.0, 2.0]) * W:
+            E, R = np.asarray(prop(w, T_s)), _reference_propagator(obs, w, T_s)
+            for _ in range(3):
+                v = rng.normal(size=obs.n_s + 8)
+                # each row against the size of its terms (the states differ in units)
+                err = np.abs(E @ v - R @ v) / (np.abs(R) @ np.abs(v))
+                assert np.max(err) < 1e-12, (T_s, w, np.max(err))
+    # float32 inputs: finite and close to float64
+    o32 = pj.astype(obs, jnp.float32)
+    s64, s32 = obs.init(0.3, 0.8 * W), o32.init(jnp.float32(0.3), jnp.float32(0.8 * W))
+    step64 = jax.jit(lambda s, m: obs.step(s, m, 1e-4))
+    step32 = jax.jit(lambda s, m: o32.step(s, m, 1e-4))
+    for k in range(40):
+        th = 0.8 * W * 1e-4 * k
+        i = 5.0 * np.array([-np.sin(th), np.cos(th)])
+        u = 60.0 * np.array([-np.sin(th + 0.1), np.cos(th + 0.1)])
+        s64, e64 = step64(s64, _meas(i, u, jnp.float64))
+        s32, e32 = step32(s32, _meas(i, u, jnp.float32))
+    assert s32.x1.dtype == jnp.float32 and e32.theta_hat.dtype == jnp.float32
+    for a, b in ((s32.x1, s64.x1), (s32.s, s64.s),
+                 (e32.extras["e_ab_hat"], e64.extras["e_ab_hat"])):
+        assert np.all(np.isfinite(np.asarray(a)))
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3,
+                                   atol=1e-4 * np.abs(np.asarray(b)).max())
+    assert float(e32.theta_hat) == pytest.approx(float(e64.theta_hat), abs=1e-4)

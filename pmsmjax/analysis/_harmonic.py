@@ -61,12 +61,15 @@ where such a sideband falls on another order's frequency the two add), and the p
 depends on the harmonic's phase relative to the rotor: the result is the worst case over
 that phase, $E\max_\theta|\sum_k c^TX_k e^{jk\theta}|$ (256 angles). For an observer
 whose error dynamics do not depend on the angle every $A_m, B_m$ with $m \ne 0$ vanish
-and this is the formula above. With `op.theta` the linearisation is frozen at that
+and this is the formula above: an observer that does not declare `angle_dependent`
+(every one but the rotor-flux observer) is evaluated at one angle, and the balance
+reduces to it. With `op.theta` the linearisation is frozen at that
 angle. The discrete variant uses the angle-averaged step (the component at $\Omega$
 only, no sidebands).
 
 **Discrete variant** (`T_s` given): $x_{k+1} = \Phi x_k + \Gamma d_k$ from one real
-step at the sampling period ($\Phi$, $\Gamma$ as above, averaged over 8 angles), the
+step at the sampling period ($\Phi$, $\Gamma$ as above, averaged over 16 angles, or
+at one angle for an observer that is not `angle_dependent`), the
 disturbance held over each period as its period average (factor
 $\mathrm{sinc}(h\omega T_s/2)$ at mid-period), evaluated at $z = e^{j\Omega T_s}$:
 $E\,|c^T(zI-\Phi)^{-1}\Gamma v|\,\mathrm{sinc}$ (the amplitude of the sampled ripple).
@@ -128,16 +131,21 @@ def _step_input_jacobians(observer, plant, op, x0, T_s, theta_k, dtype):
     return jax.jacfwd(fn, argnums=(0, 1))(x0, jnp.zeros(2, dtype))
 
 
-def _angles(op, dtype):
+def _angles(observer, op, dtype):
+    """The rotor angles at which the linearisation is evaluated: `op.theta` if given,
+    else 16 angles over a turn for an observer whose error dynamics depend on the angle
+    (`angle_dependent`), else one (they are the same at every angle)."""
     if op.theta is not None:
         return jnp.asarray(op.theta, dtype)[None]
+    if not observer.angle_dependent:
+        return jnp.zeros((1,), dtype)
     return 2 * jnp.pi * jnp.arange(_N_ANGLES, dtype=dtype) / _N_ANGLES
 
 
 def _jacobian_grid(observer, plant, op, x0, T_s, dtype):
     """`(Phi, Gamma)` at each rotor angle (`_angles`) for each of the step lengths `T_s`
     (`(m,)`): `(m, M, n, n)`, `(m, M, n, 2)` (one traced step for all)."""
-    th = _angles(op, dtype)
+    th = _angles(observer, op, dtype)
     T = jnp.asarray(T_s, dtype).reshape(-1)
     TT, HH = jnp.broadcast_arrays(T[:, None], th[None, :])
     Phi, Gam = jax.vmap(lambda t, h: _step_input_jacobians(observer, plant, op, x0, t, h,
@@ -157,7 +165,7 @@ def _input_matrices(observer, plant, op, x0, dtype):
     `(M, n, 2)`), `A` from `error_rhs` at that angle and `B` by Richardson extrapolation
     of the step's input Jacobian; and `A` of `error_rhs` at `op` itself (its average
     over the angle without `op.theta`)."""
-    th = _angles(op, dtype)
+    th = _angles(observer, op, dtype)
     A = jax.vmap(lambda t: jax.jacfwd(lambda v: observer.error_rhs(
         v, OperatingPoint(op.w_m, op.i_dq, t), plant))(x0))(th)
     A_avg = jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x0)
@@ -298,11 +306,11 @@ def _harmonic_ripple(observer, drive, op, h, T_s):
     if T_s is None:
         x0 = jnp.asarray(observer.designed_error(op_ev, plant), dtype)
         A_th, B_th, A_avg = _input_matrices(observer, plant, op_ev, x0, dtype)
-        if op.theta is None:
+        if op.theta is None and observer.angle_dependent:
             # Fourier coefficients of the periodic A(theta), B(theta) (k = -6..6 from 16
             # angles; the average A from error_rhs itself), harmonic balance with
             # sidebands k = -8..8
-            th = _angles(op_ev, dtype)
+            th = _angles(observer, op_ev, dtype)
             ks = jnp.arange(-_K_COEF, _K_COEF + 1)
             ph = jnp.exp(-1j * ks[:, None] * th[None, :]).astype(ctype)  # (2Kc+1, M)
             A_k = jnp.einsum("km,mij->kij", ph, A_th.astype(ctype)) / th.shape[0]

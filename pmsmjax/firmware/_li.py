@@ -2,10 +2,11 @@ r"""C emitter of the li-fa-leso back-EMF observers (`CLESOObserver`, `GILESOObse
 `FALESOObserver`: "c-leso", "gi-leso", "fa-leso") with their quadrature PLL:
 `AbstractBackEMFLESO.step` line by line (`observers/_leso.py`).
 
-The exact ZOH discretisation is computed in C the same way as in Python, every sample:
-the augmented matrix of `_propagator` at the PLL speed, exponentiated by the same
-balanced scaling-and-squaring Taylor series (`_balanced_expm`: 4 balancing sweeps,
-degree 12, 6 squarings). The observer's matrices `(A_s, B_s, C_s, D_x, D_1)` are read
+The exact ZOH discretisation is computed in C every sample as the exponential of the
+real augmented system at the PLL speed (the matrix whose transition `_propagator`
+returns), by a balanced scaling-and-squaring Taylor series (4 balancing sweeps, degree
+12, 6 squarings); the Python step computes the same transition in the half-size complex
+form (`_transition`), so the two agree to round-off. The observer's matrices `(A_s, B_s, C_s, D_x, D_1)` are read
 from the observer's own `_matrices(w_hat)`: each is fitted (and checked, to rounding)
 as a combination of the basis functions $1$, $\hat\omega$ and
 $\max(\hat\omega^2, w_c^2)$ ($w_c$ = 0 but for the GI-LESO), so a change of

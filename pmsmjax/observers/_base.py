@@ -160,6 +160,11 @@ class AbstractObserver(eqx.Module):
     #: Design parameters that may vary with the observer's own speed estimate (a gain
     #: schedule in its `design` field, zhang2022 Sec. III). Empty: constants only.
     speed_scheduled: ClassVar[tuple[str, ...]] = ()
+    #: Whether the error dynamics (`error_rhs`, and the step in error coordinates)
+    #: depend on the rotor angle (`OperatingPoint.theta`). False: they are rotation
+    #: invariant, and the angle-resolved analyses (`analysis.harmonic_ripple`,
+    #: `analysis.input_matrix`) evaluate them at one angle.
+    angle_dependent: ClassVar[bool] = False
 
     # --- running ------------------------------------------------------------------
     @abc.abstractmethod

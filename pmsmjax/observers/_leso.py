@@ -53,10 +53,17 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   the frame that turns at the speed estimate $\hat\omega_{k-1}$: the current as
   $i(t) = e^{\hat\omega tJ}(i_{k-1} + t\delta)$ with $\delta$ chosen so that it ends at
   $i_k$ (a first-order hold in the turning frame), $\dot\lambda$ as
-  $e^{\hat\omega tJ}c$ with $c$ chosen so that its integral is $\Delta\lambda$: one matrix
-  exponential of the augmented system (`_propagator`, balanced before `expm`). The observer's
-  own dynamics (at a given speed estimate) are integrated exactly, so they stay stable for
-  any bandwidth and $T_s$ (only the PLL's update is explicit); the
+  $e^{\hat\omega tJ}c$ with $c$ chosen so that its integral is $\Delta\lambda$. In that
+  turning frame the inputs are polynomials in $t$, so the exact solution needs only
+  $e^X$, $\varphi_1(X)$, $\varphi_2(X)$ of the observer's own matrix
+  $X = (A_o - j\hat\omega I)T_s$ in complex form (`_transition`; size $1 + n_s/2$: 2 for
+  the C-LESO and FA-LESO, whose functions are pairs of complex numbers in the algebra of
+  $I$ and $X - \tfrac12\mathrm{tr}X$, 4 for the GI-LESO), by a Taylor polynomial and
+  doublings with static shapes and no division: exact to round-off for $|X|$ up to about
+  8 (`_propagator` assembles the real transition matrix; the tests check it against
+  `scipy.linalg.expm` of the real augmented system). The observer's own dynamics (at a
+  given speed estimate) are integrated exactly, so they stay stable for any bandwidth and
+  $T_s$ (only the PLL's update is explicit); the
   one-step Jacobian in error coordinates is $I + T_sA + O(T_s^2)$ (the contract test).
 
 In steady state at constant speed every signal turns at $\omega = \hat\omega$, and then
@@ -121,33 +128,96 @@ def _to_complex(M):
     return M[0::2, 0::2] + 1j * M[1::2, 0::2]
 
 
-def _balanced_expm(M, n_sweeps: int = 4, order: int = 12, squarings: int = 6):
-    """`expm(M)` for the observers' small propagators: a diagonal similarity that
-    equalises row and column norms first (as LAPACK's balancing does: the states differ in
-    size by orders of magnitude, A vs A/s), then a Taylor polynomial of degree `order` of
-    `M / 2^squarings` squared `squarings` times. All shapes and loop counts are static (no
-    branches: one fused kernel per step, unlike `jax.scipy.linalg.expm`); the truncation
-    error is below 1e-16 for balanced norms up to 8 (|omega| T_s ~ 1), far above what a
-    sampled observer uses. The similarity is exact for any diagonal, so it is held
-    constant for differentiation."""
-    n = M.shape[0]
-    eye = jnp.eye(n, dtype=M.dtype)
-    d = jnp.ones(n, M.dtype)
-    off = jnp.abs(M) * (1.0 - eye)
+def _pair_mul(x, y, d):
+    """The product of two elements `aI + bN` of the algebra of a 2x2 matrix `N` with
+    `N @ N = d I`, each given as `(a, b)`."""
+    return (x[0] * y[0] + d * (x[1] * y[1]), x[0] * y[1] + x[1] * y[0])
+
+
+def _phi_pair(mu, d, order: int = 12, squarings: int = 5):
+    r"""$e^Y$, $\varphi_1(Y)$, $\varphi_2(Y)$ ($\varphi_1(z) = (e^z - 1)/z$,
+    $\varphi_2(z) = (e^z - 1 - z)/z^2$) of the 2x2 matrix $Y = \mu I + N$ with
+    $N^2 = dI$, each as the pair `(a, b)` of $aI + bN$.
+
+    Every function of $Y$ lies in the two-dimensional algebra spanned by $I$ and $N$,
+    where a product costs five complex multiplications: a Taylor polynomial of degree
+    `order` of $Y/2^s$, then `squarings` doublings ($e^{2Y} = (e^Y)^2$,
+    $2\varphi_1(2Y) = \varphi_1(Y)(e^Y + I)$, $4\varphi_2(2Y) = \varphi_2(Y)(e^Y + I) +
+    \varphi_1(Y)$). The truncation depends on the eigenvalues $\mu \pm \sqrt d$ only (not
+    on how non-normal $Y$ is): below round-off for $|\mu| + |\sqrt d|$ up to 8. No
+    division, no square root: exact and smooth through coinciding eigenvalues ($d = 0$,
+    the C-LESO) and zero ones."""
+    scale = 2.0 ** -squarings
+    m, dd = mu * scale, d * scale * scale  # Y / 2^s = m I + (N / 2^s), (N / 2^s)^2 = dd
+    one, zero = jnp.ones_like(m), jnp.zeros_like(m)
+    P = (one, zero)
+    E = [(one, zero), (one, zero), (0.5 * one, zero)]
+    fact = [1.0, 1.0, 2.0]  # k!, (k + 1)!, (k + 2)! at k = 0
+    for k in range(1, order + 1):
+        P = (P[0] * m + dd * P[1], P[0] + P[1] * m)  # P @ (m I + N / 2^s)
+        fact = [fact[0] * k, fact[1] * (k + 1), fact[2] * (k + 2)]
+        E = [(e[0] + P[0] / f, e[1] + P[1] / f) for e, f in zip(E, fact)]
+    E0, E1, E2 = [(e[0], e[1] * scale) for e in E]  # back to the basis I, N
+    for _ in range(squarings):
+        E0p1 = (E0[0] + 1.0, E0[1])
+        E2 = _pair_mul(E2, E0p1, d)
+        E2 = (0.25 * (E2[0] + E1[0]), 0.25 * (E2[1] + E1[1]))
+        E1 = _pair_mul(E1, E0p1, d)
+        E1 = (0.5 * E1[0], 0.5 * E1[1])
+        E0 = _pair_mul(E0, E0, d)
+    return E0, E1, E2
+
+
+def _balance(X, n_sweeps: int = 4):
+    """A diagonal `D` equalising the row and column norms of `D^-1 X D` off the diagonal
+    (as LAPACK's balancing does: the states differ in size by orders of magnitude, A vs
+    A/s). The similarity is exact for any diagonal, so it is held constant for
+    differentiation."""
+    n = X.shape[0]
+    off = jnp.abs(X) * (1.0 - jnp.eye(n, dtype=jnp.abs(X).dtype))
+    d = jnp.ones(n, off.dtype)
     for _ in range(n_sweeps):
         Mb = off * d[None, :] / d[:, None]
         r, c = jnp.sum(Mb, 1), jnp.sum(Mb, 0)
         ok = (r > 0) & (c > 0)
         d = d * jnp.where(ok, jnp.sqrt(jnp.where(ok, r / jnp.where(ok, c, 1.0), 1.0)), 1.0)
-    d = jax.lax.stop_gradient(d)
-    X = (M * d[None, :] / d[:, None]) / 2.0 ** squarings
-    E, term = eye, eye
+    return jax.lax.stop_gradient(d)
+
+
+def _phi_matrix(X, order: int = 12, squarings: int = 5):
+    r"""$e^X$, $\varphi_1(X)$, $\varphi_2(X)$ of a small complex matrix: balanced
+    (`_balance`), a Taylor polynomial of degree `order` of $X/2^s$, then `squarings`
+    doublings as in `_phi_pair`. All shapes and loop counts are static (no branches);
+    the truncation is below round-off for balanced norms up to 8."""
+    n = X.shape[0]
+    d = _balance(X)
+    Xs = (X * (d[None, :] / d[:, None])) * 2.0 ** -squarings
+    eye = jnp.eye(n, dtype=X.dtype)
+    P = eye
+    E = [eye, eye, 0.5 * eye]
+    fact = [1.0, 1.0, 2.0]
     for k in range(1, order + 1):
-        term = term @ X / k
-        E = E + term
+        P = P @ Xs
+        fact = [fact[0] * k, fact[1] * (k + 1), fact[2] * (k + 2)]
+        E = [e + P / f for e, f in zip(E, fact)]
+    E0, E1, E2 = E
     for _ in range(squarings):
-        E = E @ E
-    return E * d[:, None] / d[None, :]
+        E0p1 = E0 + eye
+        E2 = 0.25 * (E2 @ E0p1 + E1)
+        E1 = 0.5 * (E1 @ E0p1)
+        E0 = E0 @ E0
+    back = d[:, None] / d[None, :]
+    return E0 * back, E1 * back, E2 * back
+
+
+def _cplx(v):
+    """A real vector of consecutive 2-vectors -> the complex vector."""
+    return v[0::2] + 1j * v[1::2]
+
+
+def _real(z):
+    """A complex vector -> the real vector of consecutive (re, im) pairs."""
+    return jnp.stack([z.real, z.imag], -1).reshape(-1)
 
 
 class LESOState(eqx.Module):
@@ -222,32 +292,59 @@ class AbstractBackEMFLESO(AbstractObserver):
                          theta=wrap_angle(theta0.astype(dtype)), w=w0.astype(dtype),
                          i_prev=jnp.zeros(2, dtype), started=jnp.asarray(False))
 
-    def _propagator(self, w_hat, T_s):
-        r"""The exact transition matrix over one period of the observer driven by the
-        current $i(t) = e^{\hat\omega tJ}(i_{k-1} + t\,\delta)$ and the voltage-integral
-        rate held in the frame turning at `w_hat`: state `[x1, s, i, delta, c]` (see the
-        module docstring); rows of `[x1, s]` only."""
-        A, B, C, Dx, D1 = self._matrices(w_hat)
-        n = self.n_s
-        dtype = A.dtype
+    def _transition(self, w_hat, T_s, v):
+        r"""The state `[x1, s]` one period after `v = [x1, s, i, delta, c]` (real, `(n_s +
+        8,)`), the observer driven by the current $i(t) = e^{\hat\omega tJ}(i +
+        t\,\delta)$ and the voltage-integral rate $e^{\hat\omega tJ}c$ (see the module
+        docstring), integrated exactly.
+
+        In complex form (`_to_complex`) the observer is $\dot y = A_o y + g_i\,i(t) +
+        g_c\,c(t)$ with $y = [x_1, s]$ of size $p = 1 + n_s/2$; in the frame turning at
+        $\hat\omega$, $\hat y = e^{-j\hat\omega t}y$, the inputs are a polynomial in $t$,
+        so with $X = (A_o - j\hat\omega I)T_s$:
+        $y(T_s) = e^{j\hat\omega T_s}[e^X y + T_s\varphi_1(X)(g_i i + g_c c) +
+        T_s^2\varphi_2(X)g_i\delta]$. For $p = 2$ (C-LESO, FA-LESO) the three functions
+        of $X$ are pairs of complex numbers (`_phi_pair`), for the GI-LESO $4\times4$
+        complex matrices (`_phi_matrix`)."""
+        A, B, C, Dx, D1 = (_to_complex(M) for M in self._matrices(w_hat))
+        p = 1 + self.n_s // 2
         K = Dx + D1
-        I2 = jnp.eye(2, dtype=dtype)
-        wJ = _blk(0.0 * w_hat, w_hat).astype(dtype)
-        i_, d_, c_ = n + 2, n + 4, n + 6
-        M = jnp.zeros((n + 8, n + 8), dtype)
-        M = M.at[:2, :2].set(K).at[:2, 2:i_].set(C).at[:2, i_:d_].set(-K)
-        M = M.at[:2, c_:].set(I2 / self.motor.L_q)
-        M = M.at[2:i_, :2].set(B).at[2:i_, 2:i_].set(A).at[2:i_, i_:d_].set(-B)
-        M = M.at[i_:d_, i_:d_].set(wJ).at[i_:d_, d_:c_].set(I2)
-        M = M.at[d_:c_, d_:c_].set(wJ).at[c_:, c_:].set(wJ)
-        return _balanced_expm(M * T_s)[:i_], C, Dx
+        Ao = jnp.block([[K, C], [B, A]])
+        cdt = Ao.dtype
+        T = jnp.asarray(T_s, v.dtype)
+        jw = (1j * jnp.asarray(w_hat, v.dtype)).astype(cdt)
+        X = (Ao - jw * jnp.eye(p, dtype=cdt)) * T
+        g_i = -jnp.concatenate([K, B])[:, 0]
+        g_c = jnp.zeros(p, cdt).at[0].set(1.0 / self.motor.L_q)
+        z = _cplx(v)
+        y, i0, dl, c = z[:p], z[p], z[p + 1], z[p + 2]
+        g0, g1 = T * (g_i * i0 + g_c * c), (T * T) * (g_i * dl)
+        if p == 2:
+            mu = 0.5 * (X[0, 0] + X[1, 1])
+            n00, n01, n10 = X[0, 0] - mu, X[0, 1], X[1, 0]  # N = X - mu I, traceless
+            E0, E1, E2 = _phi_pair(mu, n00 * n00 + n01 * n10)
+            ua = E0[0] * y + E1[0] * g0 + E2[0] * g1
+            ub = E0[1] * y + E1[1] * g0 + E2[1] * g1
+            out = ua + jnp.stack([n00 * ub[0] + n01 * ub[1], n10 * ub[0] - n00 * ub[1]])
+        else:
+            E0, E1, E2 = _phi_matrix(X)
+            out = E0 @ y + E1 @ g0 + E2 @ g1
+        return _real(jnp.exp(jw * T) * out).astype(v.dtype)
+
+    def _propagator(self, w_hat, T_s):
+        """The exact transition matrix over one period, `(n_s + 2, n_s + 8)`: rows of
+        `[x1, s]`, columns of `[x1, s, i, delta, c]` (`_transition` of each unit vector;
+        for analysis and tests, `step` calls `_transition`)."""
+        dtype = jnp.result_type(w_hat, float)
+        eye = jnp.eye(self.n_s + 8, dtype=dtype)
+        return jax.vmap(lambda v: self._transition(w_hat, T_s, v), out_axes=1)(eye)
 
     def step(self, state: LESOState, meas: Measurement, T_s):
         m = self.motor
         i_k = jnp.asarray(meas.i_ab).astype(state.x1.dtype)
         u = jnp.asarray(meas.u_ab).astype(state.x1.dtype)
         w_hat = state.w
-        E, C, Dx = self._propagator(w_hat, T_s)
+        _, _, C, Dx, _ = self._matrices(w_hat)
         d_lam = T_s * u - (0.5 * T_s * m.R_s) * (state.i_prev + i_k)
         # the rate of lambda held in the turning frame, with the same integral d_lam:
         # int_0^T exp(w t J) c dt = T sinc(w T / 2) exp(w T J / 2) c
@@ -255,7 +352,8 @@ class AbstractBackEMFLESO(AbstractObserver):
         c = rotate(d_lam, -half) / (T_s * jnp.sinc(half / jnp.pi))
         # the current between the samples: turning at w_hat, linear in that frame
         delta = (rotate(i_k, -2.0 * half) - state.i_prev) / T_s
-        z = E @ jnp.concatenate([state.x1, state.s, state.i_prev, delta, c])
+        z = self._transition(w_hat, T_s, jnp.concatenate([state.x1, state.s, state.i_prev,
+                                                          delta, c]))
         x1_new, s_new = z[:2], z[2:]
         go = state.started
         # first sample: the estimated current starts at the measured one, the extended

@@ -364,6 +364,8 @@ class RotorFluxObserver(AbstractObserver):
 
     coordinates: ClassVar[ErrorCoordinates] = _COORDS
     design_units: ClassVar[dict[str, str]] = _DESIGN_UNITS
+    #: the gains act per stationary-frame component: a 4 theta term in the linearisation
+    angle_dependent: ClassVar[bool] = True
     extras: ClassVar[dict[str, str]] = {
         "i_ab_hat": "A, estimated stator current, stationary frame (2,)",
         "lambda_ab_hat": "V s, estimated rotor flux vector morawiec2023 (10)-(11) (2,)",
