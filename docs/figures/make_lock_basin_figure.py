@@ -25,11 +25,10 @@ from pmsmjax.plotting_analysis import plot_lock_basin  # noqa: E402
 HERE = pathlib.Path(__file__).resolve().parent
 #: Each observer on the motor of its paper.
 OWN_PRESET = {"eso": "zhang750", "leso": "zhang750", "afo": "zhang750",
-              "parallel-model": "morawiec_ipm3k5", "rotor-flux": "stumper_mt5",
+              "parallel-model": "stumper_mt5", "rotor-flux": "morawiec_ipm3k5",
               "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}
-#: Sampling period (s): the library's default, or the paper's where its design needs it
-#: (stumper's rotor-flux design diverges at 125 us even from the true state).
-T_S = {"rotor-flux": 62.5e-6}
+#: Sampling period (s): the library's default, or the paper's (morawiec2023: 6.6 kHz).
+T_S = {"rotor-flux": 1 / 6600}
 
 if __name__ == "__main__":
     pj.runtime.configure()

@@ -158,8 +158,10 @@ class Experiment:
             theta, w_m = np.asarray(traj.theta)[k0:], np.asarray(traj.w_m)[k0:]
             estimates = {}
             for name, obs in self.observers.items():
+                # the paper's observers start from zero (its Figs. 7-11 show them
+                # converging from there), not from `replay`'s default unknown start
                 th, w = replay(obs, t, traj.u_ab[k0:], traj.i_meas_ab[k0:],
-                               T_s=self.kwargs["T_s"])
+                               T_s=self.kwargs["T_s"], theta0=0.0, w0=0.0)
                 estimates[name] = (np.asarray(th), np.asarray(w))
         stats = {}
         w_abs = abs(self.w_op)

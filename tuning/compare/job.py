@@ -542,7 +542,7 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
 
 @eqx.filter_jit
 def _replay(obs, u_ab, i_ab, T_s):
-    return pj.replay(obs, u_ab=u_ab, i_ab=i_ab, T_s=T_s)
+    return pj.replay(obs, u_ab=u_ab, i_ab=i_ab, T_s=T_s, theta0=0.0, w0=0.0)
 
 
 def _cost(config: CompareConfig, name: str, folder: pathlib.Path, units) -> dict:
