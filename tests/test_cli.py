@@ -96,26 +96,32 @@ def test_replay_writes_every_estimate(sim_dir, tmp_path, capsys):
 
 
 def test_replay_flying_start_catches_a_turning_rotor(tmp_path, capsys):
-    """`replay --flying-start` on a log that starts with the rotor turning at 0.5 p.u.:
-    the ESO starts at the angle and speed read off the first samples and is locked
-    (within 5 deg, the load steps included) from the start; from the default zero
-    estimate it is not."""
+    """A log that starts with the rotor turning at 0.5 p.u.: with no initial estimate
+    (the default) and with `--flying-start` the ESO starts at the angle and speed read off
+    the first samples and is locked (within 5 deg, the load steps included) from the
+    start; from a given zero estimate (`--speed0 0`) it is not."""
     rec_dir = tmp_path / "sim"
     assert main(["simulate", "--scenario", "load-step", "--t-end", "0.1", "--no-plot",
                  "--out", str(rec_dir)]) == 0
-    errs = {}
-    for flag in ([], ["--flying-start"]):
-        out = tmp_path / ("fs" if flag else "zero")
+    errs, starts = {}, {}
+    for key, flag in (("default", []), ("flying", ["--flying-start"]),
+                      ("zero", ["--speed0", "0"])):
+        out = tmp_path / key
         assert main(["replay", "--observer", "eso", "--data",
                      str(rec_dir / "recording.npz"), "--no-plot", "--out", str(out),
                      *flag]) == 0
         with np.load(out / "replay.npz") as f:
-            errs[bool(flag)] = np.abs(np.asarray(pj.wrap_angle(f["theta"] - f["theta_hat"])))
+            errs[key] = np.abs(np.asarray(pj.wrap_angle(f["theta"] - f["theta_hat"])))
         stats = json.loads((out / "stats.json").read_text())
-        assert stats["initial_estimate"]["flying_start"] is bool(flag)
-    assert "flying start: theta0" in capsys.readouterr().out
-    assert errs[True].max() < np.radians(5.0)  # the lock tolerance of lock_basin
-    assert errs[False][-100:].max() > np.radians(30.0)
+        assert stats["initial_estimate"]["flying_start"] is (key == "flying")
+        starts[key] = stats["initial_estimate"]["start"]
+    printed = capsys.readouterr().out
+    assert "flying start: theta0" in printed
+    assert "start: a turning rotor caught from the first samples" in printed
+    assert starts == {"default": "caught turning", "flying": "flying start", "zero": "given"}
+    assert errs["flying"].max() < np.radians(5.0)  # the lock tolerance of lock_basin
+    assert errs["default"].max() < np.radians(5.0)
+    assert errs["zero"][-100:].max() > np.radians(30.0)
 
 
 def test_replay_observer_model_and_gains(sim_dir, tmp_path):
