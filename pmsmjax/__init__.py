@@ -144,6 +144,7 @@ from .observers import (  # noqa: E402
     Measurement as Measurement,
     ParallelModelObserver as ParallelModelObserver,  # noqa: E402
     RotorFluxObserver as RotorFluxObserver,
+    FlyingCatch as FlyingCatch,
     SensoredObserver as SensoredObserver,
 )
 

@@ -137,7 +137,13 @@ def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None) -> dict:
     return out
 
 
-def _startup_info(su) -> dict | None:
+_CATCH_TEXT = ("catch: the observer re-started from the back-EMF of the first 64 samples "
+               "where the rotor turns (pmsmjax.FlyingCatch)")
+
+
+def _startup_info(su, catch: bool = False) -> dict | None:
+    if catch:
+        return {"type": "catch", "window_samples": 64}
     if su is None:
         return None
     return {"type": "I/f", "i_start_A": float(su.i_start), "a_max_rad_s2": float(su.a_max),
@@ -203,16 +209,22 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="seed of the noise generator (integer, default: %(default)s)")
     g.add_argument("--substeps", type=positive_int, default=1, metavar="N",
                    help="RK4 steps of the plant per sampling period (default: %(default)s)")
-    g.add_argument("--startup", default="auto", choices=("auto", "if", "none"),
-                   help="start-up of a sensorless drive (speed-controlled scenarios): 'if' "
-                        "an open-loop current-vector (I/f) start with a handover to the "
-                        "observer at 0.1 p.u. (pmsmjax.IfStartup.from_drive; a drive's "
-                        "practice, not the papers'), 'none' the observer's frame from the "
-                        "first sample, 'auto' (default) 'if' for a sensorless observer "
-                        "when the rotor starts at standstill, else 'none'")
+    g.add_argument("--startup", default="auto", choices=("auto", "if", "catch", "none"),
+                   help="start-up of a sensorless drive: 'if' an open-loop current-vector "
+                        "(I/f) start with a handover to the observer at 0.1 p.u. "
+                        "(pmsmjax.IfStartup.from_drive; speed-controlled scenarios), "
+                        "'catch' the observer re-started from the back-EMF of the first 64 "
+                        "samples where the rotor turns (pmsmjax.FlyingCatch, a drive's "
+                        "catch-on-the-fly), 'none' the observer's frame from the first "
+                        "sample; 'auto' (default) for a sensorless observer 'if' when the "
+                        "rotor starts at standstill, 'catch' when it turns (all: a "
+                        "drive's practice, not the papers')")
     g.add_argument("--theta-hat0", type=finite_float, default=None, metavar="DEG",
                    help="the observer's initial angle estimate (deg, electrical; default: "
                         "the rotor's initial angle 0, i.e. a known angle)")
+    g.add_argument("--speed-hat0", type=finite_float, default=None, metavar="PU",
+                   help="the observer's initial speed estimate (p.u. of the rated speed; "
+                        "default: the rotor's initial speed, i.e. known)")
     add_observer_options(p, default="sensored", sensored=True, mismatch=True,
                          old_mismatch=False, default_note=": the encoder angle and speed")
     add_design_option(p)
@@ -238,11 +250,14 @@ def simulate_command(args: argparse.Namespace) -> int:
     observer = choice.observer
     startup = args.startup
     if startup == "auto":
-        startup = ("if" if args.observer != "sensored" and scenario.speed_mode
-                   and w_m0 == 0.0 else "none")
-    if startup == "if" and args.observer == "sensored":
-        raise CLIError("--startup if needs a sensorless observer (--observer NAME): the "
-                       "sensored drive knows its angle from the start")
+        startup = "none"
+        if args.observer != "sensored":
+            startup = ("if" if scenario.speed_mode else "none") if w_m0 == 0.0 else "catch"
+    if startup in ("if", "catch") and args.observer == "sensored":
+        raise CLIError(f"--startup {startup} needs a sensorless observer (--observer NAME): "
+                       "the sensored drive knows its angle from the start")
+    if startup == "catch":
+        observer = pj.FlyingCatch(observer)
     controller = pj.FOC.from_drive(
         drive, alpha_c=alpha_c, alpha_s=alpha_s,
         startup=pj.IfStartup.from_drive(drive) if startup == "if" else None)
@@ -254,13 +269,16 @@ def simulate_command(args: argparse.Namespace) -> int:
           f"{description}")
     if args.observer != "sensored":
         print(choice.describe())
-        print(f"start-up: {_startup_text(controller.startup)}")
+        print("start-up: " + (_CATCH_TEXT if startup == "catch" else
+                              _startup_text(controller.startup)))
     print(f"{n_steps} steps at T_s = {args.T_s:g} s")
     traj, t_compile, t_run = compile_and_run(
         pj.simulate, drive, controller, observer, scenario, T_s=args.T_s,
         n_substeps=args.substeps, sensing=sensing, key=jax.random.PRNGKey(args.seed),
         w_m0=w_m0, theta_hat0=None if args.theta_hat0 is None else math.radians(
-            args.theta_hat0), throw=False, observer_u_dt=args.observer_u_dt)
+            args.theta_hat0), w_hat0=None if args.speed_hat0 is None else
+        args.speed_hat0 * float(drive.w_rated), throw=False,
+        observer_u_dt=args.observer_u_dt)
 
     ok = bool(traj.ok)
     arrays = {f.name: np.asarray(getattr(traj, f.name)) for f in dataclasses.fields(traj)
@@ -298,8 +316,9 @@ def simulate_command(args: argparse.Namespace) -> int:
                      "load_pu": float(load) if spec.uses_load else None},
         "controller": {"type": "FOC", "strategy": "id_const (i_d = 0)",
                        "current_bandwidth_rad_s": alpha_c, "speed_bandwidth_rad_s": alpha_s,
-                       "startup": _startup_info(controller.startup)},
+                       "startup": _startup_info(controller.startup, startup == "catch")},
         "theta_hat0_deg": args.theta_hat0,
+        "speed_hat0_pu": args.speed_hat0,
         "observer": args.observer,
         "observer_details": choice.info() if args.observer != "sensored" else None,
         "design_file": getattr(args, "design", None),

@@ -10,6 +10,7 @@ from ._base import (
     PlantPoint as PlantPoint,
     SensoredObserver as SensoredObserver,
 )
+from ._catch import CatchState as CatchState, FlyingCatch as FlyingCatch
 from ._eso import (
     AbstractGainSchedule as AbstractGainSchedule,
     AFOObserver as AFOObserver,
