@@ -340,3 +340,22 @@ def test_default_gamma_keeps_the_discrete_speed_loop_stable_on_stumper_mt5(T_s):
     assert bool(st["acquired"]) and not bool(st["lost"])
     t = np.asarray(tr.t)
     assert np.abs(err[t > 0.2]).max() < np.radians(0.5)
+
+
+def test_a_runaway_design_keeps_its_estimate_finite_and_reports_the_lost_lock():
+    """gamma = 1.0 p.u. on stumper_mt5 at 125 us runs away (a replay used to end in NaN):
+    the observer holds its state where a step would leave it non-finite, so every
+    estimate is finite and `lock_status` reports the lost lock."""
+    from pmsmjax.observers import RotorFluxObserver
+
+    drive = pj.preset("stumper_mt5")
+    W = float(drive.w_rated)
+    obs = RotorFluxObserver.from_pu(drive, gamma=1.0)
+    sc = pj.Scenario(t_end=0.4, w_m_ref=pj.Profile.constant(0.5 * W))
+    tr = pj.simulate(drive, pj.FOC.from_drive(drive), pj.SensoredObserver(), sc,
+                     T_s=125e-6, w_m0=0.5 * W)
+    th, wh = pj.replay(obs, tr, theta0=0.0, w0=0.5 * W)
+    assert np.all(np.isfinite(np.asarray(th))) and np.all(np.isfinite(np.asarray(wh)))
+    err = np.asarray(pj.wrap_angle(np.asarray(tr.theta) - np.asarray(th)))
+    st = pj.lock_status(np.asarray(tr.t), err)
+    assert bool(st["lost"]) or not bool(st["acquired"])

@@ -144,6 +144,14 @@ static void pmsm_rates(pmsm_real th, pmsm_real w, const pmsm_real psi[2],
                      - (PMSM_R(0.5) * PMSM_OBS_T_S * PMSM_RS) * (s->i_prev[j] + i_ab[j])
                      + (PMSM_OBS_T_S * sinc) * corr[j];
         theta = pmsm_wrap(s->theta + dth);
+        /* a step that leaves the state non-finite (a design beyond the sampling rate's
+           limit running away) is not taken: the estimate stays finite, frozen */
+        if (!(isfinite(psi[0]) && isfinite(psi[1]) && isfinite(w) && isfinite(dth))) {
+            psi[0] = s->psi_ab[0];
+            psi[1] = s->psi_ab[1];
+            w = s->w;
+            theta = s->theta;
+        }
     }
     for (j = 0; j < 2; j++) {
         s->psi_ab[j] = psi[j];

@@ -501,6 +501,13 @@ class RotorFluxObserver(AbstractObserver):
         psi_new = psi_uR + (T_s * jnp.sinc(half / jnp.pi)) * rotate(c1, half)
         th_new = wrap_angle(th + dth)
         go = state.started
+        # a design beyond the sampling rate's limit runs away (see "Choice of gamma"):
+        # the state is held where a step would leave it non-finite, so that the estimate
+        # stays finite (frozen) and the run reports the lost lock instead of NaN
+        finite = jnp.all(jnp.isfinite(psi_new)) & jnp.isfinite(w_new) & jnp.isfinite(dth)
+        psi_new = jnp.where(finite, psi_new, psi)
+        w_new = jnp.where(finite, w_new, w)
+        th_new = jnp.where(finite, th_new, th)
         psi0 = stator_flux_ab(m, th, i_k)
         psi_new = jnp.where(go, psi_new, psi0).astype(state.psi_ab.dtype)
         th_new = jnp.where(go, th_new, th).astype(state.theta.dtype)
