@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from ._flying_start import unknown_start
 from ._params import Inverter, PMSMParams
 from ._simulate import observer_voltage, scale_motor
-from ._validate import is_concrete
+from ._validate import NonFiniteInputError, is_concrete
 from .observers import AbstractObserver, Measurement
 
 
@@ -36,11 +36,6 @@ def _arrays(data, u_ab, i_ab, t):
                              "the data has " + ", ".join(getattr(data, "names", ())) + ".")
         return data.t, data.u_ab, data.i_ab
     return t if data is None else data, u_ab, i_ab
-
-
-class NonFiniteInputError(ValueError):
-    """A recording or an initial value handed to `replay` or `simulate` holds NaN or inf
-    (the message names the argument, the first bad sample and its time)."""
 
 
 def _finite_scalar(name, unit, value, dtype):

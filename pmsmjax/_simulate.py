@@ -28,7 +28,7 @@ from ._motor import PMSM, PlantInput, PlantState, _is_zero, cos_sin, join_state,
 from ._params import Drive, DualThreePhaseParams, PMSMParams
 from ._scenario import Scenario
 from ._solution import RESULTS, Trajectory
-from ._validate import check_positive, is_concrete
+from ._validate import NonFiniteInputError, check_positive, is_concrete
 from .observers import AbstractObserver, Measurement
 
 
@@ -225,8 +225,13 @@ def simulate(
     # Python numbers as initial values become arrays, so that a new initial state runs
     # the compiled program again instead of compiling another one (filter_jit treats
     # Python numbers as static); the run's dtype casts them inside
+    units = {"theta0": "rad", "w_m0": "rad/s", "theta_hat0": "rad", "w_hat0": "rad/s",
+             "i_dq0": "A"}
     for k in ("theta0", "w_m0", "theta_hat0", "w_hat0", "i_dq0"):
         v = arguments[k]
+        if v is not None and is_concrete(v) and not np.all(np.isfinite(np.asarray(v))):
+            raise NonFiniteInputError(f"`simulate({k}=...)` ({units[k]}) must be finite; "
+                                      f"got {np.asarray(v).tolist()!r}.")
         if v is not None and is_concrete(v) and not isinstance(v, jax.Array):
             arguments[k] = np.asarray(v, dtype=np.float64)
     return _simulate(arguments)

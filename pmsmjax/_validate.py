@@ -64,3 +64,9 @@ def check_range(owner: str, name: str, value, lo=-math.inf, hi=math.inf, unit: s
         raise ValueError(
             f"`{owner}({name}=...)`{u} must lie in {lb}{lo}, {hi}{rb}; got {_fmt(value)}."
         )
+
+
+class NonFiniteInputError(ValueError):
+    """A recording or an initial value handed to `replay` or `simulate` holds NaN or inf
+    (the message names the argument, and for a recording the first bad sample and its
+    time)."""

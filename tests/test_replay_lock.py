@@ -118,3 +118,12 @@ def test_non_finite_inputs_raise_a_named_error(recordings, bad, fragment):
     with pytest.raises(pj.NonFiniteInputError, match=fragment.replace("(", r"\(")
                        .replace(")", r"\)")):
         pj.replay(obs, np.asarray(tr.t), u, i, **kw)
+
+
+@pytest.mark.parametrize("arg", ["theta0", "w_m0", "theta_hat0", "w_hat0", "i_dq0"])
+def test_simulate_names_a_non_finite_initial_value(arg):
+    sc = pj.Scenario(t_end=0.01, w_m_ref=pj.Profile.constant(100.0))
+    value = (np.nan, 0.0) if arg == "i_dq0" else np.inf
+    with pytest.raises(pj.NonFiniteInputError, match=rf"simulate\({arg}=\.\.\.\)"):
+        pj.simulate(DRIVE, pj.FOC.from_drive(DRIVE), make_observer("eso", DRIVE), sc,
+                    **{arg: value})
