@@ -101,3 +101,24 @@ def test_startup_rejects_bad_values():
         pj.IfStartup(i_start=0.0, a_max=1.0, w_hand=1.0, t_blend=0.1)
     with pytest.raises(ValueError, match="t_blend"):
         pj.IfStartup(i_start=1.0, a_max=1.0, w_hand=1.0, t_blend=-0.1)
+
+
+def test_cli_judges_the_lock_from_the_handover(tmp_path):
+    """`pmsmjax simulate --scenario reversal` from an unknown angle: on the light zhang750
+    rotor the I/f start swings the rotor past the handover speed before the open-loop
+    frame gets there (the FA-LESO's error then swings to 90 deg while the drive still
+    runs open loop); the lock is judged from the handover on, where it holds."""
+    import json
+
+    from pmsmjax.__main__ import main
+
+    out = tmp_path / "rev"
+    assert main(["simulate", "--observer", "fa-leso", "--scenario", "reversal",
+                 "--theta-hat0", "115", "--no-plot", "--out", str(out)]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["status"] == "successful", s["status"]
+    assert s["lock"]["judged_from_s"] > 0.14
+    tr = np.load(out / "trajectory.npz")
+    w_hand = float(pj.IfStartup.from_drive(DRIVE).w_hand)
+    k = int(np.searchsorted(tr["t"], s["lock"]["judged_from_s"]))
+    assert abs(tr["w_m_ref"][k]) >= w_hand > abs(tr["w_m_ref"][k - 1])

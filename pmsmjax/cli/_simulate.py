@@ -105,16 +105,22 @@ SCENARIOS: dict[str, _ScenarioSpec] = {
 }
 
 
-def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None) -> dict:
+def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None, w_m_ref=None) -> dict:
     """The lock status of a run (`pmsmjax.lock_status`, the one definition) as plain data
     with the run's status: "successful", "lost lock at t = ... s", "never locked" or
     "diverged". With an I/f start-up the observer is judged from the first sample at
-    which the rotor turns at the handover speed (before it the drive runs open loop)."""
+    which both the rotor and the speed reference (which the open-loop frame follows, so
+    the handover cannot begin earlier) have reached the handover speed: before it the
+    drive runs open loop, and a light rotor swinging about the open-loop current vector
+    can pass the handover speed early (zhang750 in the reversal scenario does)."""
     t = np.asarray(t, float)
     start = 0
     if startup is not None and w_m is not None:
-        fast = np.flatnonzero(np.abs(np.asarray(w_m)) >= float(startup.w_hand))
-        start = int(fast[0]) if fast.size else len(t) - 1
+        for w in (w_m, w_m_ref):
+            if w is None:
+                continue
+            fast = np.flatnonzero(np.abs(np.asarray(w)) >= float(startup.w_hand))
+            start = max(start, int(fast[0]) if fast.size else len(t) - 1)
     st = {k: np.asarray(v).item() for k, v in pj.lock_status(
         t[start:], np.asarray(theta_err)[start:], ok=ok).items()}
     out = {"definition": f"mean |angle error| over {1e3 * pj.LOCK_DWELL_S:g} ms above "
@@ -301,7 +307,8 @@ def simulate_command(args: argparse.Namespace) -> int:
 
     w_b, I_b = float(drive.w_rated), float(drive.base.I_b)
     t = arrays["t"]
-    lock = run_lock_status(t, arrays["theta_err"], ok, arrays["w_m"], controller.startup)
+    lock = run_lock_status(t, arrays["theta_err"], ok, arrays["w_m"], controller.startup,
+                           arrays["w_m_ref"])
     t_settle = 5.0 / alpha_s
     mask = pj.settled_mask(t, arrays["w_m_ref"], arrays["tau_L"], t_settle=t_settle)
     e_w = (arrays["w_m_ref"] - arrays["w_m"])[mask]
