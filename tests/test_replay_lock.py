@@ -127,3 +127,16 @@ def test_simulate_names_a_non_finite_initial_value(arg):
     with pytest.raises(pj.NonFiniteInputError, match=rf"simulate\({arg}=\.\.\.\)"):
         pj.simulate(DRIVE, pj.FOC.from_drive(DRIVE), make_observer("eso", DRIVE), sc,
                     **{arg: value})
+
+
+def test_replay_inside_jit_with_the_recording_closed_over(recordings):
+    """The default start and the input checks trace: a jitted replay (the recording
+    closed over, the design traced) equals the plain one."""
+    import jax
+
+    tr = recordings["turning"]
+    t, u, i = np.asarray(tr.t), np.asarray(tr.u_ab), np.asarray(tr.i_meas_ab)
+    obs = make_observer("eso", DRIVE)
+    plain = np.asarray(pj.replay(obs, t, u, i)[0])
+    jitted = np.asarray(jax.jit(lambda o: pj.replay(o, t, u, i)[0])(obs))
+    np.testing.assert_allclose(jitted, plain, atol=1e-9)
