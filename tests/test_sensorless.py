@@ -29,6 +29,29 @@ OBSERVERS = {
 }
 
 
+def sensored_track_pct(fig):
+    """The speed-tracking error (max, % of the set-point) of the same experiment with an
+    encoder: the reference the sensorless drive is held to (the paper's printed bands are
+    shown next to the simulation in notebooks/02, not used as limits)."""
+    if fig not in _SENSORED:
+        r = zhang2022.experiment(fig, observer=pj.SensoredObserver()).run()
+        _SENSORED[fig] = r.stats["eso"]["w_track_err_max_pct"]
+    return _SENSORED[fig]
+
+
+_SENSORED: dict = {}
+# The sensorless drive's speed loop sees the estimate instead of the encoder: its angle
+# error (std below 0.2 deg) costs a torque error of 1 - cos(0.2 deg) ~ 6e-6, nothing, but
+# its speed-estimate noise enters the speed loop. Measured: 0.097 / 0.543 / 0.009 % against
+# 0.125 / 0.619 / 0.007 % sensored (Figs. 2, 3, 4). Allowed: half as much again as
+# the sensored drive, plus 0.005 % for the estimate's noise at rated speed.
+TRACK_FACTOR, TRACK_PLUS_PCT = 1.5, 0.005
+
+
+def track_limit_pct(fig):
+    return TRACK_FACTOR * sensored_track_pct(fig) + TRACK_PLUS_PCT
+
+
 def stable_deg(eq):
     """Angles (deg) of the stable equilibria of an `Equilibria`."""
     return np.degrees(np.asarray(eq.theta)[np.asarray(eq.stable)])
@@ -39,8 +62,8 @@ def test_converges_from_30_deg_on_a_loaded_ramp(kind):
     """Fig. 2: ramp to 0.05 p.u. against 0.1 p.u. load, theta_err(0) = 30 deg.
 
     Tolerance: within 2 deg for good after 0.5 s (paper: 0.35 s); after 0.6 s the angle
-    error has |mean| < 0.2 deg, std < 0.2 deg and the speed stays within 5 % (paper:
-    0.11 deg, 0.69 deg, +-5 %).
+    error has |mean| < 0.2 deg, std < 0.2 deg and the speed tracks as well as with an
+    encoder (`track_limit_pct`; paper: 0.11 deg, 0.69 deg, +-5 %).
     """
     r = zhang2022.experiment("fig2", observer=OBSERVERS[kind]()).run()
     assert bool(r.traj.ok)
@@ -49,18 +72,18 @@ def test_converges_from_30_deg_on_a_loaded_ramp(kind):
     s = r.stats["eso"]
     assert 0.05 < s["t_converge_s"] < 0.5
     assert abs(s["theta_err_mean_deg"]) < 0.2 and s["theta_err_std_deg"] < 0.2
-    assert s["w_track_err_max_pct"] < 5.0
+    assert s["w_track_err_max_pct"] < track_limit_pct("fig2")
     # the estimate really was wrong at first: the error decays, it is not just small
     assert s["theta_err_max_all_deg"] > 25.0
 
 
 def test_steady_state_at_rated_speed_and_load():
     """Fig. 4: 1.0 p.u., rated load. Tolerance |mean| < 0.2 deg, std < 0.2 deg, speed
-    within 1 % (paper: 0.07 deg, 0.08 deg, +-1 %)."""
+    tracked as with an encoder (paper: 0.07 deg, 0.08 deg, +-1 %)."""
     r = zhang2022.experiment("fig4").run()
     s = r.stats["eso"]
     assert abs(s["theta_err_mean_deg"]) < 0.2 and s["theta_err_std_deg"] < 0.2
-    assert s["w_track_err_max_pct"] < 1.0
+    assert s["w_track_err_max_pct"] < track_limit_pct("fig4")
     # the load is really carried: mean torque equals the rated torque
     tau = np.asarray(r.traj.tau_M)[r.t >= 0.4]
     assert np.mean(tau) == pytest.approx(float(DRIVE.tau_rated), rel=0.02)
@@ -68,12 +91,12 @@ def test_steady_state_at_rated_speed_and_load():
 
 def test_low_speed_one_percent():
     """Fig. 3: 0.01 p.u., 0.01 p.u. load. Without inverter non-linearities the simulated
-    drive holds |mean| < 0.5 deg, std < 0.2 deg, speed within 15 % (paper: 1.45 deg,
-    0.10 deg, +-15 %)."""
+    drive holds |mean| < 0.5 deg, std < 0.2 deg, and tracks the speed as with an encoder
+    (paper: 1.45 deg, 0.10 deg, +-15 %)."""
     r = zhang2022.experiment("fig3").run()
     s = r.stats["eso"]
     assert abs(s["theta_err_mean_deg"]) < 0.5 and s["theta_err_std_deg"] < 0.2
-    assert s["w_track_err_max_pct"] < 15.0
+    assert s["w_track_err_max_pct"] < track_limit_pct("fig3")
 
 
 @pytest.mark.parametrize("fig,w_pu", [("fig3", 0.01), ("fig4", 1.0)])
@@ -113,14 +136,19 @@ def test_speed_steps():
 
 
 def test_load_steps():
-    """Fig. 6: +0.25 / -0.25 p.u. load at 1.0 p.u. The speed dips by less than 10 %,
+    """Fig. 6: +0.25 / -0.25 p.u. load at 1.0 p.u. The speed dips as with an encoder,
     the angle error stays below 5 deg and the speed estimate follows the dips (error
     below 3 % of rated speed during the steps, 0.1 % before the next step)."""
     r = zhang2022.experiment("fig6").run()
     tr = r.traj
     w, w_hat = np.asarray(tr.w_m), np.asarray(tr.w_hat)
     dip = np.max(np.abs(WR - w)) / WR
-    assert 0.005 < dip < 0.10
+    # against the same load steps with an encoder (the speed loop's own dip): the
+    # sensorless loop sees the load through the speed estimate, which lags the speed, so
+    # its dip is larger, but by less than half (measured 4.66 % against 3.77 %)
+    ref = zhang2022.experiment("fig6", observer=pj.SensoredObserver()).run()
+    dip_ref = np.max(np.abs(WR - np.asarray(ref.traj.w_m))) / WR
+    assert dip_ref < dip < 1.5 * dip_ref
     assert np.max(np.abs(np.degrees(np.asarray(tr.theta_err)))) < 5.0
     assert np.max(np.abs(w - w_hat)) < 0.03 * WR
     t = np.asarray(tr.t)
