@@ -12,7 +12,8 @@ from pmsmjax.papers import stumper
 def test_fig5_feedforward_sign_and_speedup():
     """No load, reference ramped at the current-limited acceleration: the corrected
     feedforward (48) commands a negative d current and reaches the slope of the
-    reference (about 17 % steeper than without it, the paper's number); the printed
+    reference, steeper than without it by the ratio of the torques the two current
+    vectors make (the paper reports about 17 %); the printed
     sign commands a positive d current and is slower than no feedforward at all."""
     kw = dict(t_end=0.16)
     plain = stumper.acceleration(0.0, feedforward=False, **kw).summary
@@ -21,7 +22,19 @@ def test_fig5_feedforward_sign_and_speedup():
     assert plain["ok"] and ff["ok"] and printed["ok"]
     assert ff["i_d_ref_min_A"] < -2.0 and printed["i_d_ref_min_A"] >= 0.3
     speedup = ff["slope_rpm_s"] / plain["slope_rpm_s"] - 1
-    assert 0.10 < speedup < 0.25, speedup
+    # a second route, the mechanics: without load J dw/dt = tau_M - B w, so the slope
+    # ratio is the ratio of the mean electromagnetic torque over the same speed band
+    # (the reluctance torque of the negative d current under the same current limit);
+    # measured 16.50 % against 16.59 % (the friction term B w differs slightly)
+    taus = []
+    for feedforward in (True, False):
+        tr = stumper.acceleration(0.0, feedforward=feedforward, **kw).traj
+        wm = np.asarray(tr.w_m)
+        w0, w1 = 300 * stumper.RPM, 3000 * stumper.RPM
+        band = (wm >= w0 + 0.1 * (w1 - w0)) & (wm <= w0 + 0.9 * (w1 - w0))
+        taus.append(np.asarray(tr.tau_M)[band].mean())
+    assert speedup > 0.05
+    assert speedup == pytest.approx(taus[0] / taus[1] - 1, abs=0.005)
     assert printed["slope_rpm_s"] < plain["slope_rpm_s"]
     assert ff["t_setpoint_s"] < plain["t_setpoint_s"]
     assert not printed["t_setpoint_s"] < plain["t_setpoint_s"]  # NaN: not reached
