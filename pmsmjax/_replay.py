@@ -18,6 +18,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._flying_start import unknown_start
 from ._params import Inverter, PMSMParams
@@ -46,7 +47,7 @@ class NonFiniteInputError(ValueError):
 def _finite_scalar(name, unit, value, dtype):
     v = jnp.asarray(value, dtype)
     if is_concrete(v):
-        if not bool(jnp.all(jnp.isfinite(v))):
+        if not bool(np.all(np.isfinite(np.asarray(v)))):
             raise NonFiniteInputError(f"`replay({name}=...)` ({unit}) must be finite; got "
                                       f"{float(v)!r}.")
         return v
@@ -59,15 +60,17 @@ def _check_finite_samples(name, unit, a, t):
     if not is_concrete(a):
         return eqx.error_if(a, ~jnp.all(jnp.isfinite(a)),
                             f"replay: `{name}` ({unit}) holds NaN or inf")
-    bad = ~jnp.all(jnp.isfinite(a), axis=-1)
-    if bool(jnp.any(bad)):
-        k = int(jnp.argmax(bad))
+    # numpy: inside a jit trace (a recording closed over) jnp would return tracers
+    an = np.asarray(a)
+    bad = ~np.all(np.isfinite(an), axis=-1)
+    if bool(np.any(bad)):
+        k = int(np.argmax(bad))
         when = ""
         if t is not None and is_concrete(t):
-            when = f" (t = {float(jnp.asarray(t)[k]):.6g} s)"
+            when = f" (t = {float(np.asarray(t)[k]):.6g} s)"
         raise NonFiniteInputError(
             f"`replay`: `{name}` ({unit}) is not finite at sample {k}{when}: "
-            f"{[float(x) for x in a[k]]}; {int(jnp.sum(bad))} of {a.shape[0]} samples are "
+            f"{[float(x) for x in an[k]]}; {int(np.sum(bad))} of {a.shape[0]} samples are "
             "NaN or inf. Drop or fill those samples before replaying.")
     return a
 
