@@ -12,7 +12,8 @@ default motor, speed and current, parsed by the CLI's own parser), it measures
   parallel-model observer); `route = generic` forces the generic route
   (`method="generic"`), measured as well for the observers that have their own route.
 - **CLI**: the whole process `python -m pmsmjax equilibria --observer NAME --json`
-  (interpreter start-up, imports, compile, run): cold with the cache off
+  (interpreter start-up, imports, compile, run), wall and CPU time (the machine may be
+  shared: CPU time does not count waiting for a core): cold with the cache off
   (`PMSMJAX_CACHE=0`), then with a fresh, empty cache directory (fills it) and again
   (warm: the programs come from the cache).
 
@@ -32,6 +33,7 @@ import datetime
 import json
 import os
 import platform
+import resource
 import shutil
 import subprocess
 import sys
@@ -64,10 +66,13 @@ i0 = np.asarray(i_pu) * float(drive.base.I_b)
 t_import = time.perf_counter() - t_start
 
 def call():
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     eq = equilibria(choice.observer, choice.plant, w0, i0, method=method)
     jax.block_until_ready(eq)
+    cpu.append(time.process_time() - c0)
     return time.perf_counter() - t0, eq
+
+cpu = []
 
 first, eq = call()
 second, eq2 = call()
@@ -75,11 +80,13 @@ third, _ = call()
 valid = np.asarray(eq.valid)
 print(json.dumps(dict(
     motor=drive.name, speed_pu=float(args.speed), i_pu=list(i_pu), import_s=t_import,
-    first_s=first, second_s=min(second, third), status=int(eq.status), n=int(eq.n),
+    first_s=first, second_s=min(second, third), first_cpu_s=cpu[0], status=int(eq.status), n=int(eq.n),
     theta=[float(t) for t in np.asarray(eq.theta)[valid]],
     x=[[float(v) for v in row] for row in np.asarray(eq.x)[valid]],
     stable=[bool(s) for s in np.asarray(eq.stable)[valid]])))
 """
+
+_CPU = [0.0]  # CPU time of the finished child processes so far
 
 FAST_ROUTE = ("eso", "parallel-model")  # observers with their own route under "auto"
 
@@ -91,8 +98,13 @@ def run(cmd, env, timeout):
         res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout,
                              cwd=ROOT)
     except subprocess.TimeoutExpired:
+        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        _CPU[0] = ru.ru_utime + ru.ru_stime
         return None, None
     wall = time.perf_counter() - t0
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    res.cpu_s = ru.ru_utime + ru.ru_stime - _CPU[0]  # CPU time of this process
+    _CPU[0] = ru.ru_utime + ru.ru_stime
     if res.returncode not in (0, 1):
         raise SystemExit(f"{' '.join(cmd)} failed ({res.returncode}):\n{res.stderr[-3000:]}")
     return wall, res
@@ -105,6 +117,7 @@ def api(name, method, env, timeout):
         return dict(timeout=True, limit_s=timeout)
     out = json.loads(res.stdout.strip().splitlines()[-1])
     out["process_s"] = wall
+    out["process_cpu_s"] = res.cpu_s
     return out
 
 
@@ -113,14 +126,17 @@ def cli(name, env, timeout, tmp):
     cache = tmp / f"cache-{name}"
     shutil.rmtree(cache, ignore_errors=True)
     out = {}
-    out["cold_s"], _ = run(cmd, dict(env, PMSMJAX_CACHE="0"), timeout)
-    env = dict(env, PMSMJAX_CACHE_DIR=str(cache))
-    out["fill_s"], _ = run(cmd, env, timeout)
-    if out["fill_s"] is not None:
-        out["warm_s"], _ = run(cmd, env, timeout)
-        out["warm2_s"], _ = run(cmd, env, timeout)
-    else:
-        out["warm_s"] = out["warm2_s"] = None
+    for key, e in (("cold", dict(env, PMSMJAX_CACHE="0")),
+                   ("fill", dict(env, PMSMJAX_CACHE_DIR=str(cache))),
+                   ("warm", dict(env, PMSMJAX_CACHE_DIR=str(cache))),
+                   ("warm2", dict(env, PMSMJAX_CACHE_DIR=str(cache)))):
+        out[f"{key}_s"], res = run(cmd, e, timeout)
+        out[f"{key}_cpu_s"] = None if res is None else res.cpu_s
+        if res is None:
+            break
+    for key in ("fill", "warm", "warm2"):
+        out.setdefault(f"{key}_s", None)
+        out.setdefault(f"{key}_cpu_s", None)
     return out
 
 
@@ -171,17 +187,22 @@ def main():
         shutil.rmtree(tmp, ignore_errors=True)
     load1 = os.getloadavg()
     t = args.timeout
-    print("\n| observer | route | API first call (s) | API warm call (s) | CLI cold, no cache "
-          "(s) | CLI warm (s) |\n|---|---|---:|---:|---:|---:|")
+    print("\n| observer | route | API first call (s) | its CPU (s) | API warm call (s) | CLI "
+          "cold, no cache (s) | its CPU (s) | CLI warm (s) | its CPU (s) |\n"
+          "|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         for route, a in r["api"].items():
             c = r.get("cli", {}) if route == "cli" else {}
             warm = min((v for v in (c.get("warm_s"), c.get("warm2_s")) if v is not None),
                        default=None)
+            kw = "warm_cpu_s" if warm == c.get("warm_s") else "warm2_cpu_s"
+            cpu = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
             print(f"| {r['observer']} | {route} | {fmt(a.get('first_s'), t)} | "
+                  f"{cpu(a.get('first_cpu_s'))} | "
                   f"{'-' if a.get('timeout') else format(a['second_s'], '.3f')} | "
-                  f"{fmt(c.get('cold_s'), t) if c else '-'} | "
-                  f"{(fmt(warm, t) if c.get('fill_s') is not None else '-') if c else '-'} |")
+                  f"{fmt(c.get('cold_s'), t) if c else '-'} | {cpu(c.get('cold_cpu_s'))} | "
+                  f"{(fmt(warm, t) if c.get('fill_s') is not None else '-') if c else '-'} | "
+                  f"{cpu(c.get(kw))} |")
     import jax
 
     meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
