@@ -80,7 +80,8 @@ third, _ = call()
 valid = np.asarray(eq.valid)
 print(json.dumps(dict(
     motor=drive.name, speed_pu=float(args.speed), i_pu=list(i_pu), import_s=t_import,
-    first_s=first, second_s=min(second, third), first_cpu_s=cpu[0], status=int(eq.status), n=int(eq.n),
+    first_s=first, second_s=min(second, third), first_cpu_s=cpu[0], status=int(eq.status),
+    n=int(eq.n),
     theta=[float(t) for t in np.asarray(eq.theta)[valid]],
     x=[[float(v) for v in row] for row in np.asarray(eq.x)[valid]],
     stable=[bool(s) for s in np.asarray(eq.stable)[valid]])))

@@ -252,7 +252,7 @@ def _source_hash() -> str:
     return _SOURCE_HASH
 
 
-def compiled_call(name: str, fn, args, out_structure):
+def compiled_call(name: str, fn, args, out_structure, *, compiler_options=None):
     """`fn(*args)` (a pure function of pytrees of arrays and static values) through a
     cache of compiled programs in `cache_dir()/programs`, or None when that is not
     possible (the caller then calls its jitted function as usual).
@@ -270,7 +270,8 @@ def compiled_call(name: str, fn, args, out_structure):
     Used only where the persistent compilation cache is on (`configure`: the entry
     points), `args` holds no tracer (not inside jit/vmap/grad) and every equinox module in
     it is pmsmjax's own (a user's class is not in the key). `out_structure`: the tree
-    structure of `fn`'s output. The programs stay loaded for the process
+    structure of `fn`'s output; `compiler_options`: XLA options of its compilation (part
+    of the key). The programs stay loaded for the process
     (`release_compiled` drops them with JAX's own). Any failure to compile, store or load
     falls back to None; an unreadable file is replaced. Like JAX's own cache, the files
     are executable code: the cache directory must be the user's own.
@@ -297,7 +298,7 @@ def compiled_call(name: str, fn, args, out_structure):
         key_text = "\n".join([
             name, _source_hash(), jax.__version__, backend.platform,
             backend.platform_version, platform.machine(), os.environ.get("XLA_FLAGS", ""),
-            str(jax.config.jax_enable_x64), repr(static), str(treedef),
+            str(jax.config.jax_enable_x64), repr(compiler_options), repr(static), str(treedef),
             repr([(tuple(x.shape), str(x.dtype)) for x in flat])])
     except Exception:  # an unprintable static part: no key
         return None
@@ -318,7 +319,8 @@ def compiled_call(name: str, fn, args, out_structure):
             return jax.tree_util.tree_leaves(fn(*a))
 
         try:
-            compiled = jax.jit(flat_fn).lower(*flat).compile()
+            compiled = jax.jit(flat_fn, compiler_options=compiler_options).lower(
+                *flat).compile()
             blob = pickle.dumps(se.serialize(compiled))
         except Exception:
             return None

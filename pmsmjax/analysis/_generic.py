@@ -33,8 +33,15 @@ and vmaps over operating points, designs and mismatches; failures are reported i
 `status` (0 ok, 2 no equilibrium, -1 degenerate), never raised.
 
 **Stability** of each equilibrium: the exact Routh-Hurwitz test on the characteristic
-polynomial (Faddeev-LeVerrier) of the scaled Jacobian (`jax.jacfwd` of `error_rhs`); a
-(numerically) singular Jacobian is a tangent (saddle-node) equilibrium, never stable.
+polynomial (Faddeev-LeVerrier) of the scaled Jacobian (forward-mode Jacobian of
+`error_rhs`, taken with the final Newton residual); a (numerically) singular Jacobian is
+a tangent (saddle-node) equilibrium, never stable.
+
+**Compile time.** Every phase (continuation, close-pair search, refinement, Newton
+polish) is a `lax.scan` whose body evaluates the error dynamics and their Jacobian once,
+so `error_rhs` is traced four times in all, and the small linear algebra is written as
+loops: the program's size, and XLA's compile time, stay moderate for the larger observers
+(BENCHMARKS.md, "Compile time of the generic analysis").
 """
 
 from __future__ import annotations
@@ -390,7 +397,7 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     # with the persistent compilation cache on (the entry points), the traced program
     # comes from there whole, without tracing (`runtime.compiled_call`)
     eq = runtime.compiled_call("equilibria", _equilibria_of, (observer, plant, op, options),
-                               _EQUILIBRIA_STRUCTURE)
+                               _EQUILIBRIA_STRUCTURE, compiler_options=ONE_OFF_XLA_OPTIONS)
     if eq is not None:
         return eq
     if method == "auto":
@@ -407,7 +414,16 @@ def _equilibria_of(observer, plant, op, options):
 _EQUILIBRIA_STRUCTURE = jax.tree_util.tree_structure(Equilibria(*range(10)))
 
 
-@eqx.filter_jit
+#: XLA options of the program that `equilibria` compiles for one operating point: the
+#: backend's optimisation level 0 compiles it about 30 % faster (ESO on zhang750: 6.9
+#: instead of 9.9 s of CPU) and runs it in 7 instead of 3 ms, with the same equilibria to
+#: 1e-13 (BENCHMARKS.md, "Compile time of the generic analysis"). A single analysis runs
+#: once, so the compile time is what counts; inside a caller's jit or vmap (feasibility
+#: maps, sweeps, the tuner) the caller's program and options apply.
+ONE_OFF_XLA_OPTIONS = {"xla_backend_optimization_level": 0}
+
+
+@eqx.filter_jit(compiler_options=ONE_OFF_XLA_OPTIONS)
 def _equilibria(observer, plant, op, options):
     return equilibria_traced(observer, plant, op, **options)
 
