@@ -26,8 +26,7 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   (`cache_dir()`: `$PMSMJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/pmsmjax/jax`, else
   `~/.cache/pmsmjax/jax`), so a repeated command skips XLA compilation. Opt out with
   `PMSMJAX_CACHE=0` (or `configure(cache=False)`); clear it with `pmsmjax cache --clear`
-  or `clear_cache()`. With the cache on, `analysis.equilibria` keeps its whole compiled
-  program there (`compiled_call`), so that a repeated command does not even trace it.
+  or `clear_cache()`.
 
 XLA reads its flags when the first computation starts the backend, so `configure` must
 run before any JAX computation; called later it keeps the backend as it is and warns.
@@ -141,7 +140,6 @@ def release_compiled(fraction: float = 1 / 3) -> bool:
     if state is None or state[0] <= fraction * state[1]:
         return False
     jax.clear_caches()
-    _COMPILED.clear()
     gc.collect()
     return True
 
@@ -225,133 +223,3 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> d
             applied_dir = str(d)
     return dict(xla_flags=os.environ.get("XLA_FLAGS", "").split(), cache_dir=applied_dir,
                 backend_was_started=started)
-
-
-# ---------------------------------------------------------------------------------------
-# Traced programs kept next to the compiled ones
-# ---------------------------------------------------------------------------------------
-
-_SOURCE_HASH: str | None = None
-#: the programs `compiled_call` loaded or compiled in this process, by key
-_COMPILED: dict = {}
-
-
-def _source_hash() -> str:
-    """A hash of pmsmjax's own source files (a changed program never reuses an old
-    trace)."""
-    global _SOURCE_HASH
-    if _SOURCE_HASH is None:
-        import hashlib
-
-        h = hashlib.sha256()
-        root = Path(__file__).resolve().parent
-        for p in sorted(root.rglob("*.py")):
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
-        _SOURCE_HASH = h.hexdigest()
-    return _SOURCE_HASH
-
-
-def compiled_call(name: str, fn, args, out_structure, *, compiler_options=None):
-    """`fn(*args)` (a pure function of pytrees of arrays and static values) through a
-    cache of compiled programs in `cache_dir()/programs`, or None when that is not
-    possible (the caller then calls its jitted function as usual).
-
-    Why: the persistent compilation cache skips XLA's compilation, but every process
-    still traces and lowers the function before it can look the compiled program up; for
-    the generic equilibrium analysis that was seconds of the `pmsmjax equilibria`
-    command's warm run (BENCHMARKS.md). Here the compiled program of `fn` (flattened to
-    arrays in, arrays out) is stored whole (`jax.experimental.serialize_executable`)
-    under a key of everything that determines it: `name`, pmsmjax's source, the JAX
-    version, the backend and machine, `XLA_FLAGS`, the static part of `args` (its `repr`
-    and tree structure) and the shapes and dtypes of its arrays. A later process loads
-    it and runs it: it traces, lowers and compiles nothing of `fn`.
-
-    Used only where the persistent compilation cache is on (`configure`: the entry
-    points), `args` holds no tracer (not inside jit/vmap/grad) and every equinox module in
-    it is pmsmjax's own (a user's class is not in the key). `out_structure`: the tree
-    structure of `fn`'s output; `compiler_options`: XLA options of its compilation (part
-    of the key). The programs stay loaded for the process
-    (`release_compiled` drops them with JAX's own). Any failure to compile, store or load
-    falls back to None; an unreadable file is replaced. Like JAX's own cache, the files
-    are executable code: the cache directory must be the user's own.
-    """
-    d = jax.config.jax_compilation_cache_dir
-    if not d:
-        return None
-    if not _own_types(args):
-        return None
-    import equinox as eqx
-
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    flat, treedef = jax.tree_util.tree_flatten(dynamic)
-    if any(isinstance(x, jax.core.Tracer) for x in flat):
-        return None
-    import hashlib
-    import pickle
-    import platform
-
-    from jax.experimental import serialize_executable as se
-
-    try:
-        backend = jax.extend.backend.get_backend()
-        key_text = "\n".join([
-            name, _source_hash(), jax.__version__, backend.platform,
-            backend.platform_version, platform.machine(), os.environ.get("XLA_FLAGS", ""),
-            str(jax.config.jax_enable_x64), repr(compiler_options), repr(static), str(treedef),
-            repr([(tuple(x.shape), str(x.dtype)) for x in flat])])
-    except Exception:  # an unprintable static part: no key
-        return None
-    if " at 0x" in key_text:  # an object without a stable repr: no key
-        return None
-    key = hashlib.sha256(key_text.encode()).hexdigest()
-    path = Path(d) / "programs" / f"{name}-{key[:40]}.bin"
-    compiled = _COMPILED.get(key)
-    if compiled is None and path.is_file():
-        try:
-            payload, in_tree, out_tree = pickle.loads(path.read_bytes())
-            compiled = se.deserialize_and_load(payload, in_tree, out_tree)
-        except Exception:
-            compiled = None
-    if compiled is None:
-        def flat_fn(*leaves):
-            a = eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
-            return jax.tree_util.tree_leaves(fn(*a))
-
-        try:
-            compiled = jax.jit(flat_fn, compiler_options=compiler_options).lower(
-                *flat).compile()
-            blob = pickle.dumps(se.serialize(compiled))
-        except Exception:
-            return None
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_bytes(blob)
-            os.replace(tmp, path)
-        except OSError:
-            pass
-    _COMPILED[key] = compiled
-    try:
-        out = compiled(*flat)
-    except Exception:
-        return None
-    return jax.tree_util.tree_unflatten(out_structure, out)
-
-
-def _own_types(tree) -> bool:
-    """Every equinox module in `tree` is one of pmsmjax's (a user's own observer class
-    is not covered by `_source_hash`)."""
-    import dataclasses
-
-    import equinox as eqx
-
-    if isinstance(tree, eqx.Module):
-        if not type(tree).__module__.startswith("pmsmjax."):
-            return False
-        return all(_own_types(getattr(tree, f.name, None)) for f in dataclasses.fields(tree))
-    if isinstance(tree, list | tuple):
-        return all(_own_types(v) for v in tree)
-    if isinstance(tree, dict):
-        return all(_own_types(v) for v in tree.values())
-    return True

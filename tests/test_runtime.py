@@ -183,37 +183,3 @@ def test_new_initial_values_do_not_compile_again():
     a = pj.simulate(d, foc, obs, sc, theta0=0.0)
     b = pj.simulate(d, foc, obs, sc, theta0=0.4)
     assert float(b.theta[0]) == pytest.approx(0.4) and float(a.theta[0]) == 0.0
-
-
-def test_equilibria_program_is_reused_without_tracing(env, tmp_path):
-    """With the cache on, `analysis.equilibria` stores its compiled program whole
-    (`runtime.compiled_call`): a second process runs it without tracing the observer's
-    error dynamics, with the same result; a changed option is a new program."""
-    code = ("import sys, json, numpy as np, pmsmjax as pj\n"
-            "pj.runtime.configure()\n"
-            "from pmsmjax.observers import make_observer\n"
-            "from pmsmjax.analysis import equilibria\n"
-            "d = pj.preset('zhang750')\n"
-            "obs = make_observer('leso', d)\n"
-            "calls = []\n"
-            "cls = type(obs); rhs = cls.error_rhs\n"
-            "cls.error_rhs = lambda *a, **k: calls.append(1) or rhs(*a, **k)\n"
-            "eq = equilibria(obs, d.three_phase_motor, 0.5 * float(d.w_rated), (0.0, 3.0),\n"
-            "                n_grid=int(sys.argv[1]))\n"
-            "print(json.dumps(dict(calls=len(calls), theta=np.asarray(eq.theta).tolist(),\n"
-            "                      x=np.asarray(eq.x).tolist(), n=int(eq.n))))\n")
-
-    def run(n_grid):
-        res = _run(["-c", code, str(n_grid)], env)
-        assert res.returncode == 0, res.stderr
-        return json.loads(res.stdout.strip().splitlines()[-1].replace("NaN", "null"))
-
-    first = run(64)
-    assert first["calls"] > 0 and first["n"] >= 1
-    assert list((tmp_path / "cache" / "programs").glob("equilibria-*.bin"))
-    second = run(64)
-    assert second["calls"] == 0  # nothing traced
-    assert second["theta"] == first["theta"] and second["x"] == first["x"]
-    assert run(48)["calls"] > 0  # another grid: another program
-    env["PMSMJAX_CACHE"] = "0"
-    assert run(64)["calls"] > 0

@@ -52,7 +52,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .. import runtime
 from .._frames import rotate, wrap_angle
 from .._params import PMSMParams
 from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
@@ -390,28 +389,14 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     observer, plant = as_arrays(observer, dtype), as_arrays(plant, dtype)
     op = _op(w_m, i_dq, dtype)
     tol = float(jnp.finfo(dtype).eps) ** 0.6 if tol is None else float(tol)
-    options = dict(
-        method=method, n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
-        angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
-        n_newton=n_newton, tol=tol)
-    # with the persistent compilation cache on (the entry points), the traced program
-    # comes from there whole, without tracing (`runtime.compiled_call`)
-    eq = runtime.compiled_call("equilibria", _equilibria_of, (observer, plant, op, options),
-                               _EQUILIBRIA_STRUCTURE, compiler_options=ONE_OFF_XLA_OPTIONS)
-    if eq is not None:
-        return eq
     if method == "auto":
         fast = observer.fast_equilibria(plant, op)
         if fast is not None:
             return fast
-    return _equilibria(observer, plant, op, dict(options, method="generic"))
-
-
-def _equilibria_of(observer, plant, op, options):
-    return equilibria_traced(observer, plant, op, **options)
-
-
-_EQUILIBRIA_STRUCTURE = jax.tree_util.tree_structure(Equilibria(*range(10)))
+    return _equilibria(observer, plant, op, dict(
+        method="generic", n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
+        angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
+        n_newton=n_newton, tol=tol))
 
 
 #: XLA options of the program that `equilibria` compiles for one operating point: the
