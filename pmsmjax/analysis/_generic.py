@@ -399,16 +399,7 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
         n_newton=n_newton, tol=tol))
 
 
-#: XLA options of the program that `equilibria` compiles for one operating point: the
-#: backend's optimisation level 0 compiles it about 30 % faster (ESO on zhang750: 6.9
-#: instead of 9.9 s of CPU) and runs it in 7 instead of 3 ms, with the same equilibria to
-#: 1e-13 (BENCHMARKS.md, "Compile time of the generic analysis"). A single analysis runs
-#: once, so the compile time is what counts; inside a caller's jit or vmap (feasibility
-#: maps, sweeps, the tuner) the caller's program and options apply.
-ONE_OFF_XLA_OPTIONS = {"xla_backend_optimization_level": 0}
-
-
-@eqx.filter_jit(compiler_options=ONE_OFF_XLA_OPTIONS)
+@eqx.filter_jit
 def _equilibria(observer, plant, op, options):
     return equilibria_traced(observer, plant, op, **options)
 
