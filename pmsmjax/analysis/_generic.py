@@ -388,11 +388,11 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     dtype = jnp.result_type(w_m, float)
     observer, plant = as_arrays(observer, dtype), as_arrays(plant, dtype)
     op = _op(w_m, i_dq, dtype)
-    tol = float(jnp.finfo(dtype).eps) ** 0.6 if tol is None else float(tol)
     if method == "auto":
         fast = observer.fast_equilibria(plant, op)
         if fast is not None:
             return fast
+    tol = float(jnp.finfo(dtype).eps) ** 0.6 if tol is None else float(tol)
     return _equilibria(observer, plant, op, dict(
         method="generic", n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
         angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
