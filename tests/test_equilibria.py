@@ -283,3 +283,24 @@ def test_bad_arguments_raise():
         analysis.eso_equilibria(100.0, jnp.zeros(2), g, M, frame="estimator")
     with pytest.raises(ValueError, match="frame"):
         analysis.eso_rhs(jnp.zeros(4), 100.0, jnp.zeros(2), g, M, frame="x")
+
+
+@pytest.mark.parametrize("m", [1, 2, 5, 9, 10])
+def test_generic_routes_small_linear_algebra(m):
+    """The generic route's Cholesky solve and pivoted determinant (loops over the size,
+    for the compile time) against NumPy, for the sizes of the registry's observers, with
+    rows that need pivoting, a singular matrix, and under vmap."""
+    from pmsmjax.analysis._generic import _chol_solve, _det
+
+    rng = np.random.default_rng(m)
+    B = rng.normal(size=(m, m))
+    H = B @ B.T + 0.1 * np.eye(m)
+    g = rng.normal(size=m)
+    x, logdet = jax.jit(_chol_solve)(jnp.asarray(H), jnp.asarray(g))
+    np.testing.assert_allclose(x, np.linalg.solve(H, g), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(logdet, np.linalg.slogdet(H)[1], rtol=1e-12, atol=1e-12)
+    Ms = np.stack([rng.normal(size=(m, m)) for _ in range(4)])
+    Ms[1, 0] = 0.0  # the first pivot is elsewhere
+    Ms[2, -1] = Ms[2, 0]  # singular (for m > 1)
+    d = jax.jit(jax.vmap(_det))(jnp.asarray(Ms))
+    np.testing.assert_allclose(d, np.linalg.det(Ms), rtol=1e-10, atol=1e-12)

@@ -33,8 +33,15 @@ and vmaps over operating points, designs and mismatches; failures are reported i
 `status` (0 ok, 2 no equilibrium, -1 degenerate), never raised.
 
 **Stability** of each equilibrium: the exact Routh-Hurwitz test on the characteristic
-polynomial (Faddeev-LeVerrier) of the scaled Jacobian (`jax.jacfwd` of `error_rhs`); a
-(numerically) singular Jacobian is a tangent (saddle-node) equilibrium, never stable.
+polynomial (Faddeev-LeVerrier) of the scaled Jacobian (forward-mode Jacobian of
+`error_rhs`, taken with the final Newton residual); a (numerically) singular Jacobian is
+a tangent (saddle-node) equilibrium, never stable.
+
+**Compile time.** Every phase (continuation, close-pair search, refinement, Newton
+polish) is a `lax.scan` whose body evaluates the error dynamics and their Jacobian once,
+so `error_rhs` is traced four times in all, and the small linear algebra is written as
+loops: the program's size, and XLA's compile time, stay moderate for the larger observers
+(BENCHMARKS.md, "Compile time of the generic analysis").
 """
 
 from __future__ import annotations
@@ -74,59 +81,64 @@ def _op(w_m, i_dq, dtype):
 
 
 # ---------------------------------------------------------------------------------------
-# Small dense linear algebra, unrolled at trace time (element-wise over any batch, so it
-# fuses under vmap instead of calling LAPACK per point)
+# Small dense linear algebra as loops over the matrix size (element-wise over any vmapped
+# batch, so it fuses under vmap instead of calling LAPACK per point). Written as
+# `lax.fori_loop`s rather than unrolled at trace time: unrolled, the elimination is a deep
+# graph of scalar operations with much reuse, whose XLA compile time grew steeply with the
+# size (the 10-state GI-LESO took over 17 minutes to compile; BENCHMARKS.md).
 # ---------------------------------------------------------------------------------------
 
 def _chol_solve(H, g):
-    """Solve H x = g for a small symmetric positive definite H (static size)."""
+    """Solve H x = g for a small symmetric positive definite H `(m, m)` (Cholesky;
+    a non-positive pivot is clamped to 1e-300). Returns `(x, log det H)`."""
     m = H.shape[-1]
-    L = [[None] * m for _ in range(m)]
-    for j in range(m):
-        s = H[..., j, j] - sum(L[j][k] ** 2 for k in range(j))
-        d = jnp.sqrt(jnp.maximum(s, 1e-300))
-        L[j][j] = d
-        for i in range(j + 1, m):
-            L[i][j] = (H[..., i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / d
-    y = []
-    for i in range(m):
-        y.append((g[..., i] - sum(L[i][k] * y[k] for k in range(i))) / L[i][i])
-    x = [None] * m
-    for i in reversed(range(m)):
-        x[i] = (y[i] - sum(L[k][i] * x[k] for k in range(i + 1, m))) / L[i][i]
-    logdet = 2.0 * sum(jnp.log(L[j][j]) for j in range(m))
-    return jnp.stack(x, -1), logdet
+    idx = jnp.arange(m)
+
+    def factor(j, L):
+        # column j of L: the rows of L beyond column j - 1 are still zero
+        col = H[:, j] - L @ L[j, :]
+        d = jnp.sqrt(jnp.maximum(col[j], 1e-300))
+        return L.at[:, j].set(jnp.where(idx > j, col / d, jnp.where(idx == j, d, 0.0)))
+
+    L = jax.lax.fori_loop(0, m, factor, jnp.zeros_like(H))
+    diag = jnp.diagonal(L)
+
+    def forward(i, y):
+        return y.at[i].set((g[i] - L[i, :] @ y) / diag[i])
+
+    def backward(k, x):
+        i = m - 1 - k
+        return x.at[i].set((y[i] - L[:, i] @ x) / diag[i])
+
+    y = jax.lax.fori_loop(0, m, forward, jnp.zeros_like(g))
+    x = jax.lax.fori_loop(0, m, backward, jnp.zeros_like(g))
+    return x, 2.0 * jnp.sum(jnp.log(diag))
 
 
 def _det(M):
-    """Determinant of a small square matrix by elimination with partial pivoting."""
+    """Determinant of a small square matrix `(m, m)` by elimination with partial
+    pivoting."""
     m = M.shape[-1]
-    rows = [M[..., i, :] for i in range(m)]
-    det = jnp.ones(M.shape[:-2], M.dtype)
-    for k in range(m):
-        col = jnp.stack([jnp.abs(r[..., k]) for r in rows[k:]], -1)
-        p = jnp.argmax(col, -1)
-        # swap row k with row k + p (one-hot selects)
-        pivot_row = sum(jnp.where((p == j)[..., None], rows[k + j], 0.0)
-                        for j in range(m - k))
-        new_rows = list(rows)
-        for j in range(1, m - k):
-            new_rows[k + j] = jnp.where((p == j)[..., None], rows[k], rows[k + j])
-        rows = new_rows
-        rows[k] = pivot_row
-        det = det * jnp.where(p == 0, 1.0, -1.0) * pivot_row[..., k]
-        piv = jnp.where(pivot_row[..., k] != 0, pivot_row[..., k], 1.0)
-        for i in range(k + 1, m):
-            rows[i] = rows[i] - (rows[i][..., k] / piv)[..., None] * pivot_row
+    idx = jnp.arange(m)
+
+    def body(k, c):
+        R, det = c
+        p = jnp.argmax(jnp.where(idx >= k, jnp.abs(R[:, k]), -1.0))
+        pivot_row, row_k = R[p], R[k]
+        R = R.at[p].set(row_k).at[k].set(pivot_row)
+        pv = pivot_row[k]
+        det = det * jnp.where(p == k, 1.0, -1.0) * pv
+        piv = jnp.where(pv != 0, pv, 1.0)
+        R = R - jnp.where(idx > k, R[:, k] / piv, 0.0)[:, None] * pivot_row[None, :]
+        return R, det
+
+    _, det = jax.lax.fori_loop(0, m, body, (M, jnp.ones((), M.dtype)))
     return det
 
 
 # ---------------------------------------------------------------------------------------
 # The scaled system
 # ---------------------------------------------------------------------------------------
-
-_STEPS = (1.0,)
-
 
 class _Scaled(eqx.Module):
     observer: AbstractObserver
@@ -152,54 +164,59 @@ class _Scaled(eqx.Module):
     def Fw(self, theta, y):
         return self.F(self.insert(theta, y)) * self.weight
 
-    def solve_y(self, theta, y, n_iter, n_active=None):
-        """Gauss-Newton for the other coordinates at a fixed angle error, with the angle
-        row as an equality constraint (null-space method): each step solves
+    def gauss_newton_step(self, Fv, Jy):
+        """One Gauss-Newton step for the other coordinates at a fixed angle error, from
+        the weighted `F` and its Jacobian `J_y` at the current point, with the angle row
+        as an equality constraint (null-space method): it solves
         min ||F_o + J_o d|| subject to F_a + J_a d = 0, so that the solution follows the
-        branch on which the estimated frame turns at the true speed. `n_active` (may be
-        traced, <= `n_iter`): only the first `n_active` of the `n_iter` steps act."""
-        m = y.shape[0]
+        branch on which the estimated frame turns at the true speed. Returns the step d
+        (a full step: the iteration takes it undamped)."""
+        m = Jy.shape[1]
         a = self.angle
-        eye = jnp.eye(m, dtype=y.dtype)
+        dtype = Jy.dtype
+        eye = jnp.eye(m, dtype=dtype)
         e0 = eye[0]
+        Fa, Ja = Fv[a], Jy[a]
+        Fo = jnp.concatenate([Fv[:a], Fv[a + 1:]])
+        Jo = jnp.concatenate([Jy[:a], Jy[a + 1:]], 0)
+        nrm = jnp.sqrt(jnp.sum(Ja ** 2))
+        ok = nrm > 1e-12 * (1.0 + jnp.max(jnp.abs(Jo)))
+        nrm_s = jnp.where(ok, nrm, 1.0)
+        # Householder reflector mapping Ja to a multiple of e0: its other columns span the
+        # null space of Ja
+        sg = jnp.where(Ja[0] >= 0, 1.0, -1.0)
+        v = Ja / nrm_s + sg * e0
+        Hh = eye - 2.0 * jnp.outer(v, v) / jnp.sum(v * v)
+        N = Hh[:, 1:]
+        dp = jnp.where(ok, -Fa * Ja / nrm_s ** 2, jnp.zeros_like(Ja))
+        B = Jo @ N
+        G = B.T @ B
+        t, _ = _chol_solve(G + (1e-13 * jnp.trace(G) + 1e-300) * jnp.eye(m - 1, dtype=dtype),
+                           -B.T @ (Fo + Jo @ dp))
+        d_con = dp + N @ t
+        # without a usable constraint: plain Gauss-Newton on every row
+        H = Jy.T @ Jy
+        d_gn, _ = _chol_solve(H + (1e-13 * jnp.trace(H) + 1e-300) * eye, -Jy.T @ Fv)
+        return jnp.where(ok, d_con, d_gn)
+
+    def solve_y(self, theta, y, n_iter, n_active=None):
+        """`n_iter` Gauss-Newton steps (`gauss_newton_step`) for the other coordinates at
+        the angle error `theta` from `y`; `n_active` (may be traced, <= `n_iter`): only
+        the first `n_active` steps act. Returns `(y, r, Fa)`: the result, the signed
+        residual `r(theta, y)` and the (unweighted) angle row of `F` there.
+
+        One scan of `n_iter + 1` evaluations of F and its Jacobian (the last one for `r`
+        only), so the error dynamics are traced once per call site: the compile time of
+        the generic route grows with the number of places that trace them."""
+        active = n_iter if n_active is None else jnp.minimum(n_active, n_iter)
 
         def body(y, k):
             Fv, Jy = self._FJ(theta, y)
-            Fa, Ja = Fv[a], Jy[a]
-            Fo = jnp.concatenate([Fv[:a], Fv[a + 1:]])
-            Jo = jnp.concatenate([Jy[:a], Jy[a + 1:]], 0)
-            nrm = jnp.sqrt(jnp.sum(Ja ** 2))
-            ok = nrm > 1e-12 * (1.0 + jnp.max(jnp.abs(Jo)))
-            nrm_s = jnp.where(ok, nrm, 1.0)
-            # Householder reflector mapping Ja to a multiple of e0: its other columns
-            # span the null space of Ja
-            sg = jnp.where(Ja[0] >= 0, 1.0, -1.0)
-            v = Ja / nrm_s + sg * e0
-            Hh = eye - 2.0 * jnp.outer(v, v) / jnp.sum(v * v)
-            N = Hh[:, 1:]
-            dp = jnp.where(ok, -Fa * Ja / nrm_s ** 2, jnp.zeros_like(Ja))
-            B = Jo @ N
-            G = B.T @ B
-            t, _ = _chol_solve(G + (1e-13 * jnp.trace(G) + 1e-300) * jnp.eye(m - 1, dtype=y.dtype),
-                               -B.T @ (Fo + Jo @ dp))
-            d_con = dp + N @ t
-            # without a usable constraint: plain Gauss-Newton on every row
-            H = Jy.T @ Jy
-            d_gn, _ = _chol_solve(H + (1e-13 * jnp.trace(H) + 1e-300) * eye, -Jy.T @ Fv)
-            d = jnp.where(ok, d_con, d_gn)
-            # damped: the best of a few step lengths on the weighted residual (steep
-            # nonlinear feedback such as fal makes full steps overshoot)
-            steps = jnp.asarray(_STEPS, y.dtype)
-            cand = y[None, :] + steps[:, None] * d[None, :]
-            merit = jax.vmap(lambda v: jnp.sum(self.Fw(theta, v) ** 2))(cand)
-            merit = jnp.where(jnp.isfinite(merit), merit, jnp.inf)
-            y_new = cand[jnp.argmin(merit)]
-            if n_active is not None:
-                y_new = jnp.where(k < n_active, y_new, y)
-            return y_new, None
+            y_new = jnp.where(k < active, y + self.gauss_newton_step(Fv, Jy), y)
+            return y_new, self._r(Fv, Jy)
 
-        y, _ = jax.lax.scan(body, y, jnp.arange(n_iter))
-        return y
+        y, (r, fa) = jax.lax.scan(body, y, jnp.arange(n_iter + 1))
+        return y, r[-1], fa[-1]
 
     def _FJ(self, theta, y):
         f = lambda v: self.Fw(theta, v)  # noqa: E731
@@ -207,13 +224,9 @@ class _Scaled(eqx.Module):
         Jy = jax.vmap(jvp, out_axes=1)(jnp.eye(y.shape[0], dtype=y.dtype))
         return Fv, Jy
 
-    def r(self, theta, y):
-        """Signed least-squares residual at `theta` for the other coordinates `y`."""
-        return self.r_and_angle_row(theta, y)[0]
-
-    def r_and_angle_row(self, theta, y):
-        """`r(theta, y)` and the (unweighted) angle row of `F` there."""
-        Fv, Jy = self._FJ(theta, y)
+    def _r(self, Fv, Jy):
+        """The signed least-squares residual r and the (unweighted) angle row of F, from
+        the weighted F and J_y at a point."""
         H = Jy.T @ Jy
         _, logdet = _chol_solve(H + 1e-300 * jnp.eye(H.shape[0], dtype=H.dtype),
                                 jnp.zeros(H.shape[0], H.dtype))
@@ -221,19 +234,25 @@ class _Scaled(eqx.Module):
         return r, Fv[self.angle] / self.weight[self.angle]
 
     def newton(self, z, n_iter):
-        """Newton steps on the full square system F(z) = 0 (normal equations)."""
+        """`n_iter` Newton steps on the full square system F(z) = 0 (normal equations),
+        then the angle coordinate wrapped to (-pi, pi]. Returns `(z, F(z), dF/dz(z))` at
+        the result: one scan of `n_iter + 1` evaluations of F and its Jacobian (the last
+        one for the residual and the stability test only), so the error dynamics are
+        traced once here."""
         n = z.shape[0]
         eye = jnp.eye(n, dtype=z.dtype)
+        a = self.angle
 
-        def body(z, _):
+        def body(z, k):
+            z = jnp.where(k < n_iter, z, z.at[a].set(wrap_angle(z[a])))
             Fv, jvp = jax.linearize(self.F, z)
             Jz = jax.vmap(jvp, out_axes=1)(eye)
             H = Jz.T @ Jz
             dz, _ = _chol_solve(H + (1e-14 * jnp.trace(H) + 1e-300) * eye, Jz.T @ Fv)
-            return z - dz, None
+            return jnp.where(k < n_iter, z - dz, z), (Fv, Jz)
 
-        z, _ = jax.lax.scan(body, z, None, length=n_iter)
-        return z
+        z, (Fv, Jz) = jax.lax.scan(body, z, jnp.arange(n_iter + 1))
+        return z, Fv[-1], Jz[-1]
 
 
 def _make_scaled(observer, plant, op, angle_weight):
@@ -322,8 +341,7 @@ def _continuation(sys: _Scaled, grid, y0, n_iter):
 
     def run(th):
         def body(y, t):
-            y = sys.solve_y(t, y, n_iter)
-            rv, fa = sys.r_and_angle_row(t, y)
+            y, rv, fa = sys.solve_y(t, y, n_iter)
             return y, (y, rv, fa)
 
         _, out = jax.lax.scan(body, y0, th)
@@ -431,8 +449,7 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
             t = jnp.where(den != 0, fa / jnp.where(den != 0, den, 1.0), 0.5)
             t = jnp.clip(t, 0.02, 0.98)
             c_ = a + t * (b - a)
-            yc = sys.solve_y(c_, ya + t * (yb - ya), 2)
-            fc = sys.r(c_, yc)
+            yc, fc, _ = sys.solve_y(c_, ya + t * (yb - ya), 2)
             left = (fc >= 0) == (fa >= 0)  # the root is in [c, b]
             # Illinois: halve the value kept at the end that survives twice
             fb = jnp.where(left & (side == 1), 0.5 * fb, fb)
@@ -481,8 +498,7 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
                 sec = (i >= 2) & (i < last)
                 t = jnp.where(i == 0, x1, jnp.where(i == 1, x2,
                                                     jnp.where(i == last, 0.5 * (a + b), xn)))
-                y = sys.solve_y(t, yk, 3, n_active=jnp.where(i == last, 3, 2))
-                rt = sys.r(t, y)
+                y, rt, _ = sys.solve_y(t, yk, 3, n_active=jnp.where(i == last, 3, 2))
                 fn = sgn * rt
                 x1n = jnp.where(left, xn, x2)
                 x2n = jnp.where(left, x1, xn)
@@ -516,9 +532,8 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
     th_all, y_all = jax.vmap(refine)(blo, bhi, flo, fhi, ylo, yhi)
     cand = bvalid
     z = jax.vmap(sys.insert)(th_all, y_all)
-    z = jax.vmap(lambda v: sys.newton(v, n_newton))(z)
-    z = z.at[:, sys.angle].set(wrap_angle(z[:, sys.angle]))
-    res = jnp.max(jnp.abs(jax.vmap(sys.F)(z)), -1)
+    z, Fz, A = jax.vmap(lambda v: sys.newton(v, n_newton))(z)
+    res = jnp.max(jnp.abs(Fz), -1)
     conv = jnp.isfinite(res) & (res < tol)
     valid = cand & conv
     failed = jnp.any(cand & ~conv)  # a bracket whose zero does not polish
@@ -532,11 +547,9 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
     valid = valid & ~dup
     too_many = (n_sc > max_roots) | (jnp.sum(valid) > max_roots)
     order = jnp.argsort(jnp.where(valid, theta, jnp.inf))[:max_roots]
-    z, valid = z[order], valid[order]
-    res = res[order]
+    z, valid, res, A = z[order], valid[order], res[order], A[order]
     theta = z[:, sys.angle]
 
-    A = jax.vmap(jax.jacfwd(sys.F))(z)
     c = charpoly(A)
     tangent = valid & (jnp.abs(c[:, -1]) < 1e3 * tol)
     stable = valid & routh_hurwitz(c) & ~tangent
