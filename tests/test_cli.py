@@ -174,7 +174,8 @@ def test_simulate_starts_a_sensorless_drive_with_the_if_start(tmp_path, capsys):
     assert main(["simulate", "--observer", "c-leso", "--scenario", "load-step", "--t-end",
                  "0.02", "--no-plot", "--out", str(tmp_path / "b")]) == 0
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
-    assert summary["controller"]["startup"] is None
+    # the rotor turns from the start: the catch, not the I/f start
+    assert summary["controller"]["startup"] == {"type": "catch", "window_samples": 64}
 
 
 def test_python_m_pmsmjax():

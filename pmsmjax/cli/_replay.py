@@ -125,8 +125,9 @@ def replay_command(args: argparse.Namespace) -> int:
         theta0, w0 = float(fs.theta0), float(fs.w0)
         print(f"flying start: theta0 = {math.degrees(theta0):.4g} deg, w0 = {w0:.5g} rad/s "
               f"(back-EMF {float(fs.e_mag):.3g} V)")
-    est = pj.replay_estimates(choice.observer, data, theta0=theta0, w0=w0,
-                              inverter=inverter)
+    unknown = start in ("caught turning", "at rest")  # replay's own default start
+    est = pj.replay_estimates(choice.observer, data, theta0=None if unknown else theta0,
+                              w0=None if unknown else w0, inverter=inverter)
     theta_hat, w_hat = np.asarray(est.theta_hat), np.asarray(est.w_hat)
     extras = {k: np.asarray(v) for k, v in est.extras.items()}
     clash = sorted(set(extras) & (set(pj.RecordedData.__dataclass_fields__) | {"t"}))
