@@ -163,6 +163,39 @@ def test_closed_loop_gradient_matches_central_differences(small):
     assert np.linalg.norm(fd) > 1e-3  # the design matters: the check is not vacuous
 
 
+def test_front_evaluators_reweigh_and_share_one_program(small):
+    """A point of the tracking-versus-noise front scores a design with its runs' loss
+    carrying another noise weight: recomputed here from the metrics and the objective's
+    definition; both fronts (and any other weight) run one compiled program."""
+    p, space, ev = small
+    x = np.array([1.2, 0.8, 400.0, 0.8])
+    z = space.to_unconstrained(x)
+    m = ev.metrics(jnp.asarray(x))
+    for factor in (0.25, 4.0):
+        w = p.w_noise * factor
+        evf = ev.with_noise_weight(w)
+        # the loss with the noise term's weight changed, by hand
+        d = (w - p.w_noise) * np.asarray(m.noise_rad_s) / p.noise_unit_rad_s
+        ok = np.asarray(m.ok)
+        loss = np.where(ok, np.asarray(m.loss) + d, np.asarray(m.loss))
+        ref = ev.reference
+        ref_loss = np.where(np.asarray(ref.ok),
+                            np.asarray(ref.loss) + (w - p.w_noise)
+                            * np.asarray(ref.noise_rad_s) / p.noise_unit_rad_s,
+                            np.asarray(ref.loss))
+        r = loss / ref_loss
+        k = math.ceil(p.cvar_fraction * r.size)
+        rms_x = np.asarray(m.rms_deg / ref.rms_deg) - 1 - MARGIN * p.regression_tol
+        held = ~np.asarray(ref.lost_lock)
+        J = (0.5 * r.mean() + 0.5 * np.sort(r)[-k:].mean()
+             + p.w_constraint * (np.sum(np.log1p(np.exp(50 * rms_x)) / 50)
+                                 + np.sum(held * np.asarray(m.out_of_lock))))
+        assert float(evf.value(z)) == pytest.approx(J, rel=1e-9)
+    # the weight is an argument of the compiled program, not a constant compiled in (the
+    # gradient goes through the same function: the main job's fronts run it)
+    assert ev._reweighed_values._cache_size() == 1
+
+
 def test_no_regression_rule_per_metric(small):
     """The rule looks at each metric: a design better on the loss of most runs but worse
     in one run's RMS angle error fails, and so does one that loses lock where the

@@ -63,6 +63,16 @@ class Evaluator:
 
         self._value_and_grad = jax.jit(jax.value_and_grad(value))
         self._values = jax.jit(jax.vmap(value, in_axes=(0, None)))
+        w_base = problem.w_noise
+
+        def reweighed_value(z, ref, w_new):
+            m = reweigh(metrics(space.to_physical(z)), problem, w_base, w_new)
+            return objective(m, ref, problem)[0]
+
+        # one program for every other noise weight (the front designs): the weight is
+        # an argument, not a constant compiled in
+        self._reweighed_value_and_grad = jax.jit(jax.value_and_grad(reweighed_value))
+        self._reweighed_values = jax.jit(jax.vmap(reweighed_value, in_axes=(0, None, None)))
 
     def perturbed_reference(self, eps: float) -> Metrics:
         """The metrics of the paper's design with every tunable design parameter of the
@@ -85,22 +95,17 @@ class Evaluator:
 
     def with_noise_weight(self, w_noise: float) -> Evaluator:
         """The same runs and reference, scored with another noise weight (a point of the
-        tracking-versus-noise front)."""
+        tracking-versus-noise front). Every such evaluator of one `Evaluator` runs the
+        same compiled programs, with the weight as their argument."""
         ev = Evaluator.__new__(Evaluator)
         ev.__dict__.update(self.__dict__)
         problem = self.problem.replace(w_noise=w_noise)
         ev.problem = problem
-        metrics, space = self._metrics, self.space
-        ref = self.reference
-        w_old = self.problem.w_noise
-        ev.reference = reweigh(ref, problem, w_old, w_noise)
-
-        def value(z, ref):
-            m = reweigh(metrics(space.to_physical(z)), problem, w_old, w_noise)
-            return objective(m, ref, problem)[0]
-
-        ev._value_and_grad = jax.jit(jax.value_and_grad(value))
-        ev._values = jax.jit(jax.vmap(value, in_axes=(0, None)))
+        ev.reference = reweigh(self.reference, problem, self.problem.w_noise, w_noise)
+        w = jnp.asarray(w_noise, jnp.result_type(float))
+        vg, vs = self._reweighed_value_and_grad, self._reweighed_values
+        ev._value_and_grad = lambda z, ref: vg(z, ref, w)
+        ev._values = lambda zs, ref: vs(zs, ref, w)
         return ev
 
     def value_and_grad(self, z):
