@@ -188,21 +188,28 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
         run_comparison(tiny(noise_std=0.03), part, progress=False, log=None)
 
 
-def test_worker_processes_and_devices_give_the_same_files(job, tmp_path, monkeypatch):
+# two devices: the worker compiles every program anew for them (50 s); the sweep runner's
+# sharding over devices is checked in the fast suite by tests/test_sweep.py, so here the
+# fast case is one device (the worker's programs are the parent's: compilation-cache hits)
+@pytest.mark.parametrize("n_devices", [1, pytest.param(2, marks=pytest.mark.slow)])
+def test_worker_processes_and_devices_give_the_same_files(job, tmp_path, monkeypatch,
+                                                          n_devices):
     """`jobs` > 1: the observer's part runs in a worker process (`tuning.compare.worker`),
-    here with two CPU devices over which its sweeps are sharded, and the parent assembles
-    the same files as the one-process, one-device job. Equal to rounding, not bitwise:
-    with `batch_size` the vmap width is the same, but XLA compiles the program sharded
-    over two devices differently (the last digit of some metrics differs)."""
+    here with one or two CPU devices over which its sweeps are sharded, and the parent
+    assembles the same files as the one-process, one-device job. Equal to rounding, not
+    bitwise: with `batch_size` the vmap width is the same, but XLA compiles the program
+    sharded over two devices differently (the last digit of some metrics differs)."""
     config, out, _ = job
     par = tmp_path / "par"
-    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    if n_devices > 1:
+        monkeypatch.setenv("XLA_FLAGS",
+                           f"--xla_force_host_platform_device_count={n_devices}")
     run_comparison(config, par, progress=False, log=None, jobs=2, batch_size=2)
     assert (par / "observers" / f"{OBSERVER}.json").is_file()
     assert (par / "logs" / f"{OBSERVER}.log").is_file()
     manifest = json.loads((par / "sweeps" / OBSERVER / "paper" / "runs" / "sweep.json"
                            ).read_text())
-    assert manifest["devices"]["count"] == 2
+    assert manifest["devices"]["count"] == n_devices
     _assert_close(_strip_timing(par / "comparison.json"),
                   _strip_timing(out / "comparison.json"))
     for sub in ("runs", "analysis"):

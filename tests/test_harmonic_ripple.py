@@ -248,7 +248,9 @@ def test_angle_dependent_flag_tells_whether_the_error_dynamics_depend_on_the_ang
     assert same != obs.angle_dependent
 
 
-@pytest.mark.parametrize("name", ["eso", "fa-leso"])
+# the one-angle shortcut is the same code for every observer: the ESO checks it in the fast
+# suite, the FA-LESO (its discrete step compiles for 25 s) only in the slow one
+@pytest.mark.parametrize("name", ["eso", pytest.param("fa-leso", marks=pytest.mark.slow)])
 def test_one_angle_for_angle_independent_observers_equals_the_full_balance(name):
     """An observer whose error dynamics do not depend on the angle is evaluated at one
     angle; the 16-angle harmonic balance (forced by a subclass that declares
