@@ -29,7 +29,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._frames import wrap_angle
+from ._frames import rotation_between, wrap_angle
 from ._params import PMSMParams
 from ._validate import is_concrete
 
@@ -66,6 +66,14 @@ class FlyingStart(eqx.Module):
     coherence: jnp.ndarray
 
 
+def model_back_emf(motor: PMSMParams, u_ab, i0_ab, i1_ab, T_s):
+    r"""The model back-EMF (V) of the period from the current `i0_ab` to `i1_ab` (A, `T_s`
+    (s) apart) with the voltage `u_ab` (V) held over it:
+    $u - \hat R_s(i_0 + i_1)/2 - \hat L_q(i_1 - i_0)/T_s$ (the q-axis model: for a
+    salient machine it is the extended back-EMF, along the q axis)."""
+    return u_ab - motor.R_s * 0.5 * (i0_ab + i1_ab) - motor.L_q * (i1_ab - i0_ab) / T_s
+
+
 def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart:
     """Initial angle and speed of a turning rotor from the first `n` + 1 samples (see the
     module docstring).
@@ -94,10 +102,8 @@ def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart
         raise ValueError(f"`flying_start(T_s=...)` (s) must be > 0; got {T_s!r}.")
     u = u_ab[:n]
     i0, i1 = i_ab[:n], i_ab[1:n + 1]
-    e = u - motor.R_s * 0.5 * (i0 + i1) - motor.L_q * (i1 - i0) / T_s
-    cross = e[:-1, 0] * e[1:, 1] - e[:-1, 1] * e[1:, 0]
-    dot = jnp.sum(e[:-1] * e[1:], -1)
-    w0 = jnp.sum(jnp.arctan2(cross, dot)) / ((n - 1) * T_s)
+    e = model_back_emf(motor, u, i0, i1, T_s)
+    w0 = jnp.sum(rotation_between(e[:-1], e[1:])) / ((n - 1) * T_s)
     sg = jnp.where(w0 < 0, -1.0, 1.0)
     th_mid = jnp.arctan2(-sg * e[:, 0], sg * e[:, 1])
     k = jnp.arange(n) + 0.5

@@ -87,6 +87,15 @@ def wrap_angle(theta):
     return jnp.where(w <= -jnp.pi, w + 2 * jnp.pi, w)
 
 
+def rotation_between(a, b):
+    """The angle (rad, in (-pi, pi]) by which the 2-vector(s) `a` turn to reach `b` (last
+    axis): atan2 of their cross and dot products. Where both vanish (a zero vector) it is
+    0, with a finite gradient (atan2(0, 0)'s is not)."""
+    cross = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+    return jnp.arctan2(cross, jnp.where((cross == 0) & (dot == 0), 1.0, dot))
+
+
 def angle_error(theta, theta_hat):
     """Estimation error true minus estimate, wrapped to (-pi, pi] (rad)."""
     return wrap_angle(theta - theta_hat)

@@ -6,6 +6,9 @@ numpy), never taken from the library.
 
 import math
 
+import jax
+import jax.numpy as jnp
+
 import numpy as np
 import pytest
 
@@ -244,3 +247,19 @@ def test_inv_vsd_builds_balanced_sets():
     A, phi = 3.3, -1.1
     x6 = np.asarray(pj.inv_vsd(A * np.array([np.cos(phi), np.sin(phi)]), np.zeros(2)))
     np.testing.assert_allclose(x6, A * np.cos(phi - ANG6), atol=1e-13)
+
+
+def test_rotation_between_is_the_angle_of_the_complex_quotient():
+    """Against complex arithmetic: the turn from a to b is arg(b / a); zero vectors give
+    0 with a finite gradient."""
+    from pmsmjax._frames import rotation_between
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(2, 500, 2))
+    ref = np.angle((b[:, 0] + 1j * b[:, 1]) / (a[:, 0] + 1j * a[:, 1]))
+    np.testing.assert_allclose(np.asarray(rotation_between(jnp.asarray(a), jnp.asarray(b))),
+                               ref, rtol=1e-13, atol=1e-14)
+    z = jnp.zeros(2)
+    assert float(rotation_between(z, jnp.array([1.0, 2.0]))) == 0.0
+    g = jax.grad(lambda x: rotation_between(x, z))(z)
+    assert np.all(np.isfinite(np.asarray(g)))

@@ -39,7 +39,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import wrap_angle
+from .._flying_start import model_back_emf
+from .._frames import rotation_between, wrap_angle
 from .._params import PMSMParams
 from ._base import AbstractObserver, Estimate, Measurement
 
@@ -128,10 +129,8 @@ class FlyingCatch(AbstractObserver):
         u = jnp.asarray(meas.u_ab).astype(dtype)
         k = state.k
         # the model back-EMF of the period that ended now (from k = 1 on)
-        e = u - m.R_s * 0.5 * (state.i_prev + i_k) - m.L_q * (i_k - state.i_prev) / T_s
-        cross = state.e_prev[0] * e[1] - state.e_prev[1] * e[0]
-        dot = jnp.sum(state.e_prev * e)
-        inc = jnp.arctan2(cross, jnp.where((cross == 0) & (dot == 0), 1.0, dot))
+        e = model_back_emf(m, u, state.i_prev, i_k, T_s)
+        inc = rotation_between(state.e_prev, e)
         window = (k >= 1) & (k <= self.n)
         turn = state.turn + jnp.where(window & (k >= 2), inc, 0.0)
         e_sum = state.e_sum + jnp.where(window, jnp.sqrt(jnp.sum(e ** 2)), 0.0)
@@ -150,7 +149,9 @@ class FlyingCatch(AbstractObserver):
         fresh = obs.init(theta0=th_c, w0=w_c)
         # a started observer: one step from the caught estimate at the present sample, so
         # that its internal "previous sample" is this one
-        inner = _select(catch, _started(obs, fresh, meas, T_s), inner)
+        # (a branch: the restarted state is computed at the catch sample only, except
+        # under vmap, where both are)
+        inner = jax.lax.cond(catch, lambda: _started(obs, fresh, meas, T_s), lambda: inner)
         est = _select(catch, Estimate(theta_hat=th_c.astype(est.theta_hat.dtype),
                                       w_hat=w_c.astype(est.w_hat.dtype),
                                       extras=est.extras), est)

@@ -121,7 +121,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._frames import wrap_angle
+from .._frames import rotation_between, wrap_angle
 from .._validate import check_positive
 
 
@@ -194,7 +194,6 @@ class QuadraturePLL(eqx.Module):
         `w_e` (rad/s) between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one
         period `T_s` (s) apart, at the angle estimate `theta_hat` (rad) and model
         extended flux `psi_ex_hat` (V s) (see "Acquisition" in the module docstring)."""
-        cross = e_prev[..., 0] * e_ab_hat[..., 1] - e_prev[..., 1] * e_ab_hat[..., 0]
         dot = e_prev[..., 0] * e_ab_hat[..., 0] + e_prev[..., 1] * e_ab_hat[..., 1]
         n2_prev = jnp.sum(e_prev ** 2, -1)
         n2 = jnp.sum(e_ab_hat ** 2, -1)
@@ -203,8 +202,7 @@ class QuadraturePLL(eqx.Module):
         # flips by pi in one sample, which is no rotation; atan2 of (0, 0) has an
         # infinite gradient: nudge the denominator there (m ~ 0 then)
         sgn = jnp.where(dot < 0, -1.0, 1.0)
-        adot = jnp.abs(dot)
-        w_e = jnp.arctan2(sgn * cross, jnp.where((cross == 0) & (adot == 0), 1.0, adot)) / T_s
+        w_e = rotation_between(e_prev, sgn[..., None] * e_ab_hat) / T_s
         e_min2 = (psi_ex_hat * self.w_min) ** 2
         prod = jnp.sqrt(n2_prev * n2 + tiny)
         m = prod / (prod + e_min2)
