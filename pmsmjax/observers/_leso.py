@@ -61,8 +61,15 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   $I$ and $X - \tfrac12\mathrm{tr}X$, 4 for the GI-LESO), by a Taylor polynomial and
   doublings with static shapes and no division (for the pairs: $\varphi_2$ of
   $X/8$ alone by Horner's rule, degree 14, $\varphi_1$ and $e^X$ from it, then three
-  doublings; for the GI-LESO's $4\times4$ matrix: balanced, degree 12, five doublings):
-  exact to round-off for eigenvalues (balanced norms) of $X$ up to about 8, far beyond
+  doublings). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
+  + \varphi_2(X)g_1$ (the exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1],
+  [0, 0, 0]]$ applied to $[y; 0; 1]$): while the row-sum norm of $X$ in the design's
+  units (`GILESOObserver._complex_scale`, about $3\omega_0T_s$: 0.47 at
+  $T_s = 100\,\mu$s on `li_dtp`) is at most 0.5, its Taylor series of degree 14 by
+  Horner's rule (one $4\times4$ matrix-vector product a degree; truncation below
+  $4\times10^{-17}$), otherwise the three matrix functions (balanced, degree 12, five
+  doublings; `_phi_apply`, a `lax.cond`; under `vmap` one branch for the whole batch).
+  Exact to round-off for eigenvalues (balanced norms) of $X$ up to about 8, far beyond
   the designs' $|X| \approx 0.2$ at $T_s = 100\,\mu$s (`_propagator` assembles the
   real transition matrix; the tests check it against `scipy.linalg.expm` of the real
   augmented system, and `jax.grad` through a replay against finite differences). The observer's own dynamics (at a
@@ -380,8 +387,10 @@ class AbstractBackEMFLESO(AbstractObserver):
         so with $X = (A_o - j\hat\omega I)T_s$:
         $y(T_s) = e^{j\hat\omega T_s}[e^X y + T_s\varphi_1(X)(g_i i + g_c c) +
         T_s^2\varphi_2(X)g_i\delta]$. For $p = 2$ (C-LESO, FA-LESO) the three functions
-        of $X$ are pairs of complex numbers (`_phi_pair`), for the GI-LESO $4\times4$
-        complex matrices (`_phi_matrix`)."""
+        of $X$ are pairs of complex numbers (`_phi_pair`); for the GI-LESO the sum is
+        evaluated as one action (`_phi_apply`: a Taylor series of the action where the
+        scaled norm of $X$ is small, the $4\times4$ matrix functions `_phi_matrix`
+        otherwise)."""
         A, B, C, Dx, D1 = (_to_complex(M) for M in self._matrices(w_hat))
         p = 1 + self.n_s // 2
         K = Dx + D1
