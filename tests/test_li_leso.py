@@ -322,3 +322,48 @@ def test_replay_gradient_matches_finite_differences(name, param):
     fd = (float(loss(g0 + h)) - float(loss(g0 - h))) / (2 * h)
     assert np.isfinite(grad) and abs(fd) > 0
     assert grad == pytest.approx(fd, rel=1e-5)
+
+
+def test_gi_leso_action_path_and_fallback_against_scipy():
+    """The GI-LESO's transition takes the Taylor action (`_phi_action`) where the scaled
+    norm of X is at most `_ACTION_NORM` and the balanced matrix functions otherwise; both
+    sides of the switch (T_s = 100 us and 1 ms, and a 4x bandwidth at 100 us) agree with
+    `scipy.linalg.expm` of the complex augmented matrix [[X, g1, g0], [0, 0, 1], [0, 0, 0]]
+    applied to [y; 0; 1]. Tolerance: 1e-12 relative to the size of the terms, as the
+    transition test (round-off is ~1e-15; the truncation bound at the switch 4e-17)."""
+    sl = pytest.importorskip("scipy.linalg")
+    from pmsmjax.observers import _leso as L
+    rng = np.random.default_rng(3)
+    base = make_observer("gi-leso", DTP)
+    sides = set()
+    batch = []
+    for obs, T_s in ((base, 1e-4), (base, 1e-3), (base.with_design(w0=4.0 * base.w0), 1e-4)):
+        for w in (-1.3 * W, 0.0, 0.6 * W, 2.0 * W):
+            A, B, C, Dx, D1 = (L._to_complex(M) for M in obs._matrices(jnp.asarray(w)))
+            Ao = np.asarray(jnp.block([[Dx + D1, C], [B, A]]))
+            X = (Ao - 1j * w * np.eye(4)) * T_s
+            d = np.asarray(obs._complex_scale(jnp.asarray(w)))
+            rho = np.max(np.sum(np.abs(X) * (d[None, :] / d[:, None]), 1))
+            y, g0, g1 = (d * (rng.normal(size=4) + 1j * rng.normal(size=4)) for _ in range(3))
+            # the reference in the scaled units (an exact similarity; scipy does not
+            # balance), mapped back
+            M = np.zeros((6, 6), complex)
+            M[:4, :4], M[:4, 4], M[:4, 5], M[4, 5] = X * (d[None, :] / d[:, None]), \
+                g1 / d, g0 / d, 1.0
+            zs = np.r_[y / d, 0.0, 1.0]
+            ref = d * (sl.expm(M) @ zs)[:4]
+            size = d * (np.abs(sl.expm(np.abs(M))) @ np.abs(zs))[:4]
+            out = np.asarray(L._phi_apply(jnp.asarray(X), y, g0, g1, jnp.asarray(rho)))
+            assert np.max(np.abs(out - ref) / size) < 1e-12, (T_s, w, rho)
+            if rho <= L._ACTION_NORM:
+                act = np.asarray(L._phi_action(jnp.asarray(X), y, g0, g1))
+                assert np.max(np.abs(act - ref) / size) < 1e-12, (T_s, w, rho)
+            sides.add(bool(rho <= L._ACTION_NORM))
+            batch.append((X, y, g0, g1, rho, ref, size))
+    assert sides == {True, False}  # both branches were exercised
+    # under vmap one branch serves the batch: a mixed batch (fallback for all) and one
+    # that is all within the action's norm agree with the references as well
+    for sel in (batch, [b for b in batch if b[4] <= L._ACTION_NORM]):
+        Xs, ys, g0s, g1s, rhos, refs, sizes = (np.stack(c) for c in zip(*sel))
+        out = np.asarray(jax.vmap(L._phi_apply)(Xs, ys, g0s, g1s, rhos))
+        assert np.max(np.abs(out - refs) / sizes) < 1e-12

@@ -61,8 +61,15 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   $I$ and $X - \tfrac12\mathrm{tr}X$, 4 for the GI-LESO), by a Taylor polynomial and
   doublings with static shapes and no division (for the pairs: $\varphi_2$ of
   $X/8$ alone by Horner's rule, degree 14, $\varphi_1$ and $e^X$ from it, then three
-  doublings; for the GI-LESO's $4\times4$ matrix: balanced, degree 12, five doublings):
-  exact to round-off for eigenvalues (balanced norms) of $X$ up to about 8, far beyond
+  doublings). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
+  + \varphi_2(X)g_1$ (the exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1],
+  [0, 0, 0]]$ applied to $[y; 0; 1]$): while the row-sum norm of $X$ in the design's
+  units (`GILESOObserver._complex_scale`, about $3\omega_0T_s$: 0.47 at
+  $T_s = 100\,\mu$s on `li_dtp`) is at most 0.5, its Taylor series of degree 14 by
+  Horner's rule (one $4\times4$ matrix-vector product a degree; truncation below
+  $4\times10^{-17}$), otherwise the three matrix functions (balanced, degree 12, five
+  doublings; `_phi_apply`, a `lax.cond`; under `vmap` one branch for the whole batch).
+  Exact to round-off for eigenvalues (balanced norms) of $X$ up to about 8, far beyond
   the designs' $|X| \approx 0.2$ at $T_s = 100\,\mu$s (`_propagator` assembles the
   real transition matrix; the tests check it against `scipy.linalg.expm` of the real
   augmented system, and `jax.grad` through a replay against finite differences). The observer's own dynamics (at a
@@ -219,6 +226,73 @@ def _phi_matrix(X, order: int = 12, squarings: int = 5):
     return E0 * back, E1 * back, E2 * back
 
 
+#: The Taylor action (`_phi_action`) is used while the scaled norm of X is at most this;
+#: its degree makes the truncation below round-off there:
+#: 0.5^15/15! e^0.5 = 4e-17 (the remainder of the series bounded by the norm).
+_ACTION_NORM = 0.5
+_ACTION_ORDER = 14
+
+
+def _phi_action(X, y, g0, g1, order: int = _ACTION_ORDER):
+    r"""$e^X y + \varphi_1(X)g_0 + \varphi_2(X)g_1$ by its Taylor series
+    $\sum_k X^k c_k$, $c_k = y/k! + g_0/(k+1)! + g_1/(k+2)!$ (the action of the
+    exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1], [0, 0, 0]]$ on
+    $[y; 0; 1]$), by Horner's rule: one matrix-vector product a degree, no matrix
+    products. The truncation is below round-off for a (diagonally scaled) norm of $X$ up
+    to `_ACTION_NORM`; the products are invariant to the diagonal scaling (no
+    cancellation there), so it is applied to $X$ as it is."""
+    inv = [1.0 / math.factorial(k) for k in range(order + 3)]
+    v = y * inv[order] + g0 * inv[order + 1] + g1 * inv[order + 2]
+    for k in range(order - 1, -1, -1):
+        v = jnp.sum(X * v[..., None, :], -1) + (y * inv[k] + g0 * inv[k + 1]
+                                                + g1 * inv[k + 2])
+    return v
+
+
+def _phi_full(X, y, g0, g1):
+    E0, E1, E2 = _phi_matrix(X)
+    return E0 @ y + E1 @ g0 + E2 @ g1
+
+
+def _phi_plain(X, y, g0, g1, rho):
+    """`_phi_action` where `rho <= _ACTION_NORM`, else `_phi_full` (`lax.cond`)."""
+    return jax.lax.cond(rho <= _ACTION_NORM, lambda o: _phi_action(*o),
+                        lambda o: _phi_full(*o), (X, y, g0, g1))
+
+
+@jax.custom_batching.custom_vmap
+def _phi_batched(X, y, g0, g1, rho):
+    return _phi_plain(X, y, g0, g1, rho)
+
+
+@_phi_batched.def_vmap
+def _phi_batched_rule(axis_size, in_batched, X, y, g0, g1, rho):
+    # one branch for the whole batch (under `vmap` a `cond` on a batched predicate would
+    # evaluate both): the action where every member's norm allows it
+    args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))
+            for a, b in zip((X, y, g0, g1, rho), in_batched)]
+    X, y, g0, g1, rho = args
+    out = jax.lax.cond(jnp.all(rho <= _ACTION_NORM),
+                       lambda o: jax.vmap(_phi_action)(*o),
+                       lambda o: jax.vmap(_phi_full)(*o), (X, y, g0, g1))
+    return out, True
+
+
+@jax.custom_jvp
+def _phi_apply(X, y, g0, g1, rho):
+    r"""$e^X y + \varphi_1(X)g_0 + \varphi_2(X)g_1$ for a complex $X$ whose diagonally
+    scaled norm is `rho`: the Taylor action (`_phi_action`) where `rho <= _ACTION_NORM`,
+    else the balanced matrix functions (`_phi_matrix`). Under `vmap` the batch takes one
+    branch (the action only if it holds for every member), so the cheap path is not paid
+    for twice; differentiation goes through the plain `lax.cond` (same values)."""
+    return _phi_batched(X, y, g0, g1, rho)
+
+
+@_phi_apply.defjvp
+def _phi_apply_jvp(primals, tangents):
+    return jax.jvp(_phi_plain, primals, tangents)
+
+
 def _cplx(v):
     """A real vector of consecutive 2-vectors -> the complex vector."""
     return v[0::2] + 1j * v[1::2]
@@ -313,8 +387,10 @@ class AbstractBackEMFLESO(AbstractObserver):
         so with $X = (A_o - j\hat\omega I)T_s$:
         $y(T_s) = e^{j\hat\omega T_s}[e^X y + T_s\varphi_1(X)(g_i i + g_c c) +
         T_s^2\varphi_2(X)g_i\delta]$. For $p = 2$ (C-LESO, FA-LESO) the three functions
-        of $X$ are pairs of complex numbers (`_phi_pair`), for the GI-LESO $4\times4$
-        complex matrices (`_phi_matrix`)."""
+        of $X$ are pairs of complex numbers (`_phi_pair`); for the GI-LESO the sum is
+        evaluated as one action (`_phi_apply`: a Taylor series of the action where the
+        scaled norm of $X$ is small, the $4\times4$ matrix functions `_phi_matrix`
+        otherwise)."""
         A, B, C, Dx, D1 = (_to_complex(M) for M in self._matrices(w_hat))
         p = 1 + self.n_s // 2
         K = Dx + D1
@@ -336,9 +412,15 @@ class AbstractBackEMFLESO(AbstractObserver):
             ub = E0[1] * y + E1[1] * g0 + E2[1] * g1
             out = ua + jnp.stack([n00 * ub[0] + n01 * ub[1], n10 * ub[0] - n00 * ub[1]])
         else:
-            E0, E1, E2 = _phi_matrix(X)
-            out = E0 @ y + E1 @ g0 + E2 @ g1
+            d = jax.lax.stop_gradient(self._complex_scale(w_hat).astype(T.dtype))
+            rho = jnp.max(jnp.sum(jnp.abs(X) * (d[None, :] / d[:, None]), 1))
+            out = _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
         return _real(jnp.exp(jw * T) * out).astype(v.dtype)
+
+    def _complex_scale(self, w_hat):
+        """A diagonal scaling of the complex state `[x1, s]` (its units) under which the
+        norm of `X` measures the Taylor truncation (`_phi_apply`)."""
+        return jnp.ones(1 + self.n_s // 2, jnp.result_type(w_hat, float))
 
     def _propagator(self, w_hat, T_s):
         """The exact transition matrix over one period, `(n_s + 2, n_s + 8)`: rows of
@@ -696,6 +778,19 @@ class GILESOObserver(AbstractBackEMFLESO):
         B = jnp.concatenate([_blk(-w0 ** 2), O, I2], 0)
         C = jnp.concatenate([I2, O, O], 1)
         return A, B, C, O, _blk(-2.0 * w0)
+
+    def _complex_scale(self, w_hat):
+        r"""$[1, \omega_0, d_q/\omega_r, d_q]$, $d_q = \sqrt{\omega_0/(2K_r\omega_c)}$:
+        scales the cycles $x_1 \leftrightarrow \hat x_2$ ($\omega_0T_s$ each way),
+        $r \leftrightarrow q$ ($\omega_rT_s$) and $x_1 \to q \to \hat x_2$ to equal
+        entries, so the row-sum norm is about $3\omega_0T_s$ (0.47 at 100 us on
+        `li_dtp`)."""
+        w0 = jnp.asarray(self.w0) + 0.0 * w_hat
+        wr = (jnp.abs(w_hat) if self.resonance == "estimated"
+              else jnp.asarray(self.w_r) + 0.0 * w0)
+        wr = jnp.sqrt(jnp.maximum(wr ** 2, jnp.asarray(self.w_c) ** 2))
+        dq = jnp.sqrt(w0 / (2.0 * self.K_r * self.w_c))
+        return jnp.stack([jnp.ones_like(w0), w0, dq / wr, dq])
 
 
 class FALESOObserver(AbstractBackEMFLESO):
