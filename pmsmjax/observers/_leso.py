@@ -293,6 +293,12 @@ def _phi_apply_jvp(primals, tangents):
     return jax.jvp(_phi_plain, primals, tangents)
 
 
+def _mv(M, v):
+    """`M @ v` for a small matrix, as a product and a sum that XLA fuses with the rest of
+    the step (a dot is a call of its own on the CPU)."""
+    return jnp.sum(M * v[None, :], -1)
+
+
 def _cplx(v):
     """A real vector of consecutive 2-vectors -> the complex vector."""
     return v[0::2] + 1j * v[1::2]
@@ -452,10 +458,10 @@ class AbstractBackEMFLESO(AbstractObserver):
         s_new = jnp.where(go, s_new, jnp.zeros_like(s_new)).astype(state.s.dtype)
         x1_new = jnp.where(go, x1_new, i_k).astype(state.x1.dtype)
         eps_k = x1_new - i_k
-        e_hat = -m.L_q * (C @ s_new + Dx @ eps_k)
+        e_hat = -m.L_q * (_mv(C, s_new) + _mv(Dx, eps_k))
         # the estimate one period earlier, from the previous state (zero before the
         # first two samples: the PLL's acquisition assist is off until then)
-        e_prev = -m.L_q * (C @ state.s + Dx @ (state.x1 - state.i_prev))
+        e_prev = -m.L_q * (_mv(C, state.s) + _mv(Dx, state.x1 - state.i_prev))
         theta, w = self.pll.step(state.theta, state.w, e_hat,
                                  lambda th: self._psi_ex(i_k, th), T_s, e_prev=e_prev)
         theta = jnp.where(go, theta, state.theta).astype(state.theta.dtype)
