@@ -102,6 +102,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._frames import park, rotate, wrap_angle
 from .._params import Drive, PMSMParams
@@ -299,6 +300,16 @@ def _mv(M, v):
     return jnp.sum(M * v[None, :], -1)
 
 
+def _x2(C, Dx, s, eps):
+    r"""$\hat x_2 = C s + D_x\varepsilon_1$ on the real layout (2-vectors) for real
+    coefficients `C` (one per complex state in `s`) and `Dx`, written out; terms with a
+    Python zero coefficient are left out."""
+    C = tuple(C) if isinstance(C, (tuple, list)) else (C,)
+    terms = [c * v for c, v in zip(C + (Dx,), [s[2 * j:2 * j + 2] for j in range(len(C))]
+                                    + [eps]) if not (isinstance(c, (int, float)) and c == 0)]
+    return sum(terms[1:], terms[0])
+
+
 def _cplx(v):
     """A real vector of consecutive 2-vectors -> the complex vector."""
     return v[0::2] + 1j * v[1::2]
@@ -381,13 +392,56 @@ class AbstractBackEMFLESO(AbstractObserver):
                          theta=wrap_angle(theta0.astype(dtype)), w=w0.astype(dtype),
                          i_prev=jnp.zeros(2, dtype), started=jnp.asarray(False))
 
+    def _complex_system(self, w_hat):
+        r"""The observer in complex form (`_to_complex` of `_matrices`) at speed estimate
+        `w_hat`, as `(Ao, g_i, C, Dx)`: $\dot y = A_o y + g_i i + g_c\dot\lambda$ with
+        $y = [x_1, s]$, $A_o = [[D_x + D_1, C], [B, A]]$, $g_i = -[D_x + D_1; B]$, and
+        $\hat x_2 = Cs + D_x\varepsilon_1$. Subclasses write it from their coefficients
+        directly (complex scalars, or constant patterns times scalars), so that the step
+        builds no block matrices; this generic version slices `_matrices`."""
+        A, B, C, Dx, D1 = (_to_complex(M) for M in self._matrices(w_hat))
+        K = Dx + D1
+        return jnp.block([[K, C], [B, A]]), -jnp.concatenate([K, B])[:, 0], C[0], Dx[0, 0]
+
+    def _transition_c(self, w_hat, T_s, y, i0, dl, c):
+        r"""`_transition` in complex form: the complex state `y` (size $p$) one period on
+        (stationary frame), from the complex current `i0`, its hold slope `dl` and the
+        voltage-integral rate `c`."""
+        T = jnp.asarray(T_s, jnp.real(i0).dtype)
+        Ao, g_i, _, _ = self._complex_system(w_hat)
+        jwT = jax.lax.complex(jnp.zeros_like(T), -jnp.asarray(w_hat, T.dtype) * T)
+        inv_lq = 1.0 / self.motor.L_q
+        if isinstance(Ao, tuple):  # p = 2: the four entries as complex scalars
+            (k, cc), (b, a) = Ao
+            mu = 0.5 * (k + a) * T + jwT
+            n00, n01, n10 = 0.5 * (k - a) * T, cc * T, b * T  # N = X - mu I, traceless
+            E0, E1, E2 = _phi_pair(mu, n00 * n00 + n01 * n10)
+            # as vectors of the two components (one kernel for the whole transition;
+            # written on scalars XLA computed it once for each component)
+            yv = jnp.stack(y, -1)
+            g0 = jnp.stack([T * (g_i[0] * i0 + inv_lq * c), T * (g_i[1] * i0)], -1)
+            g1 = (T * T) * (jnp.stack([g_i[0], g_i[1] + 0.0 * g_i[0]], -1) * dl[..., None])
+            ua = E0[0][..., None] * yv + E1[0][..., None] * g0 + E2[0][..., None] * g1
+            ub = E0[1][..., None] * yv + E1[1][..., None] * g0 + E2[1][..., None] * g1
+            out = ua + jnp.stack([n00 * ub[..., 0] + n01 * ub[..., 1],
+                                  n10 * ub[..., 0] - n00 * ub[..., 1]], -1)
+            out = jnp.exp(-jwT)[..., None] * out
+            return out[..., 0], out[..., 1]
+        p = Ao.shape[0]
+        X = Ao * T + jwT * jnp.eye(p, dtype=Ao.dtype)
+        g_c = jnp.zeros(p, Ao.dtype).at[0].set(inv_lq)
+        g0, g1 = T * (g_i * i0 + g_c * c), (T * T) * (g_i * dl)
+        d = jax.lax.stop_gradient(self._complex_scale(w_hat).astype(T.dtype))
+        rho = jnp.max(jnp.sum(jnp.abs(X) * (d[None, :] / d[:, None]), 1))
+        return jnp.exp(-jwT) * _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
+
     def _transition(self, w_hat, T_s, v):
         r"""The state `[x1, s]` one period after `v = [x1, s, i, delta, c]` (real, `(n_s +
         8,)`), the observer driven by the current $i(t) = e^{\hat\omega tJ}(i +
         t\,\delta)$ and the voltage-integral rate $e^{\hat\omega tJ}c$ (see the module
         docstring), integrated exactly.
 
-        In complex form (`_to_complex`) the observer is $\dot y = A_o y + g_i\,i(t) +
+        In complex form (`_complex_system`) the observer is $\dot y = A_o y + g_i\,i(t) +
         g_c\,c(t)$ with $y = [x_1, s]$ of size $p = 1 + n_s/2$; in the frame turning at
         $\hat\omega$, $\hat y = e^{-j\hat\omega t}y$, the inputs are a polynomial in $t$,
         so with $X = (A_o - j\hat\omega I)T_s$:
@@ -396,32 +450,14 @@ class AbstractBackEMFLESO(AbstractObserver):
         of $X$ are pairs of complex numbers (`_phi_pair`); for the GI-LESO the sum is
         evaluated as one action (`_phi_apply`: a Taylor series of the action where the
         scaled norm of $X$ is small, the $4\times4$ matrix functions `_phi_matrix`
-        otherwise)."""
-        A, B, C, Dx, D1 = (_to_complex(M) for M in self._matrices(w_hat))
+        otherwise). `step` calls `_transition_c` on the complex state directly."""
         p = 1 + self.n_s // 2
-        K = Dx + D1
-        Ao = jnp.block([[K, C], [B, A]])
-        cdt = Ao.dtype
-        T = jnp.asarray(T_s, v.dtype)
-        jw = (1j * jnp.asarray(w_hat, v.dtype)).astype(cdt)
-        X = (Ao - jw * jnp.eye(p, dtype=cdt)) * T
-        g_i = -jnp.concatenate([K, B])[:, 0]
-        g_c = jnp.zeros(p, cdt).at[0].set(1.0 / self.motor.L_q)
         z = _cplx(v)
-        y, i0, dl, c = z[:p], z[p], z[p + 1], z[p + 2]
-        g0, g1 = T * (g_i * i0 + g_c * c), (T * T) * (g_i * dl)
-        if p == 2:
-            mu = 0.5 * (X[0, 0] + X[1, 1])
-            n00, n01, n10 = X[0, 0] - mu, X[0, 1], X[1, 0]  # N = X - mu I, traceless
-            E0, E1, E2 = _phi_pair(mu, n00 * n00 + n01 * n10)
-            ua = E0[0] * y + E1[0] * g0 + E2[0] * g1
-            ub = E0[1] * y + E1[1] * g0 + E2[1] * g1
-            out = ua + jnp.stack([n00 * ub[0] + n01 * ub[1], n10 * ub[0] - n00 * ub[1]])
-        else:
-            d = jax.lax.stop_gradient(self._complex_scale(w_hat).astype(T.dtype))
-            rho = jnp.max(jnp.sum(jnp.abs(X) * (d[None, :] / d[:, None]), 1))
-            out = _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
-        return _real(jnp.exp(jw * T) * out).astype(v.dtype)
+        y = z[:p]
+        out = self._transition_c(w_hat, T_s, tuple(y) if p == 2 else y, z[p], z[p + 1],
+                                 z[p + 2])
+        out = jnp.stack(out) if isinstance(out, tuple) else out
+        return _real(out).astype(v.dtype)
 
     def _complex_scale(self, w_hat):
         """A diagonal scaling of the complex state `[x1, s]` (its units) under which the
@@ -437,39 +473,54 @@ class AbstractBackEMFLESO(AbstractObserver):
         return jax.vmap(lambda v: self._transition(w_hat, T_s, v), out_axes=1)(eye)
 
     def step(self, state: LESOState, meas: Measurement, T_s):
+        # in complex form throughout (space vectors as complex scalars), so that XLA fuses
+        # the step into few kernels (no block matrices, no small reductions)
         m = self.motor
-        i_k = jnp.asarray(meas.i_ab).astype(state.x1.dtype)
-        u = jnp.asarray(meas.u_ab).astype(state.x1.dtype)
+        dtype = state.x1.dtype
+        cx = lambda v: jax.lax.complex(v[..., 0], v[..., 1])  # noqa: E731
+        i_k = cx(jnp.asarray(meas.i_ab).astype(dtype))
+        u = cx(jnp.asarray(meas.u_ab).astype(dtype))
+        i_prev, x1 = cx(state.i_prev), cx(state.x1)
+        s = state.s
+        s_c = [jax.lax.complex(s[2 * j], s[2 * j + 1]) for j in range(self.n_s // 2)]
         w_hat = state.w
-        _, _, C, Dx, _ = self._matrices(w_hat)
-        d_lam = T_s * u - (0.5 * T_s * m.R_s) * (state.i_prev + i_k)
+        T = jnp.asarray(T_s, dtype)
+        _, _, C, Dx = self._complex_system(w_hat)
+        d_lam = T * u - (0.5 * T * m.R_s) * (i_prev + i_k)
         # the rate of lambda held in the turning frame, with the same integral d_lam:
         # int_0^T exp(w t J) c dt = T sinc(w T / 2) exp(w T J / 2) c
-        half = 0.5 * T_s * w_hat
-        c = rotate(d_lam, -half) / (T_s * jnp.sinc(half / jnp.pi))
+        half = 0.5 * T * w_hat
+        c = d_lam * jax.lax.complex(jnp.cos(half), -jnp.sin(half)) / (
+            T * jnp.sinc(half / jnp.pi))
         # the current between the samples: turning at w_hat, linear in that frame
-        delta = (rotate(i_k, -2.0 * half) - state.i_prev) / T_s
-        z = self._transition(w_hat, T_s, jnp.concatenate([state.x1, state.s, state.i_prev,
-                                                          delta, c]))
+        rot = jax.lax.complex(jnp.cos(2.0 * half), jnp.sin(2.0 * half))
+        delta = (i_k * jnp.conj(rot) - i_prev) / T
+        if self.n_s == 2:
+            out = self._transition_c(w_hat, T, (x1, s_c[0]), i_prev, delta, c)
+        else:
+            out = self._transition_c(w_hat, T, jnp.stack([x1] + s_c), i_prev, delta, c)
+            out = [out[j] for j in range(1 + self.n_s // 2)]
+        # back to the real layout [x1, s] as one array: every consumer reads it (XLA
+        # would otherwise duplicate the transition's graph into each of them)
+        z = _real(jnp.stack(out)).astype(dtype)
         x1_new, s_new = z[:2], z[2:]
+        i_k = jnp.asarray(meas.i_ab).astype(dtype)
         go = state.started
         # first sample: the estimated current starts at the measured one, the extended
         # states at zero (no back-EMF assumed)
         s_new = jnp.where(go, s_new, jnp.zeros_like(s_new)).astype(state.s.dtype)
-        x1_new = jnp.where(go, x1_new, i_k).astype(state.x1.dtype)
-        eps_k = x1_new - i_k
-        e_hat = -m.L_q * (_mv(C, s_new) + _mv(Dx, eps_k))
+        x1_new = jnp.where(go, x1_new, i_k)
+        e_hat = -m.L_q * _x2(C, Dx, s_new, x1_new - i_k)
         # the estimate one period earlier, from the previous state (zero before the
         # first two samples: the PLL's acquisition assist is off until then)
-        e_prev = -m.L_q * (_mv(C, state.s) + _mv(Dx, state.x1 - state.i_prev))
+        e_prev = -m.L_q * _x2(C, Dx, state.s, state.x1 - state.i_prev)
         theta, w = self.pll.step(state.theta, state.w, e_hat,
                                  lambda th: self._psi_ex(i_k, th), T_s, e_prev=e_prev)
         theta = jnp.where(go, theta, state.theta).astype(state.theta.dtype)
         w = jnp.where(go, w, state.w).astype(state.w.dtype)
         new = LESOState(s=s_new, x1=x1_new, theta=theta, w=w, i_prev=i_k,
                         started=jnp.ones_like(state.started))
-        return new, Estimate(theta_hat=theta, w_hat=w,
-                             extras={"e_ab_hat": e_hat.astype(state.x1.dtype)})
+        return new, Estimate(theta_hat=theta, w_hat=w, extras={"e_ab_hat": e_hat})
 
     # --- design -----------------------------------------------------------------------
     def design_parameters(self) -> dict:
@@ -693,6 +744,11 @@ class CLESOObserver(AbstractBackEMFLESO):
         z = 0.0 * w0
         return (_blk(z), _blk(-w0 ** 2), _blk(1.0 + z), _blk(z), _blk(-2.0 * w0))
 
+    def _complex_system(self, w_hat):
+        w0 = jnp.asarray(self.w0, jnp.result_type(w_hat, float))
+        k, b = -2.0 * w0, -w0 ** 2
+        return ((k, 1.0), (b, 0.0)), (-k, -b), 1.0, 0.0
+
 
 class GILESOObserver(AbstractBackEMFLESO):
     r"""LESO with a generalised integrator, li-fa-leso (29)-(30), with a quadrature PLL.
@@ -785,6 +841,19 @@ class GILESOObserver(AbstractBackEMFLESO):
         C = jnp.concatenate([I2, O, O], 1)
         return A, B, C, O, _blk(-2.0 * w0)
 
+    def _complex_system(self, w_hat):
+        # constant patterns times the coefficients (one elementwise expression, no
+        # assembly); rows and columns [x1, x2_hat, r, q]
+        dt = jnp.result_type(w_hat, float)
+        w0 = jnp.asarray(self.w0, dt)
+        wr = (jnp.abs(w_hat) if self.resonance == "estimated" else jnp.asarray(self.w_r, dt))
+        wr2 = jnp.maximum(wr ** 2, jnp.asarray(self.w_c, dt) ** 2)
+        P = _GI_PATTERNS.astype(dt)
+        Ao = (P[0] - 2.0 * w0 * P[1] - w0 ** 2 * P[2] - (2.0 * self.K_r * self.w_c) * P[3]
+              - wr2 * P[4] - (2.0 * self.w_c) * P[5])
+        g_i = 2.0 * w0 * P[1, :, 0] + w0 ** 2 * P[2, :, 0] - P[0, :, 0]
+        return Ao, g_i, (1.0, 0.0, 0.0), 0.0
+
     def _complex_scale(self, w_hat):
         r"""$[1, \omega_0, d_q/\omega_r, d_q]$, $d_q = \sqrt{\omega_0/(2K_r\omega_c)}$:
         scales the cycles $x_1 \leftrightarrow \hat x_2$ ($\omega_0T_s$ each way),
@@ -797,6 +866,16 @@ class GILESOObserver(AbstractBackEMFLESO):
         wr = jnp.sqrt(jnp.maximum(wr ** 2, jnp.asarray(self.w_c) ** 2))
         dq = jnp.sqrt(w0 / (2.0 * self.K_r * self.w_c))
         return jnp.stack([jnp.ones_like(w0), w0, dq / wr, dq])
+
+
+def _unit(i, j, n=4):
+    return np.eye(n)[i][:, None] * np.eye(n)[j][None, :]
+
+
+#: The GI-LESO's complex observer matrix as constant patterns (`_complex_system`): the
+#: ones, then the entries of -2 w0, -w0^2, -2 K_r w_c, -w_r^2, -2 w_c.
+_GI_PATTERNS = np.stack([_unit(0, 1) + _unit(2, 3) + _unit(3, 0), _unit(0, 0), _unit(1, 0),
+                         _unit(1, 3), _unit(3, 2), _unit(3, 3)])
 
 
 class FALESOObserver(AbstractBackEMFLESO):
@@ -864,3 +943,11 @@ class FALESOObserver(AbstractBackEMFLESO):
         z = 0.0 * w_hat
         return (_blk(z), _blk(self.k1 + z), _blk(-1.0 + z), _blk(-self.k2 + z),
                 _blk(z, w_hat))
+
+    def _complex_system(self, w_hat):
+        w_hat = jnp.asarray(w_hat)
+        dt = jnp.result_type(w_hat, float)
+        k2 = jnp.asarray(self.k2, dt)
+        k = jax.lax.complex(-k2, w_hat.astype(dt))
+        b = jnp.asarray(self.k1, dt)
+        return ((k, -1.0), (b, 0.0)), (-k, -b), -1.0, -k2
