@@ -294,12 +294,6 @@ def _phi_apply_jvp(primals, tangents):
     return jax.jvp(_phi_plain, primals, tangents)
 
 
-def _mv(M, v):
-    """`M @ v` for a small matrix, as a product and a sum that XLA fuses with the rest of
-    the step (a dot is a call of its own on the CPU)."""
-    return jnp.sum(M * v[None, :], -1)
-
-
 def _x2(C, Dx, s, eps):
     r"""$\hat x_2 = C s + D_x\varepsilon_1$ on the real layout (2-vectors) for real
     coefficients `C` (one per complex state in `s`) and `Dx`, written out; terms with a
@@ -473,8 +467,8 @@ class AbstractBackEMFLESO(AbstractObserver):
         return jax.vmap(lambda v: self._transition(w_hat, T_s, v), out_axes=1)(eye)
 
     def step(self, state: LESOState, meas: Measurement, T_s):
-        # in complex form throughout (space vectors as complex scalars), so that XLA fuses
-        # the step into few kernels (no block matrices, no small reductions)
+        # the hold and the transition on complex scalars (space vectors), with the
+        # coefficients written directly, so that XLA fuses the step into few kernels
         m = self.motor
         dtype = state.x1.dtype
         cx = lambda v: jax.lax.complex(v[..., 0], v[..., 1])  # noqa: E731
