@@ -27,6 +27,16 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   `~/.cache/pmsmjax/jax`), so a repeated command skips XLA compilation. Opt out with
   `PMSMJAX_CACHE=0` (or `configure(cache=False)`); clear it with `pmsmjax cache --clear`
   or `clear_cache()`.
+- **Stored programs.** The compilation cache skips XLA's compile only: Python still
+  traces and lowers the program, seconds for the generic equilibrium analysis. So with
+  the cache on, `pmsmjax equilibria` also keeps its traced analysis as a `jax.export`
+  program (StableHLO) in `cache_dir()/exported` (`stored_call`), keyed by the observer's
+  class and static fields, the shapes and dtypes of the inputs, the options, the
+  pmsmjax version and a hash of its source, and the jax/jaxlib versions: a repeated
+  command reads it instead of tracing, and its compile hits the compilation cache. A
+  stored program that cannot be read or does not match is made again from a fresh trace.
+  `PMSMJAX_CACHE=0` turns it off with the cache, and `pmsmjax cache --clear` removes it
+  with the cache.
 
 XLA reads its flags when the first computation starts the backend, so `configure` must
 run before any JAX computation; called later it keeps the backend as it is and warns.
@@ -333,12 +343,19 @@ def _program_key(tag: str, fn, args) -> str | None:
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
-def _call_exported(blob: bytes, leaves, out_type):
-    exp = jax.export.deserialize(bytearray(blob))
-    if [(tuple(a.shape), a.dtype) for a in exp.in_avals] != [(tuple(v.shape), v.dtype)
-                                                             for v in leaves]:
-        raise ValueError("stored program: its inputs differ from the call's")
-    out = jax.jit(exp.call)(*leaves)
+_LOADED: dict = {}  # key -> the jitted call of a program read in this process
+
+
+def _call_exported(key: str, blob: bytes | None, leaves, out_type):
+    call = _LOADED.get(key)
+    if call is None:
+        exp = jax.export.deserialize(bytearray(blob))
+        if [(tuple(a.shape), a.dtype) for a in exp.in_avals] != [(tuple(v.shape), v.dtype)
+                                                                 for v in leaves]:
+            raise ValueError("stored program: its inputs differ from the call's")
+        call = jax.jit(exp.call)
+    out = call(*leaves)
+    _LOADED[key] = call
     import dataclasses
 
     names = [f.name for f in dataclasses.fields(out_type)]
@@ -375,9 +392,11 @@ def stored_call(tag: str, fn, args: tuple, out_type):
     if key is None:
         return None
     path = d / f"{tag}-{key}.jaxexport"
+    if key in _LOADED:
+        return _call_exported(key, None, leaves, out_type)
     if path.is_file():
         try:
-            return _call_exported(path.read_bytes(), leaves, out_type)
+            return _call_exported(key, path.read_bytes(), leaves, out_type)
         except Exception:  # noqa: BLE001 - corrupt or stale: make it again
             try:
                 path.unlink()
@@ -407,6 +426,6 @@ def stored_call(tag: str, fn, args: tuple, out_type):
         pass  # read-only or full: still run the program just made
     # the same route as a later process (deserialise, call): same compiled program
     try:
-        return _call_exported(blob, leaves, out_type)
+        return _call_exported(key, blob, leaves, out_type)
     except Exception:  # noqa: BLE001
         return None
