@@ -391,7 +391,9 @@ def stored_call(tag: str, fn, args: tuple, out_type):
     key = _program_key(tag, fn, args)
     if key is None:
         return None
-    path = d / f"{tag}-{key}.jaxexport"
+    # the source hash in the name: programs of an older pmsmjax are removed (below)
+    stem = f"{tag}-{_source_hash()[:12]}-"
+    path = d / f"{stem}{key}.jaxexport"
     if key in _LOADED:
         return _call_exported(key, None, leaves, out_type)
     if path.is_file():
@@ -422,6 +424,9 @@ def stored_call(tag: str, fn, args: tuple, out_type):
         tmp = d / f".{path.name}.{os.getpid()}.tmp"
         tmp.write_bytes(blob)
         os.replace(tmp, path)
+        for old in d.glob(f"{tag}-*.jaxexport"):  # stored by another version of the code
+            if not old.name.startswith(stem):
+                old.unlink(missing_ok=True)
     except OSError:
         pass  # read-only or full: still run the program just made
     # the same route as a later process (deserialise, call): same compiled program

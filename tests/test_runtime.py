@@ -331,3 +331,18 @@ def test_stored_equilibria_equal_a_fresh_trace(store):
                                    atol=1e-9 * np.max(np.abs(ref.x[v])))
         np.testing.assert_allclose(out.jacobian[v], ref.jacobian[v], rtol=1e-9,
                                    atol=1e-9 * np.max(np.abs(ref.jacobian[v])))
+
+
+def test_changed_source_makes_the_program_again_and_removes_the_old_one(store, monkeypatch):
+    c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
+    args = (_Poly(c, 3), x, 2.0)
+    monkeypatch.setattr(pj.runtime, "_SOURCE_HASH", "a" * 64)  # the code as it was
+    pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+    (old,) = store.glob("poly-*.jaxexport")
+    monkeypatch.setattr(pj.runtime, "_SOURCE_HASH", "b" * 64)  # the code changed
+    pj.runtime._LOADED.clear()
+    out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+    _check(out, c, x, 3, 2.0)
+    assert len(_TRACES) == 2  # traced again, not served the old program
+    (new,) = store.glob("poly-*.jaxexport")
+    assert new != old and not old.exists()
