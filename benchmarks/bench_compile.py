@@ -23,7 +23,7 @@ killed and recorded as "> LIMIT s".
 Usage:
 
     .venv/bin/python benchmarks/bench_compile.py [--observers eso,c-leso] [--timeout 300]
-        [--no-cli] [--no-generic] [--out FILE.json]
+        [--no-cli] [--no-api] [--no-generic] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -152,6 +152,7 @@ def main():
     ap.add_argument("--timeout", type=float, default=300.0,
                     help="limit per process, s (default: %(default)s)")
     ap.add_argument("--no-cli", action="store_true", help="only the API measurements")
+    ap.add_argument("--no-api", action="store_true", help="only the CLI measurements")
     ap.add_argument("--no-generic", action="store_true",
                     help="do not also force the generic route for observers with their own")
     ap.add_argument("--out", default="benchmarks/out/bench_compile.json")
@@ -169,8 +170,8 @@ def main():
     try:
         for name in names:
             row = dict(observer=name, api={})
-            routes = ["auto"] + (["generic"] if name in FAST_ROUTE and not args.no_generic
-                                 else [])
+            routes = [] if args.no_api else (
+                ["auto"] + (["generic"] if name in FAST_ROUTE and not args.no_generic else []))
             for method in routes:
                 r = api(name, method, env, args.timeout)
                 row["api"]["cli" if method == "auto" else "generic"] = r
@@ -192,15 +193,16 @@ def main():
           "cold, no cache (s) | its CPU (s) | CLI warm (s) | its CPU (s) |\n"
           "|---|---|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        for route, a in r["api"].items():
+        for route, a in (r["api"] or {"cli": {}}).items():  # {}: --no-api
             c = r.get("cli", {}) if route == "cli" else {}
             warm = min((v for v in (c.get("warm_s"), c.get("warm2_s")) if v is not None),
                        default=None)
             kw = "warm_cpu_s" if warm == c.get("warm_s") else "warm2_cpu_s"
             cpu = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
-            print(f"| {r['observer']} | {route} | {fmt(a.get('first_s'), t)} | "
+            print(f"| {r['observer']} | {route} | "
+                  f"{fmt(a.get('first_s'), t) if a else '-'} | "
                   f"{cpu(a.get('first_cpu_s'))} | "
-                  f"{'-' if a.get('timeout') else format(a['second_s'], '.3f')} | "
+                  f"{'-' if a.get('timeout') or not a else format(a['second_s'], '.3f')} | "
                   f"{fmt(c.get('cold_s'), t) if c else '-'} | {cpu(c.get('cold_cpu_s'))} | "
                   f"{(fmt(warm, t) if c.get('fill_s') is not None else '-') if c else '-'} | "
                   f"{cpu(c.get(kw))} |")

@@ -5,8 +5,11 @@ cast a PyTree with `astype`) for bulk sweeps in single precision.
 """
 
 import importlib.metadata
+from typing import TYPE_CHECKING
 
 import jax
+
+from ._lazy import lazy_exports
 
 
 # The process-wide settings a library import makes: analysis needs float64, and the XLA
@@ -18,7 +21,6 @@ jax.config.update("jax_enable_x64", True)
 from . import (  # noqa: E402
     analysis as analysis,
     observers as observers,
-    papers as papers,
     runtime as runtime,
 )
 
@@ -36,6 +38,7 @@ from ._control_dtp import (  # noqa: E402
     DualCurrentControl as DualCurrentControl,
     XYCurrentController as XYCurrentController,
 )
+from ._identifiable import IDENTIFIABLE as IDENTIFIABLE  # noqa: E402
 from ._frames import (  # noqa: E402
     J as J,
     angle_error as angle_error,
@@ -68,14 +71,6 @@ from ._flying_start import (  # noqa: E402
     FlyingStart as FlyingStart,
     flying_start as flying_start,
     unknown_start as unknown_start,
-)
-from ._integrate import RK4 as RK4, integrate as integrate  # noqa: E402
-from ._identify import (  # noqa: E402
-    IDENTIFIABLE as IDENTIFIABLE,
-    IdentifiabilityWarning as IdentifiabilityWarning,
-    IdentifyError as IdentifyError,
-    IdentifyResult as IdentifyResult,
-    identify as identify,
 )
 from ._inverter import (  # noqa: E402
     dead_time_error_ab as dead_time_error_ab,
@@ -118,20 +113,7 @@ from ._params import (  # noqa: E402
     preset as preset,
     replace_params as replace_params,
 )
-from ._replay import (  # noqa: E402
-    NonFiniteInputError as NonFiniteInputError,
-    initial_estimate as initial_estimate,
-    replay as replay,
-    replay_estimates as replay_estimates,
-)
 from ._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
-from ._simulate import (  # noqa: E402
-    PlantTrace as PlantTrace,
-    Sensing as Sensing,
-    run_plant as run_plant,
-    scale_motor as scale_motor,
-    simulate as simulate,
-)
 from ._solution import RESULTS as RESULTS, Trajectory as Trajectory  # noqa: E402
 from .observers import (  # noqa: E402
     AbstractObserver as AbstractObserver,
@@ -147,6 +129,35 @@ from .observers import (  # noqa: E402
     FlyingCatch as FlyingCatch,
     SensoredObserver as SensoredObserver,
 )
+
+
+# Loaded on first use (`pmsmjax._lazy`): the simulator, identification, replay and the
+# papers' reproductions import diffrax and optimistix, which the analysis commands do
+# not need at start-up.
+if TYPE_CHECKING:
+    from . import papers as papers
+    from ._integrate import RK4 as RK4, integrate as integrate
+    from ._identify import (
+        IdentifiabilityWarning as IdentifiabilityWarning,
+        IdentifyError as IdentifyError,
+        IdentifyResult as IdentifyResult,
+        identify as identify,
+    )
+    from ._replay import (
+        NonFiniteInputError as NonFiniteInputError,
+        initial_estimate as initial_estimate,
+        replay as replay,
+        replay_estimates as replay_estimates,
+    )
+    from ._simulate import (
+        PlantTrace as PlantTrace,
+        Sensing as Sensing,
+        run_plant as run_plant,
+        scale_motor as scale_motor,
+        simulate as simulate,
+    )
+
+__getattr__, __dir__ = lazy_exports(__name__, __file__, globals())
 
 
 def astype(tree, dtype):

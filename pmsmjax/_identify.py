@@ -57,21 +57,11 @@ import optimistix as optx
 from ._integrate import RK4, integrate
 from ._io import RecordedData
 from ._motor import PMSM, PlantInput, PlantState, cos_sin
+from ._identifiable import IDENTIFIABLE as IDENTIFIABLE
 from ._params import Drive, Inverter
 from ._simulate import _check_common
 
 
-#: Parameters `identify` can fit, with their units and what excites them.
-IDENTIFIABLE = {
-    "R_s": ("Ohm", "current at low speed, where R_s i is not small against the back-EMF"),
-    "L_d": ("H", "changes of the d-axis current (i_d steps or a varying i_d)"),
-    "L_q": ("H", "changes of the q-axis current (torque steps)"),
-    "psi_f": ("V s", "rotor speed (the back-EMF)"),
-    "J": ("kg m^2", "speed changes under known torque (accelerations)"),
-    "B": ("N m s/rad", "a range of speeds held long enough for friction to show"),
-    "u_dt": ("V", "commanded voltages with changes of the current amplitude or zero "
-                  "crossings of the phase currents"),
-}
 _MOTOR = ("R_s", "L_d", "L_q", "psi_f")
 _MECH = ("J", "B")
 

@@ -183,3 +183,166 @@ def test_new_initial_values_do_not_compile_again():
     a = pj.simulate(d, foc, obs, sc, theta0=0.0)
     b = pj.simulate(d, foc, obs, sc, theta0=0.4)
     assert float(b.theta[0]) == pytest.approx(0.4) and float(a.theta[0]) == 0.0
+
+
+# ---------------------------------------------------------------------------------------
+# Stored programs (jax.export): a repeated call skips the tracing; a stale, corrupt or
+# mismatched program falls back to a fresh trace; a changed static field gets its own
+# ---------------------------------------------------------------------------------------
+
+import equinox as eqx  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+class _Poly(eqx.Module):
+    """A polynomial c0 + c1 x + ... with a static power `k` applied after it."""
+    c: jnp.ndarray
+    k: int = eqx.field(static=True)
+
+
+class _Out(eqx.Module):
+    y: jnp.ndarray
+    total: jnp.ndarray
+
+
+_TRACES = []
+
+
+def _poly_fn(p, x, scale):
+    _TRACES.append(p.k)  # a Python side effect: runs only when the function is traced
+    y = jnp.polyval(p.c[::-1], x) ** p.k * scale
+    return _Out(y=y, total=jnp.sum(y))
+
+
+def _poly_ref(c, x, k, scale):
+    y = np.polynomial.polynomial.polyval(x, c) ** k * scale
+    return y, y.sum()
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    d = tmp_path / "exported"
+    monkeypatch.setattr(pj.runtime, "_STORE_DIR", d)
+    monkeypatch.setattr(pj.runtime, "_LOADED", {})
+    _TRACES.clear()
+    return d
+
+
+def _check(out, c, x, k, scale):
+    y, total = _poly_ref(np.asarray(c), np.asarray(x), k, scale)
+    # a few float64 operations per element: agreement to a few ulps of the values
+    np.testing.assert_allclose(np.asarray(out.y), y, rtol=1e-13)
+    np.testing.assert_allclose(float(out.total), total, rtol=1e-13)
+
+
+def test_stored_call_is_off_without_configure(monkeypatch):
+    monkeypatch.setattr(pj.runtime, "_STORE_DIR", None)
+    p = _Poly(jnp.asarray([1.0, 2.0]), 2)
+    assert pj.runtime.stored_call("poly", _poly_fn, (p, jnp.ones(3), 1.0), _Out) is None
+
+
+def test_stored_program_gives_the_fresh_result_without_tracing(store):
+    c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
+    p = _Poly(c, 3)
+    out = pj.runtime.stored_call("poly", _poly_fn, (p, x, 2.0), _Out)
+    _check(out, c, x, 3, 2.0)
+    files = list(store.glob("poly-*.jaxexport"))
+    assert len(files) == 1 and len(_TRACES) == 1
+    # a new process: nothing loaded yet, the program is read from the file, not traced
+    pj.runtime._LOADED.clear()
+    c2 = jnp.asarray([1.0, 0.5, -0.75])  # new values of the inputs: same program
+    out2 = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c2, 3), x, 2.0), _Out)
+    _check(out2, c2, x, 3, 2.0)
+    assert len(_TRACES) == 1 and list(store.glob("poly-*.jaxexport")) == files
+
+
+def test_changed_static_field_or_shape_is_not_served_a_stale_program(store):
+    c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
+    pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 3), x, 2.0), _Out)
+    pj.runtime._LOADED.clear()
+    out = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 2), x, 2.0), _Out)  # k: 3 -> 2
+    _check(out, c, x, 2, 2.0)
+    out = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 2), x, 0.5), _Out)  # static scale
+    _check(out, c, x, 2, 0.5)
+    out = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 2), x[:4], 0.5), _Out)  # shape
+    _check(out, c, x[:4], 2, 0.5)
+    assert _TRACES == [3, 2, 2, 2] and len(list(store.glob("poly-*.jaxexport"))) == 4
+
+
+def test_corrupt_or_mismatched_stored_program_falls_back_to_a_trace(store):
+    c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
+    args = (_Poly(c, 3), x, 2.0)
+    pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+    (path,) = store.glob("poly-*.jaxexport")
+    for bad in (b"not a program", path.read_bytes()[:100]):
+        path.write_bytes(bad)
+        pj.runtime._LOADED.clear()
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no error and no warning: silently made again
+            out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+        _check(out, c, x, 3, 2.0)
+        assert path.stat().st_size > 1000  # written again from the fresh trace
+    assert len(_TRACES) == 3
+    # a valid program of other input shapes under this call's name (a stale file)
+    pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 3), x[:3], 2.0), _Out)
+    other = [p for p in store.glob("poly-*.jaxexport") if p != path]
+    path.write_bytes(other[0].read_bytes())
+    pj.runtime._LOADED.clear()
+    out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+    _check(out, c, x, 3, 2.0)
+    assert len(_TRACES) == 5
+
+
+def test_unkeyable_static_values_are_not_stored(store):
+    p = _Poly(jnp.asarray([1.0, 2.0]), 2)
+    fn = lambda p, x: _poly_fn(p, x, 1.0)  # noqa: E731 - a lambda has no stable name
+    assert pj.runtime.stored_call("poly", fn, (p, jnp.ones(3)), _Out) is None
+    assert not store.exists()
+
+
+def test_stored_equilibria_equal_a_fresh_trace(store):
+    """The CLI's stored analysis (the whole `equilibria`, one exported program) against
+    the API's own call, for the LESO at 0.5 p.u. speed with a model mismatch (so the
+    non-designed equilibria are not symmetric)."""
+    from pmsmjax.analysis import equilibria
+    from pmsmjax.analysis._generic import equilibria_stored
+    from pmsmjax.observers import make_observer
+
+    drive = pj.preset("zhang750")
+    plant = drive.motor
+    obs = make_observer("leso", drive, motor=pj.replace_params(drive, L_q=1.2 * plant.L_q).motor)
+    w0, i0 = 0.5 * float(drive.w_rated), np.array([0.0, 0.3 * float(drive.base.I_b)])
+    ref = jax.device_get(equilibria(obs, plant, w0, i0))
+    got = jax.device_get(equilibria_stored(obs, plant, w0, i0))
+    assert list(store.glob("equilibria-*.jaxexport"))
+    pj.runtime._LOADED.clear()
+    again = jax.device_get(equilibria_stored(obs, plant, w0, i0))  # read from the file
+    for out in (got, again):
+        np.testing.assert_array_equal(out.valid, ref.valid)
+        np.testing.assert_array_equal(out.stable, ref.stable)
+        assert int(out.status) == int(ref.status) and int(out.n) == int(ref.n)
+        v = ref.valid
+        # the same computation compiled as another program: only fusion/round-off
+        # differences, amplified by the Newton polish's conditioning to far below 1e-9
+        np.testing.assert_allclose(out.theta[v], ref.theta[v], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(out.x[v], ref.x[v], rtol=1e-9,
+                                   atol=1e-9 * np.max(np.abs(ref.x[v])))
+        np.testing.assert_allclose(out.jacobian[v], ref.jacobian[v], rtol=1e-9,
+                                   atol=1e-9 * np.max(np.abs(ref.jacobian[v])))
+
+
+def test_changed_source_makes_the_program_again_and_removes_the_old_one(store, monkeypatch):
+    c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
+    args = (_Poly(c, 3), x, 2.0)
+    monkeypatch.setattr(pj.runtime, "_SOURCE_HASH", "a" * 64)  # the code as it was
+    pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+    (old,) = store.glob("poly-*.jaxexport")
+    monkeypatch.setattr(pj.runtime, "_SOURCE_HASH", "b" * 64)  # the code changed
+    pj.runtime._LOADED.clear()
+    out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
+    _check(out, c, x, 3, 2.0)
+    assert len(_TRACES) == 2  # traced again, not served the old program
+    (new,) = store.glob("poly-*.jaxexport")
+    assert new != old and not old.exists()

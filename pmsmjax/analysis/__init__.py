@@ -3,6 +3,10 @@ linearisation, equilibria, feasibility maps over any two design parameters, Lyap
 (slowly-varying) certificates, and a chunked, sharded, resumable runner for large sweeps.
 zhang2022's closed forms (the quartic (34)-(36)) are fast paths next to the generic route."""
 
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
 from ._dead_time import (
     dead_time_angle_error as dead_time_angle_error,
     dead_time_resistance as dead_time_resistance,
@@ -65,17 +69,22 @@ from ._harmonic import (
     harmonic_ripple as harmonic_ripple,
     input_matrix as input_matrix,
 )
-from ._lyapunov import (
-    LyapunovCertificate as LyapunovCertificate,
-    RampRun as RampRun,
-    fastest_converging_ramp as fastest_converging_ramp,
-    lyapunov_solve as lyapunov_solve,
-    simulate_ramp as simulate_ramp,
-    slowly_varying_certificate as slowly_varying_certificate,
-)
 from ._sweep import (
     ChunkInfo as ChunkInfo,
     SweepGrid as SweepGrid,
     grid_product as grid_product,
     run_sweep as run_sweep,
 )
+
+# Loaded on first use (`pmsmjax._lazy`): the certificates import diffrax and optimistix.
+if TYPE_CHECKING:
+    from ._lyapunov import (
+        LyapunovCertificate as LyapunovCertificate,
+        RampRun as RampRun,
+        fastest_converging_ramp as fastest_converging_ramp,
+        lyapunov_solve as lyapunov_solve,
+        simulate_ramp as simulate_ramp,
+        slowly_varying_certificate as slowly_varying_certificate,
+    )
+
+__getattr__, __dir__ = lazy_exports(__name__, __file__, globals())

@@ -81,7 +81,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from .._frames import jmul, wrap_angle
 from .._params import PMSMParams
@@ -251,6 +250,8 @@ def _bisect(fn, lo, hi, valid, tol, max_steps=200):
     The function is normalised so that it is <= 0 at `lo` (flip=False); invalid slots
     get a dummy linear function. Returns (root, converged).
     """
+    import optimistix as optx  # here: importing pmsmjax.analysis does not need it
+
     def g(y, args):
         lo_, hi_, sgn, ok = args
         return jnp.where(ok, sgn * fn(y), y - 0.5 * (lo_ + hi_))

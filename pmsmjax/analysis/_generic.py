@@ -46,6 +46,7 @@ loops: the program's size, and XLA's compile time, stay moderate for the larger 
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import equinox as eqx
@@ -376,6 +377,21 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     Returns an `Equilibria` (angles in (-pi, pi], states in the observer's
     `coordinates`, SI). Pure and vmappable: wrap it in `jax.vmap` over any leaf.
     """
+    observer, plant, op, options = _equilibria_args(
+        observer, plant, w_m, i_dq, method=method, n_grid=n_grid, max_roots=max_roots,
+        n_crit=n_crit, n_golden=n_golden, angle_weight=angle_weight,
+        n_gauss_newton=n_gauss_newton, n_refine=n_refine, n_newton=n_newton, tol=tol)
+    if method == "auto":
+        fast = observer.fast_equilibria(plant, op)
+        if fast is not None:
+            return fast
+    return _equilibria(observer, plant, op, options)
+
+
+def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n_crit,
+                     n_golden, angle_weight, n_gauss_newton, n_refine, n_newton, tol):
+    """`equilibria`'s argument checks and conversions: (observer, plant, op, options of
+    the generic route)."""
     check_observer("equilibria", observer)
     check_plant("equilibria", plant)
     for name, v, lo in (("n_grid", n_grid, 8), ("max_roots", max_roots, 1),
@@ -388,15 +404,45 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     dtype = jnp.result_type(w_m, float)
     observer, plant = as_arrays(observer, dtype), as_arrays(plant, dtype)
     op = _op(w_m, i_dq, dtype)
-    if method == "auto":
-        fast = observer.fast_equilibria(plant, op)
-        if fast is not None:
-            return fast
     tol = float(jnp.finfo(dtype).eps) ** 0.6 if tol is None else float(tol)
-    return _equilibria(observer, plant, op, dict(
+    return observer, plant, op, dict(
         method="generic", n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
         angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
-        n_newton=n_newton, tol=tol))
+        n_newton=n_newton, tol=tol)
+
+
+def equilibria_stored(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
+                      **kwargs) -> Equilibria:
+    """`equilibria(observer, plant, w_m, i_dq, **kwargs)` for a process that repeats the
+    same analysis (the `pmsmjax equilibria` command): the whole analysis (the family's own
+    route included, `method="auto"`) as one program kept by `pmsmjax.runtime.stored_call`
+    next to the compilation cache, so that a repeated call skips the tracing. Where no
+    program can be stored (the cache is off, a static value without a stable
+    description), it is `equilibria` itself. Concrete inputs only (not for use under
+    `jax.jit`/`jax.vmap`)."""
+    from .. import runtime
+
+    method = kwargs.pop("method", "auto")
+    full = {k: p.default for k, p in inspect.signature(equilibria).parameters.items()
+            if p.kind is p.KEYWORD_ONLY and k != "method"}
+    unknown = set(kwargs) - set(full)
+    if unknown:
+        raise TypeError(f"equilibria_stored: unknown arguments {sorted(unknown)}; allowed: "
+                        f"{sorted(full)} and method")
+    full.update(kwargs)
+    if runtime.stored_programs_dir() is not None:
+        obs, pl, op, options = _equilibria_args(observer, plant, w_m, i_dq, method=method,
+                                                **full)
+        options["method"] = method
+        out = runtime.stored_call("equilibria", _equilibria_program, (obs, pl, op, options),
+                                  Equilibria)
+        if out is not None:
+            return out
+    return equilibria(observer, plant, w_m, i_dq, method=method, **full)
+
+
+def _equilibria_program(observer, plant, op, options):
+    return equilibria_traced(observer, plant, op, **options)
 
 
 @eqx.filter_jit

@@ -51,12 +51,16 @@ def _equilibria_arguments(p: argparse.ArgumentParser) -> None:
 def equilibria_report(choice, drive, speed_pu: float, i_pu) -> dict:
     """The JSON-ready report of `pmsmjax.analysis.equilibria` for `choice.observer` at
     `speed_pu` (p.u.) and `i_pu` (p.u., estimated frame)."""
-    from pmsmjax.analysis import equilibria
+    import jax
+
+    from pmsmjax.analysis._generic import equilibria_stored
 
     obs = choice.observer
     w0 = speed_pu * float(drive.w_rated)
     i0 = np.asarray(i_pu) * float(drive.base.I_b)
-    eq = equilibria(obs, choice.plant, w0, i0)
+    # the analysis as one stored program (`pmsmjax.runtime.stored_call`: a repeated
+    # command skips the tracing), then everything else on host (NumPy) arrays
+    eq = jax.device_get(equilibria_stored(obs, choice.plant, w0, i0))
     coords = obs.coordinates
     valid = np.asarray(eq.valid)
     stable = np.asarray(eq.stable)
