@@ -118,25 +118,65 @@ def test_fig7a_reaches_2pu_with_the_documented_dc_link():
         mp.dc_link_for_speed(2.0, i_max_pu=4.0)
 
 
-def test_fig12_meets_the_published_bounds():
+def _encoder_run(e):
+    """The same experiment with an encoder: the plant, controller and scenario of `e`,
+    the rotor angle and speed measured; returns (trajectory, window mask)."""
+    kw = {k: v for k, v in e.kwargs.items() if k != "observer"}
+    tr = pj.simulate(e.drive, observer=pj.SensoredObserver(), **kw)
+    t = np.asarray(tr.t)
+    return tr, (t >= e.window[0]) & (t < e.window[1])
+
+
+def test_fig12_errors_are_the_observers_own_on_the_encoder_run():
     """Fig. 12 (0.5 p.u., load step to 0.85 p.u.) with the 3 % slot harmonic in the plant:
-    the speed is held and the errors are within the published ones (a simulation without
-    noise or inverter non-linearity is easier than the paper's drive)."""
-    r = mp.experiment("fig12").run()
+    the sensorless drive holds the speed, and its estimation errors are those of the same
+    observer replayed on the same experiment run with an encoder (where its errors do
+    not feed back): measured 0.4 % (angle), 0.1 % (speed) apart; allow 2 %. The paper's
+    bounds are printed for comparison only (a simulation without noise or inverter
+    non-linearity is easier than the paper's drive)."""
+    e = mp.experiment("fig12")
+    r = e.run()
+    tr, sel = _encoder_run(e)
+    obs = e.kwargs["observer"]
+    th, w_hat = pj.replay(obs, tr, theta0=float(tr.theta[0]), w0=float(tr.w_m[0]))
+    te = np.abs(np.asarray(pj.angle_error(tr.theta, th)))[sel]
+    we = np.abs(np.asarray(tr.w_m) - np.asarray(w_hat))[sel] / e.drive.base.w_b
+    w_enc = float(np.mean(np.asarray(tr.w_m)[sel]) / e.drive.base.w_b)
+    assert r["ok"] and r["w_mean"] == pytest.approx(w_enc, abs=1e-4)  # measured 1.5e-5
+    assert abs(w_enc - 0.5) < 0.01
+    assert r["theta_err_max"] == pytest.approx(te.max(), rel=0.02)
+    assert r["theta_err_mean"] == pytest.approx(te.mean(), rel=0.02)
+    assert r["w_err_max"] == pytest.approx(we.max(), rel=0.02)
+    assert te.max() > 1e-4  # the harmonic does show (0.017 deg)
     pub = mp.PUBLISHED["fig12"]
-    assert r["ok"] and abs(r["w_mean"] - 0.5) < 0.01
-    assert r["w_err_max"] < pub["w_err_steady"]
-    assert r["theta_err_mean"] < pub["theta_err_mean"]
+    print(f"fig12: speed error {r['w_err_max']:.4f} p.u. (published < {pub['w_err_steady']}),"
+          f" mean angle error {r['theta_err_mean']:.5f} rad (published "
+          f"{pub['theta_err_mean']})")
 
 
 def test_fig13_both_kc_hold_the_regenerating_low_speed():
     """Fig. 13: 0.025 p.u. against -0.75 p.u. load; both k_c = 0 and 1.5 hold the speed
-    and carry the load (i_sq near the published -0.75 p.u.; the paper's k_c = 0 run
-    reached only -0.65), and k_c = 1.5 has the smaller angle error, as in the paper."""
+    and carry the load as the same experiment with an encoder does (mean speed within
+    1e-4 p.u., measured 2.4e-5; i_sq within 0.2 %, measured 0.04 %), the mean torque is
+    the load (1e-3, measured 1.7e-4: the window's mean acceleration), and k_c = 1.5 has
+    the smaller angle error, as in the paper. The paper's i_sq (-0.75, and -0.65 for its
+    k_c = 0 run) is printed for comparison only."""
     res = {n: mp.experiment(n).run() for n in ("fig13_kc0", "fig13_kc15")}
-    for r in res.values():
-        assert r["ok"] and abs(r["w_mean"] - 0.025) < 0.005
-        assert -0.8 < r["i_sq_mean"] < -0.65
+    e = mp.experiment("fig13_kc0")
+    tr, sel = _encoder_run(e)
+    b = e.drive.base
+    w_enc = float(np.mean(np.asarray(tr.w_m)[sel]) / b.w_b)
+    i_sq_enc = float(np.mean(np.asarray(tr.i_dq)[sel, 1]) / b.I_b)
+    assert abs(w_enc - 0.025) < 0.005
+    for n, r in res.items():
+        assert r["ok"] and r["w_mean"] == pytest.approx(w_enc, abs=1e-4), n
+        assert r["i_sq_mean"] == pytest.approx(i_sq_enc, rel=2e-3), n
+        t = np.asarray(r["traj"].t)
+        s = (t >= e.window[0]) & (t < e.window[1])
+        assert np.mean(np.asarray(r["traj"].tau_M)[s]) == pytest.approx(
+            np.mean(np.asarray(r["traj"].tau_L)[s]), rel=1e-3), n
+        print(f"{n}: i_sq {r['i_sq_mean']:.3f} p.u. (published "
+              f"{mp.PUBLISHED[n].get('i_sq')})")
     assert res["fig13_kc15"]["theta_err_max"] < res["fig13_kc0"]["theta_err_max"]
 
 
