@@ -24,6 +24,7 @@ import math
 from typing import TYPE_CHECKING
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from ._params import Drive, PMSMParams
@@ -132,29 +133,68 @@ def field_weakening(i_dq, tau_ref, motor: PMSMParams, k_tau, w, u_lim, i_max):
     r"""Voltage-limit-aware current references (A) from references `i_dq` (A, e.g. MTPA).
 
     In steady state and neglecting the resistance the voltage is $|\omega|\,|\psi|$,
-    $\psi = [L_d i_d + \psi_f, L_q i_q]$; with $\psi_{max} = u_{lim}/|\omega|$ the d-current
-    is lowered where needed to $i_d = (-\psi_f + \sqrt{\psi_{max}^2 - (L_q i_q)^2})/L_d$
-    (at most to $-\psi_f/L_d$, the centre of the voltage ellipse), the q-current is then
-    recomputed for the torque `tau_ref` (N m) and limited to the voltage ellipse and the
-    current circle `i_max` (A). A fixed number (8) of these passes (a contraction
-    towards the intersection of the torque curve and the voltage ellipse): differentiable
-    and vmappable. `w` electrical speed (rad/s), `u_lim` usable voltage amplitude (V).
+    $\psi = [L_d i_d + \psi_f, L_q i_q]$, so the flux may be at most
+    $\psi_{max} = u_{lim}/|\omega|$ (the voltage ellipse). References inside the ellipse
+    are kept. Otherwise the d current is lowered along the ellipse: with
+    $q(i_d) = \min(\sqrt{\psi_{max}^2 - (L_d i_d + \psi_f)^2}/L_q, \sqrt{i_{max}^2 - i_d^2})$
+    the largest |q current| the ellipse and the current circle `i_max` (A) allow, the
+    torque available at $i_d$ is $T(i_d) = k_\tau(\psi_f + (L_d - L_q)i_d)\,q(i_d)$; the
+    reference is the largest $i_d$ (least weakening) with $T(i_d) = |\tau_{ref}|$, on the
+    ellipse, or where `tau_ref` (N m) cannot be reached, the $i_d$ of the largest
+    available torque (at least $\max(-\psi_f/L_d, -i_{max})$). The largest torque is found by
+    golden-section search and the $i_d$ by bisection (fixed iteration counts: vmappable),
+    then one Newton step on $T(i_d) = |\tau_{ref}|$ in which the speed and the torque are
+    live, so that the derivatives are the implicit function's (differentiable). `w`
+    electrical speed (rad/s), `u_lim` usable voltage amplitude (V).
     """
     dL = motor.L_d - motor.L_q
     psi_max = u_lim / jnp.maximum(jnp.abs(w), 1e-9)
-    i_d_floor = jnp.maximum(-motor.psi_f / motor.L_d, -i_max)
-    i_d, i_q = i_dq[..., 0], i_dq[..., 1]
-    for _ in range(8):
-        room = psi_max ** 2 - (motor.L_q * i_q) ** 2
-        i_d_v = (-motor.psi_f + _safe_sqrt(room)) / motor.L_d
-        i_d_v = jnp.where(room > 0, i_d_v, i_d_floor)
-        i_d = jnp.clip(jnp.minimum(i_dq[..., 0], i_d_v), i_d_floor, None)
-        i_q = tau_ref / (k_tau * (motor.psi_f + dL * i_d))
+    i_d0, i_q0 = i_dq[..., 0], i_dq[..., 1]
+    tau = jnp.abs(tau_ref)
+
+    def q_avail(i_d, psi_max):
         q_v = _safe_sqrt(psi_max ** 2 - (motor.L_d * i_d + motor.psi_f) ** 2) / motor.L_q
-        q_i = _safe_sqrt(i_max ** 2 - i_d ** 2)
-        q_lim = jnp.minimum(q_v, q_i)
-        i_q = jnp.clip(i_q, -q_lim, q_lim)
-    return jnp.stack([i_d, i_q], -1)
+        return jnp.minimum(q_v, _safe_sqrt(i_max ** 2 - i_d ** 2))
+
+    def torque(i_d, psi_max):
+        return k_tau * (motor.psi_f + dL * i_d) * q_avail(i_d, psi_max)
+
+    inside = jnp.hypot(motor.L_d * i_d0 + motor.psi_f, motor.L_q * i_q0) <= psi_max
+    pm = jax.lax.stop_gradient(psi_max)
+    ta = jax.lax.stop_gradient(tau)
+    lo = jnp.maximum(-motor.psi_f / motor.L_d, -i_max) + 0.0 * ta
+    hi = jnp.maximum(jax.lax.stop_gradient(i_d0), lo)
+    # the largest available torque in [lo, hi] (golden section, a unimodal T)
+    r = (math.sqrt(5.0) - 1.0) / 2.0
+
+    def golden(_, ab):
+        a, b = ab
+        c, d = b - r * (b - a), a + r * (b - a)
+        left = torque(c, pm) >= torque(d, pm)
+        return jnp.where(left, a, c), jnp.where(left, d, b)
+
+    a, b = jax.lax.fori_loop(0, 50, golden, (lo, hi))
+    peak = 0.5 * (a + b)
+    peak = jnp.where(torque(peak, pm) > 0, peak, lo)  # nothing available: weaken fully
+    reachable = torque(peak, pm) >= ta
+
+    # the largest i_d in [peak, hi] with T = |tau_ref| inside the ellipse (T decreases)
+    def bisect(_, ab):
+        a, b = ab
+        m = 0.5 * (a + b)
+        ok = (torque(m, pm) >= ta) & (motor.L_d * m + motor.psi_f <= pm)  # on the ellipse
+        return jnp.where(ok, m, a), jnp.where(ok, b, m)
+
+    a, _ = jax.lax.fori_loop(0, 60, bisect, (peak, hi))
+    i_d = jnp.where(reachable, a, peak)
+    # one Newton step with the speed and torque live: exact value, implicit derivatives
+    t, dt = jax.jvp(lambda x: torque(x, psi_max), (i_d,), (jnp.ones_like(i_d),))
+    step = jnp.where(reachable & (jnp.abs(dt) > 0), (t - tau) / jnp.where(dt != 0, dt, 1.0),
+                     0.0)
+    i_d = i_d - step
+    q_lim = q_avail(i_d, psi_max)
+    i_q = jnp.clip(tau_ref / (k_tau * (motor.psi_f + dL * i_d)), -q_lim, q_lim)
+    return jnp.where(inside[..., None], i_dq, jnp.stack([i_d, i_q], -1))
 
 
 class CurrentControllerState(eqx.Module):

@@ -275,8 +275,10 @@ def test_certify_matches_the_api(tmp_path, capsys):
 
 def _fake_certificate(real):
     """A stand-in for `slowly_varying_certificate` that records its arguments (the real
-    one with observer-model mismatch compiles for about a minute here; see the slow test
-    below) and returns a certificate with every constant 1."""
+    one with observer-model mismatch at the command line's resolution compiles for tens
+    of seconds; it is checked against independent computations on small grids in
+    test_lyapunov.py, and against this command in the slow test below) and returns a
+    certificate with every constant 1."""
     import dataclasses
     import functools
 

@@ -319,3 +319,67 @@ def test_analysis_not_run_is_flagged(job):
     assert m["feasible_fraction"] is None and "feasible_fraction" in m["flags"]
     assert m["static_worst_deg"] == summary["observers"][OBSERVER]["designs"]["paper"][
         "static_worst_deg"]
+
+
+def _equilibria_numpy(obs, plant, w, i_dq):
+    """Every equilibrium of `obs`'s error dynamics at speed w, current i_dq, found without
+    the analysis module: SciPy's root finder on error_rhs (scaled) from 24 starting
+    angles, roots merged modulo 2 pi; stability from the eigenvalues of a
+    central-difference Jacobian. Returns [(angle, stable)]."""
+    import warnings
+
+    import equinox as eqx
+    import scipy.optimize
+
+    from pmsmjax.observers import OperatingPoint
+
+    op = OperatingPoint(jnp.asarray(w), jnp.asarray(i_dq))
+    sc = np.asarray(obs.error_scale(op, plant))
+    k = obs.coordinates.angle
+    f_jit = eqx.filter_jit(lambda z, o: o.error_rhs(z * sc, op, plant) / sc)
+
+    def f(z):
+        return np.asarray(f_jit(jnp.asarray(z), obs))
+
+    roots = []
+    for a0 in np.linspace(-math.pi, math.pi, 24, endpoint=False):
+        z0 = np.zeros(len(sc))
+        z0[k] = a0 / sc[k]
+        with warnings.catch_warnings():  # "not making progress" at an exact root too
+            warnings.simplefilter("ignore", RuntimeWarning)
+            z = scipy.optimize.fsolve(f, z0, xtol=1e-12)
+        if np.max(np.abs(f(z))) > 1e-9:  # not a root: this start went astray
+            continue
+        z[k] = math.remainder(z[k] * sc[k], 2 * math.pi) / sc[k]
+        if any(abs(math.remainder(z[k] * sc[k] - r[0], 2 * math.pi)) < 1e-6 for r in roots):
+            continue
+        h = 1e-6
+        J = np.column_stack([(f(z + h * e) - f(z - h * e)) / (2 * h) for e in np.eye(len(z))])
+        roots.append((z[k] * sc[k], bool(np.max(np.linalg.eigvals(J).real) < 0)))
+    return roots
+
+
+def test_feasibility_against_an_independent_root_search(job):
+    """The analysis metric (`feasible_fraction`) recomputed without the analysis module:
+    at every point of the grid, the equilibria of the paper design's error dynamics by
+    SciPy's root finder from many starting angles; feasible where the principal one (the
+    smallest angle error) is stable and no other is."""
+    config, out, summary = job
+    drive = config.drive()
+    plant = drive.three_phase_motor
+    grid = config.grid()
+    cases = np.asarray(config.cases)[grid["case"]]
+    want = []
+    for speed, load, k in zip(grid["speed_pu"], grid["load_pu"], cases):
+        obs = pj.observers.make_observer(OBSERVER, drive,
+                                         motor=observer_model(drive, *map(float, k)))
+        i_q = load * drive.tau_rated / (drive.k_tau * plant.psi_f)
+        roots = _equilibria_numpy(obs, plant, speed * drive.w_rated, [0.0, i_q])
+        assert roots, (speed, load, k)
+        principal = min(roots, key=lambda r: abs(r[0]))
+        want.append(principal[1] and sum(r[1] for r in roots) == 1)
+    feas = np.load(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz")
+    np.testing.assert_array_equal(np.asarray(feas["feasible"]).reshape(-1), want)
+    got = summary["observers"][OBSERVER]["designs"]["paper"]
+    assert got["feasible_fraction"] == pytest.approx(np.mean(want), abs=1e-12)
+    assert got["analysis_failed"] == 0

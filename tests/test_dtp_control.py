@@ -175,13 +175,17 @@ def test_harmonics_land_where_the_winding_puts_them(runs):
         A = _spectrum(ph[:, 0])  # phase a1
         amp[name] = 2 * math.hypot(abs(A[5]), abs(A[7]))
         i_dq = runs[name]["i_dq"]
-        assert _rms(i_dq - i_dq.mean(0)) < 0.05 * amp["none"]
+        # d-q ripple: measured 9e-7 (none, vsd) and 3.1e-4 (individual: the sets'
+        # controllers see the x-y harmonics) of the uncontrolled harmonic amplitude
+        assert _rms(i_dq - i_dq.mean(0)) < 1e-3 * amp["none"]
     assert amp["none"] > 1.0
     assert amp["vsd"] < 1e-4 * amp["none"]
     assert 0.2 * amp["none"] < amp["individual"] < amp["none"]
     # individual: the per-set 5th/7th are the x-y harmonics (i_1 - i_ab = conj(i_xy))
     # (the phase amplitude sqrt(|I_5|^2 + |I_7|^2) is the rms of the x-y vector)
-    assert _rms(runs["individual"]["i_xy"]) == pytest.approx(amp["individual"], rel=0.02)
+    # (measured 1.2e-4 relative: the spectrum's two bins against the whole rms, which
+    # also holds the small other harmonics of the closed loop)
+    assert _rms(runs["individual"]["i_xy"]) == pytest.approx(amp["individual"], rel=5e-4)
 
 
 def test_dual_control_needs_a_dual_drive():
@@ -205,5 +209,13 @@ def test_dual_control_float32():
     foc = pj.astype(pj.FOC.from_drive(DRIVE, dual="vsd"), jnp.float32)
     tr = pj.simulate(d32, foc, pj.observers.SensoredObserver(), sc, T_s=T_S, w_m0=W)
     assert tr.i_xy.dtype == tr.u_xy.dtype == jnp.float32
-    # after 25 ms the x-y rms is ~1e-3 A in float64 (1.3 A unregulated)
-    assert _rms(np.asarray(tr.i_xy[-N_PER // 2:])) < 0.05
+    # the same run in double precision: the x-y currents agree to 1.4e-6 A and the
+    # alpha-beta ones to 1.3e-5 A measured (float32's 6e-8 relative of 4 A, 2.4e-7 A, per
+    # step, which the current loops keep from accumulating far); allow 4 times that
+    tr64 = pj.simulate(DRIVE, pj.FOC.from_drive(DRIVE, dual="vsd"),
+                       pj.observers.SensoredObserver(), sc, T_s=T_S, w_m0=W)
+    np.testing.assert_allclose(np.asarray(tr.i_xy, float), tr64.i_xy, rtol=0, atol=6e-6)
+    np.testing.assert_allclose(np.asarray(tr.i_ab, float), tr64.i_ab, rtol=0, atol=5e-5)
+    # after 25 ms the x-y rms is ~5e-4 A (the harmonic integrators still converging; 1.3
+    # A unregulated)
+    assert _rms(np.asarray(tr.i_xy[-N_PER // 2:])) < 1e-3

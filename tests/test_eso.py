@@ -440,9 +440,16 @@ def test_discrete_matches_continuous_large_signal(kind, w_pu, e0, converges):
                           max_steps=100000)
     err_ode = np.degrees(np.asarray(pj.wrap_angle(sol.ys[:, 2])))
     d = np.degrees(np.asarray(pj.wrap_angle(jnp.radians(err[::500] - err_ode))))
+    # the discrete observer differs from the continuous dynamics by O(w T_s) per step
+    # (w T_s = 0.7 deg at 1 p.u.), largely averaging out: measured at most 0.021 deg on
+    # the converging runs; allow 5 times that
     if converges:
-        assert np.max(np.abs(d)) < 0.5
+        assert np.max(np.abs(d)) < 0.1
         assert abs(err[-1]) < 1e-3
     else:
-        assert np.max(np.abs(d[:8])) < 6.0  # the same start before the slip
+        # the same start until the error first passes 90 deg: measured 0.23 deg, the
+        # separatrix amplifying the per-step differences; then both slip
+        before = np.cumsum(np.abs(err_ode) > 90.0) == 0
+        assert 3 <= before.sum() < len(d)
+        assert np.max(np.abs(d[before])) < 0.5
         assert np.max(np.abs(err)) > 120 and np.max(np.abs(err_ode)) > 120

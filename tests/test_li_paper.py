@@ -23,8 +23,12 @@ def test_individual_set_harmonics_follow_the_frequency_response():
     """Fig. 13 (300 rpm, half load): the C-LESO on set 1; the 5th and 7th of the
     estimated alpha back-EMF are |G_h| a_h / |G_1| of the assumed harmonics."""
     out = li.harmonics("c-leso", 300, 0.5, "sets", t_end=0.4)
-    for h in (5, 7):
-        assert out["simulated_pct"][h] == pytest.approx(out["response_pct"][h], rel=0.05)
+    # measured: the 5th 0.15 % from the linear response, the 7th 2.6 % (3.8 % at a
+    # quarter of the sampling period, so not the discretisation; a coupling between the
+    # -5th and 7th, both at 6 w in the rotor frame, is the likely cause, not yet shown);
+    # allow about twice each
+    assert out["simulated_pct"][5] == pytest.approx(out["response_pct"][5], rel=0.005)
+    assert out["simulated_pct"][7] == pytest.approx(out["response_pct"][7], rel=0.05)
     # the C-LESO passes most of the 5th (3 % assumed)
     assert out["simulated_pct"][5] > 2.0
 

@@ -182,6 +182,75 @@ def test_the_ramp_rate_decides_from_the_certified_ball(cert):
     assert float(cert.eps) < 0.01 * eps
 
 
+def test_certificate_with_observer_model_mismatch_against_independent_computations():
+    """The real certificate with the LESO's model L_q 20 % high at 0.5 p.u. q current (the
+    command line's --mismatch; small grids): it is about the static-error equilibrium
+    x*(w), so its constants are recomputed here from x* found by SciPy's root finder on
+    the observer's error dynamics, A = D (df/dx) D^-1 by central differences at x*, P by
+    SciPy's Lyapunov solver and dA/dw, dP/dw by central differences in w (x* found again
+    at w +- h). Steps: 1e-6 in scaled coordinates (truncation ~1e-12 relative, round-off
+    ~1e-16 / 1e-6 = 1e-10) and 1e-3 w_rated in speed (truncation ~1e-6 relative); the
+    tolerances are a few times those errors, as in the matched test above."""
+    import scipy.optimize
+
+    from pmsmjax.observers import OperatingPoint, make_observer
+
+    m_hat = pj.replace_params(DRIVE, L_q=1.2 * float(DRIVE.motor.L_q)).motor
+    obs = make_observer("leso", DRIVE, motor=m_hat)
+    plant = DRIVE.three_phase_motor
+    i0 = jnp.array([0.0, 0.5]) * DRIVE.base.I_b
+    small = dict(i_dq=(0.0, 0.5), n_speed=5, n_dirs=16, alphas=(0.8, 0.99), n_time=20,
+                 n_k1_speeds=2, n_refine=5, radii=np.geomspace(1e-6, 1.0, 10))
+    c = analysis.slowly_varying_certificate(DRIVE, obs, (0.3, 1.0), **small)
+    c = jax.tree_util.tree_map(np.asarray, c)
+    assert int(c.status) == 0
+    b = DRIVE.base
+    d = np.array([1 / b.psi_b, 1 / b.psi_b, 1.0, 1 / b.w_b])  # scale="pu": V s, rad, rad/s
+    f = jax.jit(lambda x, w: obs.error_rhs(x, OperatingPoint(w, i0), plant))
+
+    def fn(x, w):
+        return np.asarray(f(jnp.asarray(x), w))
+
+    def jac(x, w):  # central differences, step 1e-6 in scaled coordinates
+        hx = 1e-6 / d
+        J = np.column_stack([(fn(x + hx[j] * e, w) - fn(x - hx[j] * e, w)) / (2 * hx[j])
+                             for j, e in enumerate(np.eye(4))])
+        return d[:, None] * J / d[None, :]
+
+    def x_star(w):  # SciPy's root finder, polished by Newton steps on the differences
+        z = scipy.optimize.fsolve(lambda z: d * fn(z / d, w), np.zeros(4), xtol=1e-10)
+        for _ in range(3):
+            z = z - np.linalg.solve(jac(z / d, w), d * fn(z / d, w))
+        assert np.max(np.abs(d * fn(z / d, w))) < 1e-9
+        return z / d
+
+    def A(w):
+        return jac(x_star(w), w)
+
+    def P(a):
+        return scipy.linalg.solve_continuous_lyapunov(a.T, -np.eye(4))
+
+    speeds, h = np.asarray(c.speeds), 1e-3 * DRIVE.w_rated
+    # the mismatch matters: the equilibrium is a static angle error, not the origin
+    assert min(abs(x_star(w)[2]) for w in speeds) > math.radians(0.5)
+    As = [A(w) for w in speeds]
+    Ps = [P(a) for a in As]
+    dA = [(A(w + h) - A(w - h)) / (2 * h) for w in speeds]
+    dP = [(P(A(w + h)) - P(A(w - h))) / (2 * h) for w in speeds]
+    lam = np.array([np.linalg.eigvalsh(p) for p in Ps])
+    # measured: P's eigenvalues 2e-12, sigma 5e-10, rho 3e-13, b 2e-8, c5 1e-5 relative
+    np.testing.assert_allclose([c.c1_sharp, c.c2_sharp], [lam[:, 0].min(), lam[:, -1].max()],
+                               rtol=1e-8)
+    sigma = min(-np.linalg.eigvals(a).real.max() for a in As)
+    rho = max(np.linalg.norm(a, 2) for a in As)
+    bb = max(np.linalg.norm(m, 2) for m in dA)
+    np.testing.assert_allclose([c.sigma, c.rho], [sigma, rho], rtol=1e-8)
+    np.testing.assert_allclose(c.b, bb, rtol=1e-6)  # the speed step's truncation
+    np.testing.assert_allclose(
+        c.c5_sharp, max(np.abs(np.linalg.eigvalsh(m)).max() for m in dP), rtol=1e-4)
+    assert float(c.eps_sharp) == pytest.approx(0.5 / float(c.c5_sharp), rel=1e-12)  # c3/c5
+
+
 def test_very_fast_ramp_fails_in_the_true_error_dynamics():
     run = analysis.simulate_ramp(DRIVE, DESIGN, (0.1, 1.0), 1e6, theta0_deg=10.0,
                                  model="observer")

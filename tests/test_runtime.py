@@ -69,16 +69,51 @@ def test_configure_after_the_backend_started_warns(monkeypatch):
     assert os.environ["XLA_FLAGS"] == ""  # not pretended to be applied
 
 
+# `python -m pmsmjax ARGS` with JAX's own counters of the persistent cache (jax.monitoring
+# events, recorded by JAX's compiler whenever it looks a program up in the cache) printed
+# on stderr at exit: hits (a compiled program read from the cache) and misses (compiled
+# and written to it).
+_COUNTING = (
+    "import atexit, collections, runpy, sys\n"
+    "import jax.monitoring\n"
+    "n = collections.Counter()\n"
+    "jax.monitoring.register_event_listener(lambda e, **kw: n.update([e]))\n"
+    "atexit.register(lambda: print('CACHE', n['/jax/compilation_cache/cache_hits'],"
+    " n['/jax/compilation_cache/cache_misses'], file=sys.stderr))\n"
+    "sys.argv = ['pmsmjax', *sys.argv[1:]]\n"
+    "runpy.run_module('pmsmjax', run_name='__main__')\n")
+
+
+def _hits_misses(res):
+    line = [ln for ln in res.stderr.splitlines() if ln.startswith("CACHE ")][-1]
+    return tuple(int(v) for v in line.split()[1:])
+
+
+def _cache_files(d):
+    return {str(p): p.stat().st_mtime_ns for p in d.rglob("*") if p.is_file()}
+
+
 def test_cache_is_filled_reused_and_cleared(env, tmp_path):
-    cmd = ["-m", "pmsmjax", "equilibria", "--speed", "0.5", "--json"]
+    """A second process reuses the first one's compiled programs: JAX reports a cache hit
+    for every program the first one wrote and compiles (misses) nothing, and the cache's
+    files are the same files, untouched."""
+    args = ["equilibria", "--speed", "0.5", "--json"]
+    cmd = ["-c", _COUNTING, *args]
     first = _run(cmd, env)
     assert first.returncode == 0, first.stderr
     assert "after JAX started its backend" not in first.stderr  # configured in time
     files = [p for p in (tmp_path / "cache").rglob("*") if p.is_file()]
     n, size = len(files), sum(p.stat().st_size for p in files)
     assert n > 0 and size > 0
+    hits1, misses1 = _hits_misses(first)
+    assert hits1 == 0 and misses1 > 0  # an empty cache: everything compiled and written
+    before = _cache_files(tmp_path / "cache")
     second = _run(cmd, env)
     assert second.returncode == 0 and second.stdout == first.stdout  # same result, cached
+    hits2, misses2 = _hits_misses(second)
+    # every program written by the first process is read back, none compiled again
+    assert misses2 == 0 and hits2 >= misses1, (hits1, misses1, hits2, misses2)
+    assert _cache_files(tmp_path / "cache") == before  # nothing written or rewritten
     info = _run(["-m", "pmsmjax", "cache"], env)
     assert info.returncode == 0 and f"({n} files" in info.stdout
     assert str(tmp_path / "cache") in info.stdout
@@ -86,7 +121,8 @@ def test_cache_is_filled_reused_and_cleared(env, tmp_path):
     assert cleared.returncode == 0 and f"removed {n} files" in cleared.stdout
     assert not (tmp_path / "cache").exists()
     env["PMSMJAX_CACHE"] = "0"
-    assert _run(cmd, env).returncode == 0
+    off = _run(cmd, env)
+    assert off.returncode == 0 and _hits_misses(off) == (0, 0)  # the cache is not used
     assert not (tmp_path / "cache").exists()
 
 

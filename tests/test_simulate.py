@@ -58,6 +58,30 @@ def _ideal_speed_error(t):
     return r * (f(t) - f(t - T_RAMP)) + N_P * TAU_LOAD / J_M * f(t - T_LOAD)
 
 
+def _sampled_loop_speed_error(t):
+    """Speed error w_ref - w of the loop at the block level, in NumPy: the speed sampled
+    at t_k, the PI (anti-windup, torque limit) updated once per sample, the current loop
+    as its design target, a first-order lag at alpha_c of the torque reference held over
+    [t_k, t_k+1), and the rigid rotor; each interval integrated exactly."""
+    Jn = J_M / N_P
+    kp, ki = 2 * ALPHA_S * Jn, ALPHA_S ** 2 * Jn
+    tau_max = float(pj.FOC.from_drive(DRIVE).speed.tau_max)
+    a, h = ALPHA_C, T_S
+    w = tau = x_i = 0.0
+    e = np.zeros_like(t)
+    for k, tk in enumerate(t):
+        w_ref = W_REF * min(max(tk / T_RAMP, 0.0), 1.0)
+        e[k] = w_ref - w
+        u = kp * e[k] + x_i
+        u_lim = min(max(u, -tau_max), tau_max)
+        x_i += h * ki * (e[k] + (u_lim - u) / kp)
+        load = TAU_LOAD if tk + h / 2 > T_LOAD else 0.0
+        decay = math.exp(-a * h)  # tau' = a (u_lim - tau), (J/n_p) w' = tau - load
+        w += ((u_lim - load) * h + (tau - u_lim) * (1 - decay) / a) / Jn
+        tau = u_lim + (tau - u_lim) * decay
+    return e
+
+
 def test_speed_control_tracks_and_rejects_load(speed_run):
     tr = speed_run
     assert bool(tr.status == pj.RESULTS.successful) and bool(tr.ok)
@@ -65,12 +89,14 @@ def test_speed_control_tracks_and_rejects_load(speed_run):
     e = np.asarray(tr.w_m_ref) - np.asarray(tr.w_m)
     e_ideal = _ideal_speed_error(t)
     # The real loop adds the current-loop lag (~1/alpha_c) and about one sample (the
-    # speed sampled at t_k acts through the current over [t_k, t_k+1)): an effective delay
-    # tau_e = 1/alpha_c + T_s. For a critically damped loop a small delay changes the
-    # error by O(alpha_s tau_e) relative; allow twice that (here 11 % of the peak error).
+    # speed sampled at t_k acts through the current over [t_k, t_k+1)): the ideal loop
+    # is off by 4.4 % of the peak error (O(alpha_s (1/alpha_c + T_s)) = 5.6 %). The
+    # sampled loop with the current loop's first-order target is within 0.86 % (the
+    # discrete current loop is not exactly first order: alpha_c T_s = 0.39); allow 2 %.
+    e_sampled = _sampled_loop_speed_error(t)
+    assert np.abs(e - e_sampled).max() < 0.02 * np.abs(e).max()
+    assert np.abs(e - e_ideal).max() > 0.02 * np.abs(e).max()  # the sampling matters
     tau_e = 1 / ALPHA_C + T_S
-    tol = 2 * ALPHA_S * tau_e * np.abs(e_ideal).max()
-    assert np.abs(e - e_ideal).max() < tol
     # The load causes a real dip (~ n_p tau_L / (J alpha_s e) = 23 rad/s) ...
     after = t > T_LOAD
     assert e[after].max() == pytest.approx(N_P * TAU_LOAD / (J_M * ALPHA_S * math.e),

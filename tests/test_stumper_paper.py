@@ -26,20 +26,26 @@ def test_fig5_feedforward_sign_and_speedup():
     # ratio is the ratio of the mean electromagnetic torque over the same speed band
     # (the reluctance torque of the negative d current under the same current limit);
     # measured 16.50 % against 16.59 % (the friction term B w differs slightly)
-    taus = []
+    taus, accs = [], []
     for feedforward in (True, False):
         tr = stumper.acceleration(0.0, feedforward=feedforward, **kw).traj
         wm = np.asarray(tr.w_m)
         w0, w1 = 300 * stumper.RPM, 3000 * stumper.RPM
         band = (wm >= w0 + 0.1 * (w1 - w0)) & (wm <= w0 + 0.9 * (w1 - w0))
         taus.append(np.asarray(tr.tau_M)[band].mean())
+        accs.append(np.polyfit(np.asarray(tr.t)[band], wm[band], 1)[0])  # rad/s^2, el.
     assert speedup > 0.05
     assert speedup == pytest.approx(taus[0] / taus[1] - 1, abs=0.005)
     assert printed["slope_rpm_s"] < plain["slope_rpm_s"]
     assert ff["t_setpoint_s"] < plain["t_setpoint_s"]
     assert not printed["t_setpoint_s"] < plain["t_setpoint_s"]  # NaN: not reached
-    # the lag of the tracking filter at this acceleration is (39)'s 35 deg
-    assert -40.0 < ff["theta_err_max_deg"] < -30.0
+    # the largest lag of the tracking filter is (39)'s acc / v1 at the acceleration the
+    # drive reached (fitted over the 10-90 % band; the paper's figure shows about 35 deg):
+    # measured 34.91 against 34.73 deg, 0.5 %; 2 % as the sensored test of (39) in
+    # test_parallel_model.py (the filter's settling and the 7 mH model's static offset)
+    v1 = float(stumper.ParallelModelObserver.from_drive(stumper.preset("stumper_mt5"),
+                                                        L_hat=7e-3).v1)
+    assert ff["theta_err_max_deg"] == pytest.approx(-math.degrees(accs[0] / v1), rel=0.02)
 
 
 def test_fig3_low_speed_full_load_is_held():

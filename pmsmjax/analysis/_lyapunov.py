@@ -181,10 +181,14 @@ class _ScaledDynamics(eqx.Module):
         x = jnp.zeros_like(self.d)
         if self.matched:
             return x
-        for _ in range(8):
+
+        def newton(_, x):
             f, J = self.rhs(x, w), jax.jacfwd(self.rhs)(x, w)
-            x = x - jnp.linalg.solve(J, f)
-        return x
+            return x - jnp.linalg.solve(J, f)
+
+        # a loop rather than unrolled steps: the certificate differentiates this twice
+        # (dA/dw, dP/dw); unrolled, its compilation took twice as long
+        return jax.lax.fori_loop(0, 8, newton, x)
 
     def g(self, z, w):
         xe = self.x_eq(w)
