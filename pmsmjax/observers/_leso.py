@@ -59,9 +59,13 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   $X = (A_o - j\hat\omega I)T_s$ in complex form (`_transition`; size $1 + n_s/2$: 2 for
   the C-LESO and FA-LESO, whose functions are pairs of complex numbers in the algebra of
   $I$ and $X - \tfrac12\mathrm{tr}X$, 4 for the GI-LESO), by a Taylor polynomial and
-  doublings with static shapes and no division (for the pairs: $\varphi_2$ of
-  $X/8$ alone by Horner's rule, degree 14, $\varphi_1$ and $e^X$ from it, then three
-  doublings). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
+  doublings with static shapes and no division (for the pairs: $\varphi_2$ alone by
+  Horner's rule, degree 14, $\varphi_1$ and $e^X$ from it; directly at $X$ while the
+  bound $|\mathrm{Re}\,\mu| + |\mathrm{Im}\,\mu| + (|\mathrm{Re}\,d| +
+  |\mathrm{Im}\,d|)^{1/2}$ on its eigenvalues $\mu \pm \sqrt d$ is at most 0.5 (0.19
+  for the C-LESO, 0.05 for the FA-LESO at $T_s = 100\,\mu$s on `li_dtp`; truncation
+  below $4\times10^{-18}$), otherwise at $X/8$ followed by three doublings:
+  `_phi_pair_apply`, a `lax.cond` as the GI-LESO's below). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
   + \varphi_2(X)g_1$ (the exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1],
   [0, 0, 0]]$ applied to $[y; 0; 1]$): while the row-sum norm of $X$ in the design's
   units (`GILESOObserver._complex_scale`, about $3\omega_0T_s$: 0.47 at
@@ -255,43 +259,79 @@ def _phi_full(X, y, g0, g1):
     return E0 @ y + E1 @ g0 + E2 @ g1
 
 
-def _phi_plain(X, y, g0, g1, rho):
-    """`_phi_action` where `rho <= _ACTION_NORM`, else `_phi_full` (`lax.cond`)."""
-    return jax.lax.cond(rho <= _ACTION_NORM, lambda o: _phi_action(*o),
-                        lambda o: _phi_full(*o), (X, y, g0, g1))
+def _switched(cheap, full, limit: float):
+    """`f(*args, rho)`: `cheap(*args)` where `rho <= limit`, else `full(*args)` (same
+    values to round-off on either side; `rho` is a bound held constant for
+    differentiation).
+
+    Plainly a `lax.cond`. Under `vmap` a `cond` on a batched predicate would evaluate
+    both branches (a select): a batching rule (`custom_vmap`) takes one branch for the
+    whole batch instead, the cheap one only if it holds for every member, so the cheap
+    path is not paid for twice. That rule has no reverse mode: a `custom_jvp`
+    differentiates through the plain `cond` (same values)."""
+
+    def plain(*a):
+        return jax.lax.cond(a[-1] <= limit, lambda o: cheap(*o), lambda o: full(*o),
+                            a[:-1])
+
+    @jax.custom_batching.custom_vmap
+    def batched(*a):
+        return plain(*a)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, *a):
+        a = [x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+             for x, b in zip(a, in_batched)]
+        out = jax.lax.cond(jnp.all(a[-1] <= limit), lambda o: jax.vmap(cheap)(*o),
+                           lambda o: jax.vmap(full)(*o), a[:-1])
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    @jax.custom_jvp
+    def f(*a):
+        return batched(*a)
+
+    @f.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(plain, primals, tangents)
+
+    return f
 
 
-@jax.custom_batching.custom_vmap
-def _phi_batched(X, y, g0, g1, rho):
-    return _phi_plain(X, y, g0, g1, rho)
+_phi_switched = _switched(_phi_action, _phi_full, _ACTION_NORM)
 
 
-@_phi_batched.def_vmap
-def _phi_batched_rule(axis_size, in_batched, X, y, g0, g1, rho):
-    # one branch for the whole batch (under `vmap` a `cond` on a batched predicate would
-    # evaluate both): the action where every member's norm allows it
-    args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))
-            for a, b in zip((X, y, g0, g1, rho), in_batched)]
-    X, y, g0, g1, rho = args
-    out = jax.lax.cond(jnp.all(rho <= _ACTION_NORM),
-                       lambda o: jax.vmap(_phi_action)(*o),
-                       lambda o: jax.vmap(_phi_full)(*o), (X, y, g0, g1))
-    return out, True
-
-
-@jax.custom_jvp
 def _phi_apply(X, y, g0, g1, rho):
     r"""$e^X y + \varphi_1(X)g_0 + \varphi_2(X)g_1$ for a complex $X$ whose diagonally
     scaled norm is `rho`: the Taylor action (`_phi_action`) where `rho <= _ACTION_NORM`,
-    else the balanced matrix functions (`_phi_matrix`). Under `vmap` the batch takes one
-    branch (the action only if it holds for every member), so the cheap path is not paid
-    for twice; differentiation goes through the plain `lax.cond` (same values)."""
-    return _phi_batched(X, y, g0, g1, rho)
+    else the balanced matrix functions (`_phi_matrix`); `_switched` (one branch for a
+    batch under `vmap`, derivatives through the plain `cond`)."""
+    return _phi_switched(X, y, g0, g1, rho)
 
 
-@_phi_apply.defjvp
-def _phi_apply_jvp(primals, tangents):
-    return jax.jvp(_phi_plain, primals, tangents)
+#: The pair functions skip the doublings (`_phi_pair` at `squarings=0`) while the bound
+#: `_pair_radius` on the eigenvalues of X is at most this (the degree stays 14): the
+#: remainders of the three series there, and of their first derivatives (which set the
+#: coefficient of N), are below 15 * 0.5^14/17! e^0.5 = 4e-18.
+_PAIR_NORM = 0.5
+
+
+def _pair_radius(mu, d):
+    r"""An upper bound on the moduli of the eigenvalues $\mu \pm \sqrt d$ of
+    $\mu I + N$ ($N^2 = dI$): $|\mathrm{Re}\,\mu| + |\mathrm{Im}\,\mu| +
+    (|\mathrm{Re}\,d| + |\mathrm{Im}\,d|)^{1/2}$ (one square root), held constant."""
+    mu, d = jax.lax.stop_gradient(mu), jax.lax.stop_gradient(d)
+    return (jnp.abs(jnp.real(mu)) + jnp.abs(jnp.imag(mu))
+            + jnp.sqrt(jnp.abs(jnp.real(d)) + jnp.abs(jnp.imag(d))))
+
+
+_phi_pair_switched = _switched(lambda mu, d: _phi_pair(mu, d, squarings=0), _phi_pair,
+                               _PAIR_NORM)
+
+
+def _phi_pair_apply(mu, d):
+    """`_phi_pair(mu, d)`: the series directly at $Y$ (no doublings) where
+    `_pair_radius(mu, d) <= _PAIR_NORM`, else with three doublings (`_switched`)."""
+    return _phi_pair_switched(mu, d, _pair_radius(mu, d))
 
 
 def _x2(C, Dx, s, eps):
@@ -409,7 +449,7 @@ class AbstractBackEMFLESO(AbstractObserver):
             (k, cc), (b, a) = Ao
             mu = 0.5 * (k + a) * T + jwT
             n00, n01, n10 = 0.5 * (k - a) * T, cc * T, b * T  # N = X - mu I, traceless
-            E0, E1, E2 = _phi_pair(mu, n00 * n00 + n01 * n10)
+            E0, E1, E2 = _phi_pair_apply(mu, n00 * n00 + n01 * n10)
             # as vectors of the two components (one kernel for the whole transition;
             # written on scalars XLA computed it once for each component)
             yv = jnp.stack(y, -1)
