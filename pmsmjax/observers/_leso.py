@@ -416,7 +416,10 @@ class AbstractBackEMFLESO(AbstractObserver):
     def _psi_ex(self, i_ab, theta):
         """Model extended flux $\\hat\\psi_f + (\\hat L_d - \\hat L_q)\\hat i_d$ (V s)."""
         m = self.motor
-        return m.psi_f + (m.L_d - m.L_q) * park(i_ab, theta)[..., 0]
+        # park(i_ab, theta)'s d component, written with cos and sin of `theta` (which the
+        # PLL computes too: one evaluation for both)
+        i_d = i_ab[..., 0] * jnp.cos(theta) + i_ab[..., 1] * jnp.sin(theta)
+        return m.psi_f + (m.L_d - m.L_q) * i_d
 
     # --- running ----------------------------------------------------------------------
     def init(self, theta0=0.0, w0=0.0) -> LESOState:
@@ -437,10 +440,10 @@ class AbstractBackEMFLESO(AbstractObserver):
         K = Dx + D1
         return jnp.block([[K, C], [B, A]]), -jnp.concatenate([K, B])[:, 0], C[0], Dx[0, 0]
 
-    def _transition_c(self, w_hat, T_s, y, i0, dl, c):
+    def _transition_c(self, w_hat, T_s, y, i0, dl, c, rot=None):
         r"""`_transition` in complex form: the complex state `y` (size $p$) one period on
         (stationary frame), from the complex current `i0`, its hold slope `dl` and the
-        voltage-integral rate `c`."""
+        voltage-integral rate `c`; `rot` is $e^{j\hat\omega T_s}$ if the caller has it."""
         T = jnp.asarray(T_s, jnp.real(i0).dtype)
         Ao, g_i, _, _ = self._complex_system(w_hat)
         jwT = jax.lax.complex(jnp.zeros_like(T), -jnp.asarray(w_hat, T.dtype) * T)
@@ -459,7 +462,8 @@ class AbstractBackEMFLESO(AbstractObserver):
             ub = E0[1][..., None] * yv + E1[1][..., None] * g0 + E2[1][..., None] * g1
             out = ua + jnp.stack([n00 * ub[..., 0] + n01 * ub[..., 1],
                                   n10 * ub[..., 0] - n00 * ub[..., 1]], -1)
-            out = jnp.exp(-jwT)[..., None] * out
+            rot = jnp.exp(-jwT) if rot is None else rot
+            out = rot[..., None] * out
             return out[..., 0], out[..., 1]
         p = Ao.shape[0]
         X = Ao * T + jwT * jnp.eye(p, dtype=Ao.dtype)
@@ -467,7 +471,8 @@ class AbstractBackEMFLESO(AbstractObserver):
         g0, g1 = T * (g_i * i0 + g_c * c), (T * T) * (g_i * dl)
         d = jax.lax.stop_gradient(self._complex_scale(w_hat).astype(T.dtype))
         rho = jnp.max(jnp.sum(jnp.abs(X) * (d[None, :] / d[:, None]), 1))
-        return jnp.exp(-jwT) * _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
+        rot = jnp.exp(-jwT) if rot is None else rot
+        return rot * _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
 
     def _transition(self, w_hat, T_s, v):
         r"""The state `[x1, s]` one period after `v = [x1, s, i, delta, c]` (real, `(n_s +
@@ -523,16 +528,23 @@ class AbstractBackEMFLESO(AbstractObserver):
         d_lam = T * u - (0.5 * T * m.R_s) * (i_prev + i_k)
         # the rate of lambda held in the turning frame, with the same integral d_lam:
         # int_0^T exp(w t J) c dt = T sinc(w T / 2) exp(w T J / 2) c
+        # (one cosine and sine of the half angle serve the hold and the transition's
+        # turn e^{j w_hat T} = h^2)
         half = 0.5 * T * w_hat
-        c = d_lam * jax.lax.complex(jnp.cos(half), -jnp.sin(half)) / (
-            T * jnp.sinc(half / jnp.pi))
+        sin_h = jnp.sin(half)
+        h = jax.lax.complex(jnp.cos(half), sin_h)
+        small = jnp.abs(half) < 1e-4  # sin(x)/x = 1 - x^2/6 + x^4/120: below round-off
+        half_s = jnp.where(small, 1.0, half)
+        sinc = jnp.where(small, 1.0 - half * half / 6.0, sin_h / half_s)
+        c = d_lam * jnp.conj(h) / (T * sinc)
         # the current between the samples: turning at w_hat, linear in that frame
-        rot = jax.lax.complex(jnp.cos(2.0 * half), jnp.sin(2.0 * half))
+        rot = h * h
         delta = (i_k * jnp.conj(rot) - i_prev) / T
         if self.n_s == 2:
-            out = self._transition_c(w_hat, T, (x1, s_c[0]), i_prev, delta, c)
+            out = self._transition_c(w_hat, T, (x1, s_c[0]), i_prev, delta, c, rot)
         else:
-            out = self._transition_c(w_hat, T, jnp.stack([x1] + s_c), i_prev, delta, c)
+            out = self._transition_c(w_hat, T, jnp.stack([x1] + s_c), i_prev, delta, c,
+                                     rot)
             out = [out[j] for j in range(1 + self.n_s // 2)]
         # back to the real layout [x1, s] as one array: every consumer reads it (XLA
         # would otherwise duplicate the transition's graph into each of them)
