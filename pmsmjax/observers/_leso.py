@@ -108,7 +108,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._frames import park, rotate, wrap_angle
+from .._frames import rotate, wrap_angle
 from .._params import Drive, PMSMParams
 from .._validate import check_positive
 from ._base import (
