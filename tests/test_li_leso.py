@@ -367,3 +367,63 @@ def test_gi_leso_action_path_and_fallback_against_scipy():
         Xs, ys, g0s, g1s, rhos, refs, sizes = (np.stack(c) for c in zip(*sel))
         out = np.asarray(jax.vmap(L._phi_apply)(Xs, ys, g0s, g1s, rhos))
         assert np.max(np.abs(out - refs) / sizes) < 1e-12
+
+
+def test_pair_functions_series_path_and_doublings_against_scipy():
+    """The C-/FA-LESO's pair functions (`_phi_pair_apply`) take the series directly at X
+    where the eigenvalue bound `_pair_radius` is at most `_PAIR_NORM` and three doublings
+    otherwise; both sides of the switch (T_s = 10 us .. 1 ms, speeds -2..2 p.u., and a 10x
+    gain at 100 us) agree with `scipy.linalg.expm` of the block matrix [[X, I, 0],
+    [0, 0, I], [0, 0, 0]] (whose first block row is e^X, phi_1(X), phi_2(X)), in balanced
+    units. Tolerance:
+    1e-12 relative to the size of the terms (expm of the entrywise modulus), as the
+    transition test (round-off ~1e-15; the series' truncation at the switch 4e-18)."""
+    sl = pytest.importorskip("scipy.linalg")
+    from pmsmjax.observers import _leso as L
+    sides, batch = set(), []
+    c_base, f_base = make_observer("c-leso", DTP), make_observer("fa-leso", DTP)
+    cases = [(o, T_s) for o in (c_base, f_base) for T_s in (1e-5, 1e-4, 1e-3)]
+    cases += [(c_base.with_design(w0=10.0 * c_base.w0), 1e-4),
+              (f_base.with_design(k2=10.0 * f_base.k2), 1e-4)]
+    for obs, T_s in cases:
+        for w in np.array([-2.0, -0.7, 0.0, 1.0, 2.0]) * W:
+            ((k, cc), (b, a)), _, _, _ = obs._complex_system(jnp.asarray(w))
+            X = np.array([[complex(k), complex(cc)], [complex(b), complex(a)]]) * T_s \
+                - 1j * w * T_s * np.eye(2)
+            # in balanced units (an exact similarity, under which the pair (a, b) of each
+            # function is invariant; scipy does not balance, and its error in the small
+            # entry of the unbalanced matrix is relative to the large one)
+            t = np.sqrt(abs(X[1, 0]) / abs(X[0, 1]))
+            X = X * np.array([[1.0, t], [1.0 / t, 1.0]])
+            mu = 0.5 * np.trace(X)
+            N = X - mu * np.eye(2)
+            d = N[0, 0] ** 2 + N[0, 1] * N[1, 0]
+            M = np.zeros((6, 6), complex)
+            M[:2, :2], M[:2, 2:4], M[2:4, 4:] = X, np.eye(2), np.eye(2)
+            ref, size = sl.expm(M)[:2], np.abs(sl.expm(np.abs(M)))[:2]
+            rho = float(L._pair_radius(jnp.asarray(mu), jnp.asarray(d)))
+            # the bound holds: the eigenvalues' moduli are at most rho (from mu and d:
+            # numerical eigenvalues of the defective C-LESO matrix are off by sqrt(eps))
+            assert np.max(np.abs(mu + np.array([1, -1]) * np.sqrt(d))) <= rho * (1 + 1e-12)
+
+            def as_matrices(E):
+                return np.concatenate([complex(e[0]) * np.eye(2) + complex(e[1]) * N
+                                       for e in E], 1)
+
+            out = as_matrices(L._phi_pair_apply(jnp.asarray(mu), jnp.asarray(d)))
+            assert np.max(np.abs(out - ref) / size) < 1e-12, (T_s, w, rho)
+            if rho <= L._PAIR_NORM:
+                ser = as_matrices(L._phi_pair(jnp.asarray(mu), jnp.asarray(d), squarings=0))
+                assert np.max(np.abs(ser - ref) / size) < 1e-12, (T_s, w, rho)
+            sides.add(rho <= L._PAIR_NORM)
+            batch.append((mu, d, N, ref, size, rho))
+    assert sides == {True, False}  # both branches were exercised
+    # under vmap one branch serves the batch: a mixed batch (the doublings for all) and
+    # one that is all within the series' bound
+    for sel in (batch, [b for b in batch if b[5] <= L._PAIR_NORM]):
+        mus, ds = jnp.asarray([b[0] for b in sel]), jnp.asarray([b[1] for b in sel])
+        E = jax.vmap(L._phi_pair_apply)(mus, ds)
+        for j, (mu, d, N, ref, size, rho) in enumerate(sel):
+            out = np.concatenate([complex(e[0][j]) * np.eye(2) + complex(e[1][j]) * N
+                                  for e in E], 1)
+            assert np.max(np.abs(out - ref) / size) < 1e-12, (j, rho)

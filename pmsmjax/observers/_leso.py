@@ -59,9 +59,13 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   $X = (A_o - j\hat\omega I)T_s$ in complex form (`_transition`; size $1 + n_s/2$: 2 for
   the C-LESO and FA-LESO, whose functions are pairs of complex numbers in the algebra of
   $I$ and $X - \tfrac12\mathrm{tr}X$, 4 for the GI-LESO), by a Taylor polynomial and
-  doublings with static shapes and no division (for the pairs: $\varphi_2$ of
-  $X/8$ alone by Horner's rule, degree 14, $\varphi_1$ and $e^X$ from it, then three
-  doublings). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
+  doublings with static shapes and no division (for the pairs: $\varphi_2$ alone by
+  Horner's rule, degree 14, $\varphi_1$ and $e^X$ from it; directly at $X$ while the
+  bound $|\mathrm{Re}\,\mu| + |\mathrm{Im}\,\mu| + (|\mathrm{Re}\,d| +
+  |\mathrm{Im}\,d|)^{1/2}$ on its eigenvalues $\mu \pm \sqrt d$ is at most 0.5 (0.19
+  for the C-LESO, 0.05 for the FA-LESO at $T_s = 100\,\mu$s on `li_dtp`; truncation
+  below $4\times10^{-18}$), otherwise at $X/8$ followed by three doublings:
+  `_phi_pair_apply`, a `lax.cond` as the GI-LESO's below). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
   + \varphi_2(X)g_1$ (the exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1],
   [0, 0, 0]]$ applied to $[y; 0; 1]$): while the row-sum norm of $X$ in the design's
   units (`GILESOObserver._complex_scale`, about $3\omega_0T_s$: 0.47 at
@@ -104,7 +108,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._frames import park, rotate, wrap_angle
+from .._frames import rotate, wrap_angle
 from .._params import Drive, PMSMParams
 from .._validate import check_positive
 from ._base import (
@@ -255,43 +259,79 @@ def _phi_full(X, y, g0, g1):
     return E0 @ y + E1 @ g0 + E2 @ g1
 
 
-def _phi_plain(X, y, g0, g1, rho):
-    """`_phi_action` where `rho <= _ACTION_NORM`, else `_phi_full` (`lax.cond`)."""
-    return jax.lax.cond(rho <= _ACTION_NORM, lambda o: _phi_action(*o),
-                        lambda o: _phi_full(*o), (X, y, g0, g1))
+def _switched(cheap, full, limit: float):
+    """`f(*args, rho)`: `cheap(*args)` where `rho <= limit`, else `full(*args)` (same
+    values to round-off on either side; `rho` is a bound held constant for
+    differentiation).
+
+    Plainly a `lax.cond`. Under `vmap` a `cond` on a batched predicate would evaluate
+    both branches (a select): a batching rule (`custom_vmap`) takes one branch for the
+    whole batch instead, the cheap one only if it holds for every member, so the cheap
+    path is not paid for twice. That rule has no reverse mode: a `custom_jvp`
+    differentiates through the plain `cond` (same values)."""
+
+    def plain(*a):
+        return jax.lax.cond(a[-1] <= limit, lambda o: cheap(*o), lambda o: full(*o),
+                            a[:-1])
+
+    @jax.custom_batching.custom_vmap
+    def batched(*a):
+        return plain(*a)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, *a):
+        a = [x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
+             for x, b in zip(a, in_batched)]
+        out = jax.lax.cond(jnp.all(a[-1] <= limit), lambda o: jax.vmap(cheap)(*o),
+                           lambda o: jax.vmap(full)(*o), a[:-1])
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    @jax.custom_jvp
+    def f(*a):
+        return batched(*a)
+
+    @f.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(plain, primals, tangents)
+
+    return f
 
 
-@jax.custom_batching.custom_vmap
-def _phi_batched(X, y, g0, g1, rho):
-    return _phi_plain(X, y, g0, g1, rho)
+_phi_switched = _switched(_phi_action, _phi_full, _ACTION_NORM)
 
 
-@_phi_batched.def_vmap
-def _phi_batched_rule(axis_size, in_batched, X, y, g0, g1, rho):
-    # one branch for the whole batch (under `vmap` a `cond` on a batched predicate would
-    # evaluate both): the action where every member's norm allows it
-    args = [a if b else jnp.broadcast_to(a, (axis_size,) + jnp.shape(a))
-            for a, b in zip((X, y, g0, g1, rho), in_batched)]
-    X, y, g0, g1, rho = args
-    out = jax.lax.cond(jnp.all(rho <= _ACTION_NORM),
-                       lambda o: jax.vmap(_phi_action)(*o),
-                       lambda o: jax.vmap(_phi_full)(*o), (X, y, g0, g1))
-    return out, True
-
-
-@jax.custom_jvp
 def _phi_apply(X, y, g0, g1, rho):
     r"""$e^X y + \varphi_1(X)g_0 + \varphi_2(X)g_1$ for a complex $X$ whose diagonally
     scaled norm is `rho`: the Taylor action (`_phi_action`) where `rho <= _ACTION_NORM`,
-    else the balanced matrix functions (`_phi_matrix`). Under `vmap` the batch takes one
-    branch (the action only if it holds for every member), so the cheap path is not paid
-    for twice; differentiation goes through the plain `lax.cond` (same values)."""
-    return _phi_batched(X, y, g0, g1, rho)
+    else the balanced matrix functions (`_phi_matrix`); `_switched` (one branch for a
+    batch under `vmap`, derivatives through the plain `cond`)."""
+    return _phi_switched(X, y, g0, g1, rho)
 
 
-@_phi_apply.defjvp
-def _phi_apply_jvp(primals, tangents):
-    return jax.jvp(_phi_plain, primals, tangents)
+#: The pair functions skip the doublings (`_phi_pair` at `squarings=0`) while the bound
+#: `_pair_radius` on the eigenvalues of X is at most this (the degree stays 14): the
+#: remainders of the three series there, and of their first derivatives (which set the
+#: coefficient of N), are below 15 * 0.5^14/17! e^0.5 = 4e-18.
+_PAIR_NORM = 0.5
+
+
+def _pair_radius(mu, d):
+    r"""An upper bound on the moduli of the eigenvalues $\mu \pm \sqrt d$ of
+    $\mu I + N$ ($N^2 = dI$): $|\mathrm{Re}\,\mu| + |\mathrm{Im}\,\mu| +
+    (|\mathrm{Re}\,d| + |\mathrm{Im}\,d|)^{1/2}$ (one square root), held constant."""
+    mu, d = jax.lax.stop_gradient(mu), jax.lax.stop_gradient(d)
+    return (jnp.abs(jnp.real(mu)) + jnp.abs(jnp.imag(mu))
+            + jnp.sqrt(jnp.abs(jnp.real(d)) + jnp.abs(jnp.imag(d))))
+
+
+_phi_pair_switched = _switched(lambda mu, d: _phi_pair(mu, d, squarings=0), _phi_pair,
+                               _PAIR_NORM)
+
+
+def _phi_pair_apply(mu, d):
+    """`_phi_pair(mu, d)`: the series directly at $Y$ (no doublings) where
+    `_pair_radius(mu, d) <= _PAIR_NORM`, else with three doublings (`_switched`)."""
+    return _phi_pair_switched(mu, d, _pair_radius(mu, d))
 
 
 def _x2(C, Dx, s, eps):
@@ -376,7 +416,10 @@ class AbstractBackEMFLESO(AbstractObserver):
     def _psi_ex(self, i_ab, theta):
         """Model extended flux $\\hat\\psi_f + (\\hat L_d - \\hat L_q)\\hat i_d$ (V s)."""
         m = self.motor
-        return m.psi_f + (m.L_d - m.L_q) * park(i_ab, theta)[..., 0]
+        # park(i_ab, theta)'s d component, written with cos and sin of `theta` (which the
+        # PLL computes too: one evaluation for both)
+        i_d = i_ab[..., 0] * jnp.cos(theta) + i_ab[..., 1] * jnp.sin(theta)
+        return m.psi_f + (m.L_d - m.L_q) * i_d
 
     # --- running ----------------------------------------------------------------------
     def init(self, theta0=0.0, w0=0.0) -> LESOState:
@@ -397,10 +440,10 @@ class AbstractBackEMFLESO(AbstractObserver):
         K = Dx + D1
         return jnp.block([[K, C], [B, A]]), -jnp.concatenate([K, B])[:, 0], C[0], Dx[0, 0]
 
-    def _transition_c(self, w_hat, T_s, y, i0, dl, c):
+    def _transition_c(self, w_hat, T_s, y, i0, dl, c, rot=None):
         r"""`_transition` in complex form: the complex state `y` (size $p$) one period on
         (stationary frame), from the complex current `i0`, its hold slope `dl` and the
-        voltage-integral rate `c`."""
+        voltage-integral rate `c`; `rot` is $e^{j\hat\omega T_s}$ if the caller has it."""
         T = jnp.asarray(T_s, jnp.real(i0).dtype)
         Ao, g_i, _, _ = self._complex_system(w_hat)
         jwT = jax.lax.complex(jnp.zeros_like(T), -jnp.asarray(w_hat, T.dtype) * T)
@@ -409,7 +452,7 @@ class AbstractBackEMFLESO(AbstractObserver):
             (k, cc), (b, a) = Ao
             mu = 0.5 * (k + a) * T + jwT
             n00, n01, n10 = 0.5 * (k - a) * T, cc * T, b * T  # N = X - mu I, traceless
-            E0, E1, E2 = _phi_pair(mu, n00 * n00 + n01 * n10)
+            E0, E1, E2 = _phi_pair_apply(mu, n00 * n00 + n01 * n10)
             # as vectors of the two components (one kernel for the whole transition;
             # written on scalars XLA computed it once for each component)
             yv = jnp.stack(y, -1)
@@ -419,7 +462,8 @@ class AbstractBackEMFLESO(AbstractObserver):
             ub = E0[1][..., None] * yv + E1[1][..., None] * g0 + E2[1][..., None] * g1
             out = ua + jnp.stack([n00 * ub[..., 0] + n01 * ub[..., 1],
                                   n10 * ub[..., 0] - n00 * ub[..., 1]], -1)
-            out = jnp.exp(-jwT)[..., None] * out
+            rot = jnp.exp(-jwT) if rot is None else rot
+            out = rot[..., None] * out
             return out[..., 0], out[..., 1]
         p = Ao.shape[0]
         X = Ao * T + jwT * jnp.eye(p, dtype=Ao.dtype)
@@ -427,7 +471,8 @@ class AbstractBackEMFLESO(AbstractObserver):
         g0, g1 = T * (g_i * i0 + g_c * c), (T * T) * (g_i * dl)
         d = jax.lax.stop_gradient(self._complex_scale(w_hat).astype(T.dtype))
         rho = jnp.max(jnp.sum(jnp.abs(X) * (d[None, :] / d[:, None]), 1))
-        return jnp.exp(-jwT) * _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
+        rot = jnp.exp(-jwT) if rot is None else rot
+        return rot * _phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
 
     def _transition(self, w_hat, T_s, v):
         r"""The state `[x1, s]` one period after `v = [x1, s, i, delta, c]` (real, `(n_s +
@@ -483,16 +528,23 @@ class AbstractBackEMFLESO(AbstractObserver):
         d_lam = T * u - (0.5 * T * m.R_s) * (i_prev + i_k)
         # the rate of lambda held in the turning frame, with the same integral d_lam:
         # int_0^T exp(w t J) c dt = T sinc(w T / 2) exp(w T J / 2) c
+        # (one cosine and sine of the half angle serve the hold and the transition's
+        # turn e^{j w_hat T} = h^2)
         half = 0.5 * T * w_hat
-        c = d_lam * jax.lax.complex(jnp.cos(half), -jnp.sin(half)) / (
-            T * jnp.sinc(half / jnp.pi))
+        sin_h = jnp.sin(half)
+        h = jax.lax.complex(jnp.cos(half), sin_h)
+        small = jnp.abs(half) < 1e-4  # sin(x)/x = 1 - x^2/6 + x^4/120: below round-off
+        half_s = jnp.where(small, 1.0, half)
+        sinc = jnp.where(small, 1.0 - half * half / 6.0, sin_h / half_s)
+        c = d_lam * jnp.conj(h) / (T * sinc)
         # the current between the samples: turning at w_hat, linear in that frame
-        rot = jax.lax.complex(jnp.cos(2.0 * half), jnp.sin(2.0 * half))
+        rot = h * h
         delta = (i_k * jnp.conj(rot) - i_prev) / T
         if self.n_s == 2:
-            out = self._transition_c(w_hat, T, (x1, s_c[0]), i_prev, delta, c)
+            out = self._transition_c(w_hat, T, (x1, s_c[0]), i_prev, delta, c, rot)
         else:
-            out = self._transition_c(w_hat, T, jnp.stack([x1] + s_c), i_prev, delta, c)
+            out = self._transition_c(w_hat, T, jnp.stack([x1] + s_c), i_prev, delta, c,
+                                     rot)
             out = [out[j] for j in range(1 + self.n_s // 2)]
         # back to the real layout [x1, s] as one array: every consumer reads it (XLA
         # would otherwise duplicate the transition's graph into each of them)

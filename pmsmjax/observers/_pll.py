@@ -121,7 +121,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._frames import rotation_between, wrap_angle
+from .._frames import wrap_angle
 from .._validate import check_positive
 
 
@@ -174,15 +174,21 @@ class QuadraturePLL(eqx.Module):
         """Normalised phase-detector output (rad, ~ sin of the angle error) for the
         estimated back-EMF `e_ab_hat` (V), angle `theta_hat` (rad), speed `w_hat` (rad/s)
         and model extended flux `psi_ex_hat` (V s)."""
-        e_perp = -(e_ab_hat[..., 0] * jnp.cos(theta_hat)
-                   + e_ab_hat[..., 1] * jnp.sin(theta_hat))
+        e_perp, e_q = _components(e_ab_hat, jnp.cos(theta_hat), jnp.sin(theta_hat))
+        return self._detector(e_perp, e_q, w_hat, psi_ex_hat)
+
+    def _detector(self, e_perp, e_q, w_hat, psi_ex_hat):
+        """`error` from the back-EMF's components along the estimated d and q axes."""
         psi = jnp.where(jnp.abs(psi_ex_hat) > 1e-12, psi_ex_hat, 1e-12)
-        eps = e_perp * w_hat / (psi * jnp.maximum(w_hat ** 2, self.w_min ** 2))
         # below w_min: the sign of the back-EMF's q component where it disagrees with
-        # the speed estimate's (see "Low speed and zero speed")
-        e_q = -e_ab_hat[..., 0] * jnp.sin(theta_hat) + e_ab_hat[..., 1] * jnp.cos(theta_hat)
-        fade = jnp.maximum(1.0 - jnp.abs(w_hat) / self.w_min, 0.0)
-        return eps + e_perp * fade * (jnp.sign(e_q) - jnp.sign(w_hat)) / (psi * self.w_min)
+        # the speed estimate's (see "Low speed and zero speed"); one division by psi for
+        # both terms (a division is an expensive operation for XLA: two would each be a
+        # kernel of their own)
+        inv_min = 1.0 / self.w_min
+        fade = jnp.maximum(1.0 - jnp.abs(w_hat) * inv_min, 0.0)
+        gain = (w_hat / jnp.maximum(w_hat ** 2, self.w_min ** 2)
+                + (fade * inv_min) * (jnp.sign(e_q) - jnp.sign(w_hat)))
+        return e_perp * gain / psi
 
     def rates(self, w_hat, eps):
         """Continuous-time `(d theta_hat/dt, d w_hat/dt)` for phase error `eps`."""
@@ -194,19 +200,29 @@ class QuadraturePLL(eqx.Module):
         `w_e` (rad/s) between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one
         period `T_s` (s) apart, at the angle estimate `theta_hat` (rad) and model
         extended flux `psi_ex_hat` (V s) (see "Acquisition" in the module docstring)."""
-        dot = e_prev[..., 0] * e_ab_hat[..., 0] + e_prev[..., 1] * e_ab_hat[..., 1]
-        n2_prev = jnp.sum(e_prev ** 2, -1)
-        n2 = jnp.sum(e_ab_hat ** 2, -1)
+        _, e_q = _components(e_ab_hat, jnp.cos(theta_hat), jnp.sin(theta_hat))
+        return self._gate(e_prev, e_ab_hat, e_q, psi_ex_hat, T_s)
+
+    def _gate(self, e_prev, e_ab_hat, e_q, psi_ex_hat, T_s):
+        """`fll_gate` from the back-EMF's component `e_q` along the estimated q axis; the
+        two-element sums written out (a reduction is a kernel of its own on the CPU)."""
+        a0, a1, b0, b1 = e_prev[..., 0], e_prev[..., 1], e_ab_hat[..., 0], e_ab_hat[..., 1]
+        dot = a0 * b0 + a1 * b1
+        cross = a0 * b1 - a1 * b0
+        n2_prev = a0 * a0 + a1 * a1
+        n2 = b0 * b0 + b1 * b1
         tiny = jnp.finfo(jnp.result_type(n2, float)).tiny
         # the increment modulo pi: a back-EMF that passes through zero (a speed reversal)
-        # flips by pi in one sample, which is no rotation; atan2 of (0, 0) has an
-        # infinite gradient: nudge the denominator there (m ~ 0 then)
+        # flips by pi in one sample, which is no rotation (the rotation from e_prev to
+        # sign(dot) e_ab_hat: cross and dot times that sign); atan2 of (0, 0) has an
+        # infinite gradient: 0 there with a finite one (as `rotation_between`), and the
+        # square roots' arguments nudged (m ~ 0 then)
         sgn = jnp.where(dot < 0, -1.0, 1.0)
-        w_e = rotation_between(e_prev, sgn[..., None] * e_ab_hat) / T_s
+        cross, dot = sgn * cross, sgn * dot
+        w_e = jnp.arctan2(cross, jnp.where((cross == 0) & (dot == 0), 1.0, dot)) / T_s
         e_min2 = (psi_ex_hat * self.w_min) ** 2
         prod = jnp.sqrt(n2_prev * n2 + tiny)
         m = prod / (prod + e_min2)
-        e_q = -e_ab_hat[..., 0] * jnp.sin(theta_hat) + e_ab_hat[..., 1] * jnp.cos(theta_hat)
         sigma = jnp.tanh(w_e / self.w_min)
         g = 0.5 * m * (1.0 - sigma * e_q / jnp.sqrt(n2 + tiny))
         return g, w_e
@@ -219,12 +235,21 @@ class QuadraturePLL(eqx.Module):
         k_p, k_i = self.gains()
         theta_pred = theta_prev + T_s * w_prev
         psi = psi_ex_fn(theta_pred)
-        eps = self.error(e_ab_hat, theta_pred, w_prev, psi)
+        # the angle's cosine and sine once, for the detector and the gate
+        e_perp, e_q = _components(e_ab_hat, jnp.cos(theta_pred), jnp.sin(theta_pred))
+        eps = self._detector(e_perp, e_q, w_prev, psi)
         w_k = w_prev + T_s * k_i * eps
         if e_prev is not None:
-            g, w_e = self.fll_gate(e_prev, e_ab_hat, theta_pred, psi, T_s)
+            g, w_e = self._gate(e_prev, e_ab_hat, e_q, psi, T_s)
             w_k = w_k + (T_s * self.fll * self.w_pll) * g * (w_e - w_prev)
         return wrap_angle(theta_pred + T_s * k_p * eps), w_k
+
+
+def _components(e_ab, c, s):
+    """The components of `e_ab` along the d and q axes at the angle of cosine `c`, sine
+    `s`: `(e_perp, e_q)` (the phase detector's `e_perp` is minus the d component)."""
+    e0, e1 = e_ab[..., 0], e_ab[..., 1]
+    return -(e0 * c + e1 * s), -e0 * s + e1 * c
 
 
 def default_pll_design(w_rated) -> dict:
