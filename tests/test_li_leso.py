@@ -427,3 +427,42 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
             out = np.concatenate([complex(e[0][j]) * np.eye(2) + complex(e[1][j]) * N
                                   for e in E], 1)
             assert np.max(np.abs(out - ref) / size) < 1e-12, (j, rho)
+
+
+def test_gi_leso_equilibria_with_the_resonance_at_the_estimated_speed():
+    """The GI-LESO's default resonance moves with the speed estimate; its equilibria (found
+    on the fixed-resonance twin, `GILESOObserver.fast_equilibria`) against independent
+    references: the designed one at the transfer function's lag $-\\arg G(j\\omega)$ (the
+    steady state of (29)), each an equilibrium of this observer's own error dynamics, and
+    stable exactly where the eigenvalues of a central-difference Jacobian of those
+    dynamics say so. (The generic route on this observer directly reported every point
+    degenerate.)"""
+    m = DTP.three_phase_motor
+    obs = make_observer("gi-leso", DTP)
+    assert obs.resonance == "estimated"
+    rhs = jax.jit(lambda z, op, sc: obs.error_rhs(z * sc, op, m) / sc)  # one compilation
+    for sp, iq in ((0.5, 0.5), (1.0, 1.0), (-0.5, 0.5)):
+        w = sp * W
+        i0 = jnp.array([0.0, iq * float(DTP.base.I_b)])
+        op = OperatingPoint(jnp.asarray(w), i0)
+        eq = analysis.equilibria(obs, m, w, i0)
+        v = np.asarray(eq.valid)
+        assert int(eq.status) == 0 and v.sum() == 2
+        th = np.asarray(eq.theta)[v]
+        lag = -np.angle(complex(obs.transfer_function(1j * w, w)))
+        k = int(eq.principal)
+        assert float(eq.theta[k]) == pytest.approx(lag, abs=1e-9)
+        sc = np.asarray(obs.error_scale(op, m))
+        f = lambda z: rhs(jnp.asarray(z), op, jnp.asarray(sc))  # noqa: E731
+        for x, stable in zip(np.asarray(eq.x)[v], np.asarray(eq.stable)[v]):
+            z0 = x / sc
+            assert np.max(np.abs(np.asarray(f(z0)))) < 1e-9
+            h = 1e-6
+            J = np.column_stack([(np.asarray(f(z0 + h * e)) - np.asarray(f(z0 - h * e))) / (2 * h)
+                                 for e in np.eye(z0.size)])
+            assert bool(np.max(np.linalg.eigvals(J).real) < 0) is bool(stable)
+        # the designed one stable; the other half a turn from it (the back-EMF estimate
+        # is linear in the back-EMF, matched model) and unstable
+        assert bool(eq.stable[k]) and np.sum(np.asarray(eq.stable)[v]) == 1
+        other = th[np.abs(th - lag) > 1.0][0]
+        assert abs(math.remainder(other - lag - math.pi, 2 * math.pi)) < 1e-9

@@ -873,6 +873,42 @@ class GILESOObserver(AbstractBackEMFLESO):
     def _own_design(self):
         return {"w0": self.w0, "K_r": self.K_r, "w_c": self.w_c, "w_r": self.w_r}
 
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint, n_grid=None):
+        r"""With the resonance at the estimated speed (`resonance="estimated"`): the
+        equilibria located on this observer's twin with the resonance fixed at
+        $\max(|\omega|, \omega_c)$, their stability from this observer's own Jacobian.
+        None with a fixed resonance (the generic route).
+
+        Why the twin has the same equilibria: at an equilibrium the PLL's integrator is at
+        rest and the estimated frame turns at the true speed, so $\hat\omega = \omega$,
+        and the resonance $\max(|\hat\omega|, \omega_c)$ takes the twin's value there;
+        every other equation is the same. The Jacobians differ in the speed-error column
+        (the resonance moves with $\hat\omega$), so stability is read from this
+        observer's. Why not the generic route directly: its inner least-squares solve at
+        fixed angle errors away from the equilibria oscillates for this observer (the
+        resonator's gain $K_r$ makes the residual strongly curved in the speed error:
+        undamped Gauss-Newton steps then never settle, and every point was reported
+        degenerate), while on the twin it converges as for the C-LESO. `n_grid`: the
+        generic route's grid (None: its default)."""
+        if self.resonance != "estimated":
+            return None
+        from ..analysis._generic import _make_scaled, equilibria_traced
+        from ..analysis._linearize import charpoly, routh_hurwitz
+
+        dtype = jnp.result_type(op.w_m, float)
+        wr = jnp.maximum(jnp.abs(jnp.asarray(op.w_m, dtype)), jnp.asarray(self.w_c, dtype))
+        twin = GILESOObserver(self.motor, self.w0, self.K_r, self.w_c, wr, self.pll,
+                              resonance="fixed")
+        grid = {} if n_grid is None else {"n_grid": n_grid}
+        eq = equilibria_traced(twin, plant, op, method="generic", **grid)
+        sys = _make_scaled(self, plant, op, 1.0)
+        z = jnp.where(eq.valid[:, None], eq.x, 0.0) / sys.scale
+        A = jax.vmap(jax.jacfwd(sys.F))(z)  # scaled, as the generic route's test
+        stable = eq.valid & routh_hurwitz(charpoly(A)) & ~eq.tangent
+        A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
+        return eqx.tree_at(lambda e: (e.stable, e.jacobian), eq,
+                           (stable, jnp.where(eq.valid[:, None, None], A_si, jnp.nan)))
+
     def _matrices(self, w_hat):
         w0 = jnp.asarray(self.w0) + 0.0 * w_hat
         z = 0.0 * w0
