@@ -193,7 +193,28 @@ def test_front_evaluators_reweigh_and_share_one_program(small):
         assert float(evf.value(z)) == pytest.approx(J, rel=1e-9)
     # the weight is an argument of the compiled program, not a constant compiled in (the
     # gradient goes through the same function: the main job's fronts run it)
-    assert ev._reweighed_values._cache_size() == 1
+    assert ev.programs.value_and_grad._cache_size() == 1
+
+
+def test_sets_of_one_shape_share_the_compiled_programs(small):
+    """The scenario set is an argument of the programs: the held-out set (as many runs,
+    as long) runs the training set's programs, and gives what a fresh program of its own
+    gives (the same runs simulated without sharing anything)."""
+    p, space, ev = small
+    held = tg.heldout_set(p)
+    assert held.n == ev.sset.n and held.t_end == ev.sset.t_end
+    n_compiled = ev.programs.metrics._cache_size()
+    evh = tg.Evaluator(p, space, held)
+    assert evh.programs is ev.programs
+    assert ev.programs.metrics._cache_size() == n_compiled  # the reference: no new program
+    traj = jax.jit(lambda: tg.simulate_set(lambda m: space.observer(None, m), p.drive(),
+                                           p.controller(), held, T_s=p.T_s,
+                                           noise_std=p.noise_std,
+                                           save_every=p.save_every))()
+    own = tg.run_metrics(traj, p)
+    np.testing.assert_allclose(np.asarray(evh.reference.rms_deg), np.asarray(own.rms_deg),
+                               rtol=1e-9)
+    assert not np.allclose(np.asarray(evh.reference.rms_deg), np.asarray(ev.reference.rms_deg))
 
 
 def test_no_regression_rule_per_metric(small):

@@ -2,7 +2,7 @@ r"""Simulate a design on a scenario set and score it: the step between the scena
 and the searches.
 
 An `Evaluator` holds one scenario set and the reference metrics (the paper design's on
-the same runs) and offers, compiled once each:
+the same runs) and offers:
 
 - `metrics(x)`: the `Metrics` of physical design `x` on every run;
 - `metrics_many(xs)`: the same for a batch of designs (vmapped: a CMA-ES generation is
@@ -13,9 +13,18 @@ the same runs) and offers, compiled once each:
 
 `cost` is the number of closed-loop simulations one evaluation of one design runs (the
 set's size), the currency of the searches' equal budgets.
+
+**Compiled programs.** Every evaluator of one problem and design space runs the same
+compiled programs, with the scenario set, the reference and the noise weight as their
+arguments: one program per shape (number of runs, run length, batch of designs), not one
+per set. `value(z)` goes through the gradient's program. On the main job's quick problem
+this halves the compile work of a whole tuning run (BENCHMARKS.md, "The tuner's compiled
+programs").
 """
 
 from __future__ import annotations
+
+import functools
 
 import equinox as eqx
 import jax
@@ -34,8 +43,56 @@ def reweigh(m: Metrics, problem: TuningProblem, w_old: float, w_new: float) -> M
     return eqx.tree_at(lambda t: t.loss, m, jnp.where(m.ok, m.loss + d, m.loss))
 
 
+class _Programs:
+    """The compiled programs of one (problem, design space), shared by every `Evaluator`
+    of it: the scenario set is an argument of each program, not a constant compiled in,
+    so sets of the same size and run length (the training and held-out sets, a notebook's
+    single runs) run the same programs, and each program compiles once per shape."""
+
+    def __init__(self, problem: TuningProblem, space: DesignSpace):
+        drive, foc = problem.drive(), problem.controller()
+        w_base = problem.w_noise
+
+        def metrics(x, sset):
+            traj = simulate_set(lambda motor: space.observer(x, motor), drive, foc, sset,
+                                T_s=problem.T_s, noise_std=problem.noise_std,
+                                save_every=problem.save_every)
+            return run_metrics(traj, problem)
+
+        def perturbed(eps, sset):
+            from pmsmjax.observers import make_observer, observer_class
+
+            vals = {k: space.paper_design[k] * (1.0 + eps)
+                    for k in observer_class(problem.observer).tunable}
+
+            def build(motor):
+                return make_observer(problem.observer, drive, motor=motor).with_design(**vals)
+
+            traj = simulate_set(build, drive, foc, sset, T_s=problem.T_s,
+                                noise_std=problem.noise_std, save_every=problem.save_every)
+            return run_metrics(traj, problem)
+
+        def value(z, ref, w_new, sset):
+            # the objective with the runs' noise weight `w_new` (the problem's own weight
+            # reproduces it exactly: `reweigh` adds zero); one program for every weight
+            m = reweigh(metrics(space.to_physical(z), sset), problem, w_base, w_new)
+            return objective(m, ref, problem)[0]
+
+        self.metrics = jax.jit(metrics)
+        self.metrics_many = jax.jit(jax.vmap(metrics, in_axes=(0, None)))
+        self.perturbed = jax.jit(perturbed)
+        self.value_and_grad = jax.jit(jax.value_and_grad(value))
+        self.values = jax.jit(jax.vmap(value, in_axes=(0, None, None, None)))
+
+
+@functools.lru_cache(maxsize=8)
+def _programs(problem: TuningProblem, space: DesignSpace) -> _Programs:
+    return _Programs(problem, space)
+
+
 class Evaluator:
-    """Scores designs on the scenario set `sset` (see the module docstring)."""
+    """Scores designs on the scenario set `sset` (see the module docstring). Evaluators of
+    one problem and design space share their compiled programs (the set is an argument)."""
 
     def __init__(self, problem: TuningProblem, space: DesignSpace, sset: ScenarioSet,
                  *, w_noise: float | None = None):
@@ -43,55 +100,24 @@ class Evaluator:
         self.space = space
         self.sset = sset
         self.cost = sset.n
-        problem = self.problem
-        drive, foc = problem.drive(), problem.controller()
-
-        def metrics(x=None):
-            traj = simulate_set(lambda motor: space.observer(x, motor), drive, foc, sset,
-                                T_s=problem.T_s, noise_std=problem.noise_std,
-                                save_every=problem.save_every)
-            return run_metrics(traj, problem)
-
-        self._metrics = metrics
-        self.metrics = jax.jit(metrics)
-        self.metrics_many = jax.jit(jax.vmap(metrics))
+        self.programs = _programs(self.problem, space)
         #: the paper's design as published on the same runs
-        self.reference: Metrics = jax.jit(lambda: metrics(None))()
+        self.reference: Metrics = self.programs.metrics(None, sset)
+        self._w = jnp.asarray(self.problem.w_noise, jnp.result_type(float))
 
-        def value(z, ref):
-            return objective(metrics(space.to_physical(z)), ref, problem)[0]
+    def metrics(self, x) -> Metrics:
+        """The `Metrics` of physical design `x` on every run."""
+        return self.programs.metrics(x, self.sset)
 
-        self._value_and_grad = jax.jit(jax.value_and_grad(value))
-        self._values = jax.jit(jax.vmap(value, in_axes=(0, None)))
-        w_base = problem.w_noise
-
-        def reweighed_value(z, ref, w_new):
-            m = reweigh(metrics(space.to_physical(z)), problem, w_base, w_new)
-            return objective(m, ref, problem)[0]
-
-        # one program for every other noise weight (the front designs): the weight is
-        # an argument, not a constant compiled in
-        self._reweighed_value_and_grad = jax.jit(jax.value_and_grad(reweighed_value))
-        self._reweighed_values = jax.jit(jax.vmap(reweighed_value, in_axes=(0, None, None)))
+    def metrics_many(self, xs) -> Metrics:
+        """The `Metrics` of a batch of physical designs `xs` (leading axis)."""
+        return self.programs.metrics_many(xs, self.sset)
 
     def perturbed_reference(self, eps: float) -> Metrics:
         """The metrics of the paper's design with every tunable design parameter of the
         observer contract (`tunable`) multiplied by `1 + eps` (its own parametrisation:
         zhang2022's schedule (38) stays)."""
-        from pmsmjax.observers import make_observer, observer_class
-
-        problem, space = self.problem, self.space
-        drive, foc = problem.drive(), problem.controller()
-        vals = {k: space.paper_design[k] * (1.0 + eps)
-                for k in observer_class(problem.observer).tunable}
-
-        def build(motor):
-            return make_observer(problem.observer, drive, motor=motor).with_design(**vals)
-
-        traj = jax.jit(lambda: simulate_set(build, drive, foc, self.sset, T_s=problem.T_s,
-                                            noise_std=problem.noise_std,
-                                            save_every=problem.save_every))()
-        return run_metrics(traj, problem)
+        return self.programs.perturbed(jnp.asarray(eps, jnp.result_type(float)), self.sset)
 
     def with_noise_weight(self, w_noise: float) -> Evaluator:
         """The same runs and reference, scored with another noise weight (a point of the
@@ -102,20 +128,19 @@ class Evaluator:
         problem = self.problem.replace(w_noise=w_noise)
         ev.problem = problem
         ev.reference = reweigh(self.reference, problem, self.problem.w_noise, w_noise)
-        w = jnp.asarray(w_noise, jnp.result_type(float))
-        vg, vs = self._reweighed_value_and_grad, self._reweighed_values
-        ev._value_and_grad = lambda z, ref: vg(z, ref, w)
-        ev._values = lambda zs, ref: vs(zs, ref, w)
+        ev._w = jnp.asarray(w_noise, jnp.result_type(float))
         return ev
 
     def value_and_grad(self, z):
-        return self._value_and_grad(z, self.reference)
+        return self.programs.value_and_grad(z, self.reference, self._w, self.sset)
 
     def value(self, z):
-        return self._values(jnp.asarray(z)[None], self.reference)[0]
+        # through the gradient's program: a single design's value would otherwise compile
+        # a program of its own (batch 1) for a few calls of the local search
+        return self.value_and_grad(jnp.asarray(z))[0]
 
     def values(self, zs):
-        return self._values(jnp.asarray(zs), self.reference)
+        return self.programs.values(jnp.asarray(zs), self.reference, self._w, self.sset)
 
 
 __all__ = ["Evaluator"]
