@@ -288,6 +288,13 @@ def linearization(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0,
         op = OperatingPoint(op.w_m, op.i_dq, theta)
     x = (jnp.asarray(observer.designed_error(op, plant), dtype) if x is None
          else jnp.asarray(x, dtype))
+    return _linearization(as_arrays(observer, dtype), as_arrays(plant, dtype), op, x)
+
+
+@eqx.filter_jit
+def _linearization(observer, plant, op, x):
+    # compiled once per observer structure (values traced): run op by op, the forward
+    # Jacobian of a LESO's error dynamics took seconds per call
     return jax.jacfwd(lambda v: observer.error_rhs(v, op, plant))(x)
 
 

@@ -892,22 +892,8 @@ class GILESOObserver(AbstractBackEMFLESO):
         generic route's grid (None: its default)."""
         if self.resonance != "estimated":
             return None
-        from ..analysis._generic import _make_scaled, equilibria_traced
-        from ..analysis._linearize import charpoly, routh_hurwitz
+        return _gi_twin_equilibria(self, plant, op, n_grid)
 
-        dtype = jnp.result_type(op.w_m, float)
-        wr = jnp.maximum(jnp.abs(jnp.asarray(op.w_m, dtype)), jnp.asarray(self.w_c, dtype))
-        twin = GILESOObserver(self.motor, self.w0, self.K_r, self.w_c, wr, self.pll,
-                              resonance="fixed")
-        grid = {} if n_grid is None else {"n_grid": n_grid}
-        eq = equilibria_traced(twin, plant, op, method="generic", **grid)
-        sys = _make_scaled(self, plant, op, 1.0)
-        z = jnp.where(eq.valid[:, None], eq.x, 0.0) / sys.scale
-        A = jax.vmap(jax.jacfwd(sys.F))(z)  # scaled, as the generic route's test
-        stable = eq.valid & routh_hurwitz(charpoly(A)) & ~eq.tangent
-        A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
-        return eqx.tree_at(lambda e: (e.stable, e.jacobian), eq,
-                           (stable, jnp.where(eq.valid[:, None, None], A_si, jnp.nan)))
 
     def _matrices(self, w_hat):
         w0 = jnp.asarray(self.w0) + 0.0 * w_hat
@@ -1033,3 +1019,26 @@ class FALESOObserver(AbstractBackEMFLESO):
         k = jax.lax.complex(-k2, w_hat.astype(dt))
         b = jnp.asarray(self.k1, dt)
         return ((k, -1.0), (b, 0.0)), (-k, -b), -1.0, -k2
+
+
+@eqx.filter_jit
+def _gi_twin_equilibria(obs, plant, op, n_grid):
+    # `GILESOObserver.fast_equilibria`, one compiled program (inlined under an outer
+    # jit): run op by op, the twin's generic route traced its loops anew at every call
+    # (about 25 s per operating point)
+    from ..analysis._generic import _make_scaled, equilibria_traced
+    from ..analysis._linearize import charpoly, routh_hurwitz
+
+    dtype = jnp.result_type(op.w_m, float)
+    wr = jnp.maximum(jnp.abs(jnp.asarray(op.w_m, dtype)), jnp.asarray(obs.w_c, dtype))
+    twin = GILESOObserver(obs.motor, obs.w0, obs.K_r, obs.w_c, wr, obs.pll,
+                          resonance="fixed")
+    grid = {} if n_grid is None else {"n_grid": n_grid}
+    eq = equilibria_traced(twin, plant, op, method="generic", **grid)
+    sys = _make_scaled(obs, plant, op, 1.0)
+    z = jnp.where(eq.valid[:, None], eq.x, 0.0) / sys.scale
+    A = jax.vmap(jax.jacfwd(sys.F))(z)  # scaled, as the generic route's test
+    stable = eq.valid & routh_hurwitz(charpoly(A)) & ~eq.tangent
+    A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
+    return eqx.tree_at(lambda e: (e.stable, e.jacobian), eq,
+                       (stable, jnp.where(eq.valid[:, None, None], A_si, jnp.nan)))
