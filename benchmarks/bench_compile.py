@@ -29,10 +29,8 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import resource
 import shutil
 import subprocess
@@ -40,6 +38,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _report import write_report  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -206,16 +207,8 @@ def main():
                   f"{fmt(c.get('cold_s'), t) if c else '-'} | {cpu(c.get('cold_cpu_s'))} | "
                   f"{(fmt(warm, t) if c.get('fill_s') is not None else '-') if c else '-'} | "
                   f"{cpu(c.get(kw))} |")
-    import jax
-
-    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                machine=platform.machine(), processor=platform.processor(),
-                cpus=os.cpu_count(), python=platform.python_version(), jax=jax.__version__,
-                loadavg_start=load0, loadavg_end=load1, timeout_s=args.timeout)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
-    print(f"wrote {out}")
+    write_report(args.out, rows, loadavg_start=load0, loadavg_end=load1,
+                 timeout_s=args.timeout)
 
 
 if __name__ == "__main__":

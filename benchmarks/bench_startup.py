@@ -18,16 +18,16 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _report import write_report  # noqa: E402
 
 
 #: The README's quick start (keep in step with README.md; `--readme` times it).
@@ -111,15 +111,7 @@ def main():
     for r in rows:
         print(f"| {r['command']} | {r['no_cache_s']:.1f} | {r['cold_s']:.1f} | "
               f"{r['warm_s']:.1f} |")
-    import jax
-
-    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                machine=platform.machine(), processor=platform.processor(),
-                cpus=os.cpu_count(), python=platform.python_version(), jax=jax.__version__)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
-    print(f"wrote {out}")
+    write_report(args.out, rows)
 
 
 if __name__ == "__main__":

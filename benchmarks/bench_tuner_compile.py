@@ -16,14 +16,15 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _report import write_report  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -88,16 +89,7 @@ def main(argv=None):
               f"{r['lowering_s']:.1f} | {r['tracing_s']:.1f} |")
     print("largest programs (s):", ", ".join(f"{n} {s:.1f}" for n, s in rows[0]["largest"]))
     print(rows[0]["verdict"])
-    import jax
-
-    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                machine=platform.machine(), processor=platform.processor(),
-                cpus=os.cpu_count(), python=platform.python_version(), jax=jax.__version__,
-                loadavg=os.getloadavg())
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
-    print(f"wrote {out}")
+    write_report(args.out, rows, loadavg=os.getloadavg())
 
 
 if __name__ == "__main__":
