@@ -29,7 +29,7 @@ run: $(VENV)/.installed
 	$(VENV)/bin/python -m tuning --out $(OUT)
 
 test: $(VENV)/.installed-tests
-	$(PY) -m pytest -n 2 --dist loadgroup --no-loadscope-reorder -q
+	$(PY) -m pytest -n 2 -q
 
 # The documentation site (mkdocs.yml) into site/, strict (a broken link or reference
 # fails), executing every notebook; PMSMJAX_DOCS_EXECUTE=false renders them unexecuted.

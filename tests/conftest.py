@@ -33,23 +33,3 @@ def getkey():
         return jr.PRNGKey(next(counter))
 
     return _getkey
-
-
-#: Test files that start first (`make test`: `pytest -n 2 --dist loadgroup
-#: --no-loadscope-reorder`): the longest single tests, so that no worker ends the run
-#: alone on one of them.
-_FIRST = ("test_notebooks.py", "test_main_job.py", "test_readme_commands.py",
-          "test_compare.py")
-
-
-def pytest_collection_modifyitems(config, items):
-    """Under pytest-xdist every test file but the notebooks' runs in one worker (an
-    `xdist_group` per file): its module fixtures (a comparison job, closed-loop runs,
-    stability maps) are computed once instead of once per worker, and its tests reuse
-    each other's compiled programs. The notebooks (each in its own kernel process) stay
-    single tests, spread over the workers; they and the other long runs go first."""
-    rank = {name: k for k, name in enumerate(_FIRST)}
-    items.sort(key=lambda it: rank.get(it.path.name, len(rank)))  # stable: file order kept
-    for item in items:
-        if item.path.name != "test_notebooks.py":
-            item.add_marker(pytest.mark.xdist_group(item.path.stem))
