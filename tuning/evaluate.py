@@ -17,9 +17,8 @@ set's size), the currency of the searches' equal budgets.
 **Compiled programs.** Every evaluator of one problem and design space runs the same
 compiled programs, with the scenario set, the reference and the noise weight as their
 arguments: one program per shape (number of runs, run length, batch of designs), not one
-per set. `value(z)` goes through the gradient's program. On the main job's quick problem
-this halves the compile work of a whole tuning run (BENCHMARKS.md, "The tuner's compiled
-programs").
+per set. On the main job's quick problem this takes a third off the compile work of a
+whole tuning run (BENCHMARKS.md, "The tuner's compiled programs").
 """
 
 from __future__ import annotations
@@ -135,9 +134,10 @@ class Evaluator:
         return self.programs.value_and_grad(z, self.reference, self._w, self.sset)
 
     def value(self, z):
-        # through the gradient's program: a single design's value would otherwise compile
-        # a program of its own (batch 1) for a few calls of the local search
-        return self.value_and_grad(jnp.asarray(z))[0]
+        # a batch of one (its own program): through the gradient's program it saves that
+        # compile but costs a backward pass per call, about 3x the run time of the local
+        # search, which on the main job's full problem outweighs the compile
+        return self.values(jnp.asarray(z)[None])[0]
 
     def values(self, zs):
         return self.programs.values(jnp.asarray(zs), self.reference, self._w, self.sset)
