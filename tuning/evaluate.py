@@ -52,24 +52,22 @@ class _Programs:
         drive, foc = problem.drive(), problem.controller()
         w_base = problem.w_noise
 
-        def metrics(x, sset):
-            traj = simulate_set(lambda motor: space.observer(x, motor), drive, foc, sset,
-                                T_s=problem.T_s, noise_std=problem.noise_std,
-                                save_every=problem.save_every)
+        def score(build, sset):
+            # every run of `sset` with the observer `build(motor)` builds, and its metrics
+            traj = simulate_set(build, drive, foc, sset, T_s=problem.T_s,
+                                noise_std=problem.noise_std, save_every=problem.save_every)
             return run_metrics(traj, problem)
+
+        def metrics(x, sset):
+            return score(lambda motor: space.observer(x, motor), sset)
 
         def perturbed(eps, sset):
             from pmsmjax.observers import make_observer, observer_class
 
             vals = {k: space.paper_design[k] * (1.0 + eps)
                     for k in observer_class(problem.observer).tunable}
-
-            def build(motor):
-                return make_observer(problem.observer, drive, motor=motor).with_design(**vals)
-
-            traj = simulate_set(build, drive, foc, sset, T_s=problem.T_s,
-                                noise_std=problem.noise_std, save_every=problem.save_every)
-            return run_metrics(traj, problem)
+            return score(lambda motor: make_observer(problem.observer, drive, motor=motor)
+                         .with_design(**vals), sset)
 
         def value(z, ref, w_new, sset):
             # the objective with the runs' noise weight `w_new` (the problem's own weight
