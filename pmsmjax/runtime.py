@@ -38,6 +38,15 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   `PMSMJAX_CACHE=0` turns it off with the cache, and `pmsmjax cache --clear` removes it
   with the cache.
 
+- **Quick compiles (opt-in, `PMSMJAX_QUICK_COMPILE=1`).** XLA's CPU backend spends most
+  of a compile in LLVM, once per fused kernel; `QUICK_COMPILE_FLAGS` compile at LLVM's
+  lowest optimisation level with XLA's older kernel emitters. Programs then compile
+  2 to 3x faster and run 1.3 to 3x slower (BENCHMARKS.md, "Quick compiles"). It pays where
+  thousands of programs each run once, as in the test suite, which turns it on for its
+  workers, their subprocesses and the notebooks' kernels (`tests/conftest.py`); the
+  numbers are the same (`tests/test_runtime.py`). Off by default: a user's sweeps and
+  replays run the compiled programs many times.
+
 XLA reads its flags when the first computation starts the backend, so `configure` must
 run before any JAX computation; called later it keeps the backend as it is and warns.
 Set `PMSMJAX_FAST_LOOPS=0` to keep XLA's default loop threshold.
@@ -84,6 +93,11 @@ FAST_LOOP_FLAGS = ("--xla_backend_extra_options="
 #: it there. Our stress reproducer (`benchmarks/stress_hang.py`, BENCHMARKS.md) did not
 #: hang with or without it; it costs nothing measurable here, so it is on.
 SAFE_FLAGS: tuple[str, ...] = ("--xla_cpu_multi_thread_eigen=false",)
+#: XLA flags for quick compiles (opt-in, `PMSMJAX_QUICK_COMPILE=1`; module docstring):
+#: LLVM's lowest optimisation level for every kernel, and XLA CPU's older (non-MLIR)
+#: fusion emitters, which compile faster for the many small kernels of pmsmjax's programs.
+QUICK_COMPILE_FLAGS: tuple[str, ...] = ("--xla_backend_optimization_level=0",
+                                        "--xla_cpu_use_fusion_emitters=false")
 
 def _env_flag(name: str, default: bool) -> bool:
     v = os.environ.get(name)
@@ -163,9 +177,20 @@ def _backend_started() -> bool:
 _LATE_WARNED = False
 
 
+def _process_flags(fast_loops: bool) -> tuple[list[str], list[str]]:
+    """The XLA flags of this process's settings, and those of them not yet in `XLA_FLAGS`
+    (a flag the user set, to any value, counts as set)."""
+    flags = list(SAFE_FLAGS) + (list(FAST_LOOP_FLAGS) if fast_loops else [])
+    if _env_flag("PMSMJAX_QUICK_COMPILE", False):
+        flags += list(QUICK_COMPILE_FLAGS)
+    current = os.environ.get("XLA_FLAGS", "")
+    return flags, [f for f in flags if f.split("=")[0] not in current]
+
+
 def apply_xla_flags(fast_loops: bool | None = None, *, stacklevel: int = 2) -> bool:
     """Put `SAFE_FLAGS` and (unless `fast_loops` is False, default from
-    `PMSMJAX_FAST_LOOPS`) `FAST_LOOP_FLAGS` into `XLA_FLAGS` if JAX has not started its
+    `PMSMJAX_FAST_LOOPS`) `FAST_LOOP_FLAGS`, and `QUICK_COMPILE_FLAGS` when
+    `PMSMJAX_QUICK_COMPILE=1`, into `XLA_FLAGS` if JAX has not started its
     backend yet. `import pmsmjax` calls it, so that a plain script gets fast single runs
     without `configure()`. If the backend already runs (JAX computed something before
     pmsmjax was imported), the flags cannot take effect: a one-time warning says how to
@@ -173,9 +198,7 @@ def apply_xla_flags(fast_loops: bool | None = None, *, stacklevel: int = 2) -> b
     global _LATE_WARNED
     if fast_loops is None:
         fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True)
-    flags = list(SAFE_FLAGS) + (list(FAST_LOOP_FLAGS) if fast_loops else [])
-    current = os.environ.get("XLA_FLAGS", "")
-    missing = [f for f in flags if f.split("=")[0] not in current]
+    flags, missing = _process_flags(fast_loops)
     if not missing:
         return True
     if _backend_started():
@@ -188,7 +211,7 @@ def apply_xla_flags(fast_loops: bool | None = None, *, stacklevel: int = 2) -> b
                 f"XLA_FLAGS='{' '.join(flags)}' (PMSMJAX_FAST_LOOPS=0 silences this).",
                 RuntimeWarning, stacklevel=stacklevel)
         return False
-    os.environ["XLA_FLAGS"] = " ".join([current, *missing]).strip()
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *missing]).strip()
     return True
 
 
@@ -202,15 +225,16 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> d
     - `fast_loops`: raise XLA's small-loop threshold; default from `PMSMJAX_FAST_LOOPS`
       (on unless it is 0).
 
+    `QUICK_COMPILE_FLAGS` are added when `PMSMJAX_QUICK_COMPILE=1` (off by default).
+
     Returns what was applied: `{"xla_flags": [...], "cache_dir": str | None,
     "backend_was_started": bool}`.
     """
     cache = _env_flag("PMSMJAX_CACHE", True) if cache is None else bool(cache)
     fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True) if fast_loops is None else bool(fast_loops)
-    flags = list(SAFE_FLAGS) + (list(FAST_LOOP_FLAGS) if fast_loops else [])
+    _, missing = _process_flags(fast_loops)
     started = _backend_started()
     current = os.environ.get("XLA_FLAGS", "")
-    missing = [f for f in flags if f.split("=")[0] not in current]
     if missing:
         if started:
             warnings.warn("pmsmjax.runtime.configure() was called after JAX started its "

@@ -1,8 +1,18 @@
-import jax
-import jax.random as jr
-import pytest
+import os
 
-import pmsmjax
+# Quick compiles (pmsmjax.runtime, QUICK_COMPILE_FLAGS): the suite compiles thousands of
+# programs and runs most of them once, so it compiles at LLVM's lowest optimisation level
+# with XLA's older kernel emitters, which halves its time. Set here, before pmsmjax is
+# imported, so that the workers, their subprocesses (the command-line tests) and the
+# notebooks' kernels all inherit it; tests/test_runtime.py checks that both settings give
+# the same numbers. PMSMJAX_QUICK_COMPILE=0 runs the suite with the users' default.
+os.environ.setdefault("PMSMJAX_QUICK_COMPILE", "1")
+
+import jax  # noqa: E402
+import jax.random as jr  # noqa: E402
+import pytest  # noqa: E402
+
+import pmsmjax  # noqa: E402
 
 
 # The test suite is an entry point: the same process settings as the command line

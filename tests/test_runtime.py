@@ -200,6 +200,52 @@ def test_a_plain_import_gets_the_fast_settings(env):
     assert "XLA_FLAGS='" in res.stderr
 
 
+_BOTH_SETTINGS = """
+import json, os, sys
+import numpy as np
+import jax, pmsmjax as pj
+from pmsmjax.analysis import equilibria
+from pmsmjax.observers import make_observer
+d = pj.preset("zhang750")
+obs = make_observer("leso", d, motor=pj.replace_params(d, L_q=1.2 * d.motor.L_q).motor)
+sc = pj.Scenario(t_end=0.05, w_m_ref=pj.Profile.constant(0.5 * float(d.w_rated)),
+                 tau_L=pj.Profile.constant(1.0))
+r = pj.simulate(d, pj.FOC.from_drive(d), make_observer("eso", d), sc, w_m0=10.0)
+eq = jax.device_get(equilibria(obs, d.motor, 0.5 * float(d.w_rated),
+                               np.array([0.0, 0.3 * float(d.base.I_b)])))
+v = np.asarray(eq.valid)
+json.dump(dict(flags=os.environ.get("XLA_FLAGS", ""),
+               theta_err=np.asarray(r.theta_err).tolist(), w_hat=np.asarray(r.w_hat).tolist(),
+               theta=np.asarray(eq.theta)[v].tolist(), stable=np.asarray(eq.stable)[v].tolist(),
+               status=int(eq.status)), open(sys.argv[1], "w"))
+"""
+
+
+def test_quick_compiles_give_the_same_numbers(env, tmp_path):
+    """The test suite compiles at LLVM's lowest optimisation level with XLA's older
+    kernel emitters (`PMSMJAX_QUICK_COMPILE=1`, conftest.py); a user's process does not.
+    The same closed-loop run (an ESO, 50 ms at half speed with a load step) and the same
+    equilibrium analysis (a mismatched LESO) in a fresh process under each setting: the
+    same numbers up to round-off, so what the suite checks holds for the default build."""
+    out = {}
+    for quick in ("0", "1"):
+        e = dict(env, PMSMJAX_QUICK_COMPILE=quick, PMSMJAX_CACHE="0")
+        res = _run(["-c", _BOTH_SETTINGS, str(tmp_path / f"{quick}.json")], e)
+        assert res.returncode == 0, res.stderr
+        out[quick] = json.loads((tmp_path / f"{quick}.json").read_text())
+    assert "--xla_backend_optimization_level=0" in out["1"]["flags"].split()
+    assert "--xla_cpu_use_fusion_emitters=false" in out["1"]["flags"].split()
+    assert "xla_backend_optimization_level" not in out["0"]["flags"]
+    a, b = out["0"], out["1"]
+    # They differ in round-off only (measured: 7e-15 rad, 2e-13 rad/s of 505 rad/s, 1e-15
+    # rad); 1000x margin, as the order of floating-point operations differs by machine.
+    np.testing.assert_allclose(b["theta_err"], a["theta_err"], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(b["w_hat"], a["w_hat"], rtol=1e-12, atol=1e-10)
+    assert b["status"] == a["status"] == 0 and b["stable"] == a["stable"]
+    assert len(a["theta"]) >= 2  # the designed one and at least one other equilibrium
+    np.testing.assert_allclose(b["theta"], a["theta"], rtol=0, atol=1e-12)
+
+
 def test_new_initial_values_do_not_compile_again():
     """Python numbers as initial values (angle, speed, estimate, current) run the
     program already compiled."""
