@@ -603,11 +603,10 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
     z, valid, res, A = z[order], valid[order], res[order], A[order]
     theta = z[:, sys.angle]
 
-    c = charpoly(A)
+    c, hurwitz, A_si = jacobian_readout(sys, A)
     tangent = valid & (jnp.abs(c[:, -1]) < 1e3 * tol)
-    stable = valid & routh_hurwitz(c) & ~tangent
+    stable = valid & hurwitz & ~tangent
     x = z * sys.scale
-    A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
     nval = jnp.sum(valid)
     principal = jnp.argmin(jnp.where(valid, jnp.abs(theta), jnp.inf))
     degenerate = ~finite | too_many | failed | ~jnp.all(jnp.isfinite(sys.scale)) | \
@@ -625,6 +624,15 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
         residual=jnp.where(valid, res, nan), principal=principal.astype(jnp.int32),
         n=nval.astype(jnp.int32), status=status,
         jacobian=jnp.where(valid[:, None, None], A_si, nan))
+
+
+def jacobian_readout(sys, A):
+    """What the equilibria report of the scaled error dynamics' Jacobians `A` (K, n, n)
+    at their K equilibria: the characteristic polynomials `[1, c1, ..., cn]` (K, n + 1),
+    their Routh-Hurwitz test (K,) and the Jacobians in SI units (K, n, n)."""
+    c = charpoly(A)
+    A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
+    return c, routh_hurwitz(c), A_si
 
 
 # ---------------------------------------------------------------------------------------

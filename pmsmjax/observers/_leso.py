@@ -1026,8 +1026,7 @@ def _gi_twin_equilibria(obs, plant, op, n_grid):
     # `GILESOObserver.fast_equilibria`, one compiled program (inlined under an outer
     # jit): run op by op, the twin's generic route traced its loops anew at every call
     # (about 25 s per operating point)
-    from ..analysis._generic import _make_scaled, equilibria_traced
-    from ..analysis._linearize import charpoly, routh_hurwitz
+    from ..analysis._generic import _make_scaled, equilibria_traced, jacobian_readout
 
     dtype = jnp.result_type(op.w_m, float)
     wr = jnp.maximum(jnp.abs(jnp.asarray(op.w_m, dtype)), jnp.asarray(obs.w_c, dtype))
@@ -1038,7 +1037,7 @@ def _gi_twin_equilibria(obs, plant, op, n_grid):
     sys = _make_scaled(obs, plant, op, 1.0)
     z = jnp.where(eq.valid[:, None], eq.x, 0.0) / sys.scale
     A = jax.vmap(jax.jacfwd(sys.F))(z)  # scaled, as the generic route's test
-    stable = eq.valid & routh_hurwitz(charpoly(A)) & ~eq.tangent
-    A_si = A * sys.scale[None, :, None] / sys.scale[None, None, :] * sys.rate
+    _, hurwitz, A_si = jacobian_readout(sys, A)
+    stable = eq.valid & hurwitz & ~eq.tangent
     return eqx.tree_at(lambda e: (e.stable, e.jacobian), eq,
                        (stable, jnp.where(eq.valid[:, None, None], A_si, jnp.nan)))
