@@ -194,7 +194,7 @@ def test_front_evaluators_reweigh_and_share_one_program(small):
                                  + np.sum(held * np.asarray(m.out_of_lock))))
         assert float(evf.value(z)) == pytest.approx(J, rel=1e-9)
     # the weight is an argument of the compiled program, not a constant compiled in (the
-    # gradient goes through the same function: the main job's fronts run it)
+    # gradient's program differentiates the same objective with the same arguments)
     assert ev.programs.values._cache_size() == n_programs
 
 
