@@ -49,8 +49,7 @@ def test_acquisition_assist_does_not_change_the_discrete_linearisation(name):
     op = analysis.OperatingPoint(0.6 * W, (0.0, 2.0))
     x0 = obs.designed_error(op, plant)
     T_s = 1e-4
-    jac = [np.asarray(jax.jacfwd(analysis.discrete_error_map(o, plant, op.w_m, op.i_dq,
-                                                             T_s))(x0))
+    jac = [np.asarray(analysis.discrete_jacobian(o, plant, op.w_m, op.i_dq, T_s, x=x0))
            for o in (obs, off)]
     # the map is evaluated at the equilibrium: the assist is active (g != 0 elsewhere)
     assert np.all(np.isfinite(jac[0]))

@@ -44,6 +44,7 @@ from ._generic import (
     Stability as Stability,
     discrete_error_map as discrete_error_map,
     discrete_error_run as discrete_error_run,
+    discrete_jacobian as discrete_jacobian,
     discrete_poles as discrete_poles,
     equilibria as equilibria,
     equilibria_traced as equilibria_traced,
