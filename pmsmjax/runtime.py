@@ -45,7 +45,10 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   thousands of programs each run once, as in the test suite, which turns it on for its
   workers, their subprocesses and the notebooks' kernels (`tests/conftest.py`); the
   numbers are the same (`tests/test_runtime.py`). Off by default: a user's sweeps and
-  replays run the compiled programs many times.
+  replays run the compiled programs many times. A program that runs long even there (a
+  batch of 10,000 generic-route designs) passes `long_run_compiler_options()` to its
+  `jit`: under quick compiles it is still compiled with full optimisation, and otherwise
+  the option changes nothing.
 
 XLA reads its flags when the first computation starts the backend, so `configure` must
 run before any JAX computation; called later it keeps the backend as it is and warns.
@@ -98,6 +101,19 @@ SAFE_FLAGS: tuple[str, ...] = ("--xla_cpu_multi_thread_eigen=false",)
 #: fusion emitters, which compile faster for the many small kernels of pmsmjax's programs.
 QUICK_COMPILE_FLAGS: tuple[str, ...] = ("--xla_backend_optimization_level=0",
                                         "--xla_cpu_use_fusion_emitters=false")
+
+#: The compile options that undo `QUICK_COMPILE_FLAGS` for one program (XLA's defaults).
+FULL_OPTIMISATION: dict[str, object] = {"xla_backend_optimization_level": 3,
+                                        "xla_cpu_use_fusion_emitters": True}
+
+
+def long_run_compiler_options() -> dict[str, object] | None:
+    """`compiler_options` for `jax.jit` / `eqx.filter_jit` of a program that runs long
+    (a large batch, a long loop): under quick compiles (`PMSMJAX_QUICK_COMPILE=1`) such a
+    program is still compiled with full optimisation (`FULL_OPTIMISATION`), since its run
+    costs more than its compile; otherwise None (the process's own settings)."""
+    return dict(FULL_OPTIMISATION) if _env_flag("PMSMJAX_QUICK_COMPILE", False) else None
+
 
 def _env_flag(name: str, default: bool) -> bool:
     v = os.environ.get(name)

@@ -43,3 +43,38 @@ def getkey():
         return jr.PRNGKey(next(counter))
 
     return _getkey
+
+
+# The longest tests first (measured wall times in BENCHMARKS.md, "The test suite's time").
+# pytest-xdist hands tests to its workers in collection order, so a long test collected
+# last keeps one worker busy while the other has nothing left: started first, the short
+# tests fill in around it. Most of these wait on a subprocess or a notebook's kernel.
+# Only the order changes: every test runs, each on its own (none of these has a
+# module-scoped fixture that moving it would set up twice).
+LONGEST_FIRST = (
+    "tests/test_notebooks.py::test_notebook_runs[03_",
+    "tests/test_notebooks.py::test_notebook_runs[04_",
+    "tests/test_notebooks.py::test_notebook_runs[05_",
+    "tests/test_readme_commands.py::test_readme_command_lines_run",
+    "tests/test_main_job.py::test_main_job_quick",
+    "tests/test_notebooks.py::test_notebook_runs[09_",
+    "tests/test_notebooks.py::test_notebook_runs[02_",
+    "tests/test_notebooks.py::test_notebook_runs[08_",
+    "tests/test_notebooks.py::test_notebook_runs[07_",
+    "tests/test_runtime.py::test_quick_compiles_give_the_same_numbers",
+    "tests/test_runtime.py::test_cache_is_filled_reused_and_cleared",
+    "tests/test_notebooks.py::test_notebook_runs[06_",
+    "tests/test_docs.py::test_docs_build_strict",
+    "tests/test_notebooks.py::test_notebook_runs[01_",
+)
+
+
+def _rank(nodeid: str) -> int:
+    for k, prefix in enumerate(LONGEST_FIRST):
+        if nodeid.startswith(prefix):
+            return k
+    return len(LONGEST_FIRST)
+
+
+def pytest_collection_modifyitems(config, items):
+    items.sort(key=lambda item: _rank(item.nodeid))  # stable: the rest keep their order

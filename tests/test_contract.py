@@ -4,6 +4,7 @@ from a perturbed state follows the continuous dynamics), the state maps invert e
 designs round-trip, extras reach `simulate` and `replay`, and the generic analysis agrees
 with zhang2022's closed forms."""
 
+import functools
 import math
 
 import diffrax as dfx
@@ -230,7 +231,8 @@ def _random_designs(n, seed, drive):
 
 @pytest.fixture(scope="module")
 def generic_classifier():
-    @jax.jit
+    # 10,000 designs: the run outweighs the compile (pmsmjax.runtime, quick compiles)
+    @functools.partial(jax.jit, compiler_options=pj.runtime.long_run_compiler_options())
     def run(motor, motor_hat, w0, i0, z1, r):
         def one(w, i, a, b):
             obs = pj.LESOObserver(motor_hat, pj.ESODesign.fixed_ratio(a, b))
@@ -273,7 +275,7 @@ def test_generic_route_agrees_with_the_eso_reduction_under_mismatch_and_fal():
     fac = rng.uniform(0.6, 1.5, (n, 4))
     a = np.where(rng.uniform(size=n) < 0.5, 1.0, 0.6)
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=pj.runtime.long_run_compiler_options())
     def both(w, i, f, a_):
         mh = pj.PMSMParams(R_s=m.R_s * f[0], L_d=m.L_d * f[1], L_q=m.L_q * f[2],
                            psi_f=m.psi_f * f[3], n_p=m.n_p)

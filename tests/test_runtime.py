@@ -246,6 +246,30 @@ def test_quick_compiles_give_the_same_numbers(env, tmp_path):
     np.testing.assert_allclose(b["theta"], a["theta"], rtol=0, atol=1e-12)
 
 
+def test_long_run_options_undo_quick_compiles_for_one_program(monkeypatch):
+    """`long_run_compiler_options` are XLA's names (an unknown one fails the compile) and
+    its values, only under quick compiles; the program gives the same numbers."""
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    monkeypatch.setenv("PMSMJAX_QUICK_COMPILE", "0")
+    assert pj.runtime.long_run_compiler_options() is None
+    monkeypatch.setenv("PMSMJAX_QUICK_COMPILE", "1")
+    opts = pj.runtime.long_run_compiler_options()
+    assert opts == {"xla_backend_optimization_level": 3, "xla_cpu_use_fusion_emitters": True}
+
+    def f(x):
+        return jnp.exp(-x) * jnp.sin(3.0 * x) + jnp.cumsum(x ** 2)
+
+    x = jnp.linspace(0.0, 2.0, 257)
+    want = np.exp(-np.asarray(x)) * np.sin(3.0 * np.asarray(x)) + np.cumsum(np.asarray(x) ** 2)
+    np.testing.assert_allclose(np.asarray(jax.jit(f, compiler_options=opts)(x)), want,
+                               rtol=1e-13)
+    with pytest.raises(Exception, match="compile option"):
+        jax.jit(f, compiler_options={"xla_no_such_option": 3})(x)
+
+
 def test_new_initial_values_do_not_compile_again():
     """Python numbers as initial values (angle, speed, estimate, current) run the
     program already compiled."""
