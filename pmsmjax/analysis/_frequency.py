@@ -33,6 +33,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..observers._base import AbstractObserver, Measurement
+from ._generic import _values_as_inputs
 
 
 def _has_bemf(observer) -> None:
@@ -52,6 +53,14 @@ def discrete_bemf_system(observer: AbstractObserver, w_m, T_s):
     measurement `[i_a, i_b, u_a, u_b]` (A, V) and the output `e_ab_hat` (V)."""
     _has_bemf(observer)
     dtype = jnp.result_type(w_m, float)
+    # one compiled program per observer family (op by op it took seconds for a LESO)
+    return _discrete_bemf_system(_values_as_inputs(observer), jnp.asarray(w_m, dtype),
+                                 jnp.asarray(T_s, dtype))
+
+
+@eqx.filter_jit
+def _discrete_bemf_system(observer, w_m, T_s):
+    dtype = w_m.dtype
     nan = jnp.full((), jnp.nan, dtype)
     z2 = jnp.zeros(2, dtype)
     st, _ = observer.step(observer.init(theta0=0.0, w0=jnp.asarray(w_m, dtype)),
