@@ -147,6 +147,36 @@ def test_discrete_step_jacobian_is_identity_plus_Ts_A(name):
         assert 3.5 < a / b < 4.5, rem
 
 
+def test_discrete_jacobian_is_the_derivative_of_the_step_and_compiles_once():
+    """`discrete_jacobian` against forward differences of `discrete_error_map` (run op by
+    op, a second route), and one compiled program for other designs, periods, speeds and
+    a mismatched plant (the same schedule, `fixed_ratio`: a schedule is a structure, and
+    another one compiles its own): their values are the program's inputs."""
+    from pmsmjax.analysis._generic import _discrete_jacobian
+
+    plant = SALIENT.three_phase_motor
+    w, i = _op(SALIENT)
+    obs = make_observer("leso", SALIENT).with_design(zeta1=0.5, ratio=0.5)
+    x = obs.designed_error(OperatingPoint(w, i), plant)
+    J = np.asarray(analysis.discrete_jacobian(obs, plant, w, i, 1e-4, x=x, theta_k=0.3))
+    fn = analysis.discrete_error_map(obs, plant, w, i, 1e-4, theta_k=0.3)
+    D = np.asarray(obs.error_scale(OperatingPoint(w, i), plant))
+    h = 1e-6 * D
+    fd = np.stack([(np.asarray(fn(x.at[k].add(h[k]))) - np.asarray(fn(x.at[k].add(-h[k]))))
+                   / (2 * h[k]) for k in range(len(h))], 1)
+    np.testing.assert_allclose(J * D[None, :] / D[:, None], fd * D[None, :] / D[:, None],
+                               atol=1e-7)
+    n0 = _discrete_jacobian._cached._cache_size()
+    other = [analysis.discrete_jacobian(obs.with_design(zeta1=0.7, ratio=0.4), plant, w, i,
+                                        1e-4, x=x, theta_k=0.3),
+             analysis.discrete_jacobian(obs, plant, 0.5 * w, i, 5e-5, x=x, theta_k=1.0),
+             analysis.discrete_jacobian(obs, pj.scale_motor(plant, {"R_s": 1.2}), w, i,
+                                        1e-4, x=x, theta_k=0.3)]
+    assert _discrete_jacobian._cached._cache_size() == n0
+    for J2 in other:  # and the values are used
+        assert np.max(np.abs(np.asarray(J2) - J)) > 1e-6
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_closed_loop_run_follows_the_continuous_error_dynamics(name):
     """From a perturbed state (angle error 4 deg, speed error 2 %), the discrete observer in
