@@ -305,7 +305,7 @@ def test_generic_route_agrees_with_the_eso_reduction_under_mismatch_and_fal():
     fac = rng.uniform(0.6, 1.5, (n, 4))
     a = np.where(rng.uniform(size=n) < 0.5, 1.0, 0.6)
 
-    @functools.partial(jax.jit, compiler_options=pj.runtime.long_run_compiler_options())
+    @jax.jit  # 400 designs: with full optimisation its compile outgrows its run
     def both(w, i, f, a_):
         mh = pj.PMSMParams(R_s=m.R_s * f[0], L_d=m.L_d * f[1], L_q=m.L_q * f[2],
                            psi_f=m.psi_f * f[3], n_p=m.n_p)
