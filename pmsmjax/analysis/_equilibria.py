@@ -137,11 +137,13 @@ class Equilibria(eqx.Module):
         return self.valid & (k != self.principal[..., None])
 
 
-def as_arrays(tree, dtype):
+def as_arrays(tree, dtype, *, ints: bool = True):
     """Every float/int leaf (Python or NumPy) of `tree` as a JAX array of `dtype`, so that
-    jitted functions trace them instead of baking them in (no recompile per value)."""
+    jitted functions trace them instead of baking them in (no recompile per value).
+    `ints=False` keeps Python ints as they are (an observer's counts and sizes, which its
+    code may branch on)."""
     def conv(v):
-        if isinstance(v, bool):
+        if isinstance(v, bool) or (not ints and isinstance(v, int)):
             return v
         if isinstance(v, float | int | np.ndarray | np.generic | jax.Array):
             return jnp.asarray(v, dtype) if jnp.issubdtype(jnp.result_type(v), jnp.floating) \

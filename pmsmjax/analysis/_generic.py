@@ -707,11 +707,10 @@ def discrete_jacobian(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, 
 
 
 def _values_as_inputs(tree):
-    """`tree` with its Python-float leaves (design values, machine parameters) as arrays,
-    so that `eqx.filter_jit` takes them as inputs rather than constants of the program:
-    another design or a mismatched model then reuses the compiled program."""
-    return jax.tree_util.tree_map(
-        lambda v: jnp.asarray(v, float) if type(v) is float else v, tree)
+    """`tree` with its float values (design values, machine parameters) as arrays, so that
+    `eqx.filter_jit` takes them as inputs rather than constants of the program: another
+    design or a mismatched model then reuses the compiled program."""
+    return as_arrays(tree, float, ints=False)
 
 
 @eqx.filter_jit
