@@ -148,7 +148,7 @@ def test_discrete_step_jacobian_is_identity_plus_Ts_A(name):
 
 
 def test_discrete_jacobian_is_the_derivative_of_the_step_and_compiles_once():
-    """`discrete_jacobian` against forward differences of `discrete_error_map` (run op by
+    """`discrete_jacobian` against central differences of `discrete_error_map` (run op by
     op, a second route), and one compiled program for other designs, periods, speeds and
     a mismatched plant (the same schedule, `fixed_ratio`: a schedule is a structure, and
     another one compiles its own): their values are the program's inputs."""

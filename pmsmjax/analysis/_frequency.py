@@ -33,7 +33,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..observers._base import AbstractObserver, Measurement
-from ._generic import _values_as_inputs
+from ._equilibria import as_arrays
 
 
 def _has_bemf(observer) -> None:
@@ -54,7 +54,8 @@ def discrete_bemf_system(observer: AbstractObserver, w_m, T_s):
     _has_bemf(observer)
     dtype = jnp.result_type(w_m, float)
     # one compiled program per observer family (op by op it took seconds for a LESO)
-    return _discrete_bemf_system(_values_as_inputs(observer), jnp.asarray(w_m, dtype),
+    # (the observer's float values as inputs of that dtype, as in `discrete_jacobian`)
+    return _discrete_bemf_system(as_arrays(observer, dtype, ints=False), jnp.asarray(w_m, dtype),
                                  jnp.asarray(T_s, dtype))
 
 

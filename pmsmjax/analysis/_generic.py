@@ -699,18 +699,13 @@ def discrete_jacobian(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, 
     state are the program's inputs, so a sweep over any of them, or `jax.vmap` over them,
     reuses one program (run op by op, one Jacobian of a LESO took seconds). Returns
     `(n, n)`."""
-    observer, plant = _values_as_inputs(observer), _values_as_inputs(plant)
+    # float values (design, machine parameters) as arrays: inputs of the program, not
+    # constants compiled in, so another design or a mismatched model reuses it
+    observer, plant = as_arrays(observer, float, ints=False), as_arrays(plant, float, ints=False)
     return _discrete_jacobian(observer, plant, jnp.asarray(w_m, float),
                               jnp.asarray(i_dq, float), jnp.asarray(T_s, float),
                               jnp.asarray(theta_k, float),
                               None if x is None else jnp.asarray(x, float))
-
-
-def _values_as_inputs(tree):
-    """`tree` with its float values (design values, machine parameters) as arrays, so that
-    `eqx.filter_jit` takes them as inputs rather than constants of the program: another
-    design or a mismatched model then reuses the compiled program."""
-    return as_arrays(tree, float, ints=False)
 
 
 @eqx.filter_jit
