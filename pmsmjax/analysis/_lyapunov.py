@@ -272,7 +272,10 @@ def _k_of_gamma(A_all, sigma, rho, alphas, n_time):
             def body(_, c):
                 a, b_ = c
                 x1, x2 = b_ - gr * (b_ - a), a + gr * (b_ - a)
-                left = h(x1) >= h(x2)
+                # both points in one batched call: two independent ones could run at the
+                # same time, which a batched LAPACK call must not (pmsmjax/_lapack_pool.py)
+                h12 = jax.vmap(h)(jnp.stack([x1, x2]))
+                left = h12[0] >= h12[1]
                 return jnp.where(left, a, x1), jnp.where(left, x2, b_)
 
             a, b_ = jax.lax.fori_loop(0, 40, body, (lo, hi))
@@ -332,24 +335,34 @@ def _k1_estimate(dyn: _ScaledDynamics, speeds, radii, key, n_dirs, n_refine):
 def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n_dirs,
                  n_refine, n_k1_speeds):
     n = dyn.d.shape[0]
-    A = jax.vmap(dyn.A)(speeds)
-    dA = jax.vmap(jax.jacfwd(dyn.A))(speeds)
-    # the frozen equilibria must exist (with mismatch they are static-error equilibria)
-    g0 = jax.vmap(lambda w: dyn.g(jnp.zeros_like(dyn.d), w))(speeds)
-    at_eq = jnp.max(jnp.abs(g0) / jnp.maximum(jnp.max(jax.vmap(_norm2)(A)), 1.0)) < 1e-8
-    eig = jnp.linalg.eigvals(A)
-    sigma = jnp.min(-jnp.max(jnp.real(eig), -1))
+
+    def per_speed(w):
+        # One speed at a time (`lax.map`), so that every LAPACK call here is on a single
+        # matrix: a batched call over the speeds blocks a thread of XLA's pool, and two of
+        # them at once (the P and dP solves did) deadlock a 2-core machine
+        # (pmsmjax/_lapack_pool.py). P and dP = dP/dw come from one jvp.
+        A = dyn.A(w)
+        P, dP = jax.jvp(lambda v: lyapunov_solve(dyn.A(v)), (w,), (jnp.ones_like(w),))
+        return dict(
+            A=A, norm_A=_norm2(A), norm_dA=_norm2(jax.jacfwd(dyn.A)(w)),
+            # the frozen equilibria must exist (with mismatch: static-error equilibria)
+            g0=jnp.max(jnp.abs(dyn.g(jnp.zeros_like(dyn.d), w))),
+            decay=-jnp.max(jnp.real(jnp.linalg.eigvals(A))),
+            res=jnp.max(jnp.abs(P @ A + A.T @ P + jnp.eye(n, dtype=A.dtype))),
+            lam=jnp.linalg.eigvalsh(P), c5=jnp.max(jnp.abs(jnp.linalg.eigvalsh(dP))))
+
+    q = jax.lax.map(per_speed, speeds)
+    A = q["A"]
+    rho = jnp.max(q["norm_A"])
+    at_eq = jnp.max(q["g0"]) / jnp.maximum(rho, 1.0) < 1e-8
+    sigma = jnp.min(q["decay"])
     hurwitz = sigma > 0
     sig = jnp.where(hurwitz, sigma, 1.0)
-    rho = jnp.max(jax.vmap(_norm2)(A))
-    b = jnp.max(jax.vmap(_norm2)(dA))
-    P = jax.vmap(lyapunov_solve)(A)
-    res = jnp.max(jnp.abs(jnp.einsum("nij,njk->nik", P, A)
-                          + jnp.einsum("nji,njk->nik", A, P) + jnp.eye(n)))
-    lam = jnp.linalg.eigvalsh(P)
-    dP = jax.vmap(jax.jacfwd(lambda w: lyapunov_solve(dyn.A(w))))(speeds)
+    b = jnp.max(q["norm_dA"])
+    res = jnp.max(q["res"])
+    lam = q["lam"]
     c1s, c2s = jnp.min(lam[:, 0]), jnp.max(lam[:, -1])
-    c5s = jnp.max(jax.vmap(lambda M: jnp.max(jnp.abs(jnp.linalg.eigvalsh(M))))(dP))
+    c5s = jnp.max(q["c5"])
 
     kk, gam = _k_of_gamma(A, sig, rho, alphas, n_time)
     c5_all = kk ** 4 * b / (2 * gam ** 2)
