@@ -14,12 +14,22 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   step. A closed-loop drive step is just above the default threshold, so `configure`
   raises it (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=...`):
   single runs become about 8x faster, batched runs are unchanged (see `FAST_LOOP_FLAGS`).
-- **No hangs.** `--xla_cpu_multi_thread_eigen=false` (see `SAFE_FLAGS`); asynchronous
-  CPU dispatch stays on (the stress reproducer found no hang with it either way). Public
-  reports of hangs with asynchronous dispatch need a host callback inside a `while` loop;
-  the analyses that hung have no host callback at all and `simulate` calls the host only
-  after its time loop (`throw=True`), and the reports' programs did not hang here either.
-  Code that calls the host inside a loop can turn it off first:
+- **No hangs.** The hang that the Lyapunov certificate showed on 2-core machines is a
+  deadlock of XLA's CPU thread pool in jaxlib's batched LAPACK calls (`solve`, `eigvals`,
+  `eigvalsh`, `expm` over a batch of matrices): a call with enough work splits its batch
+  over the pool and blocks its own pool thread until the pieces have run, so two such
+  calls that XLA runs at the same time take both threads of a 2-core pool and wait for
+  each other forever. No setting avoids it short of a pool of one thread (`PJRT_NPROC=1`
+  before JAX starts; it costs the in-program parallelism, about 30 % on a batch of
+  10,000 generic-route designs on 2 cores), so pmsmjax's programs are written without
+  such a pair (the certificate solves one speed at a time), and
+  `concurrent_lapack_calls(compiled)` finds the pairs in any compiled program, yours
+  included (`jax.jit(f).lower(*args).compile()`); the tests run it on the library's
+  programs. `--xla_cpu_multi_thread_eigen=false` (`SAFE_FLAGS`) stays on: it did not
+  cause the hang but costs nothing. Asynchronous CPU dispatch stays on. Public reports
+  of hangs with it need a host callback inside a `while` loop; `simulate` calls the host
+  only after its time loop (`throw=True`) and the analyses not at all. Code that calls
+  the host inside a loop can turn it off first:
   `jax.config.update("jax_cpu_enable_async_dispatch", False)` (no measurable cost on the
   closed loop).
 - **Persistent compilation cache.** Compiled programs are kept in a per-user directory
@@ -80,6 +90,9 @@ from pathlib import Path
 
 import jax
 
+from pmsmjax._lapack_pool import (  # noqa: F401 (public, see below)
+    LAPACK_MIN_WORK, LapackCall, concurrent_lapack_calls)
+
 
 #: XLA flags `configure` adds for fast single runs (see the module docstring).
 #: 64 KiB: a single closed-loop run (a few KiB of loop buffers, just above XLA's default
@@ -89,12 +102,11 @@ import jax
 #: fast as with the default (BENCHMARKS.md).
 FAST_LOOP_FLAGS = ("--xla_backend_extra_options="
                    "xla_cpu_small_while_loop_byte_threshold=65536",)
-#: XLA flags `configure` adds so that the process cannot hang: XLA CPU's multi-threaded
-#: Eigen pool (used for dot/convolution kernels only; pmsmjax's loops are element-wise
-#: fusions) is what public reports of the same symptom (caller blocked on a vmapped
-#: result, XLA workers idle) found wedged; switching it to single-threaded mode avoided
-#: it there. Our stress reproducer (`benchmarks/stress_hang.py`, BENCHMARKS.md) did not
-#: hang with or without it; it costs nothing measurable here, so it is on.
+#: XLA flags `configure` adds: XLA CPU's multi-threaded Eigen kernels (dot/convolution
+#: only; pmsmjax's loops are element-wise fusions) run single-threaded. Public reports of
+#: a wedged pool on vmapped graphs found this setting to avoid it; the hang that pmsmjax
+#: met was another one (batched LAPACK calls, see the module docstring), which this flag
+#: does not prevent. It costs nothing measurable here, so it stays on.
 SAFE_FLAGS: tuple[str, ...] = ("--xla_cpu_multi_thread_eigen=false",)
 #: XLA flags for quick compiles (opt-in, `PMSMJAX_QUICK_COMPILE=1`; module docstring):
 #: LLVM's lowest optimisation level for every kernel, and XLA CPU's older (non-MLIR)
