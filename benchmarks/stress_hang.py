@@ -8,7 +8,8 @@ This script repeats the affected computations many times in several concurrent w
 processes, with extra CPU load beside them, under a set of process configurations
 ("variants"), and counts hangs. A watchdog declares a hang when a worker makes no
 progress for `--timeout` seconds; it then dumps the native and Python stacks of every
-thread of the worker with py-spy (`py-spy dump --native`) into the output folder, kills
+thread of the worker with py-spy (`py-spy dump --native`) and, where gdb is installed, the native
+stacks of every thread (`gdb -batch -ex "thread apply all bt"`) into the output folder, kills
 the worker and starts a fresh one, so one hang does not stop the count.
 
 Workloads (each iteration uses new inputs, so nothing is served from a cache):
@@ -17,6 +18,14 @@ Workloads (each iteration uses new inputs, so nothing is served from a cache):
   (reduced resolution), the computation that hung in the notebook;
 - `certificate_eager`: the same `jax.vmap` without an outer `jit` (as the notebook
   called it: many small dispatched computations);
+- `certificate_full`: one `slowly_varying_certificate` at its default resolution (101
+  speeds), one of 4 LESO designs per iteration, as notebook 03 calls it. The reduced
+  resolution above stays below jaxlib's threshold for splitting a batched LAPACK call
+  over the thread pool, so it cannot show the deadlock that this one showed
+  (`pmsmjax/_lapack_pool.py`);
+- `lapack_pair`: the deadlock's mechanism alone: a jitted program with two independent
+  batched solves (200 matrices of 16 x 16 each, above the threshold), 50 calls per
+  iteration;
 - `loop`: one sensorless closed-loop run (ESO, 4000 steps) and a vmapped batch of 16;
 - `equilibria`: the generic equilibria route vmapped over 256 operating points;
 - `callback_loop`: the minimal program of the public reports of a hang with asynchronous
@@ -59,6 +68,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import platform
 import queue
@@ -84,8 +94,9 @@ VARIANTS = {
                         configure=False),
     "pmsmjax_sync": dict(xla_flags="", sync=True, configure=True),
 }
-WORKLOADS = ("certificate", "certificate_eager", "loop", "equilibria", "callback_loop",
-             "callback_loop_jax", "callback_print", "callback_random")
+WORKLOADS = ("certificate", "certificate_eager", "certificate_full", "lapack_pair", "loop",
+             "equilibria", "callback_loop", "callback_loop_jax", "callback_print",
+             "callback_random")
 
 
 # ----------------------------------------------------------------------------- worker
@@ -138,6 +149,20 @@ def _workload(name):
 
         f = jax.vmap(cert) if name.endswith("eager") else jax.jit(jax.vmap(cert))
         return lambda i: f(jnp.linspace(0.6, 1.2, 4) + 1e-3 * (i % 7))
+    if name == "certificate_full":
+        base = pj.observers.make_observer("leso", drive)
+        w2s = 2 * math.pi * jnp.array([25.0, 50.0, 100.0, 200.0])
+        return lambda i: analysis.slowly_varying_certificate(
+            drive, base.with_design(w2=w2s[i % 4]), (0.1, 1.0)).eps
+    if name == "lapack_pair":
+        a = jax.random.normal(jax.random.PRNGKey(0), (200, 16, 16)) + 16.0 * jnp.eye(16)
+        x = jnp.ones((200, 16, 1))
+        f = jax.jit(lambda a, b: (jnp.linalg.solve(a, x), jnp.linalg.solve(b, x)))
+
+        def run(i):
+            for k in range(50):
+                jax.block_until_ready(f(a + 1e-3 * (i + k), a - 1e-3 * (i + k)))
+        return run
     if name == "loop":
         foc = pj.FOC.from_drive(drive)
         obs = pj.ESOObserver.from_drive(drive)
@@ -374,13 +399,24 @@ def _load_proc():
 
 
 def _dump_stacks(pid, path: Path):
+    """Python threads with py-spy; then, where gdb is installed, every native thread
+    (py-spy shows only the threads that run Python, not XLA's pool threads)."""
     spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
     try:
         res = subprocess.run([spy, "dump", "--native", "--pid", str(pid)],
                              capture_output=True, text=True, timeout=60)
-        path.write_text(res.stdout + res.stderr)
+        text = res.stdout + res.stderr
     except (OSError, subprocess.TimeoutExpired) as e:
-        path.write_text(f"py-spy failed: {e}\n")
+        text = f"py-spy failed: {e}\n"
+    gdb = shutil.which("gdb")
+    if gdb:
+        try:
+            res = subprocess.run([gdb, "-p", str(pid), "-batch", "-ex", "thread apply all bt 30"],
+                                 capture_output=True, text=True, timeout=120)
+            text += "\n# gdb: every thread\n" + res.stdout
+        except (OSError, subprocess.TimeoutExpired) as e:
+            text += f"\ngdb failed: {e}\n"
+    path.write_text(text)
 
 
 def _reader(proc, q):
@@ -476,7 +512,7 @@ def main():
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--variant", default="default")
     ap.add_argument("--variants", default=",".join(VARIANTS))
-    ap.add_argument("--workloads", default="certificate,loop")
+    ap.add_argument("--workloads", default="certificate_full,loop")
     ap.add_argument("--mode", choices=("process", "kernel"), default="process",
                     help="run the workloads in plain worker processes or inside Jupyter "
                          "kernels driven by jupyter_client (the notebook condition)")
