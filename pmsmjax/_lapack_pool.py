@@ -111,6 +111,33 @@ def _parse(hlo: str):
     return comps
 
 
+_GTE = re.compile(r"get-tuple-element\(%([\w.\-]+)\), index=(\d+)")
+
+
+def _through_tuples(ref: str, rhs_of: dict) -> str:
+    """The instruction whose buffer an element taken out of a tuple really is.
+
+    A `tuple` and an `opt-barrier` make no work of their own at run time: an element taken
+    out of them (`get-tuple-element`) is the buffer of the tuple's operand, so the user
+    depends on that operand only, not on the tuple's other elements. (An
+    `optimization_barrier` thus orders nothing at run time.)"""
+    while True:
+        m = _GTE.search(rhs_of.get(ref, ""))
+        if m is None:
+            return ref
+        src, idx = m.group(1), int(m.group(2))
+        src_rhs = rhs_of.get(src, "")
+        while " opt-barrier(" in src_rhs:  # the barrier's operand is a tuple
+            src = _REF.findall(src_rhs)[0]
+            src_rhs = rhs_of.get(src, "")
+        if " tuple(" not in src_rhs:
+            return ref
+        ops = _REF.findall(src_rhs.split(" tuple(", 1)[1])
+        if idx >= len(ops):
+            return ref
+        ref = ops[idx]
+
+
 def concurrent_lapack_calls(compiled, min_work: int = LAPACK_MIN_WORK
                             ) -> list[tuple[LapackCall, LapackCall]]:
     """The pairs of chunked LAPACK calls that XLA may run at the same time (see the module
@@ -122,7 +149,10 @@ def concurrent_lapack_calls(compiled, min_work: int = LAPACK_MIN_WORK
     - `min_work`: estimated FLOP from which a call is chunked (jaxlib's threshold).
 
     Each pair names the two calls themselves, also when one sits inside a loop or a
-    called computation that runs beside the other.
+    called computation that runs beside the other. Dependencies are the operands of XLA's
+    graph, except that an element taken out of a tuple (or of an `optimization_barrier`)
+    depends on that element only: neither does any work at run time, so neither orders
+    anything (XLA also drops a barrier that has nothing to keep apart).
     """
     if not isinstance(compiled, str):
         inner = getattr(compiled, "compiled", compiled)
@@ -160,7 +190,9 @@ def concurrent_lapack_calls(compiled, min_work: int = LAPACK_MIN_WORK
     pairs = []
     for comp, instrs in comps.items():
         local = {name for name, _ in instrs}
-        deps = {name: [r for r in _REF.findall(rhs) if r in local and r != name]
+        rhs_of = dict(instrs)
+        deps = {name: [_through_tuples(r, rhs_of) for r in _REF.findall(rhs)
+                       if r in local and r != name]
                 for name, rhs in instrs}
         heavy = [(name, _own(name, rhs, (comp,))) for name, rhs in instrs]
         heavy = [(name, calls) for name, calls in heavy if calls]

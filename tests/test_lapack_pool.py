@@ -62,6 +62,48 @@ def test_programs_without_a_pair(case):
     assert runtime.concurrent_lapack_calls(compiled(f, *args)) == []
 
 
+def test_an_optimization_barrier_orders_nothing():
+    """The second matrix passes through a barrier together with the first solve's result:
+    XLA drops the barrier and factorises both matrices first, so it is still a pair."""
+    a, x = mats(200)
+
+    def f(a, b, x):
+        y = jnp.linalg.solve(a, x)
+        b2, _ = jax.lax.optimization_barrier((b, y))
+        return y, jnp.linalg.solve(b2, x)
+
+    pairs = runtime.concurrent_lapack_calls(compiled(f, a, a + 1, x))
+    assert pair_names(pairs) == [("dgetrf", "dgetrf")]
+
+
+HLO_TUPLE = """HloModule m, is_scheduled=true
+
+ENTRY %main (p0: f64[200,16,16], p1: f64[200,16,16]) -> (f64[200,16,16], s32[200]) {
+  %p0 = f64[200,16,16]{2,1,0} parameter(0)
+  %p1 = f64[200,16,16]{2,1,0} parameter(1)
+  %lu.1 = (f64[200,16,16]{2,1,0}, s32[200,16]{1,0}, s32[200]{0}) custom-call(%p0), \
+custom_call_target="lapack_dgetrf_ffi", operand_layout_constraints={f64[200,16,16]{2,1,0}}
+  %gte.1 = f64[200,16,16]{2,1,0} get-tuple-element(%lu.1), index=0
+  %tuple.1 = (f64[200,16,16]{2,1,0}, f64[200,16,16]{2,1,0}) tuple(%p1, %gte.1)
+  %opt-barrier.1 = (f64[200,16,16]{2,1,0}, f64[200,16,16]{2,1,0}) opt-barrier(%tuple.1)
+  %gte.2 = f64[200,16,16]{2,1,0} get-tuple-element(%opt-barrier.1), index=INDEX
+  %lu.2 = (f64[200,16,16]{2,1,0}, s32[200,16]{1,0}, s32[200]{0}) custom-call(%gte.2), \
+custom_call_target="lapack_dgetrf_ffi", operand_layout_constraints={f64[200,16,16]{2,1,0}}
+  %gte.3 = s32[200]{0} get-tuple-element(%lu.2), index=2
+  ROOT %t = (f64[200,16,16]{2,1,0}, s32[200]{0}) tuple(%gte.1, %gte.3)
+}
+"""
+
+
+@pytest.mark.parametrize("index, pair", [(0, True), (1, False)])
+def test_an_element_out_of_a_tuple_depends_on_that_element_only(index, pair):
+    """HLO text: the second LU takes element `index` of a barrier over (p1, first LU's
+    result). Element 0 is p1, which needs nothing: a pair although an HLO path runs
+    through the tuple; element 1 is the first LU's result: ordered, no pair."""
+    found = runtime.concurrent_lapack_calls(HLO_TUPLE.replace("INDEX", str(index)))
+    assert [(a.name, b.name) for a, b in found] == ([("lu.1", "lu.2")] if pair else [])
+
+
 def test_a_loop_with_a_batched_call_beside_another_is_a_pair():
     a, x = mats(200)
 
