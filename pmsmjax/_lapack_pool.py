@@ -165,27 +165,18 @@ def concurrent_lapack_calls(compiled, min_work: int = LAPACK_MIN_WORK
                          "with 'HloModule'), as a compiled program's `as_text()` gives it; "
                          "a lowered program's text (StableHLO) is not it: compile it first.")
     comps = _parse(compiled)
-    names = set(comps)
-    chunked: dict[str, list[LapackCall]] = {}  # computation -> calls it runs (transitively)
+    memo: dict[str, list[LapackCall]] = {}
 
-    def contained(comp: str, seen=()) -> list[LapackCall]:
-        if comp in chunked:
-            return chunked[comp]
-        out = []
-        for name, rhs in comps.get(comp, []):
-            out += _own(name, rhs, seen + (comp,))
-        chunked[comp] = out
-        return out
+    def calls_in(comp: str) -> list[LapackCall]:  # a computation's, nested ones included
+        if comp not in memo:
+            memo[comp] = [c for name, rhs in comps[comp] for c in own(name, rhs)]
+        return memo[comp]
 
-    def _own(name, rhs, seen):
+    def own(name: str, rhs: str) -> list[LapackCall]:  # an instruction's: itself or callees
         call = _lapack_call(name, rhs)
         if call is not None:
             return [call] if call.work >= min_work and call.batch > 1 else []
-        out = []
-        for ref in _REF.findall(rhs):
-            if ref in names and ref not in seen:
-                out += contained(ref, seen)
-        return out
+        return [c for ref in _REF.findall(rhs) if ref in comps for c in calls_in(ref)]
 
     pairs = []
     for comp, instrs in comps.items():
@@ -194,7 +185,7 @@ def concurrent_lapack_calls(compiled, min_work: int = LAPACK_MIN_WORK
         deps = {name: [_through_tuples(r, rhs_of) for r in _REF.findall(rhs)
                        if r in local and r != name]
                 for name, rhs in instrs}
-        heavy = [(name, _own(name, rhs, (comp,))) for name, rhs in instrs]
+        heavy = [(name, own(name, rhs)) for name, rhs in instrs]
         heavy = [(name, calls) for name, calls in heavy if calls]
         if len(heavy) < 2:
             continue

@@ -340,11 +340,11 @@ def _certificate(dyn: _ScaledDynamics, speeds, alphas, radii, c3, key, n_time, n
         # One speed at a time (`lax.map`), so that every LAPACK call here is on a single
         # matrix: a batched call over the speeds blocks a thread of XLA's pool, and two of
         # them at once (the P and dP solves did) deadlock a 2-core machine
-        # (pmsmjax/_lapack_pool.py). P and dP = dP/dw come from one jvp.
-        A = dyn.A(w)
-        P, dP = jax.jvp(lambda v: lyapunov_solve(dyn.A(v)), (w,), (jnp.ones_like(w),))
+        # (pmsmjax/_lapack_pool.py). A and dA/dw from one jvp, then P and dP/dw from one.
+        A, dA = jax.jvp(dyn.A, (w,), (jnp.ones_like(w),))
+        P, dP = jax.jvp(lyapunov_solve, (A,), (dA,))
         return dict(
-            A=A, norm_A=_norm2(A), norm_dA=_norm2(jax.jacfwd(dyn.A)(w)),
+            A=A, norm_A=_norm2(A), norm_dA=_norm2(dA),
             # the frozen equilibria must exist (with mismatch: static-error equilibria)
             g0=jnp.max(jnp.abs(dyn.g(jnp.zeros_like(dyn.d), w))),
             decay=-jnp.max(jnp.real(jnp.linalg.eigvals(A))),
