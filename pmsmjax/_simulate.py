@@ -439,20 +439,31 @@ def _simulate(arguments: dict) -> Trajectory:
         new_carry, record = step(carry, x)
         return new_carry, record()
 
-    @functools.partial(jax.checkpoint, prevent_cse=False, policy=_CHECKPOINT_POLICY)
-    def step_unrecorded(carry, x):
-        return step(carry, x)[0], None
-
     steps = jnp.arange(N, dtype=jnp.int32)
     if save_every == 1:
         carry, rec = jax.lax.scan(step_recorded, carry0, steps)
     else:
-        # Record the first sample of each chunk of `save_every` steps; the other steps
-        # record nothing, so memory does not grow with `save_every`.
+        # Record the first sample of each chunk of `save_every` steps, so memory does not
+        # grow with `save_every`. The program holds one instance of the step: every step
+        # computes its record and the loop's carry keeps the one of the chunk's first
+        # step (a select). Against a first step of its own followed by an unrecorded
+        # loop, this compiles about twice as fast (a closed-loop gradient: half the
+        # trace, a third of XLA's time) for a few per cent more run time on one long
+        # run; batches run as fast or faster (BENCHMARKS.md, "One step per chunk").
+        rec_shape = jax.eval_shape(lambda c: step(c, jnp.int32(0))[1](), carry0)
+        slot0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), rec_shape)
+
+        @functools.partial(jax.checkpoint, prevent_cse=False, policy=_CHECKPOINT_POLICY)
+        def step_slot(cs, k):
+            c, slot = cs
+            new_c, record = step(c, k)
+            first = k % save_every == 0
+            slot = jax.tree_util.tree_map(lambda r, o: jnp.where(first, r, o), record(), slot)
+            return (new_c, slot), None
+
         def chunk(c, k0):
-            c, r = step_recorded(c, k0)
-            c, _ = jax.lax.scan(step_unrecorded, c, k0 + jnp.arange(1, save_every,
-                                                                     dtype=jnp.int32))
+            (c, r), _ = jax.lax.scan(step_slot, (c, slot0),
+                                     k0 + jnp.arange(save_every, dtype=jnp.int32))
             return c, r
 
         carry, rec = jax.lax.scan(chunk, carry0, steps[::save_every])
