@@ -74,7 +74,9 @@ def _direct(config):
 def test_metrics_equal_direct_simulate(job):
     config, out, summary = job
     grid, traj = _direct(config)
-    runs = {k: np.asarray(v) for k, v in compare.run_metrics(traj, config).items()}
+    # compiled, as the job runs it (op by op each small operation compiles on its own)
+    metrics = jax.jit(lambda tr: compare.run_metrics(tr, config))(traj)
+    runs = {k: np.asarray(v) for k, v in metrics.items()}
     feas = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz"))
     want = compare.aggregate(runs, feas, config, grid)
     got = summary["observers"][OBSERVER]["designs"]["paper"]
@@ -91,8 +93,9 @@ def test_metrics_equal_direct_simulate(job):
     # the definitions, independently: static error and speed noise as
     # `pmsmjax.trajectory_metrics` over the static window; RMS, settling and loss of lock
     # in NumPy
-    tm = pj.trajectory_metrics(traj, t_transient=(1 - compare.STATIC_WINDOW) * config.t_end,
-                               T_s=config.T_s, save_every=config.save_every, theta_err0=1.0)
+    tm = jax.jit(lambda tr: pj.trajectory_metrics(
+        tr, t_transient=(1 - compare.STATIC_WINDOW) * config.t_end, T_s=config.T_s,
+        save_every=config.save_every, theta_err0=1.0))(traj)
     np.testing.assert_allclose(runs["static_deg"], np.asarray(tm["theta_ss_deg"]),
                                rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(runs["noise_rad_s"], np.asarray(tm["noise_rad_s"]),

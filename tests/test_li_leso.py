@@ -6,6 +6,7 @@ both signs of speed, the C-LESO's lag as its designed equilibrium, replay = in-l
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -381,13 +382,17 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
     sl = pytest.importorskip("scipy.linalg")
     from pmsmjax.observers import _leso as L
     sides, batch = set(), []
+    # each function compiled once (op by op, every small operation compiles on its own)
+    complex_system = eqx.filter_jit(lambda o, w: o._complex_system(w))
+    pair_radius, pair_apply = jax.jit(L._pair_radius), jax.jit(L._phi_pair_apply)
+    pair_series = jax.jit(lambda mu, d: L._phi_pair(mu, d, squarings=0))
     c_base, f_base = make_observer("c-leso", DTP), make_observer("fa-leso", DTP)
     cases = [(o, T_s) for o in (c_base, f_base) for T_s in (1e-5, 1e-4, 1e-3)]
     cases += [(c_base.with_design(w0=10.0 * c_base.w0), 1e-4),
               (f_base.with_design(k2=10.0 * f_base.k2), 1e-4)]
     for obs, T_s in cases:
         for w in np.array([-2.0, -0.7, 0.0, 1.0, 2.0]) * W:
-            ((k, cc), (b, a)), _, _, _ = obs._complex_system(jnp.asarray(w))
+            ((k, cc), (b, a)), _, _, _ = complex_system(obs, jnp.asarray(w))
             X = np.array([[complex(k), complex(cc)], [complex(b), complex(a)]]) * T_s \
                 - 1j * w * T_s * np.eye(2)
             # in balanced units (an exact similarity, under which the pair (a, b) of each
@@ -401,7 +406,7 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
             M = np.zeros((6, 6), complex)
             M[:2, :2], M[:2, 2:4], M[2:4, 4:] = X, np.eye(2), np.eye(2)
             ref, size = sl.expm(M)[:2], np.abs(sl.expm(np.abs(M)))[:2]
-            rho = float(L._pair_radius(jnp.asarray(mu), jnp.asarray(d)))
+            rho = float(pair_radius(jnp.asarray(mu), jnp.asarray(d)))
             # the bound holds: the eigenvalues' moduli are at most rho (from mu and d:
             # numerical eigenvalues of the defective C-LESO matrix are off by sqrt(eps))
             assert np.max(np.abs(mu + np.array([1, -1]) * np.sqrt(d))) <= rho * (1 + 1e-12)
@@ -410,10 +415,10 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
                 return np.concatenate([complex(e[0]) * np.eye(2) + complex(e[1]) * N
                                        for e in E], 1)
 
-            out = as_matrices(L._phi_pair_apply(jnp.asarray(mu), jnp.asarray(d)))
+            out = as_matrices(pair_apply(jnp.asarray(mu), jnp.asarray(d)))
             assert np.max(np.abs(out - ref) / size) < 1e-12, (T_s, w, rho)
             if rho <= L._PAIR_NORM:
-                ser = as_matrices(L._phi_pair(jnp.asarray(mu), jnp.asarray(d), squarings=0))
+                ser = as_matrices(pair_series(jnp.asarray(mu), jnp.asarray(d)))
                 assert np.max(np.abs(ser - ref) / size) < 1e-12, (T_s, w, rho)
             sides.add(rho <= L._PAIR_NORM)
             batch.append((mu, d, N, ref, size, rho))
@@ -422,7 +427,7 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
     # one that is all within the series' bound
     for sel in (batch, [b for b in batch if b[5] <= L._PAIR_NORM]):
         mus, ds = jnp.asarray([b[0] for b in sel]), jnp.asarray([b[1] for b in sel])
-        E = jax.vmap(L._phi_pair_apply)(mus, ds)
+        E = jax.jit(jax.vmap(L._phi_pair_apply))(mus, ds)
         for j, (mu, d, N, ref, size, rho) in enumerate(sel):
             out = np.concatenate([complex(e[0][j]) * np.eye(2) + complex(e[1][j]) * N
                                   for e in E], 1)
