@@ -20,12 +20,14 @@ Against what:
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import pmsmjax as pj
 from pmsmjax import analysis
+from pmsmjax.analysis import _generic
 from pmsmjax.observers import OperatingPoint
 
 
@@ -67,14 +69,18 @@ def _roots_numpy(w, i0):
     return np.sort(np.angle(np.exp(1j * np.asarray(roots))))
 
 
+#: the error dynamics, compiled once (op by op, each of their small operations would
+#: compile on its own)
+_rhs = jax.jit(lambda x, op: OBS.error_rhs(x, op, PLANT))
+
+
 def _fd_jacobian(x, op, scale):
     n = x.shape[0]
     J = np.zeros((n, n))
     for j in range(n):
         hj = 1e-6 * float(scale[j])
         e = jnp.zeros(n).at[j].set(hj)
-        J[:, j] = (np.asarray(OBS.error_rhs(x + e, op, PLANT))
-                   - np.asarray(OBS.error_rhs(x - e, op, PLANT))) / (2 * hj)
+        J[:, j] = (np.asarray(_rhs(x + e, op)) - np.asarray(_rhs(x - e, op))) / (2 * hj)
     return J
 
 
@@ -84,8 +90,9 @@ def test_closed_form_equilibria_against_independent_routes(sign):
     i0 = jnp.array(I0)
     eq = analysis.equilibria(OBS, PLANT, w, i0)
     op = OperatingPoint(w, i0)
-    # `analysis.equilibria` took the family's route
-    own = OBS.fast_equilibria(PLANT, op)
+    # `analysis.equilibria` took the family's route (compiled as one program)
+    own = _generic._fast_equilibria(OBS, PLANT, op)
+    assert own is not None
     np.testing.assert_array_equal(np.asarray(eq.theta), np.asarray(own.theta))
     assert int(eq.status) == 0
     n = int(eq.n)
@@ -100,10 +107,10 @@ def test_closed_form_equilibria_against_independent_routes(sign):
     rate = abs(w)
     for j in range(n):
         x = jnp.asarray(np.asarray(eq.x)[j])
-        f = np.asarray(OBS.error_rhs(x, op, PLANT)) / (scale * rate)
+        f = np.asarray(_rhs(x, op)) / (scale * rate)
         assert np.abs(f).max() < 1e-9
         # one degree away from it the angle error is not at rest
-        f_off = np.asarray(OBS.error_rhs(x.at[2].add(math.radians(1.0)), op, PLANT))
+        f_off = np.asarray(_rhs(x.at[2].add(math.radians(1.0)), op))
         assert np.abs(f_off / (scale * rate)).max() > 1e-3
         # Jacobian against central differences (relative step 1e-6: error ~1e-10 of the
         # largest entry, far below the 1e-6 allowed)
@@ -114,3 +121,18 @@ def test_closed_form_equilibria_against_independent_routes(sign):
         re = np.linalg.eigvals(J_fd).real
         assert np.abs(re).min() > 1e-6 * rate  # not marginal: the sign decides
         assert bool(np.asarray(eq.stable)[j]) == bool(np.all(re < 0))
+
+
+def test_a_new_operating_point_reuses_the_compiled_route():
+    """`analysis.equilibria` runs the family's closed form as one compiled program (op by
+    op it dispatched a few hundred single operations, each compiled on first use): a
+    second operating point (other values, same shapes) reuses that program."""
+    w_r = float(DRIVE.w_rated)
+    first = analysis.equilibria(OBS, PLANT, 0.3 * w_r, jnp.array(I0))
+    n = _generic._fast_equilibria._cached._cache_size()
+    assert n >= 1
+    eq = analysis.equilibria(OBS, PLANT, -0.4 * w_r, jnp.array((0.1, 2.0)))
+    assert _generic._fast_equilibria._cached._cache_size() == n
+    assert int(eq.status) == int(first.status) == 0
+    assert not np.allclose(np.asarray(eq.theta)[:int(eq.n)],
+                           np.asarray(first.theta)[:int(eq.n)])

@@ -388,11 +388,20 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
         observer, plant, w_m, i_dq, method=method, n_grid=n_grid, max_roots=max_roots,
         n_crit=n_crit, n_golden=n_golden, angle_weight=angle_weight,
         n_gauss_newton=n_gauss_newton, n_refine=n_refine, n_newton=n_newton, tol=tol)
-    if method == "auto":
-        fast = observer.fast_equilibria(plant, op)
+    if method == "auto" and (type(observer).fast_equilibria
+                             is not AbstractObserver.fast_equilibria):
+        fast = _fast_equilibria(observer, plant, op)
         if fast is not None:
             return fast
     return _equilibria(observer, plant, op, options)
+
+
+@eqx.filter_jit
+def _fast_equilibria(observer, plant, op):
+    """The family's own route (`observer.fast_equilibria`) as one compiled program: run
+    op by op, each of its small operations compiles on its own (the parallel-model
+    estimator's closed form: 183 of them: 4.2 s for the first call, 1.9 s compiled)."""
+    return observer.fast_equilibria(plant, op)
 
 
 def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n_crit,
