@@ -49,11 +49,12 @@ def test_lyapunov_solve_matches_scipy_and_is_positive_definite():
 
 
 def test_lyapunov_derivative_matches_finite_differences():
+    @jax.jit  # compiled (op by op, each of its small operations compiles on its own)
     def P(w):
         return analysis.lyapunov_solve(_A(w))
 
     w, h = 0.4 * DRIVE.w_rated, 1e-3
-    dP = jax.jacfwd(P)(w)
+    dP = jax.jit(jax.jacfwd(P))(w)
     fd = (P(w + h) - P(w - h)) / (2 * h)
     np.testing.assert_allclose(dP, fd, rtol=1e-5, atol=1e-9 * float(jnp.abs(dP).max()))
 
