@@ -390,13 +390,14 @@ def test_design_map_over_any_two_parameters_matches_the_closed_form():
     z, r = np.linspace(0.3, 3.0, 4), np.linspace(0.3, 2.0, 3)
     kw = dict(i_dq=(0.0, 2.0))
     fast = analysis.design_map(obs, drive, [0.2], ("zeta1", z), ("ratio", r), **kw)
-    gen = analysis.design_map(obs, drive, [0.2], ("zeta1", z), ("ratio", r),
-                              method="generic", **kw)
     old = analysis.feasibility_map(drive, [0.2], z, r, **kw)
-    assert fast.method == "closed_form" and gen.method == "generic"
-    np.testing.assert_array_equal(np.asarray(fast.status), np.asarray(gen.status))
-    np.testing.assert_array_equal(np.asarray(old.status), np.asarray(gen.status))
-    assert np.any(np.asarray(gen.status) == 1) and np.any(np.asarray(gen.status) == 0)
+    assert fast.method == "closed_form"
+    np.testing.assert_array_equal(np.asarray(old.status), np.asarray(fast.status))
+    assert np.any(np.asarray(fast.status) == 1) and np.any(np.asarray(fast.status) == 0)
+    # the generic route's map against the closed form, on the same salient machine and
+    # current (other axes: w2 x zeta2): notebooks/03_feasibility_and_convergence.ipynb,
+    # section 3, asserts that they are equal; the classification itself against the
+    # quartic: test_generic_route_agrees_with_the_quartic_on_10000_designs
     # axes that are not zhang2022's: bandwidth x damping of the speed loop, with mismatch
     mism = obs.with_motor(pj.replace_params(drive, L_q=9e-3).three_phase_motor)
     other = analysis.design_map(mism, drive, [0.3], ("w2", [150.0, 300.0]),
