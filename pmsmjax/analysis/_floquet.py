@@ -23,6 +23,7 @@ import jax.numpy as jnp
 
 from .._params import PMSMParams
 from ..observers._base import AbstractObserver, OperatingPoint
+from ._equilibria import as_arrays
 from ._generic import check_observer, check_plant
 
 
@@ -50,12 +51,22 @@ def floquet(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
     true machine `plant`, over one electrical period from rotor angle `theta0` (rad);
     `n_steps` exponential-midpoint steps per period (static; error
     O((2 pi / n_steps)^2) in the angle dependence, stable for any stiffness).
-    Pure: vmap over any argument."""
+    Pure: vmap over any argument. Compiled once per observer structure and `n_steps`: a new
+    speed, current, angle or design reuses the program (run op by op, every call compiled
+    its loop over the period anew)."""
     check_observer("floquet", observer)
     check_plant("floquet", plant)
     if not isinstance(n_steps, int) or n_steps < 4:
         raise ValueError(f"`floquet(n_steps=...)` must be an int >= 4; got {n_steps!r}.")
     dtype = jnp.result_type(w_m, float)
+    observer, plant = as_arrays(observer, dtype, ints=False), as_arrays(plant, dtype, ints=False)
+    return _floquet(observer, plant, jnp.asarray(w_m, dtype), jnp.asarray(i_dq, dtype),
+                    jnp.asarray(theta0, dtype), n_steps)
+
+
+@eqx.filter_jit
+def _floquet(observer, plant, w_m, i_dq, theta0, n_steps):
+    dtype = w_m.dtype
     w = jnp.asarray(w_m, dtype)
     i0 = jnp.asarray(i_dq, dtype)
     n = observer.coordinates.n

@@ -746,9 +746,22 @@ def discrete_error_run(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq,
                        x0, n_steps: int):
     """Iterate `discrete_error_map` `n_steps` times from `x0` (the discrete observer in a
     closed loop with ideal current control at constant speed). Returns the error
-    coordinates `(n_steps + 1, n)` at t_0 ... t_N (SI units)."""
-    x0 = jnp.asarray(x0, float)
+    coordinates `(n_steps + 1, n)` at t_0 ... t_N (SI units). Compiled once per observer
+    structure and `n_steps` (static), as `discrete_jacobian`: a new speed, current, period,
+    start or design reuses the program (run op by op, every call compiled its loop anew)."""
+    check_observer("discrete_error_run", observer)
+    check_plant("discrete_error_run", plant)
+    if not isinstance(n_steps, int) or n_steps < 1:
+        raise ValueError(f"`discrete_error_run(n_steps=...)` must be an int >= 1; got "
+                         f"{n_steps!r}.")
+    observer, plant = as_arrays(observer, float, ints=False), as_arrays(plant, float, ints=False)
+    return _discrete_error_run(observer, plant, jnp.asarray(w_m, float),
+                               jnp.asarray(i_dq, float), jnp.asarray(T_s, float),
+                               jnp.asarray(x0, float), n_steps)
 
+
+@eqx.filter_jit
+def _discrete_error_run(observer, plant, w_m, i_dq, T_s, x0, n_steps):
     def body(carry, k):
         x = carry
         fn = discrete_error_map(observer, plant, w_m, i_dq, T_s, theta_k=k * w_m * T_s)

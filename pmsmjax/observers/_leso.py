@@ -695,21 +695,9 @@ class AbstractBackEMFLESO(AbstractObserver):
         frame and $\sigma = \mathrm{sign}\,\omega$. The rotor-frame current
         $e^{-\tilde\theta J}i_0$ depends on $\tilde\theta$ when the model is mismatched,
         so this is iterated (`n_iter` fixed-point steps; exact after one step with a
-        matched model)."""
-        m = self.motor
-        n = self.n_s
-        w = jnp.asarray(op.w_m, float)
-        i0 = jnp.asarray(op.i_dq, w.dtype)
-        sg = jnp.sign(w)
-        _, _, C, Dx, _ = self._matrices(w)
-
-        def body(th, _):
-            eps_s, s_s = self._steady_truth(plant, w, rotate(i0, -th))
-            e_dq = -m.L_q * (C @ s_s + Dx @ eps_s)
-            return jnp.arctan2(sg * e_dq[0], sg * e_dq[1]), None
-
-        th, _ = jax.lax.scan(body, jnp.zeros((), w.dtype), None, length=n_iter)
-        return jnp.zeros(n + 4, w.dtype).at[2 + n].set(th)
+        matched model). Compiled once per observer (its loop, run op by op, compiled anew
+        at every call; the operating point's numbers are its inputs)."""
+        return _designed_error(self, jax.tree_util.tree_map(jnp.asarray, op), plant, n_iter)
 
 
 def _coords(s_names, s_units, s_doc):
@@ -735,6 +723,26 @@ def _check_pll(owner, pll):
 
 def _scale(drive: Drive) -> float:
     return float(drive.w_rated) / _W_REF
+
+
+@eqx.filter_jit
+def _designed_error(obs: AbstractBackEMFLESO, op: OperatingPoint, plant: PMSMParams,
+                    n_iter: int):
+    """`AbstractBackEMFLESO.designed_error`."""
+    m = obs.motor
+    n = obs.n_s
+    w = jnp.asarray(op.w_m, float)
+    i0 = jnp.asarray(op.i_dq, w.dtype)
+    sg = jnp.sign(w)
+    _, _, C, Dx, _ = obs._matrices(w)
+
+    def body(th, _):
+        eps_s, s_s = obs._steady_truth(plant, w, rotate(i0, -th))
+        e_dq = -m.L_q * (C @ s_s + Dx @ eps_s)
+        return jnp.arctan2(sg * e_dq[0], sg * e_dq[1]), None
+
+    th, _ = jax.lax.scan(body, jnp.zeros((), w.dtype), None, length=n_iter)
+    return jnp.zeros(n + 4, w.dtype).at[2 + n].set(th)
 
 
 class CLESOObserver(AbstractBackEMFLESO):
