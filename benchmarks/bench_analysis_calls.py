@@ -1,0 +1,114 @@
+"""Analysis entry points called outside `jit`, as a notebook or a script calls them: the
+first call (compilation included) and later calls with new values.
+
+Entry points whose body is a `lax` loop or a long chain of small operations cost a compile
+per call, or one per operation, when they are not compiled as one program. Measured here,
+each in a fresh process (the users' flags unless `--quick`, no compilation cache):
+
+- `equilibria`: the parallel-model estimator's closed form (`fast_equilibria`), stumper_mt5
+  with a mismatched model;
+- `designed_error`: the C-LESO's designed equilibrium (a fixed-point loop), li_dtp;
+- `floquet`: the rotor-flux observer's Floquet multipliers (a loop over one period),
+  morawiec_ipm3k5;
+- `discrete_error_run`: 200 steps of the rotor-flux observer's discrete error map.
+
+Each row: the first call (s), the median of five later calls at other speeds (s), and the
+number of XLA compilations in each (JAX's compile events).
+
+Usage:
+
+    .venv/bin/python benchmarks/bench_analysis_calls.py [--quick] [--out FILE.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+
+CASES = ("equilibria/parallel-model", "designed_error/c-leso", "floquet/rotor-flux",
+         "discrete_error_run/rotor-flux")
+
+CHILD = r"""
+import json, statistics, sys, time
+import pmsmjax as pj
+pj.runtime.configure(cache=False)
+import jax, jax.numpy as jnp
+import jax.monitoring as mon
+from pmsmjax import analysis
+from pmsmjax.observers import OperatingPoint, make_observer
+
+n_comp = [0]
+mon.register_event_duration_secs_listener(
+    lambda e, d, **k: n_comp.__setitem__(0, n_comp[0] + 1)
+    if e == "/jax/core/compile/backend_compile_duration" else None)
+case = sys.argv[1]
+fn_name, obs_name = case.split("/")
+preset = {"parallel-model": "stumper_mt5", "c-leso": "li_dtp",
+          "rotor-flux": "morawiec_ipm3k5"}[obs_name]
+drive = pj.preset(preset)
+plant = drive.three_phase_motor
+obs = make_observer(obs_name, drive)
+if obs_name == "parallel-model":
+    obs = obs.with_motor(pj.PMSMParams(R_s=1.5, L_d=4.0e-3, L_q=9.0e-3, psi_f=0.25,
+                                       n_p=3.0))
+i0 = jnp.array([0.3, -3.0]) if obs_name == "parallel-model" else jnp.array([0.0, 2.0])
+w_r = float(drive.w_rated)
+
+
+def call(s):
+    w = s * w_r
+    if fn_name == "equilibria":
+        return analysis.equilibria(obs, plant, w, i0).theta
+    if fn_name == "designed_error":
+        return obs.designed_error(OperatingPoint(w, i0), plant)
+    if fn_name == "floquet":
+        return analysis.floquet(obs, plant, w, i0).max_real
+    return analysis.discrete_error_run(obs, plant, w, i0, 1 / 6600, jnp.zeros(4), 200)
+
+
+t0 = time.perf_counter()
+jax.block_until_ready(call(0.3))
+first, c_first = time.perf_counter() - t0, n_comp[0]
+times = []
+for s in (-0.4, 0.5, 0.6, -0.7, 0.8):
+    t0 = time.perf_counter()
+    jax.block_until_ready(call(s))
+    times.append(time.perf_counter() - t0)
+print(json.dumps(dict(case=case, first_s=first, first_compiles=c_first,
+                      later_s=statistics.median(times),
+                      later_compiles=(n_comp[0] - c_first) / len(times))))
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="quick compiles (PMSMJAX_QUICK_COMPILE=1, the test suite's)")
+    ap.add_argument("--out", default="results/bench_analysis_calls.json")
+    args = ap.parse_args(argv)
+    env = dict(os.environ, PMSMJAX_QUICK_COMPILE="1" if args.quick else "0")
+    rows = []
+    print(f"{'entry point / observer':32s} {'first s':>8s} {'compiles':>8s} "
+          f"{'later s':>9s} {'compiles':>8s}")
+    for case in CASES:
+        res = subprocess.run([sys.executable, "-c", CHILD, case], env=env, check=True,
+                             capture_output=True, text=True)
+        r = json.loads(res.stdout.strip().splitlines()[-1])
+        rows.append(r)
+        print(f"{case:32s} {r['first_s']:8.2f} {r['first_compiles']:8d} "
+              f"{r['later_s']:9.4f} {r['later_compiles']:8.1f}", flush=True)
+    from _report import write_report
+
+    write_report(args.out, rows, quick_compiles=args.quick)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
