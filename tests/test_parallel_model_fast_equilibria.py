@@ -125,7 +125,7 @@ def test_closed_form_equilibria_against_independent_routes(sign):
 
 def test_a_new_operating_point_reuses_the_compiled_route():
     """`analysis.equilibria` runs the family's closed form as one compiled program (op by
-    op it dispatched a few hundred single operations, each compiled on first use): a
+    op it dispatched about 180 single operations, each compiled on first use): a
     second operating point (other values, same shapes) reuses that program."""
     w_r = float(DRIVE.w_rated)
     first = analysis.equilibria(OBS, PLANT, 0.3 * w_r, jnp.array(I0))

@@ -23,8 +23,7 @@ import jax.numpy as jnp
 
 from .._params import PMSMParams
 from ..observers._base import AbstractObserver, OperatingPoint
-from ._equilibria import as_arrays
-from ._generic import check_observer, check_plant
+from ._generic import _program_inputs, check_observer, check_plant
 
 
 class Floquet(eqx.Module):
@@ -59,7 +58,7 @@ def floquet(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
     if not isinstance(n_steps, int) or n_steps < 4:
         raise ValueError(f"`floquet(n_steps=...)` must be an int >= 4; got {n_steps!r}.")
     dtype = jnp.result_type(w_m, float)
-    observer, plant = as_arrays(observer, dtype, ints=False), as_arrays(plant, dtype, ints=False)
+    observer, plant = _program_inputs(observer, plant, dtype)
     return _floquet(observer, plant, jnp.asarray(w_m, dtype), jnp.asarray(i_dq, dtype),
                     jnp.asarray(theta0, dtype), n_steps)
 

@@ -696,6 +696,14 @@ def discrete_error_map(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq,
     return fn
 
 
+def _program_inputs(observer, plant, dtype=float):
+    """`observer` and `plant` with their float values (design, machine parameters) as
+    arrays of `dtype`: inputs of a compiled program, not constants compiled into it, so
+    another design or a mismatched model reuses the program (Python ints, an observer's
+    counts and sizes, stay as they are)."""
+    return as_arrays(observer, dtype, ints=False), as_arrays(plant, dtype, ints=False)
+
+
 def discrete_jacobian(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, T_s, *,
                       x=None, theta_k=0.0):
     r"""The Jacobian $\partial x_{k+1} / \partial x_k$ of one real `observer.step` in
@@ -708,9 +716,7 @@ def discrete_jacobian(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq, 
     state are the program's inputs, so a sweep over any of them, or `jax.vmap` over them,
     reuses one program (run op by op, one Jacobian of a LESO took seconds). Returns
     `(n, n)`."""
-    # float values (design, machine parameters) as arrays: inputs of the program, not
-    # constants compiled in, so another design or a mismatched model reuses it
-    observer, plant = as_arrays(observer, float, ints=False), as_arrays(plant, float, ints=False)
+    observer, plant = _program_inputs(observer, plant)
     return _discrete_jacobian(observer, plant, jnp.asarray(w_m, float),
                               jnp.asarray(i_dq, float), jnp.asarray(T_s, float),
                               jnp.asarray(theta_k, float),
@@ -754,7 +760,7 @@ def discrete_error_run(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq,
     if not isinstance(n_steps, int) or n_steps < 1:
         raise ValueError(f"`discrete_error_run(n_steps=...)` must be an int >= 1; got "
                          f"{n_steps!r}.")
-    observer, plant = as_arrays(observer, float, ints=False), as_arrays(plant, float, ints=False)
+    observer, plant = _program_inputs(observer, plant)
     return _discrete_error_run(observer, plant, jnp.asarray(w_m, float),
                                jnp.asarray(i_dq, float), jnp.asarray(T_s, float),
                                jnp.asarray(x0, float), n_steps)
