@@ -30,9 +30,12 @@ def _bounded_memory_maps():
     """A worker runs hundreds of tests and compiles thousands of programs, each holding
     memory mappings until dropped; at the system's limit (vm.max_map_count) the next
     compilation kills the worker (pmsmjax.runtime: "Long-running processes"). Drop the
-    compiled programs whenever a third of the limit is used."""
+    compiled programs whenever half of the limit is used: a release costs 7 to 10 s, and
+    the later tests compile their shared programs again. The other half is far more than
+    one test adds (a whole worker's run reached about 30,000 mappings halfway, before
+    releases existed)."""
     yield
-    pmsmjax.runtime.release_compiled(1 / 3)
+    pmsmjax.runtime.release_compiled(1 / 2)
 
 
 @pytest.fixture
