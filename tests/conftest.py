@@ -48,28 +48,60 @@ def getkey():
     return _getkey
 
 
-# The longest tests first (measured wall times in BENCHMARKS.md, "The test suite's time").
-# pytest-xdist hands tests to its workers in collection order, so a long test collected
-# last keeps one worker busy while the other has nothing left: started first, the short
-# tests fill in around it. Most of these wait on a subprocess or a notebook's kernel.
-# Only the order changes: every test runs, each on its own (none of these has a
-# module-scoped fixture that moving it would set up twice).
+# How the two workers share the work. pytest-xdist's default (`-n 2`, `--dist load`)
+# hands out single tests, so the tests of one module land on both workers, and each
+# worker sets up the module's fixtures and compiles the programs its tests share (the
+# persistent compilation cache shares only XLA's part of the larger ones, not the
+# tracing). Here the unit of work is a test module, and each notebook one of its own
+# (`pytest_xdist_make_scheduler` below). xdist hands the units out in the order of their
+# first test, so the longest go first (measured wall times in BENCHMARKS.md, "The test
+# suite's time"): the run then does not end with one worker on a long module while the
+# other has nothing left. Only the order and the grouping change: every test runs.
 LONGEST_FIRST = (
     "tests/test_notebooks.py::test_notebook_runs[03_",
-    "tests/test_notebooks.py::test_notebook_runs[04_",
     "tests/test_notebooks.py::test_notebook_runs[05_",
-    "tests/test_readme_commands.py::test_readme_command_lines_run",
-    "tests/test_main_job.py::test_main_job_quick",
-    "tests/test_notebooks.py::test_notebook_runs[09_",
+    "tests/test_notebooks.py::test_notebook_runs[04_",
+    "tests/test_contract.py::",
+    "tests/test_readme_commands.py::",
     "tests/test_notebooks.py::test_notebook_runs[02_",
-    "tests/test_notebooks.py::test_notebook_runs[08_",
+    "tests/test_notebooks.py::test_notebook_runs[09_",
+    "tests/test_li_leso.py::",
+    "tests/test_compare.py::",
+    "tests/test_runtime.py::",
+    "tests/test_main_job.py::",
     "tests/test_notebooks.py::test_notebook_runs[07_",
-    "tests/test_runtime.py::test_quick_compiles_give_the_same_numbers",
-    "tests/test_runtime.py::test_cache_is_filled_reused_and_cleared",
+    "tests/test_harmonic_ripple.py::",
+    "tests/test_identify.py::",
+    "tests/test_notebooks.py::test_notebook_runs[08_",
+    "tests/test_rotor_flux.py::",
+    "tests/test_replay_lock.py::",
     "tests/test_notebooks.py::test_notebook_runs[06_",
-    "tests/test_docs.py::test_docs_build_strict",
+    "tests/test_tuning.py::",
+    "tests/test_cli_analysis.py::",
+    "tests/test_feasibility.py::",
+    "tests/test_firmware_plots.py::",
+    "tests/test_lyapunov.py::",
+    "tests/test_equilibria.py::",
+    "tests/test_docs.py::",
     "tests/test_notebooks.py::test_notebook_runs[01_",
 )
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """Under `--dist load` (the default of `-n`), one test module per unit of work and
+    one notebook per unit (see LONGEST_FIRST); any other `--dist` keeps xdist's own."""
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            if nodeid.startswith("tests/test_notebooks.py::test_notebook_runs["):
+                return nodeid
+            return nodeid.split("::", 1)[0]
+
+    config.option.loadscopereorder = False  # keep LONGEST_FIRST's order
+    return ModuleScheduling(config, log)
 
 
 def _rank(nodeid: str) -> int:
