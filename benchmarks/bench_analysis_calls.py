@@ -10,14 +10,17 @@ each in a fresh process (the users' flags unless `--quick`, no compilation cache
 - `designed_error`: the C-LESO's designed equilibrium (a fixed-point loop), li_dtp;
 - `floquet`: the rotor-flux observer's Floquet multipliers (a loop over one period),
   morawiec_ipm3k5;
-- `discrete_error_run`: 200 steps of the rotor-flux observer's discrete error map.
+- `discrete_error_run`: 200 steps of the rotor-flux observer's discrete error map;
+- `slowly_varying_certificate`: zhang2022 §V's certificate of the LESO with the (38)
+  schedule over 0.1-1 p.u., zhang750; the later calls with other w2 (its default
+  resolution: 101 speeds, about 200,000 small matrix exponentials).
 
 Each row: the first call (s), the median of five later calls at other speeds (s), and the
 number of XLA compilations in each (JAX's compile events).
 
-Usage:
+Usage (an older tree: `PYTHONPATH=<its checkout>` in front):
 
-    .venv/bin/python benchmarks/bench_analysis_calls.py [--quick] [--out FILE.json]
+    .venv/bin/python benchmarks/bench_analysis_calls.py [--quick] [--case CASE] [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 CASES = ("equilibria/parallel-model", "designed_error/c-leso", "floquet/rotor-flux",
-         "discrete_error_run/rotor-flux")
+         "discrete_error_run/rotor-flux", "slowly_varying_certificate/leso")
 
 CHILD = r"""
 import json, statistics, sys, time
@@ -51,7 +54,7 @@ mon.register_event_duration_secs_listener(
 case = sys.argv[1]
 fn_name, obs_name = case.split("/")
 preset = {"parallel-model": "stumper_mt5", "c-leso": "li_dtp",
-          "rotor-flux": "morawiec_ipm3k5"}[obs_name]
+          "rotor-flux": "morawiec_ipm3k5", "leso": "zhang750"}[obs_name]
 drive = pj.preset(preset)
 plant = drive.three_phase_motor
 obs = make_observer(obs_name, drive)
@@ -70,6 +73,10 @@ def call(s):
         return obs.designed_error(OperatingPoint(w, i0), plant)
     if fn_name == "floquet":
         return analysis.floquet(obs, plant, w, i0).max_real
+    if fn_name == "slowly_varying_certificate":
+        w2 = jnp.asarray(2 * 3.141592653589793 * 50 * (1 + abs(s)))  # a value: one program
+        design = make_observer("leso", drive, w2=w2)
+        return analysis.slowly_varying_certificate(drive, design, (0.1, 1.0)).eps
     return analysis.discrete_error_run(obs, plant, w, i0, 1 / 6600, jnp.zeros(4), 200)
 
 
@@ -92,12 +99,17 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="quick compiles (PMSMJAX_QUICK_COMPILE=1, the test suite's)")
     ap.add_argument("--out", default="results/bench_analysis_calls.json")
+    ap.add_argument("--case", action="append", choices=CASES,
+                    help="only this case (repeatable; default: all)")
     args = ap.parse_args(argv)
-    env = dict(os.environ, PMSMJAX_QUICK_COMPILE="1" if args.quick else "0")
+    # PYTHONSAFEPATH (Python >= 3.11): the child does not import the pmsmjax of the
+    # working directory, so `PYTHONPATH=<another checkout>` measures that checkout
+    env = dict(os.environ, PMSMJAX_QUICK_COMPILE="1" if args.quick else "0",
+               PYTHONSAFEPATH="1")
     rows = []
     print(f"{'entry point / observer':32s} {'first s':>8s} {'compiles':>8s} "
           f"{'later s':>9s} {'compiles':>8s}")
-    for case in CASES:
+    for case in args.case or CASES:
         res = subprocess.run([sys.executable, "-c", CHILD, case], env=env, check=True,
                              capture_output=True, text=True)
         r = json.loads(res.stdout.strip().splitlines()[-1])
