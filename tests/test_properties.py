@@ -95,7 +95,9 @@ design = st.tuples(
 
 
 @settings(max_examples=25, deadline=None)
-@given(points=st.lists(design, min_size=1, max_size=8))
+# eight designs in every example: one compiled program per dtype (a batch of 1 to 8
+# compiled one per size and dtype, 17 s against 3 s; the property is per design)
+@given(points=st.lists(design, min_size=8, max_size=8))
 def test_classify_status_is_always_defined_and_float32_agrees(points):
     p = np.asarray(points)
     w0 = p[:, 0] * DRIVE.w_rated
