@@ -51,7 +51,7 @@ def test_lyapunov_solve_matches_scipy_and_is_positive_definite():
 def test_small_matrix_exponential_matches_scipy_at_every_scale():
     """The certificate's exp(M) (scaling and squaring, [13/13] Pade) against SciPy's over
     the time scales `_k_of_gamma` reaches: from a tenth of the fastest time constant to
-    far beyond the slowest (1-norms up to 1e7, about 20 squarings, past the 16 that jax's
+    far beyond the slowest (1-norms up to 1e6, 18 squarings, past the 16 that jax's
     default allows), for the stable linearisations and for their shifts A + gamma I."""
     from pmsmjax.analysis._lyapunov import _expm
 
