@@ -39,7 +39,7 @@ CASES = ("equilibria/parallel-model", "designed_error/c-leso", "floquet/rotor-fl
          "discrete_error_run/rotor-flux", "slowly_varying_certificate/leso")
 
 CHILD = r"""
-import json, statistics, sys, time
+import json, math, statistics, sys, time
 import pmsmjax as pj
 pj.runtime.configure(cache=False)
 import jax, jax.numpy as jnp
@@ -74,7 +74,7 @@ def call(s):
     if fn_name == "floquet":
         return analysis.floquet(obs, plant, w, i0).max_real
     if fn_name == "slowly_varying_certificate":
-        w2 = jnp.asarray(2 * 3.141592653589793 * 50 * (1 + abs(s)))  # a value: one program
+        w2 = jnp.asarray(2 * math.pi * 50 * (1 + abs(s)))  # a value: one program
         design = make_observer("leso", drive, w2=w2)
         return analysis.slowly_varying_certificate(drive, design, (0.1, 1.0)).eps
     return analysis.discrete_error_run(obs, plant, w, i0, 1 / 6600, jnp.zeros(4), 200)

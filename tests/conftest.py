@@ -57,25 +57,26 @@ def getkey():
 # first test, so the longest go first (measured wall times in BENCHMARKS.md, "The test
 # suite's time"): the run then does not end with one worker on a long module while the
 # other has nothing left. Only the order and the grouping change: every test runs.
+NOTEBOOK_TEST = "tests/test_notebooks.py::test_notebook_runs["  # + the notebook's file name
 LONGEST_FIRST = (
-    "tests/test_notebooks.py::test_notebook_runs[03_",
-    "tests/test_notebooks.py::test_notebook_runs[05_",
-    "tests/test_notebooks.py::test_notebook_runs[04_",
+    NOTEBOOK_TEST + "03_",
+    NOTEBOOK_TEST + "05_",
+    NOTEBOOK_TEST + "04_",
     "tests/test_contract.py::",
     "tests/test_readme_commands.py::",
-    "tests/test_notebooks.py::test_notebook_runs[02_",
-    "tests/test_notebooks.py::test_notebook_runs[09_",
+    NOTEBOOK_TEST + "02_",
+    NOTEBOOK_TEST + "09_",
     "tests/test_li_leso.py::",
     "tests/test_compare.py::",
     "tests/test_runtime.py::",
     "tests/test_main_job.py::",
-    "tests/test_notebooks.py::test_notebook_runs[07_",
+    NOTEBOOK_TEST + "07_",
     "tests/test_harmonic_ripple.py::",
     "tests/test_identify.py::",
-    "tests/test_notebooks.py::test_notebook_runs[08_",
+    NOTEBOOK_TEST + "08_",
     "tests/test_rotor_flux.py::",
     "tests/test_replay_lock.py::",
-    "tests/test_notebooks.py::test_notebook_runs[06_",
+    NOTEBOOK_TEST + "06_",
     "tests/test_tuning.py::",
     "tests/test_cli_analysis.py::",
     "tests/test_feasibility.py::",
@@ -83,7 +84,7 @@ LONGEST_FIRST = (
     "tests/test_lyapunov.py::",
     "tests/test_equilibria.py::",
     "tests/test_docs.py::",
-    "tests/test_notebooks.py::test_notebook_runs[01_",
+    NOTEBOOK_TEST + "01_",
 )
 
 
@@ -96,7 +97,7 @@ def pytest_xdist_make_scheduler(config, log):
 
     class ModuleScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            if nodeid.startswith("tests/test_notebooks.py::test_notebook_runs["):
+            if nodeid.startswith(NOTEBOOK_TEST):
                 return nodeid
             return nodeid.split("::", 1)[0]
 

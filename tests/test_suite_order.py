@@ -16,11 +16,13 @@ def test_the_work_order_names_existing_modules_and_notebooks():
         seen.add(prefix)
         path, _, rest = prefix.partition("::")
         assert (ROOT / path).is_file(), prefix
-        if rest:
-            assert rest.startswith("test_notebook_runs["), prefix
-            stem = rest[len("test_notebook_runs["):]
+        if prefix.startswith(conftest.NOTEBOOK_TEST):
+            stem = prefix[len(conftest.NOTEBOOK_TEST):]
             assert len(list((ROOT / "notebooks").glob(stem + "*.ipynb"))) == 1, prefix
+        else:
+            assert rest == "", prefix  # a whole module
     # every notebook is ordered (each is a unit of work of its own)
+    stems = [p[len(conftest.NOTEBOOK_TEST):] for p in conftest.LONGEST_FIRST
+             if p.startswith(conftest.NOTEBOOK_TEST)]
     for nb in (ROOT / "notebooks").glob("*.ipynb"):
-        assert any(nb.name.startswith(p.split("[", 1)[1]) for p in conftest.LONGEST_FIRST
-                   if "[" in p), nb.name
+        assert any(nb.name.startswith(stem) for stem in stems), nb.name
