@@ -304,3 +304,35 @@ def test_generic_routes_small_linear_algebra(m):
     Ms[2, -1] = Ms[2, 0]  # singular (for m > 1)
     d = jax.jit(jax.vmap(_det))(jnp.asarray(Ms))
     np.testing.assert_allclose(d, np.linalg.det(Ms), rtol=1e-10, atol=1e-12)
+
+
+def test_fal_reduction_solve_and_its_derivative():
+    """The fal reduction's inner solve s(u.b) (a safeguarded Newton that stops at rounding
+    level, differentiated through one Newton step from its root): phi(s) = 0 to rounding
+    on a dense angle grid, also where the root is the end of the starting bracket (fal's
+    linear zone), and dr/dtheta by jax.grad equals central differences."""
+    from pmsmjax.analysis._equilibria import _make_reduction
+
+    m, mh = SALIENT, pj.scale_motor(SALIENT, {"R_s": 1.2, "L_q": 0.8, "psi_f": 0.9})
+    w0, i0 = 0.4 * float(DRIVE.w_rated), jnp.array([0.5, 3.0])
+    obs = pj.ESOObserver(mh, pj.ESODesign.zhang38(DRIVE.w_rated), a=0.6, eta=0.05 * m.psi_f)
+    red, ok = _make_reduction(jnp.float64(w0), i0, obs.linear_gains(w0, i0), m, mh,
+                              jnp.float64(0.6), jnp.float64(0.05 * m.psi_f), False)
+    assert bool(ok)
+    th = jnp.linspace(-math.pi, math.pi, 2001)
+    ub = jax.vmap(lambda t: jnp.dot(red.u, red.b(t)))(th)
+    s = jax.vmap(red.s_of)(ub)
+    phi = jax.vmap(lambda s_, ub_: jnp.dot(red.u, red.c(s_)) - ub_)(s, ub)
+    scale = jnp.abs(ub) + jnp.abs(s)
+    assert float(jnp.max(jnp.abs(phi) / scale)) < 1e-13
+    # both regimes occur: roots inside fal's linear zone (|s u_k| eta^(a-1) <= eta^a for
+    # both k) and outside it
+    lin = jnp.all(jnp.abs(s[:, None] * red.u) <= red.eta, axis=-1)
+    assert bool(jnp.any(lin)) and bool(jnp.any(~lin))
+    # dr/dtheta against central differences
+    h = 1e-6
+    t = th[::50]
+    g = jax.vmap(jax.grad(red.r))(t)
+    fd = (jax.vmap(red.r)(t + h) - jax.vmap(red.r)(t - h)) / (2 * h)
+    np.testing.assert_allclose(np.asarray(g), np.asarray(fd), rtol=1e-6,
+                               atol=1e-6 * float(jnp.max(jnp.abs(fd))))
