@@ -42,8 +42,9 @@ The zeros are bracketed by sign changes of $r$ on a periodic grid offset by half
 bisection until it is below tolerance or at rounding level (plus one Newton step),
 vmapped over brackets with a fixed number of slots and a validity mask. Two zeros
 closer than a grid step leave no sign change of $r$ but a sign change of $r'$
-(`jax.grad`) in their cell: such a cell is refined to the extremum $r'(\tilde\theta_c) = 0$ (plain bisection on $r'$); if $r(\tilde\theta_c)$ has
-the opposite sign both halves are bracketed, and if it is zero (to tolerance) the double
+(`jax.grad`) in their cell: such a cell is refined to the extremum
+$r'(\tilde\theta_c) = 0$ (plain bisection on $r'$); if $r(\tilde\theta_c)$ has the
+opposite sign both halves are bracketed, and if it is zero (to tolerance) the double
 zero is reported as a `tangent` equilibrium (a saddle-node: its Jacobian is singular, so
 it is never classified stable). Tangencies are the boundary between 1 and 3 nonzero
 equilibria, a measure-zero set of designs. Not resolved: more than two zeros, or two
