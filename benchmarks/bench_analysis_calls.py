@@ -6,7 +6,9 @@ per call, or one per operation, when they are not compiled as one program. Measu
 each in a fresh process (the users' flags unless `--quick`, no compilation cache):
 
 - `equilibria`: the parallel-model estimator's closed form (`fast_equilibria`), stumper_mt5
-  with a mismatched model;
+  with a mismatched model; zhang2022's ESO with fal feedback (the reduction
+  `eso_equilibria`, which `method="auto"` takes for fal), zhang750 made salient
+  (L_q = 4 L_d) with a model 20 % off in R_s, L_q and psi_f;
 - `designed_error`: the C-LESO's designed equilibrium (a fixed-point loop), li_dtp;
 - `floquet`: the rotor-flux observer's Floquet multipliers (a loop over one period),
   morawiec_ipm3k5;
@@ -35,8 +37,9 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
-CASES = ("equilibria/parallel-model", "designed_error/c-leso", "floquet/rotor-flux",
-         "discrete_error_run/rotor-flux", "slowly_varying_certificate/leso")
+CASES = ("equilibria/parallel-model", "equilibria/eso", "designed_error/c-leso",
+         "floquet/rotor-flux", "discrete_error_run/rotor-flux",
+         "slowly_varying_certificate/leso")
 
 CHILD = r"""
 import json, math, statistics, sys, time
@@ -54,13 +57,17 @@ mon.register_event_duration_secs_listener(
 case = sys.argv[1]
 fn_name, obs_name = case.split("/")
 preset = {"parallel-model": "stumper_mt5", "c-leso": "li_dtp",
-          "rotor-flux": "morawiec_ipm3k5", "leso": "zhang750"}[obs_name]
+          "rotor-flux": "morawiec_ipm3k5", "leso": "zhang750", "eso": "zhang750"}[obs_name]
 drive = pj.preset(preset)
+if obs_name == "eso":
+    drive = pj.replace_params(drive, L_d=1.5e-3, L_q=6.0e-3)
 plant = drive.three_phase_motor
 obs = make_observer(obs_name, drive)
 if obs_name == "parallel-model":
     obs = obs.with_motor(pj.PMSMParams(R_s=1.5, L_d=4.0e-3, L_q=9.0e-3, psi_f=0.25,
                                        n_p=3.0))
+if obs_name == "eso":
+    obs = obs.with_motor(pj.scale_motor(plant, {"R_s": 1.2, "L_q": 0.8, "psi_f": 0.8}))
 i0 = jnp.array([0.3, -3.0]) if obs_name == "parallel-model" else jnp.array([0.0, 2.0])
 w_r = float(drive.w_rated)
 

@@ -319,20 +319,24 @@ def test_fal_reduction_solve_and_its_derivative():
     red, ok = _make_reduction(jnp.float64(w0), i0, obs.linear_gains(w0, i0), m, mh,
                               jnp.float64(0.6), jnp.float64(0.05 * m.psi_f), False)
     assert bool(ok)
-    th = jnp.linspace(-math.pi, math.pi, 2001)
-    ub = jax.vmap(lambda t: jnp.dot(red.u, red.b(t)))(th)
-    s = jax.vmap(red.s_of)(ub)
-    phi = jax.vmap(lambda s_, ub_: jnp.dot(red.u, red.c(s_)) - ub_)(s, ub)
-    scale = jnp.abs(ub) + jnp.abs(s)
-    assert float(jnp.max(jnp.abs(phi) / scale)) < 1e-13
+    h = 1e-6
+
+    @jax.jit  # one program (op by op, the loops would compile per call)
+    def check(th):
+        ub = jax.vmap(lambda t: jnp.dot(red.u, red.b(t)))(th)
+        s = jax.vmap(red.s_of)(ub)
+        phi = jax.vmap(lambda s_, ub_: jnp.dot(red.u, red.c(s_)) - ub_)(s, ub)
+        lin = jnp.all(jnp.abs(s[:, None] * red.u) <= red.eta, axis=-1)
+        t = th[::50]
+        g = jax.vmap(jax.grad(red.r))(t)
+        fd = (jax.vmap(red.r)(t + h) - jax.vmap(red.r)(t - h)) / (2 * h)
+        return jnp.max(jnp.abs(phi) / (jnp.abs(ub) + jnp.abs(s))), lin, g, fd
+
+    rel, lin, g, fd = check(jnp.linspace(-math.pi, math.pi, 2001))
+    assert float(rel) < 1e-13
     # both regimes occur: roots inside fal's linear zone (|s u_k| eta^(a-1) <= eta^a for
     # both k) and outside it
-    lin = jnp.all(jnp.abs(s[:, None] * red.u) <= red.eta, axis=-1)
     assert bool(jnp.any(lin)) and bool(jnp.any(~lin))
     # dr/dtheta against central differences
-    h = 1e-6
-    t = th[::50]
-    g = jax.vmap(jax.grad(red.r))(t)
-    fd = (jax.vmap(red.r)(t + h) - jax.vmap(red.r)(t - h)) / (2 * h)
     np.testing.assert_allclose(np.asarray(g), np.asarray(fd), rtol=1e-6,
                                atol=1e-6 * float(jnp.max(jnp.abs(fd))))

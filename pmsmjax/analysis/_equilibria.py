@@ -309,8 +309,9 @@ def _bisect(fn, lo, hi, valid, tol, max_steps=200):
 
 
 def _plain_bisect(fn, lo, hi, n_iter=60):
-    """Fixed-iteration vectorised bisection (for the rare critical-point brackets, where
-    the compile time of a second optimistix solve is not worth it). Any sign of fn(lo)."""
+    """Fixed-iteration vectorised bisection (for the rare critical-point brackets of r',
+    where a second convergence-tested loop is not worth its compile time). Any sign of
+    fn(lo)."""
     s_lo = jax.vmap(fn)(lo) >= 0
 
     def body(_, c):
