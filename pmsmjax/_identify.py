@@ -234,11 +234,14 @@ def _jacobian(problem, x, args):
 
 @eqx.filter_jit
 def _channel_rms(problem, x, segs):
+    """RMS of the current and speed residuals, and the model's response per recording
+    (the traces of the result): one compiled program for both."""
     sq_i, sq_w, n_i, n_w = 0.0, 0.0, 0, 0
-    for s, (i_m, w_m) in zip(segs, problem.model(x, segs)):
+    model = problem.model(x, segs)
+    for s, (i_m, w_m) in zip(segs, model):
         sq_i, n_i = sq_i + jnp.sum((i_m - s.i_meas) ** 2), n_i + i_m.size
         sq_w, n_w = sq_w + jnp.sum((w_m - s.w_meas) ** 2), n_w + w_m.size
-    return jnp.sqrt(sq_i / n_i), jnp.sqrt(sq_w / n_w)
+    return jnp.sqrt(sq_i / n_i), jnp.sqrt(sq_w / n_w), model
 
 
 def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
@@ -327,13 +330,17 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     sig_w = 1e-3 * float(drive.w_rated)
     steps = 0
     for stage in range(2):
-        x, result, n_steps = _solve(problem, x, (segs, sig_i, sig_w), rtol, atol, max_steps)
+        # the weights as arrays: both stages (and the Jacobian below) run one program
+        # each (as Python floats they would be static values: a compile per stage)
+        args = (segs, jnp.asarray(sig_i, x.dtype), jnp.asarray(sig_w, x.dtype))
+        x, result, n_steps = _solve(problem, x, args, rtol, atol, max_steps)
         steps += int(n_steps)
         if result != optx.RESULTS.successful and stage == 1:
             warnings.warn(f"identify: the Levenberg-Marquardt solve stopped without meeting "
                           f"its tolerances ({optx.RESULTS[result]}); the values may not be "
                           f"converged (raise max_steps).", IdentifiabilityWarning, stacklevel=2)
-        rms_i, rms_w = (float(v) for v in _channel_rms(problem, x, segs))
+        rms_i, rms_w, model = _channel_rms(problem, x, segs)
+        rms_i, rms_w = float(rms_i), float(rms_w)
         if not (math.isfinite(rms_i) and math.isfinite(rms_w)):
             raise IdentifyError(
                 "the fit diverged (non-finite model response): the starting values are too "
@@ -342,7 +349,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         if stage == 0:  # reweight each channel by its residual RMS (floored)
             sig_i = max(rms_i, 1e-9 * float(drive.i_max))
             sig_w = max(rms_w, 1e-9 * float(drive.w_rated))
-    args = (segs, sig_i, sig_w)
+    args = (segs, jnp.asarray(sig_i, x.dtype), jnp.asarray(sig_w, x.dtype))
     r, Jx = (np.asarray(a) for a in _jacobian(problem, x, args))
     dof = max(r.size - len(names), 1)
     s2 = float(r @ r) / dof
@@ -390,7 +397,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
     fitted = _fitted_drive(drive, vals)
     traces = []
-    for rec, s, (i_m, w_m) in zip(recs, segs, problem.model(x, segs)):
+    for rec, s, (i_m, w_m) in zip(recs, segs, model):  # at the final x (stage 1)
         n_seg, m = s.w_meas.shape
         k = np.arange(1, n_seg * m + 1)
         traces.append({"t": np.asarray(rec.t)[k], "i_ab": np.asarray(rec.i_ab)[k],

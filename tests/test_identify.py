@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
+from pmsmjax import _identify
 from pmsmjax.cli.__main__ import main as cli_main
 
 
@@ -88,7 +89,10 @@ def test_commanded_voltages_two_recordings():
     _, rec2 = _current_steps(d0, 0.3, noise=0.01, key=4, u_dt=4.0)
     names = ("R_s", "L_d", "L_q", "psi_f", "u_dt")
     start = _start(d, dict(R_s=1.4, L_d=0.6, L_q=1.3, psi_f=0.7, u_dt=0.6))
+    n_solve = _identify._solve._cached._cache_size()
     res = pj.identify(start, [rec1, rec2], names, voltage="commanded")
+    # the two stages (reweighted residuals) run one compiled solve, not one each
+    assert _identify._solve._cached._cache_size() - n_solve <= 1
     _check(res, d, names)
     # the identified inverter model makes the commanded-voltage replay as good as the
     # applied one: the ESO's angle error at the recording's speeds
