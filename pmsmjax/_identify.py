@@ -349,7 +349,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         if stage == 0:  # reweight each channel by its residual RMS (floored)
             sig_i = max(rms_i, 1e-9 * float(drive.i_max))
             sig_w = max(rms_w, 1e-9 * float(drive.w_rated))
-    args = (segs, jnp.asarray(sig_i, x.dtype), jnp.asarray(sig_w, x.dtype))
+    # `args` of the last stage: its weights are the final ones (only stage 0 reweights)
     r, Jx = (np.asarray(a) for a in _jacobian(problem, x, args))
     dof = max(r.size - len(names), 1)
     s2 = float(r @ r) / dof
