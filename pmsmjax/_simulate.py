@@ -20,6 +20,7 @@ import jax.random as jr
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
+from ._batching import batched_like
 from ._control import FOC
 from ._frames import wrap_angle
 from ._integrate import RK4, check_step, integrate
@@ -313,6 +314,9 @@ def _simulate(arguments: dict) -> Trajectory:
         noise=None if key is None else jnp.zeros((_NOISE_BLOCK, 2), dtype),
         i_meas_prev=jnp.zeros(2, dtype) if compensate else None,
     )
+    # under vmap, every carry batched from the start (pmsmjax._batching: one pass of
+    # the scan's batching fixpoint over the step instead of three or four)
+    carry0 = batched_like(carry0, arguments)
     carry_dtypes = jax.tree_util.tree_map(lambda a: a.dtype, carry0)
     i_bound = 20.0 * drive.i_max
     w_bound = 20.0 * drive.w_rated
@@ -451,7 +455,8 @@ def _simulate(arguments: dict) -> Trajectory:
         # quick compiles: half the time) for up to 8 % more run time; a `lax.cond` in
         # place of the select ran slower still (BENCHMARKS.md, "One step per chunk").
         rec_shape = jax.eval_shape(lambda c: step(c, jnp.int32(0))[1](), carry0)
-        slot0 = jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), rec_shape)
+        slot0 = batched_like(
+            jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), rec_shape), arguments)
 
         @functools.partial(jax.checkpoint, prevent_cse=False, policy=_CHECKPOINT_POLICY)
         def step_slot(cs, k):
