@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._batching import batched_like
 from ._flying_start import unknown_start
 from ._params import Inverter, PMSMParams
 from ._simulate import observer_voltage, scale_motor
@@ -136,7 +137,10 @@ def _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales, inverter=None):
         theta0, w0, _ = _unknown_start(observer, u_ab, i_ab, T_s)
     u_prev = jnp.concatenate([jnp.zeros((1, 2), u_ab.dtype), u_ab[:-1]], 0)
     nan = jnp.full((), jnp.nan, dtype)
-    state0 = observer.init(theta0=theta0, w0=w0)
+    # every carry batched (under vmap) and differentiated (under jvp/grad) from the
+    # start: one pass of the scan's fixpoints over the step (pmsmjax._batching)
+    state0 = batched_like(observer.init(theta0=theta0, w0=w0), observer, u_ab, i_ab, T_s,
+                          theta0, w0, scales)
 
     def step(state, x):
         i_k, u_k, sc = x

@@ -95,3 +95,48 @@ def test_vmapped_simulation_batches_its_step_fewer_times_with_the_same_numbers(
     assert counts[True] < counts[False]
     for u, v in zip(out[True], out[False]):
         np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
+
+
+def test_replay_gradient_differentiates_its_step_once_with_the_same_numbers(monkeypatch):
+    """`jax.grad` through `replay_estimates` with respect to a gain: the scan's
+    linearisation fixpoint (which carries have a nonzero tangent; JAX's
+    `linearize_jaxpr`, or `jvp_jaxpr` where the scan is differentiated by its JVP rule)
+    differentiates the step fewer times when
+    the initial state follows the observer (`batched_like`), several times when it starts
+    from constants; the gradient is the same to round-off, and so is a vmapped replay."""
+    from jax._src.interpreters import ad
+
+    from pmsmjax import _replay
+
+    drive = pj.preset("zhang750")
+    n = 200
+    th = 300.0 * 1e-4 * np.arange(n)
+    i_ab = 2.0 * np.stack([-np.sin(th), np.cos(th)], 1)
+    u_ab = 20.0 * np.stack([-np.sin(th + 0.1), np.cos(th + 0.1)], 1)
+    obs = pj.observers.make_observer("c-leso", drive)
+
+    def loss(g):
+        est = pj.replay_estimates(obs.with_design(w0=g), u_ab=u_ab, i_ab=i_ab, T_s=1e-4,
+                                  theta0=0.3, w0=300.0)
+        return jnp.sum(est.theta_hat)
+
+    count = [0]
+
+    def counting(inner):
+        def counted(*args, **kwargs):
+            count[0] += 1
+            return inner(*args, **kwargs)
+        return counted
+
+    for name in ("jvp_jaxpr", "linearize_jaxpr"):
+        monkeypatch.setattr(ad, name, counting(getattr(ad, name)))
+    grads, counts = {}, {}
+    for use in (True, False):
+        if not use:
+            monkeypatch.setattr(_replay, "batched_like", lambda c, *deps: c)
+        jax.clear_caches()
+        count[0] = 0
+        grads[use] = float(jax.grad(loss)(float(obs.w0)))
+        counts[use] = count[0]
+    assert counts[True] < counts[False]
+    assert grads[True] == pytest.approx(grads[False], rel=1e-12)
