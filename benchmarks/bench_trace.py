@@ -82,7 +82,8 @@ def loss(g):
     return jnp.sum(est.theta_hat)
 
 g0 = float(o.design_parameters()[gain])
-t0 = time.perf_counter(); g = float(jax.grad(loss)(g0)); out["grad_first_s"] = time.perf_counter() - t0
+t0 = time.perf_counter(); g = float(jax.grad(loss)(g0))
+out["grad_first_s"] = time.perf_counter() - t0
 out["grad"] = g
 print(json.dumps(out))
 """
