@@ -1,4 +1,5 @@
-"""Loop carries that start batched under `vmap` (a trace-time saving, no change of value).
+"""Loop carries that start batched under `vmap`, and with a tangent under `jax.grad` (a
+trace-time saving, no change of value).
 
 `vmap` of a `lax.scan` (or `while_loop`) finds which carries are batched by a fixpoint:
 it batches the loop body with the initial carries' batch flags, and again, with the
@@ -11,10 +12,14 @@ scan nested in a scan multiplies them. Every pass traces and batches the whole s
 comes out of a `select` on a constant false predicate that also takes a scalar drawn
 from every numeric leaf of `deps`. Outside `vmap` XLA folds the select away; under
 `vmap`, if anything in `deps` is batched, every carry is batched from the start and the
-fixpoint ends after one pass. Pass as `deps` what the loop body reads (its parameters
-and inputs): a carry that would in the end stay unbatched (it depends on nothing
-batched) is then batched too, which costs run time, so this is for loops whose carries
-all follow the batched parameters, as a closed-loop simulation's do.
+fixpoint ends after one pass. `jax.grad` (JAX's linearisation and JVP of a scan) runs
+the same fixpoint on which carries have a nonzero tangent: with a differentiated leaf
+in `deps`, every carry has one from the start.
+
+Pass as `deps` what the loop body reads (its parameters and inputs). A carry that would
+in the end stay unbatched (it depends on nothing batched) is then batched too, which
+costs run time, so this is for loops whose carries all follow the batched parameters,
+as a closed-loop simulation's do.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ def batched_like(carry, *deps):
     leaves = [x for x in jax.tree_util.tree_leaves(deps) if _numeric(x)]
     if not leaves:
         return carry
-    probe = sum(jnp.ravel(x)[0].astype(jnp.float32) for x in leaves)
+    probe = sum(jnp.real(jnp.ravel(x)[0]).astype(jnp.float32) for x in leaves)
     never = jnp.zeros((), jnp.bool_)
 
     def one(x):
