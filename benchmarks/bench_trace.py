@@ -37,6 +37,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _report import write_report  # noqa: E402
+from bench_quick_compile import _env  # noqa: E402
 
 OBSERVERS = ("eso", "parallel-model", "rotor-flux", "c-leso", "gi-leso", "fa-leso")
 GAIN = {"eso": "w2", "parallel-model": "v1", "rotor-flux": "k_c", "c-leso": "w0",
@@ -90,10 +91,7 @@ print(json.dumps(out))
 
 
 def child(name: str, quick: bool, pythonpath: str | None) -> dict:
-    env = dict(os.environ)
-    env.pop("XLA_FLAGS", None)
-    env["PMSMJAX_QUICK_COMPILE"] = "1" if quick else "0"
-    env["PMSMJAX_CACHE"] = "0"
+    env = _env(quick)  # XLA_FLAGS cleared, the cache off, quick compiles or not
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
         env["PYTHONSAFEPATH"] = "1"  # the checkout named, not this one's current folder

@@ -1,31 +1,40 @@
-"""Loop carries batched from the start under `vmap` (`pmsmjax._batching.batched_like`):
-the values stay what they were, bit for bit, and `vmap` of the loop batches its body
-once instead of once per link of the chain by which the batched input reaches the last
-carry (JAX's scan batching rule, counted by its calls of `batch_jaxpr`)."""
+"""Loop carries batched from the start under `vmap`, and with a tangent under `jax.grad`
+(`pmsmjax._batching.batched_like`): the values stay what they were, and `vmap` of the
+loop batches its body once instead of once per link of the chain by which the batched
+input reaches the last carry (JAX's scan batching rule, counted by its calls of
+`batch_jaxpr`); a gradient linearises it fewer times (`linearize_jaxpr`, `jvp_jaxpr`)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jax._src.interpreters import batching
+from jax._src.interpreters import ad, batching
 
 import pmsmjax as pj
-from pmsmjax import _simulate
+from pmsmjax import _replay, _simulate
 from pmsmjax._batching import batched_like
+
+
+def _count_calls(monkeypatch, module, *names):
+    """A one-element list that counts the calls of `module.<name>` for each name (JAX's
+    passes over a loop body, inside the test)."""
+    count = [0]
+
+    def counting(inner):
+        def counted(*args, **kwargs):
+            count[0] += 1
+            return inner(*args, **kwargs)
+        return counted
+
+    for name in names:
+        monkeypatch.setattr(module, name, counting(getattr(module, name)))
+    return count
 
 
 @pytest.fixture
 def passes(monkeypatch):
-    """Counts the body batchings of every scan batching rule run inside the block."""
-    count = [0]
-    inner = batching.batch_jaxpr
-
-    def counted(*args, **kwargs):
-        count[0] += 1
-        return inner(*args, **kwargs)
-
-    monkeypatch.setattr(batching, "batch_jaxpr", counted)
-    return count
+    """Counts the body batchings of every scan batching rule run inside the test."""
+    return _count_calls(monkeypatch, batching, "batch_jaxpr")
 
 
 def _chain(p, use):
@@ -97,17 +106,14 @@ def test_vmapped_simulation_batches_its_step_fewer_times_with_the_same_numbers(
         np.testing.assert_array_equal(np.asarray(u), np.asarray(v))
 
 
-def test_replay_gradient_differentiates_its_step_once_with_the_same_numbers(monkeypatch):
+def test_replay_gradient_linearises_its_step_fewer_times_with_the_same_gradient(
+        monkeypatch):
     """`jax.grad` through `replay_estimates` with respect to a gain: the scan's
     linearisation fixpoint (which carries have a nonzero tangent; JAX's
     `linearize_jaxpr`, or `jvp_jaxpr` where the scan is differentiated by its JVP rule)
-    differentiates the step fewer times when
-    the initial state follows the observer (`batched_like`), several times when it starts
-    from constants; the gradient is the same to round-off, and so is a vmapped replay."""
-    from jax._src.interpreters import ad
-
-    from pmsmjax import _replay
-
+    linearises the step fewer times when the initial state follows the observer
+    (`batched_like`) than when it starts from constants; the gradient is the same to
+    round-off."""
     drive = pj.preset("zhang750")
     n = 200
     th = 300.0 * 1e-4 * np.arange(n)
@@ -120,16 +126,7 @@ def test_replay_gradient_differentiates_its_step_once_with_the_same_numbers(monk
                                   theta0=0.3, w0=300.0)
         return jnp.sum(est.theta_hat)
 
-    count = [0]
-
-    def counting(inner):
-        def counted(*args, **kwargs):
-            count[0] += 1
-            return inner(*args, **kwargs)
-        return counted
-
-    for name in ("jvp_jaxpr", "linearize_jaxpr"):
-        monkeypatch.setattr(ad, name, counting(getattr(ad, name)))
+    count = _count_calls(monkeypatch, ad, "jvp_jaxpr", "linearize_jaxpr")
     grads, counts = {}, {}
     for use in (True, False):
         if not use:

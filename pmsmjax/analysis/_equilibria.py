@@ -203,7 +203,7 @@ class _Reduction(eqx.Module):
 
         # Safeguarded Newton: a Newton step is taken only if it stays in the bracket
         # and the last one at least halved |phi|; otherwise bisect. It stops when a step
-        # or the bracket is at rounding level: 2 to 9 iterations on all but 8 of the
+        # or the bracket is at rounding level: at most 9 iterations on all but 8 of the
         # 102,400 points of tests/test_contract.py's fal designs, at most 37 (under vmap
         # the loop runs as long as the slowest point; at most 60, bisection speed).
         def body(carry):
