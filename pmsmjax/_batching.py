@@ -1,5 +1,6 @@
-"""Loop carries that start batched under `vmap`, and with a tangent under `jax.grad` (a
-trace-time saving, no change of value).
+"""Savings at trace and compile time that change no value: loop carries that start
+batched under `vmap` and with a tangent under `jax.grad` (`batched_like`), and Python
+numbers in parameters passed as traced values (`values_as_arrays`).
 
 `vmap` of a `lax.scan` (or `while_loop`) finds which carries are batched by a fixpoint:
 it batches the loop body with the initial carries' batch flags, and again, with the
@@ -20,6 +21,14 @@ Pass as `deps` what the loop body reads (its parameters and inputs). A carry tha
 in the end stay unbatched (it depends on nothing batched) is then batched too, which
 costs run time, so this is for loops whose carries all follow the batched parameters,
 as a closed-loop simulation's do.
+
+`equinox.filter_jit` bakes every Python number of its arguments into the program: a
+drive, controller or observer built from Python floats (every preset, `replace_params`,
+`scale_motor`, `make_observer(..., zeta1=0.7)`) compiles a new program for each new
+value. `values_as_arrays(tree, dtype)` turns those floats into NumPy arrays of the run's
+dtype, which `filter_jit` traces, so a new value runs the compiled program again. A
+Python zero stays as it is: the code reads it as "absent" (no dead-time model, no
+quantisation, no feed-through term) and compiles a smaller program for it.
 """
 
 from __future__ import annotations
@@ -50,3 +59,14 @@ def batched_like(carry, *deps):
                               jnp.broadcast_to(probe.astype(x.dtype), x.shape), x)
 
     return jax.tree_util.tree_map(one, carry)
+
+
+def values_as_arrays(tree, dtype):
+    """`tree` with every Python float other than zero as a NumPy array of `dtype`
+    (module docstring); ints, bools, zeros and everything else unchanged."""
+    def one(x):
+        if type(x) is float and x != 0.0:
+            return np.asarray(x, dtype)
+        return x
+
+    return jax.tree_util.tree_map(one, tree)

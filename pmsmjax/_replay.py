@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._batching import batched_like
+from ._batching import batched_like, values_as_arrays
 from ._flying_start import unknown_start
 from ._params import Inverter, PMSMParams
 from ._simulate import observer_voltage, scale_motor
@@ -224,4 +224,9 @@ def replay_estimates(observer: AbstractObserver, data=None, u_ab=None, i_ab=None
     if inverter is not None and not isinstance(inverter, Inverter):
         raise ValueError(f"`replay(inverter=...)` must be a `pmsmjax.Inverter` (e.g. "
                          f"`drive.inverter`) or None; got {type(inverter).__name__}.")
+    # the observer's and inverter's Python floats as traced values: another design or
+    # model replays with the compiled program (pmsmjax._batching.values_as_arrays);
+    # checks that need the observer's concrete values run first
+    observer.check_values(T_s)
+    observer, inverter = values_as_arrays((observer, inverter), dtype)
     return _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales, inverter)

@@ -20,7 +20,7 @@ import jax.random as jr
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
-from ._batching import batched_like
+from ._batching import batched_like, values_as_arrays
 from ._control import FOC
 from ._frames import wrap_angle
 from ._integrate import RK4, check_step, integrate
@@ -29,7 +29,7 @@ from ._motor import PMSM, PlantInput, PlantState, _is_zero, cos_sin, join_state,
 from ._params import Drive, DualThreePhaseParams, PMSMParams
 from ._scenario import Scenario
 from ._solution import RESULTS, Trajectory
-from ._validate import NonFiniteInputError, check_positive, is_concrete
+from ._validate import NonFiniteInputError, check_positive, is_concrete, recheck
 from .observers import AbstractObserver, Measurement
 
 
@@ -235,6 +235,15 @@ def simulate(
                                       f"got {np.asarray(v).tolist()!r}.")
         if v is not None and is_concrete(v) and not isinstance(v, jax.Array):
             arguments[k] = np.asarray(v, dtype=np.float64)
+    # The same for the parameters: a new value of a Python float in the drive, the
+    # controller or the observer (a mismatched model, another design) runs the compiled
+    # program again (pmsmjax._batching.values_as_arrays); checks that need the observer's
+    # concrete values run first
+    observer.check_values(T_s)
+    recheck((drive, controller))
+    dtype = _run_dtype(drive, controller)
+    for k in ("drive", "controller", "observer"):
+        arguments[k] = values_as_arrays(arguments[k], dtype)
     return _simulate(arguments)
 
 

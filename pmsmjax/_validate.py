@@ -70,3 +70,32 @@ class NonFiniteInputError(ValueError):
     """A recording or an initial value handed to `replay` or `simulate` holds NaN or inf
     (the message names the argument, and for a recording the first bad sample and its
     time)."""
+
+
+def recheck(tree) -> None:
+    """Run the construction checks (`__check_init__`, every class's in the MRO, as
+    equinox does) of each equinox module in `tree` again on its current values. Copies
+    made with `eqx.tree_at` (`with_design`, `with_motor`) skip them; a run that traces
+    the values (`pmsmjax._batching.values_as_arrays`) calls this first, so that a bad
+    concrete value still raises, naming the argument. Traced values are skipped by the
+    checks themselves."""
+    import dataclasses
+
+    import equinox as eqx
+
+    def visit(x):
+        if isinstance(x, eqx.Module):
+            for cls in reversed(type(x).__mro__):
+                check = cls.__dict__.get("__check_init__")
+                if check is not None:
+                    check(x)
+            for f in dataclasses.fields(x):
+                visit(getattr(x, f.name, None))
+        elif isinstance(x, list | tuple):
+            for v in x:
+                visit(v)
+        elif isinstance(x, dict):
+            for v in x.values():
+                visit(v)
+
+    visit(tree)

@@ -299,3 +299,11 @@ def test_bad_arguments_are_named():
     meas = Measurement(i_ab=jnp.zeros(2), u_ab=jnp.zeros(2), theta=jnp.nan, w_m=jnp.nan)
     with pytest.raises(ValueError, match="T_s.*2 min\\(T_LP, T_w\\)"):
         obs.step(obs.init(), meas, 2e-3)
+    # also where the run traces the observer's parameters (replay, simulate): checked
+    # on the concrete values before
+    with pytest.raises(ValueError, match="T_s.*2 min\\(T_LP, T_w\\)"):
+        pj.replay(obs, u_ab=np.zeros((8, 2)), i_ab=np.zeros((8, 2)), T_s=2e-3)
+    with pytest.raises(ValueError, match="T_s.*2 min\\(T_LP, T_w\\)"):
+        pj.simulate(DRIVE, pj.FOC.from_drive(DRIVE), obs,
+                    pj.Scenario(t_end=0.02, w_m_ref=pj.Profile.constant(10.0)), T_s=2e-3,
+                    n_substeps=8)

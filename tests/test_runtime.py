@@ -291,6 +291,86 @@ def test_new_initial_values_do_not_compile_again():
     assert float(b.theta[0]) == pytest.approx(0.4) and float(a.theta[0]) == 0.0
 
 
+def test_new_parameter_values_do_not_compile_again(monkeypatch):
+    """Python floats in the drive, the controller's and the observer's machine model and
+    the observer's design (a preset, `replace_params`, `scale_motor`, `make_observer(...,
+    zeta1=...)`) are traced values: `simulate`, `replay`, `harmonic_ripple` and the
+    certificate run their compiled program again for new values (one entry in each jit
+    cache), use the values, and give the numbers of the program that baked them in (the
+    conversion patched out) to rounding."""
+    from pmsmjax import _batching, _replay, _simulate as S
+    from pmsmjax.analysis import _harmonic, _lyapunov
+
+    d = pj.preset("zhang750")
+    foc = pj.FOC.from_drive(d)
+    sc = pj.Scenario(t_end=0.01, w_m_ref=pj.Profile.constant(300.0))
+    mk = pj.observers.make_observer
+
+    def run(zeta1, k_psi, k_Lq):
+        drive = pj.replace_params(d, L_q=float(d.motor.L_q) * k_Lq)
+        obs = mk("leso", d, zeta1=zeta1, ratio=1.0).with_motor(
+            pj.scale_motor(d.motor, {"psi_f": k_psi}))
+        return pj.simulate(drive, foc, obs, sc, theta0=0.2, theta_hat0=0.0, w_m0=200.0)
+
+    cases = [(0.7, 1.0, 1.0), (1.3, 0.9, 1.0), (1.3, 1.0, 1.4)]
+    size = lambda jitted: jitted._cached._cache_size()  # noqa: E731
+    trs = [run(*cases[0])]
+    n_sim = size(S._simulate)
+    for c in cases[1:]:
+        trs.append(run(*c))
+        assert size(S._simulate) == n_sim
+    errs = [np.asarray(t.theta_err) for t in trs]
+    assert min(np.max(np.abs(errs[0] - e)) for e in errs[1:]) > 1e-4  # the values act
+
+    u, i = np.asarray(trs[0].u_ab), np.asarray(trs[0].i_meas_ab)
+
+    def rep(zeta1):
+        return pj.replay(mk("leso", d, zeta1=zeta1, ratio=1.0), u_ab=u, i_ab=i, T_s=125e-6,
+                         theta0=0.0, w0=200.0)[0]
+
+    reps = [np.asarray(rep(0.7))]
+    n_rep = size(_replay._scan)
+    reps.append(np.asarray(rep(1.3)))
+    assert size(_replay._scan) == n_rep
+    assert np.max(np.abs(reps[0] - reps[1])) > 1e-6
+
+    op = pj.analysis.OperatingPoint(0.5 * float(d.w_rated), (0.0, 1.0))
+    rip = [pj.analysis.harmonic_ripple(mk("eso", d, w2=200.0), d, op, (-5, 7))]
+    n_rip = size(_harmonic._harmonic_ripple)
+    rip.append(pj.analysis.harmonic_ripple(mk("eso", d, w2=400.0), d, op, (-5, 7)))
+    assert size(_harmonic._harmonic_ripple) == n_rip
+    assert not np.allclose(np.asarray(rip[0]), np.asarray(rip[1]))
+
+    small = dict(n_speed=5, n_time=20, n_dirs=16, n_refine=3, n_k1_speeds=2,
+                 alphas=(0.5, 0.9), radii=np.geomspace(1e-6, 1.0, 8))
+    def cert(zeta1):
+        return pj.analysis.slowly_varying_certificate(
+            d, mk("leso", d, zeta1=zeta1, ratio=1.0, w2=300.0), (0.2, 1.0), **small)
+
+    certs = [cert(0.8)]
+    n_cert = size(_lyapunov._certificate)
+    certs.append(cert(1.5))
+    assert size(_lyapunov._certificate) == n_cert
+    assert float(certs[0].sigma) != float(certs[1].sigma)
+
+    # the same numbers as the programs with the values baked in (conversion patched out)
+    monkeypatch.setattr(_batching, "values_as_arrays", lambda tree, dtype: tree)
+    for mod in (S, _replay, _harmonic, _lyapunov):
+        monkeypatch.setattr(mod, "values_as_arrays", lambda tree, dtype: tree)
+    np.testing.assert_allclose(np.asarray(run(*cases[2]).theta_err), errs[2], rtol=0,
+                               atol=1e-9)
+    assert size(S._simulate) == n_sim + 1  # a new program: the values baked in
+    np.testing.assert_allclose(np.asarray(rep(1.3)), reps[1], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        np.asarray(pj.analysis.harmonic_ripple(mk("eso", d, w2=400.0), d, op, (-5, 7))),
+        np.asarray(rip[1]), rtol=1e-9)
+    # a bad value set by with_design (which skips the construction checks) still raises
+    # before the run traces it, naming the parameter
+    with pytest.raises(ValueError, match=r"ESOObserver\(a=\.\.\.\).*got 1\.5"):
+        pj.simulate(d, foc, mk("eso", d).with_design(a=1.5), sc)
+    with pytest.raises(ValueError, match=r"ESOObserver\(a=\.\.\.\).*got 1\.5"):
+        pj.replay(mk("eso", d).with_design(a=1.5), u_ab=u, i_ab=i, T_s=125e-6)
+
 # ---------------------------------------------------------------------------------------
 # Stored programs (jax.export): a repeated call skips the tracing; a stale, corrupt or
 # mismatched program falls back to a fresh trace; a changed static field gets its own

@@ -70,6 +70,7 @@ from ..observers._eso import (
     LESOObserver,
     _AbstractFluxObserver,
 )
+from .._batching import values_as_arrays
 from ._equilibria import as_arrays
 from ._linearize import check_frame, eso_rhs
 
@@ -486,7 +487,10 @@ def slowly_varying_certificate(drive: Drive, design, speed_range=(0.1, 1.0), *,
                                           as_arrays(observer.motor, dtype)))
         except jax.errors.ConcretizationTypeError:
             matched = False
-    dyn = _ScaledDynamics(observer=observer, plant=plant, i0=i0,
+    # Python floats of the observer and machine as traced values: another design or model
+    # runs the compiled certificate again (pmsmjax._batching.values_as_arrays)
+    dyn = _ScaledDynamics(observer=values_as_arrays(observer, dtype),
+                          plant=values_as_arrays(plant, dtype), i0=i0,
                           d=_state_scale(drive, observer, scale, dtype), frame=frame,
                           matched=matched)
     speeds = jnp.linspace(lo, hi, n_speed, dtype=dtype) * drive.w_rated
@@ -593,7 +597,8 @@ def simulate_ramp(drive: Drive, design, speeds=(0.2, 1.0), rate=1.0,
     if not isinstance(observer, _AbstractFluxObserver):
         raise ValueError("`simulate_ramp` simulates the zhang2022 ESO/LESO error dynamics "
                          f"(11)/(40); got {type(observer).__name__}.")
-    dyn = _ScaledDynamics(observer=observer, plant=drive.three_phase_motor, i0=i0,
+    dyn = _ScaledDynamics(observer=values_as_arrays(observer, dtype),
+                          plant=values_as_arrays(drive.three_phase_motor, dtype), i0=i0,
                           d=_state_scale(drive, observer, scale, dtype), frame=frame)
     w_start, w_end = (float(s) * float(drive.w_rated) for s in speeds)
     if t_hold is None:

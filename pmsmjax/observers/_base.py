@@ -41,6 +41,7 @@ import jax.numpy as jnp
 
 from .._frames import wrap_angle
 from .._params import PMSMParams
+from .._validate import recheck
 
 
 class Measurement(eqx.Module):
@@ -175,6 +176,16 @@ class AbstractObserver(eqx.Module):
     @abc.abstractmethod
     def step(self, state, meas: Measurement, T_s) -> tuple[object, Estimate]:
         """`(state at t_{k-1}, measurement at t_k, T_s (s)) -> (state at t_k, Estimate)`."""
+
+    def check_values(self, T_s) -> None:
+        """Raise `ValueError`, naming the argument, for a concrete value this observer
+        cannot run with at the sampling period `T_s` (s). `simulate` and `replay` call it
+        before they compile a run, which traces the observer's Python floats
+        (`pmsmjax._batching.values_as_arrays`), so that checks made inside `step` no
+        longer see them. Default: the construction checks of the observer and every
+        module in it (which `with_design` and `with_motor` skip); an observer with a
+        bound on `T_s` adds it."""
+        recheck(self)
 
     # --- design ---------------------------------------------------------------------
     @classmethod

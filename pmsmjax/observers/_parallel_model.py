@@ -442,13 +442,22 @@ class ParallelModelObserver(AbstractObserver):
             theta=wrap_angle(theta0.astype(dtype)), z=w0, w=w0,
             started=jnp.asarray(False))
 
-    def step(self, state: ParallelModelState, meas: Measurement, T_s):
+    def check_values(self, T_s) -> None:
+        super().check_values(T_s)
+        self.check_sampling(T_s)
+
+    def check_sampling(self, T_s) -> None:
+        """`ValueError` unless T_s < 2 min(T_LP, T_w) (forward-Euler filters), for
+        concrete values."""
         if is_concrete((T_s, self.T_LP, self.T_w)) and \
                 not float(T_s) < 2.0 * float(min(self.T_LP, self.T_w)):
             raise ValueError(
                 f"`ParallelModelObserver.step(T_s=...)` must be below 2 min(T_LP, T_w) = "
                 f"{2.0 * float(min(self.T_LP, self.T_w))!r} s (forward-Euler filters); got "
                 f"{T_s!r}.")
+
+    def step(self, state: ParallelModelState, meas: Measurement, T_s):
+        self.check_sampling(T_s)
         dtype = state.theta.dtype
         i_ab = jnp.asarray(meas.i_ab).astype(dtype)
         u_ab = jnp.asarray(meas.u_ab).astype(dtype)
