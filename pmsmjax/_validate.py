@@ -77,18 +77,19 @@ def recheck(tree) -> None:
     equinox does) of each equinox module in `tree` again on its current values. Copies
     made with `eqx.tree_at` (`with_design`, `with_motor`) skip them; a run that traces
     the values (`pmsmjax._batching.values_as_arrays`) calls this first, so that a bad
-    concrete value still raises, naming the argument. Traced values are skipped by the
-    checks themselves."""
+    concrete value still raises, naming the argument. A module holding a traced value
+    (inside `jit` or `vmap`) is not checked here: its values cannot be read."""
     import dataclasses
 
     import equinox as eqx
 
     def visit(x):
-        if isinstance(x, eqx.Module):
+        if isinstance(x, eqx.Module) and is_concrete(x):
             for cls in reversed(type(x).__mro__):
                 check = cls.__dict__.get("__check_init__")
                 if check is not None:
                     check(x)
+        if isinstance(x, eqx.Module):
             for f in dataclasses.fields(x):
                 visit(getattr(x, f.name, None))
         elif isinstance(x, list | tuple):
