@@ -29,17 +29,13 @@ Usage:
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from _report import write_report  # noqa: E402
-from bench_quick_compile import _env  # noqa: E402
+from bench_trace import add_child_options, finish, run_child  # noqa: E402
 
 CASES = ("simulate", "simulate, plant", "replay", "harmonic_ripple", "certificate")
 
@@ -92,23 +88,12 @@ print(json.dumps(out))
 
 
 def child(case: str, quick: bool, pythonpath: str | None) -> dict:
-    env = _env(quick)  # XLA_FLAGS cleared, the cache off, quick compiles or not
-    if pythonpath:
-        env["PYTHONPATH"] = pythonpath
-        env["PYTHONSAFEPATH"] = "1"  # the checkout named, not this one's current folder
-    res = subprocess.run([sys.executable, "-c", CHILD, case], env=env, capture_output=True,
-                         text=True, timeout=900, cwd="/")
-    if res.returncode != 0:
-        raise RuntimeError(f"{case}: {res.stderr[-2000:]}")
-    return json.loads(res.stdout.strip().splitlines()[-1])
+    return run_child(CHILD, [case], quick, pythonpath)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="quick compiles (PMSMJAX_QUICK_COMPILE=1, as the test suite)")
-    ap.add_argument("--pythonpath", default=None,
-                    help="run the children against this checkout (default: this one)")
+    add_child_options(ap)
     ap.add_argument("--out", default="benchmarks/out/new_values.json")
     args = ap.parse_args()
     t0 = time.perf_counter()
@@ -120,10 +105,7 @@ def main():
         rows.append(r)
         print(f"| {case} | {r['call1_s']:.2f} | {r['call2_s']:.2f} | "
               f"{r['checksum1']:.10e}, {r['checksum2']:.10e} |", flush=True)
-    print(f"Total {time.perf_counter() - t0:.0f} s; load average at the end "
-          f"{os.getloadavg()[0]:.2f}.")
-    write_report(args.out, rows, quick=args.quick, pythonpath=args.pythonpath,
-                 load_end=os.getloadavg())
+    finish(args, rows, t0)
 
 
 if __name__ == "__main__":

@@ -90,26 +90,46 @@ print(json.dumps(out))
 """
 
 
-def child(name: str, quick: bool, pythonpath: str | None) -> dict:
-    env = _env(quick)  # XLA_FLAGS cleared, the cache off, quick compiles or not
+def run_child(code: str, args: list[str], quick: bool, pythonpath: str | None) -> dict:
+    """Run `code` with `args` in a fresh Python process (XLA_FLAGS cleared, the cache off,
+    quick compiles or not; against the checkout `pythonpath` if given) and return the
+    JSON object its last line prints."""
+    env = _env(quick)
     if pythonpath:
         env["PYTHONPATH"] = pythonpath
         env["PYTHONSAFEPATH"] = "1"  # the checkout named, not this one's current folder
-    res = subprocess.run([sys.executable, "-c", CHILD, name, GAIN[name]], env=env,
-                         capture_output=True, text=True, timeout=900, cwd="/")
+    res = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True,
+                         text=True, timeout=900, cwd="/")
     if res.returncode != 0:
-        raise RuntimeError(f"{name}: {res.stderr[-2000:]}")
+        raise RuntimeError(f"{' '.join(args)}: {res.stderr[-2000:]}")
     return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def add_child_options(ap: argparse.ArgumentParser) -> None:
+    """`--quick` and `--pythonpath`, the options of `run_child`."""
+    ap.add_argument("--quick", action="store_true",
+                    help="quick compiles (PMSMJAX_QUICK_COMPILE=1, as the test suite)")
+    ap.add_argument("--pythonpath", default=None,
+                    help="run the children against this checkout (default: this one)")
+
+
+def finish(args, rows: list[dict], t0: float) -> None:
+    """Print the total time and load, and write the rows to `args.out`."""
+    print(f"Total {time.perf_counter() - t0:.0f} s; load average at the end "
+          f"{os.getloadavg()[0]:.2f}.")
+    write_report(args.out, rows, quick=args.quick, pythonpath=args.pythonpath,
+                 load_end=os.getloadavg())
+
+
+def child(name: str, quick: bool, pythonpath: str | None) -> dict:
+    return run_child(CHILD, [name, GAIN[name]], quick, pythonpath)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--observers", default=",".join(OBSERVERS),
                     help="comma-separated observers (default: %(default)s)")
-    ap.add_argument("--quick", action="store_true",
-                    help="quick compiles (PMSMJAX_QUICK_COMPILE=1, as the test suite)")
-    ap.add_argument("--pythonpath", default=None,
-                    help="run the children against this checkout (default: this one)")
+    add_child_options(ap)
     ap.add_argument("--out", default="benchmarks/out/trace.json")
     args = ap.parse_args()
     names = [n for n in args.observers.split(",") if n]
@@ -127,10 +147,7 @@ def main():
         print(f"| {name} | {r['lower_s']:.2f} | {r['compile_s']:.2f} | {r['run_s']:.3f} | "
               f"{r['grad_first_s']:.2f} | {r['checksum']:.12e} | {r['grad']:.12e} |",
               flush=True)
-    print(f"Total {time.perf_counter() - t0:.0f} s; load average at the end "
-          f"{os.getloadavg()[0]:.2f}.")
-    write_report(args.out, rows, quick=args.quick, pythonpath=args.pythonpath,
-                 load_end=os.getloadavg())
+    finish(args, rows, t0)
 
 
 if __name__ == "__main__":
