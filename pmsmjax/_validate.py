@@ -78,12 +78,19 @@ def recheck(tree) -> None:
     made with `eqx.tree_at` (`with_design`, `with_motor`) skip them; a run that traces
     the values (`pmsmjax._batching.values_as_arrays`) calls this first, so that a bad
     concrete value still raises, naming the argument. A module holding a traced value
-    (inside `jit` or `vmap`) is not checked here: its values cannot be read."""
+    (inside `jit` or `vmap`) is not checked here: its values cannot be read. Nor is a
+    machine model (`PMSMParams`): it is checked where it is built, and a model derived
+    from it (`scale_motor`, a sensitivity sweep) may leave the constructor's ranges on
+    purpose (a resistance-free estimator model), which the runs handle."""
     import dataclasses
 
     import equinox as eqx
 
+    from ._params import PMSMParams
+
     def visit(x):
+        if isinstance(x, PMSMParams):
+            return
         if isinstance(x, eqx.Module) and is_concrete(x):
             for cls in reversed(type(x).__mro__):
                 check = cls.__dict__.get("__check_init__")

@@ -1,4 +1,3 @@
-import gc
 import os
 
 # Quick compiles (pmsmjax.runtime, QUICK_COMPILE_FLAGS): the suite compiles thousands of
@@ -24,23 +23,6 @@ import pmsmjax  # noqa: E402
 # keeps them away from it (pmsmjax.runtime, "Long-running processes").
 pmsmjax.runtime.configure()
 jax.config.update("jax_enable_x64", True)
-
-
-# Python's cyclic garbage collector. Tracing allocates millions of short-lived objects,
-# and by default every 700 net allocations start a young collection, every tenth of those
-# an older one, and the oldest generation is the whole heap of a worker that has imported
-# JAX, SciPy and every test module: 6 to 9 % of a test process's time went into
-# collections (timed with `gc.callbacks`; BENCHMARKS.md, "The garbage collector"). After
-# collection the heap that lives until the end is frozen (never scanned again), and young
-# collections start after 50,000 allocations instead of 700: 2 to 3 % then. Garbage is
-# still collected, in larger batches; `pmsmjax.runtime.release_compiled` collects in full
-# when it drops programs.
-gc.set_threshold(50_000, 20, 10)
-
-
-def pytest_collection_finish(session):
-    gc.collect()
-    gc.freeze()
 
 
 @pytest.fixture(autouse=True)

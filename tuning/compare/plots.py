@@ -35,7 +35,10 @@ BARS = (("static_worst_deg", "worst static error (deg)"),
 
 def _runs(sweeps: pathlib.Path, name: str, design: str):
     path = sweeps / name / design / "runs" / "result.npz"
-    return dict(np.load(path)) if path.is_file() else None
+    if not path.is_file():
+        return None
+    with np.load(path) as f:
+        return dict(f)
 
 
 def _case_label(c: dict) -> str:
