@@ -138,3 +138,13 @@ def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3,
     lost = acq is not None and lost_j is not None
     return (acq is not None, t[acq] if acq is not None else math.nan, lost,
             t[lost_j] if lost else math.nan)
+
+
+def read_npz(path) -> dict:
+    """Every array of the NPZ archive at `path`, read, with the archive closed. An archive
+    left open (`np.load` without `with`) is closed by the garbage collector whenever it
+    runs, and pytest then fails the test running at that moment with the
+    `ResourceWarning`. For archives the tests' own runs wrote: pickled (object) arrays
+    are read too, as the command line's `trajectory.npz` holds one."""
+    with np.load(path, allow_pickle=True) as f:
+        return {k: f[k] for k in f.files}

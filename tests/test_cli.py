@@ -10,6 +10,8 @@ import pmsmjax as pj
 from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
 from pmsmjax.observers import make_observer
 
+from .helpers import read_npz
+
 
 T_END = 0.2  # s: short enough to be quick, long enough to reach speed and draw current
 DRIVE = pj.preset("zhang750")
@@ -41,9 +43,9 @@ def test_simulate_writes_files(sim_dir):
     assert "load step" in summary["scenario"]["description"]
     assert summary["max_current"]["A"] > 0
 
-    traj = np.load(sim_dir / "trajectory.npz")
+    traj = read_npz(sim_dir / "trajectory.npz")
     fields = {f for f in pj.Trajectory.__dataclass_fields__} - {"extras"}
-    assert fields <= set(traj.files)  # extras: under their own names (none when sensored)
+    assert fields <= set(traj)  # extras: under their own names (none when sensored)
     assert traj["t"].shape == (summary["steps"],)
     assert traj["i_dq"].shape == (summary["steps"], 2)
     assert int(traj["status"]) == 0
@@ -156,7 +158,7 @@ def test_simulate_with_a_sensorless_observer(tmp_path, capsys):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["observer"] == "eso" and summary["status"] == "successful"
     assert summary["observer_details"]["design"]["w2"] == 400
-    traj = np.load(tmp_path / "trajectory.npz")
+    traj = read_npz(tmp_path / "trajectory.npz")
     assert traj["psi_ab_hat"].shape == (summary["steps"], 2)
 
 

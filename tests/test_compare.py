@@ -18,7 +18,7 @@ from tuning.compare import job as compare
 from tuning.compare import CompareConfig, CompareInterrupted, run_comparison
 from tuning.scenarios import VAL_LOAD_STEP, VAL_RAMP, observer_model
 
-from .helpers import lock_status_loop
+from .helpers import lock_status_loop, read_npz
 
 
 OBSERVER = "parallel-model"
@@ -77,7 +77,7 @@ def test_metrics_equal_direct_simulate(job):
     # compiled, as the job runs it (op by op each small operation compiles on its own)
     metrics = jax.jit(lambda tr: compare.run_metrics(tr, config))(traj)
     runs = {k: np.asarray(v) for k, v in metrics.items()}
-    feas = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz"))
+    feas = read_npz(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz")
     want = compare.aggregate(runs, feas, config, grid)
     got = summary["observers"][OBSERVER]["designs"]["paper"]
     for k, v in want.items():
@@ -86,7 +86,7 @@ def test_metrics_equal_direct_simulate(job):
         elif k != "flags":
             assert got[k] == v, k
     # the sweep's per-run outputs are the direct runs'
-    res = np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
+    res = read_npz(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
     np.testing.assert_allclose(res["static_deg"].reshape(-1), runs["static_deg"],
                                rtol=1e-9, atol=1e-12)
 
@@ -182,9 +182,9 @@ def test_resume_gives_the_same_files(job, tmp_path, monkeypatch):
     for f in ("comparison.json", "comparison.md"):
         assert _strip_timing(part / f) == _strip_timing(out / f), f
     for sub in ("runs", "analysis"):
-        a = np.load(out / "sweeps" / OBSERVER / "tuned" / sub / "result.npz")
-        b = np.load(part / "sweeps" / OBSERVER / "tuned" / sub / "result.npz")
-        for k in a.files:
+        a = read_npz(out / "sweeps" / OBSERVER / "tuned" / sub / "result.npz")
+        b = read_npz(part / "sweeps" / OBSERVER / "tuned" / sub / "result.npz")
+        for k in a:
             np.testing.assert_array_equal(a[k], b[k])
     # another configuration in the same folder is refused
     with pytest.raises(ValueError, match="another configuration"):
@@ -216,9 +216,9 @@ def test_worker_processes_and_devices_give_the_same_files(job, tmp_path, monkeyp
     _assert_close(_strip_timing(par / "comparison.json"),
                   _strip_timing(out / "comparison.json"))
     for sub in ("runs", "analysis"):
-        a = np.load(out / "sweeps" / OBSERVER / "paper" / sub / "result.npz")
-        b = np.load(par / "sweeps" / OBSERVER / "paper" / sub / "result.npz")
-        for k in a.files:
+        a = read_npz(out / "sweeps" / OBSERVER / "paper" / sub / "result.npz")
+        b = read_npz(par / "sweeps" / OBSERVER / "paper" / sub / "result.npz")
+        for k in a:
             if np.issubdtype(a[k].dtype, np.floating):
                 np.testing.assert_allclose(a[k], b[k], rtol=1e-12, atol=1e-12, err_msg=k)
             else:
@@ -264,7 +264,7 @@ def test_figures(job):
                                              "traces.png"]
     assert all(p.stat().st_size > 10_000 for p in paths)
     # the hardest scenario is the run with the largest RMS angle error (one observer)
-    res = np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
+    res = read_npz(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
     idx = hardest_point(summary, out)
     assert res["rms_deg"][idx] == np.max(res["rms_deg"])
     assert res["trace_theta_deg"].shape[-1] <= compare.TRACE_SAMPLES + 1
@@ -317,7 +317,7 @@ def test_cli_starts_no_jax_backend_before_jax_distributed():
 
 def test_analysis_not_run_is_flagged(job):
     config, out, summary = job
-    runs = dict(np.load(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz"))
+    runs = read_npz(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
     m = compare.aggregate(runs, None, config, config.grid())
     assert m["feasible_fraction"] is None and "feasible_fraction" in m["flags"]
     assert m["static_worst_deg"] == summary["observers"][OBSERVER]["designs"]["paper"][
@@ -381,7 +381,7 @@ def test_feasibility_against_an_independent_root_search(job):
         assert roots, (speed, load, k)
         principal = min(roots, key=lambda r: abs(r[0]))
         want.append(principal[1] and sum(r[1] for r in roots) == 1)
-    feas = np.load(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz")
+    feas = read_npz(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz")
     np.testing.assert_array_equal(np.asarray(feas["feasible"]).reshape(-1), want)
     got = summary["observers"][OBSERVER]["designs"]["paper"]
     assert got["feasible_fraction"] == pytest.approx(np.mean(want), abs=1e-12)

@@ -32,7 +32,7 @@ from pmsmjax.observers import (
 )
 from pmsmjax.observers import _registry
 
-from .helpers import motor_numbers
+from .helpers import motor_numbers, read_npz
 
 
 DRIVE = pj.preset("zhang750")
@@ -147,7 +147,7 @@ def test_command_line_runs_a_registered_observer(registry, tmp_path, capsys):
     assert summary["observer"] == "offset-encoder"
     assert summary["observer_details"]["class"] == "OffsetEncoder"
     assert summary["observer_details"]["design"]["offset"] == offset
-    traj = np.load(tmp_path / "trajectory.npz")
+    traj = read_npz(tmp_path / "trajectory.npz")
     assert traj["t"].shape == (400,)  # 0.05 s at the default 125 us
     # the closed-form angle error: theta - (theta - offset), wrapped, at every sample
     np.testing.assert_allclose(traj["theta_err"], offset, rtol=0, atol=1e-12)

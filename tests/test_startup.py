@@ -13,6 +13,8 @@ import pmsmjax as pj
 from pmsmjax import analysis
 from pmsmjax.observers import make_observer, observer_names
 
+from .helpers import read_npz
+
 
 DRIVE = pj.preset("zhang750")
 W = 0.5 * float(DRIVE.w_rated)
@@ -118,7 +120,7 @@ def test_cli_judges_the_lock_from_the_handover(tmp_path):
     s = json.loads((out / "summary.json").read_text())
     assert s["status"] == "successful", s["status"]
     assert s["lock"]["judged_from_s"] > 0.14
-    tr = np.load(out / "trajectory.npz")
+    tr = read_npz(out / "trajectory.npz")
     w_hand = float(pj.IfStartup.from_drive(DRIVE).w_hand)
     k = int(np.searchsorted(tr["t"], s["lock"]["judged_from_s"]))
     assert abs(tr["w_m_ref"][k]) >= w_hand > abs(tr["w_m_ref"][k - 1])
