@@ -298,7 +298,7 @@ def test_new_parameter_values_do_not_compile_again(monkeypatch):
     certificate run their compiled program again for new values (one entry in each jit
     cache), use the values, and give the numbers of the program that baked them in (the
     conversion patched out) to rounding."""
-    from pmsmjax import _batching, _replay, _simulate as S
+    from pmsmjax import _replay, _simulate as S
     from pmsmjax.analysis import _harmonic, _lyapunov
 
     d = pj.preset("zhang750")
@@ -354,7 +354,6 @@ def test_new_parameter_values_do_not_compile_again(monkeypatch):
     assert float(certs[0].sigma) != float(certs[1].sigma)
 
     # the same numbers as the programs with the values baked in (conversion patched out)
-    monkeypatch.setattr(_batching, "values_as_arrays", lambda tree, dtype: tree)
     for mod in (S, _replay, _harmonic, _lyapunov):
         monkeypatch.setattr(mod, "values_as_arrays", lambda tree, dtype: tree)
     np.testing.assert_allclose(np.asarray(run(*cases[2]).theta_err), errs[2], rtol=0,
