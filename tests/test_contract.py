@@ -261,7 +261,8 @@ def _random_designs(n, seed, drive):
 
 @pytest.fixture(scope="module")
 def generic_classifier():
-    # 10,000 designs: the run outweighs the compile (pmsmjax.runtime, quick compiles)
+    # 2,500 designs per machine: the run outweighs the compile (pmsmjax.runtime, quick
+    # compiles; 18 s for both machines here against 25 s with quick compiles)
     @functools.partial(jax.jit, compiler_options=pj.runtime.long_run_compiler_options())
     def run(motor, motor_hat, w0, i0, z1, r):
         def one(w, i, a, b):
@@ -273,11 +274,12 @@ def generic_classifier():
 
 @pytest.mark.parametrize("drive", [DRIVE, pj.replace_params(DRIVE, L_d=1e-3, L_q=12e-3)],
                          ids=["table1", "salient"])
-def test_generic_route_agrees_with_the_quartic_on_10000_designs(drive, generic_classifier):
+def test_generic_route_agrees_with_the_quartic_on_2500_designs(drive, generic_classifier):
     """zhang2022 (34)-(36) in closed form (the fast path) against the generic route, on
-    10,000 random designs and operating points (both signs of speed, any current)."""
+    2,500 random designs and operating points (both signs of speed, any current; 10,000
+    found no more disagreements, at four times the run)."""
     m = drive.three_phase_motor
-    w0, i0, z1, r = _random_designs(10_000, seed=7, drive=drive)
+    w0, i0, z1, r = _random_designs(2_500, seed=7, drive=drive)
     cf = analysis.classify_designs(m, w0, i0, z1, r)
     ge = generic_classifier(m, m, jnp.asarray(w0), jnp.asarray(i0), jnp.asarray(z1),
                             jnp.asarray(r))
@@ -397,7 +399,7 @@ def test_design_map_over_any_two_parameters_matches_the_closed_form():
     # the generic route's map against the closed form, on the same salient machine and
     # current (other axes: w2 x zeta2): notebooks/03_feasibility_and_convergence.ipynb,
     # section 3, asserts that they are equal; the classification itself against the
-    # quartic: test_generic_route_agrees_with_the_quartic_on_10000_designs
+    # quartic: test_generic_route_agrees_with_the_quartic_on_2500_designs
     # axes that are not zhang2022's: bandwidth x damping of the speed loop, with mismatch
     mism = obs.with_motor(pj.replace_params(drive, L_q=9e-3).three_phase_motor)
     other = analysis.design_map(mism, drive, [0.3], ("w2", [150.0, 300.0]),
