@@ -262,7 +262,8 @@ def _random_designs(n, seed, drive):
 @pytest.fixture(scope="module")
 def generic_classifier():
     # 2,500 designs per machine: the run outweighs the compile (pmsmjax.runtime, quick
-    # compiles; 18 s for both machines here against 25 s with quick compiles)
+    # compiles; both machines in one process, 2-core Intel Xeon: 18 s compiled at full
+    # optimisation, 25 s with quick compiles; BENCHMARKS.md)
     @functools.partial(jax.jit, compiler_options=pj.runtime.long_run_compiler_options())
     def run(motor, motor_hat, w0, i0, z1, r):
         def one(w, i, a, b):
