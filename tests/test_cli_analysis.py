@@ -316,6 +316,10 @@ def test_certify_passes_any_observer_with_mismatch(monkeypatch, tmp_path, capsys
     assert report["status"] == "ok"
 
 
+# the fast suite covers the same in parts: the command's handling of a mismatch
+# (test_certify_passes_any_observer_with_mismatch), the command against the API without one
+# (test_certify_matches_the_api) and the certificate under observer-model mismatch against
+# independent computations (tests/test_lyapunov.py)
 @pytest.mark.slow
 def test_certify_with_mismatch_matches_the_api(capsys):
     args = ["certify", "--quick", "--n-speed", "3", "--n-dirs", "16", "--speed-range",
