@@ -34,6 +34,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 

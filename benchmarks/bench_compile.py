@@ -39,8 +39,10 @@ import tempfile
 import time
 from pathlib import Path
 
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _report import write_report  # noqa: E402
+
 
 ROOT = Path(__file__).resolve().parents[1]
 

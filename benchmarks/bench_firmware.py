@@ -22,6 +22,7 @@ import pmsmjax as pj
 from pmsmjax.firmware import SUPPORTED, export_c
 from pmsmjax.observers import make_observer
 
+
 T_S = 125e-6
 DRIVES = {"rotor-flux": "morawiec_ipm3k5", "parallel-model": "stumper_mt5",
           "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}

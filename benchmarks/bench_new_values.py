@@ -4,7 +4,7 @@ another?
 Users loop over values in Python: a mismatched model (`scale_motor`,
 `replace_params`), another design (`make_observer(..., zeta1=...)`,
 `with_design(...)`). Those are Python floats, and `equinox.filter_jit` bakes Python
-floats into the program; `pmsmjax._batching.values_as_arrays` passes them as traced
+floats into the program; `pmsmjax._sim._batching.values_as_arrays` passes them as traced
 values instead. Measured here, each case in a fresh process with the persistent
 compilation cache off: the first call (trace, compile, run) and the second call with
 new values, for
@@ -33,9 +33,11 @@ import sys
 import time
 from pathlib import Path
 
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from bench_trace import add_child_options, finish, run_child  # noqa: E402
+
 
 CASES = ("simulate", "simulate, plant", "replay", "harmonic_ripple", "certificate")
 

@@ -26,10 +26,12 @@ import sys
 import time
 from pathlib import Path
 
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _report import write_report  # noqa: E402
 from bench_compile import api  # noqa: E402
+
 
 N_STEPS = 8000
 SINGLE_RUN = f"""

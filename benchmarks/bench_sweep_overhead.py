@@ -84,8 +84,7 @@ def feasibility(n_axis, repeats, tmp):
     import pmsmjax as pj
     from pmsmjax import analysis
     from pmsmjax.analysis import grid_product, run_sweep
-    from pmsmjax.cli import main
-    from pmsmjax.cli import _feasibility as cf
+    from pmsmjax.cli import _feasibility as cf, main
 
     args = ["--set", "L_q=12.3e-3", "--i-q", "1", "--speed", "0.5",
             "--zeta1", f"0:5:{n_axis}", "--ratio", f"0:2:{n_axis}"]

@@ -2,7 +2,7 @@
 
 `vmap` and `jax.grad` of a `lax.scan` find which loop carries are batched (or have a
 nonzero tangent) by a fixpoint that traces the loop body again for every carry it
-finds late; `pmsmjax._batching.batched_like` lets `simulate` and `replay` start with
+finds late; `pmsmjax._sim._batching.batched_like` lets `simulate` and `replay` start with
 every carry batched. Measured here, each in a fresh process with the persistent
 compilation cache off:
 
@@ -34,10 +34,12 @@ import sys
 import time
 from pathlib import Path
 
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _report import write_report  # noqa: E402
 from bench_quick_compile import _env  # noqa: E402
+
 
 OBSERVERS = ("eso", "parallel-model", "rotor-flux", "c-leso", "gi-leso", "fa-leso")
 GAIN = {"eso": "w2", "parallel-model": "v1", "rotor-flux": "k_c", "c-leso": "w0",

@@ -34,6 +34,7 @@ import numpy as np
 
 import pmsmjax as pj
 
+
 pj.runtime.configure()
 import tuning as tg  # noqa: E402
 

@@ -22,6 +22,7 @@ import subprocess
 import sys
 import time
 
+
 CHILD = r"""
 import ctypes, faulthandler, os, sys
 faulthandler.enable()

@@ -1,7 +1,7 @@
 /* Scalar C reference of the closed-loop benchmark of bench_simulate.py.
  *
  * The same discrete algorithm as pmsmjax.simulate for sensored speed control of a
- * three-phase PMSM without flux harmonics (pmsmjax/_simulate.py, _control.py, _motor.py):
+ * three-phase PMSM without flux harmonics (pmsmjax/_sim/_simulate.py, _control/, _plant/_motor.py):
  * sensing -> SensoredObserver -> PI speed control -> id_const current references ->
  * PI current control with decoupling, voltage-circle limit and back-calculation
  * anti-windup -> angle-advanced inverse Park -> ZOH -> classical RK4 of the plant

@@ -24,21 +24,46 @@ from . import (  # noqa: E402
     runtime as runtime,
 )
 
+
 runtime.apply_xla_flags(stacklevel=3)
-from ._control import (  # noqa: E402
-    FOC as FOC,
-    IfStartup as IfStartup,
+from ._control._controllers import (  # noqa: E402
     CurrentController as CurrentController,
-    CurrentRefs as CurrentRefs,
     SpeedController as SpeedController,
-    limit_vector as limit_vector,
-    mtpa_i_d as mtpa_i_d,
 )
-from ._control_dtp import (  # noqa: E402
+from ._control._dtp import (  # noqa: E402
     DualCurrentControl as DualCurrentControl,
     XYCurrentController as XYCurrentController,
 )
-from ._identifiable import IDENTIFIABLE as IDENTIFIABLE  # noqa: E402
+from ._control._foc import FOC as FOC  # noqa: E402
+from ._control._limits import (  # noqa: E402
+    CurrentRefs as CurrentRefs,
+    limit_vector as limit_vector,
+    mtpa_i_d as mtpa_i_d,
+)
+from ._control._startup import IfStartup as IfStartup  # noqa: E402
+from ._data._flying_start import (  # noqa: E402
+    FlyingStart as FlyingStart,
+    flying_start as flying_start,
+    unknown_start as unknown_start,
+)
+from ._data._gains_table import (  # noqa: E402
+    GAINS_TABLE_FILES as GAINS_TABLE_FILES,
+    TabulatedDesign as TabulatedDesign,
+    apply_gains_table as apply_gains_table,
+    check_gains_table as check_gains_table,
+    gains_speed_grid as gains_speed_grid,
+    gains_table_constant as gains_table_constant,
+    gains_table_scheduled as gains_table_scheduled,
+    load_gains_table as load_gains_table,
+    verdict_warning as verdict_warning,
+    write_gains_table as write_gains_table,
+)
+from ._data._identifiable import IDENTIFIABLE as IDENTIFIABLE  # noqa: E402
+from ._data._recording import (  # noqa: E402
+    RecordedData as RecordedData,
+    load_recording as load_recording,
+    save_recording as save_recording,
+)
 from ._frames import (  # noqa: E402
     J as J,
     angle_error as angle_error,
@@ -55,45 +80,12 @@ from ._frames import (  # noqa: E402
     vsd_matrix as vsd_matrix,
     wrap_angle as wrap_angle,
 )
-from ._gains_table import (  # noqa: E402
-    GAINS_TABLE_FILES as GAINS_TABLE_FILES,
-    TabulatedDesign as TabulatedDesign,
-    apply_gains_table as apply_gains_table,
-    check_gains_table as check_gains_table,
-    gains_speed_grid as gains_speed_grid,
-    gains_table_constant as gains_table_constant,
-    gains_table_scheduled as gains_table_scheduled,
-    load_gains_table as load_gains_table,
-    verdict_warning as verdict_warning,
-    write_gains_table as write_gains_table,
-)
-from ._flying_start import (  # noqa: E402
-    FlyingStart as FlyingStart,
-    flying_start as flying_start,
-    unknown_start as unknown_start,
-)
-from ._inverter import (  # noqa: E402
+from ._plant._inverter import (  # noqa: E402
     dead_time_error_ab as dead_time_error_ab,
     dead_time_fundamental as dead_time_fundamental,
 )
-from ._io import (  # noqa: E402
-    RecordedData as RecordedData,
-    load_recording as load_recording,
-    save_recording as save_recording,
-)
-from ._metrics import (  # noqa: E402
-    LOCK_DEG as LOCK_DEG,
-    LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,
-    LOCK_DWELL_S as LOCK_DWELL_S,
-    lock_status as lock_status,
-    error_stats as error_stats,
-    replay_stats as replay_stats,
-    settled_mask as settled_mask,
-    settling_time as settling_time,
-    trajectory_metrics as trajectory_metrics,
-)
-from ._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
-from ._motorfile import (  # noqa: E402
+from ._plant._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
+from ._plant._motorfile import (  # noqa: E402
     MOTOR_FILE_SCHEMA as MOTOR_FILE_SCHEMA,
     MotorFileError as MotorFileError,
     load_motor_file as load_motor_file,
@@ -101,7 +93,7 @@ from ._motorfile import (  # noqa: E402
     parse_motor_file as parse_motor_file,
     save_motor_file as save_motor_file,
 )
-from ._params import (  # noqa: E402
+from ._plant._params import (  # noqa: E402
     PRESET_NAMES as PRESET_NAMES,
     BaseValues as BaseValues,
     Drive as Drive,
@@ -113,8 +105,19 @@ from ._params import (  # noqa: E402
     preset as preset,
     replace_params as replace_params,
 )
-from ._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
-from ._solution import RESULTS as RESULTS, Trajectory as Trajectory  # noqa: E402
+from ._sim._metrics import (  # noqa: E402
+    LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,
+    LOCK_DEG as LOCK_DEG,
+    LOCK_DWELL_S as LOCK_DWELL_S,
+    error_stats as error_stats,
+    lock_status as lock_status,
+    replay_stats as replay_stats,
+    settled_mask as settled_mask,
+    settling_time as settling_time,
+    trajectory_metrics as trajectory_metrics,
+)
+from ._sim._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
+from ._sim._solution import RESULTS as RESULTS, Trajectory as Trajectory  # noqa: E402
 from .observers import (  # noqa: E402
     AbstractObserver as AbstractObserver,
     AFOObserver as AFOObserver,
@@ -122,11 +125,11 @@ from .observers import (  # noqa: E402
     ESOObserver as ESOObserver,
     Estimate as Estimate,
     FixedGains as FixedGains,
+    FlyingCatch as FlyingCatch,
     LESOObserver as LESOObserver,
     Measurement as Measurement,
     ParallelModelObserver as ParallelModelObserver,  # noqa: E402
     RotorFluxObserver as RotorFluxObserver,
-    FlyingCatch as FlyingCatch,
     SensoredObserver as SensoredObserver,
 )
 
@@ -136,20 +139,20 @@ from .observers import (  # noqa: E402
 # not need at start-up.
 if TYPE_CHECKING:
     from . import papers as papers
-    from ._integrate import RK4 as RK4, integrate as integrate
-    from ._identify import (
+    from ._data._identify import (
         IdentifiabilityWarning as IdentifiabilityWarning,
         IdentifyError as IdentifyError,
         IdentifyResult as IdentifyResult,
         identify as identify,
     )
-    from ._replay import (
+    from ._data._replay import (
         NonFiniteInputError as NonFiniteInputError,
         initial_estimate as initial_estimate,
         replay as replay,
         replay_estimates as replay_estimates,
     )
-    from ._simulate import (
+    from ._sim._integrate import RK4 as RK4, integrate as integrate
+    from ._sim._simulate import (
         PlantTrace as PlantTrace,
         Sensing as Sensing,
         run_plant as run_plant,

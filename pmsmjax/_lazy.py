@@ -23,7 +23,7 @@ def lazy_exports(package: str, init_file: str, namespace: dict):
                 and node.test.id == "TYPE_CHECKING":
             for imp in node.body:
                 if not isinstance(imp, ast.ImportFrom):
-                    raise TypeError(f"{package}: only `from ... import` in the TYPE_CHECKING "
+                    raise TypeError(f"{package}: only `from  import` in the TYPE_CHECKING "
                                     "block")
                 mod = "." * imp.level + (imp.module or "")
                 for a in imp.names:

@@ -1,5 +1,6 @@
 import os
 
+
 # Quick compiles (pmsmjax.runtime, QUICK_COMPILE_FLAGS): the suite compiles thousands of
 # programs and runs most of them once, so it compiles at LLVM's lowest optimisation level
 # with XLA's older kernel emitters, which halves its time. Set here, before pmsmjax is

@@ -1,5 +1,5 @@
 """Loop carries batched from the start under `vmap`, and with a tangent under `jax.grad`
-(`pmsmjax._batching.batched_like`): the values stay what they were, and `vmap` of the
+(`pmsmjax._sim._batching.batched_like`): the values stay what they were, and `vmap` of the
 loop batches its body once instead of once per link of the chain by which the batched
 input reaches the last carry (JAX's scan batching rule, counted by its calls of
 `batch_jaxpr`); a gradient linearises it fewer times (`linearize_jaxpr`, `jvp_jaxpr`)."""
@@ -11,8 +11,9 @@ import pytest
 from jax._src.interpreters import ad, batching
 
 import pmsmjax as pj
-from pmsmjax import _replay, _simulate
-from pmsmjax._batching import batched_like
+from pmsmjax._data import _replay
+from pmsmjax._sim import _simulate
+from pmsmjax._sim._batching import batched_like
 
 
 def _count_calls(monkeypatch, module, *names):

@@ -14,8 +14,7 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from tuning.compare import job as compare
-from tuning.compare import CompareConfig, CompareInterrupted, run_comparison
+from tuning.compare import CompareConfig, CompareInterrupted, job as compare, run_comparison
 from tuning.scenarios import VAL_LOAD_STEP, VAL_RAMP, observer_model
 
 from .helpers import lock_status_loop, read_npz

@@ -192,7 +192,7 @@ def test_plot_helper_draws_overlaid_speeds(tmp_path):
     import matplotlib
 
     matplotlib.use("Agg")
-    from pmsmjax.plotting_analysis import plot_feasibility
+    from pmsmjax.plotting import plot_feasibility
 
     fm = analysis.feasibility_map(SALIENT_DRIVE, [0.01, 0.5, 1.0], np.linspace(0, 5, 26),
                                   np.linspace(0, 2, 21), i_dq=(0.0, 2.0))

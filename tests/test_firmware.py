@@ -9,7 +9,6 @@ deviation is printed (docs/firmware.md records it).
 
 from __future__ import annotations
 
-import math
 import shutil
 import subprocess
 
@@ -19,6 +18,7 @@ import pytest
 import pmsmjax as pj
 from pmsmjax.firmware import SUPPORTED, export_c
 from pmsmjax.observers import make_observer
+
 
 T_S = 125e-6
 N = 400

@@ -87,8 +87,8 @@ def test_response_plot(tmp_path, capsys, monkeypatch):
     assert main(["response", "--motor", "li_dtp", "--observer", "fa-leso", "--speed", "0.5",
                  "--plot", "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "response.png").stat().st_size > 0
-    from pmsmjax.cli._response import response_curves
     from pmsmjax.cli._options import ObserverChoice
+    from pmsmjax.cli._response import response_curves
 
     drive = pj.preset("li_dtp")
     obs = make_observer("fa-leso", drive)

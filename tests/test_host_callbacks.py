@@ -16,6 +16,7 @@ import pytest
 import pmsmjax as pj
 from pmsmjax import analysis
 
+
 CALLBACKS = frozenset({"pure_callback", "io_callback", "debug_callback"})
 LOOPS = frozenset({"while", "scan"})
 

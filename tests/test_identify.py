@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from pmsmjax import _identify
+from pmsmjax._data import _identify
 from pmsmjax.cli.__main__ import main as cli_main
 
 

@@ -8,7 +8,6 @@ it."""
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -138,7 +137,7 @@ def test_plot_lock_basin_marks_the_starts_that_did_not_lock():
     import matplotlib
 
     matplotlib.use("Agg")
-    from pmsmjax.plotting_analysis import plot_lock_basin
+    from pmsmjax.plotting import plot_lock_basin
 
     locked = np.array([[True, False], [True, True], [False, True]])
     b = analysis.LockBasin(

@@ -1,4 +1,4 @@
-"""The metrics module (`pmsmjax._metrics`): reporting statistics and the differentiable
+"""The metrics module (`pmsmjax._sim._metrics`): reporting statistics and the differentiable
 trajectory metrics of the tuner."""
 
 import math

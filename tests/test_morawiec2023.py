@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from pmsmjax._control import field_weakening
+from pmsmjax._control._limits import field_weakening
 from pmsmjax.papers import morawiec2023 as mp
 
 from .helpers import read_npz

@@ -86,7 +86,7 @@ def test_fig1_open_loop_offsets_by_the_steady_state_phasors(sens):
 
 
 def test_plot(sens, tmp_path):
-    from pmsmjax.plotting_stumper import plot_sensitivity
+    from pmsmjax.papers.stumper_plots import plot_sensitivity
 
     fig = plot_sensitivity(sens)
     assert isinstance(fig, Figure) and len(fig.axes) == 2

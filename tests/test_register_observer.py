@@ -25,12 +25,12 @@ from pmsmjax.observers import (
     AbstractObserver,
     ErrorCoordinates,
     Estimate,
+    _registry,
     make_observer,
     observer_class,
     observer_names,
     register_observer,
 )
-from pmsmjax.observers import _registry
 
 from .helpers import motor_numbers, read_npz
 

@@ -273,7 +273,7 @@ def test_long_run_options_undo_quick_compiles_for_one_program(monkeypatch):
 def test_new_initial_values_do_not_compile_again():
     """Python numbers as initial values (angle, speed, estimate, current) run the
     program already compiled."""
-    from pmsmjax import _simulate as S
+    from pmsmjax._sim import _simulate as S
 
     d = pj.preset("zhang750")
     foc = pj.FOC.from_drive(d)
@@ -298,7 +298,8 @@ def test_new_parameter_values_do_not_compile_again(monkeypatch):
     certificate run their compiled program again for new values (one entry in each jit
     cache), use the values, and give the numbers of the program that baked them in (the
     conversion patched out) to rounding."""
-    from pmsmjax import _replay, _simulate as S
+    from pmsmjax._data import _replay
+    from pmsmjax._sim import _simulate as S
     from pmsmjax.analysis import _harmonic, _lyapunov
 
     d = pj.preset("zhang750")

@@ -19,6 +19,12 @@ The pipeline, one module per stage (data flows one way):
 comparison of every observer (`tuning.compare`).
 """
 
+from . import report as report
+from .compare import (
+    CompareConfig as CompareConfig,
+    plot_comparison as plot_comparison,
+    run_comparison as run_comparison,
+)
 from .design_space import Coordinate as Coordinate, DesignSpace as DesignSpace
 from .evaluate import Evaluator as Evaluator
 from .objective import (
@@ -36,7 +42,6 @@ from .problem import (
     VALIDATION_CASES as VALIDATION_CASES,
     TuningProblem as TuningProblem,
 )
-from . import report as report
 from .report import (
     REQUIRED_KEYS as REQUIRED_KEYS,
     gains_table as gains_table,
@@ -62,9 +67,4 @@ from .search import (
     hybrid_search as hybrid_search,
     local_search as local_search,
     random_search as random_search,
-)
-from .compare import (
-    CompareConfig as CompareConfig,
-    plot_comparison as plot_comparison,
-    run_comparison as run_comparison,
 )

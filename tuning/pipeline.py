@@ -33,7 +33,7 @@ import numpy as np
 
 from .design_space import DesignSpace
 from .evaluate import Evaluator
-from .objective import Metrics, accounting, holds, objective
+from .objective import accounting, holds, objective
 from .problem import TuningProblem
 from .scenarios import ScenarioSet, check_disjoint, heldout_set, training_set, validation_set
 from .search import STRATEGIES, SearchResult, gradient_search

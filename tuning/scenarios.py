@@ -45,7 +45,7 @@ import jax.random as jr
 import numpy as np
 
 import pmsmjax as pj
-from pmsmjax._simulate import scale_motor
+from pmsmjax._sim._simulate import scale_motor
 
 from .problem import TuningProblem
 

@@ -19,7 +19,7 @@ import numpy as np  # noqa: E402
 import pmsmjax as pj  # noqa: E402
 from pmsmjax import analysis  # noqa: E402
 from pmsmjax.observers import make_observer  # noqa: E402
-from pmsmjax.plotting_analysis import plot_lock_basin  # noqa: E402
+from pmsmjax.plotting import plot_lock_basin  # noqa: E402
 
 
 HERE = pathlib.Path(__file__).resolve().parent

@@ -6,7 +6,7 @@ zhang2022's closed forms (the quartic (34)-(36)) are fast paths next to the gene
 from typing import TYPE_CHECKING
 
 from .._lazy import lazy_exports
-
+from ..observers._base import OperatingPoint as OperatingPoint
 from ._dead_time import (
     dead_time_angle_error as dead_time_angle_error,
     dead_time_resistance as dead_time_resistance,
@@ -51,10 +51,9 @@ from ._generic import (
     linearization as linearization,
     stability as stability,
 )
-from ._lock import (
-    LockBasin as LockBasin,
-    lock_basin as lock_basin,
-    lock_time as lock_time,
+from ._harmonic import (
+    harmonic_ripple as harmonic_ripple,
+    input_matrix as input_matrix,
 )
 from ._linearize import (
     charpoly as charpoly,
@@ -65,10 +64,10 @@ from ._linearize import (
     max_real_eig as max_real_eig,
     routh_hurwitz as routh_hurwitz,
 )
-from ..observers._base import OperatingPoint as OperatingPoint
-from ._harmonic import (
-    harmonic_ripple as harmonic_ripple,
-    input_matrix as input_matrix,
+from ._lock import (
+    LockBasin as LockBasin,
+    lock_basin as lock_basin,
+    lock_time as lock_time,
 )
 from ._sweep import (
     ChunkInfo as ChunkInfo,
@@ -76,6 +75,7 @@ from ._sweep import (
     grid_product as grid_product,
     run_sweep as run_sweep,
 )
+
 
 # Loaded on first use (`pmsmjax._lazy`): the certificates import diffrax and optimistix.
 if TYPE_CHECKING:

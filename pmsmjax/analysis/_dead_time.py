@@ -1,7 +1,7 @@
 r"""Static angle error caused by the inverter's dead-time error (any observer).
 
 An observer that is handed the *commanded* voltage, while the windings receive it less
-the inverter error $\Delta u$ (`pmsmjax._inverter`), sees a machine whose voltage
+the inverter error $\Delta u$ (`pmsmjax._plant._inverter`), sees a machine whose voltage
 equation carries $\Delta u$ on top of its own. In steady state the error's fundamental in
 rotor coordinates lies along the current,
 
@@ -29,7 +29,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from .._inverter import dead_time_fundamental
+from .._plant._inverter import dead_time_fundamental
 from ..observers import AbstractObserver
 from ._generic import equilibria
 

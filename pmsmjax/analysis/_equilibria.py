@@ -84,7 +84,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._frames import jmul, wrap_angle
-from .._params import PMSMParams
+from .._plant._params import PMSMParams
 from ..observers._eso_design import ESOGains, error_signal, psi_a
 from ._linearize import charpoly, check_frame, eso_rhs, routh_hurwitz
 

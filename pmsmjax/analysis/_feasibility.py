@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._params import Drive, PMSMParams
+from .._plant._params import Drive, PMSMParams
 from ..observers._eso_design import eso_gains, psi_a, zhang38
 from ._equilibria import as_arrays, eso_equilibria
 from ._linearize import check_frame

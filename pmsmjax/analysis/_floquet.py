@@ -21,7 +21,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._params import PMSMParams
+from .._plant._params import PMSMParams
 from ..observers._base import AbstractObserver, OperatingPoint
 from ._generic import _program_inputs, check_observer, check_plant
 

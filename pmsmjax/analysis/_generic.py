@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 
 from .._frames import rotate, wrap_angle
-from .._params import PMSMParams
+from .._plant._params import PMSMParams
 from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
 from ._equilibria import Equilibria, as_arrays
 from ._linearize import charpoly, routh_hurwitz

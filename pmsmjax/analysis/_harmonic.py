@@ -86,9 +86,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._batching import values_as_arrays
 from .._frames import rotate
-from .._params import Drive
+from .._plant._params import Drive
+from .._sim._batching import values_as_arrays
 from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
 from ._generic import _true_flux_ab, check_observer
 
@@ -284,7 +284,7 @@ def harmonic_ripple(observer: AbstractObserver, drive: Drive, op: OperatingPoint
         raise ValueError(f"`harmonic_ripple(T_s=...)` must be a positive sampling period "
                          f"(s) or None; got {T_s!r}.")
     # the observer's and drive's Python floats as traced values: another design or
-    # machine runs the compiled program again (pmsmjax._batching.values_as_arrays)
+    # machine runs the compiled program again (pmsmjax._sim._batching.values_as_arrays)
     dtype = jnp.result_type(op.w_m, op.i_dq, float)
     observer, drive = values_as_arrays((observer, drive), dtype)
     return _harmonic_ripple(observer, drive, op, h, None if T_s is None else float(T_s))

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 
 from .._frames import jmul
-from .._params import PMSMParams
+from .._plant._params import PMSMParams
 from ..observers._eso_design import ESOGains, error_dynamics, error_signal, fal
 
 

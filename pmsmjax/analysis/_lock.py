@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._frames import wrap_angle
-from .._params import Drive
+from .._plant._params import Drive
 from .._validate import check_positive, check_range
 from ..observers._base import AbstractObserver, OperatingPoint
 
@@ -124,10 +124,10 @@ def lock_basin(observer: AbstractObserver, drive: Drive, *, w_m=None, i_q=None,
 
     **Returns:** `LockBasin`.
     """
-    from .._control import FOC
-    from .._replay import _scan
-    from .._scenario import Profile, Scenario
-    from .._simulate import simulate
+    from .._control._foc import FOC
+    from .._data._replay import _scan
+    from .._sim._scenario import Profile, Scenario
+    from .._sim._simulate import simulate
     from ..observers._base import SensoredObserver
 
     if not isinstance(observer, AbstractObserver) or isinstance(observer, SensoredObserver):

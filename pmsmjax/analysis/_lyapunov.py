@@ -62,7 +62,8 @@ import numpy as np
 import optimistix as optx
 
 from .._frames import wrap_angle
-from .._params import Drive, PMSMParams
+from .._plant._params import Drive, PMSMParams
+from .._sim._batching import values_as_arrays
 from ..observers._base import AbstractObserver, OperatingPoint
 from ..observers._eso import (
     AbstractGainSchedule,
@@ -70,7 +71,6 @@ from ..observers._eso import (
     LESOObserver,
     _AbstractFluxObserver,
 )
-from .._batching import values_as_arrays
 from ._equilibria import as_arrays
 from ._linearize import check_frame, eso_rhs
 
@@ -488,7 +488,7 @@ def slowly_varying_certificate(drive: Drive, design, speed_range=(0.1, 1.0), *,
         except jax.errors.ConcretizationTypeError:
             matched = False
     # Python floats of the observer and machine as traced values: another design or model
-    # runs the compiled certificate again (pmsmjax._batching.values_as_arrays)
+    # runs the compiled certificate again (pmsmjax._sim._batching.values_as_arrays)
     dyn = _ScaledDynamics(observer=values_as_arrays(observer, dtype),
                           plant=values_as_arrays(plant, dtype), i0=i0,
                           d=_state_scale(drive, observer, scale, dtype), frame=frame,

@@ -118,7 +118,7 @@ def _plot(fm, title: str, path: str) -> None:
     fig = Figure(figsize=(6.5, 5.0))
     ax = fig.add_subplot()
     if (fm.x_name, fm.y_name) == ("zeta1", "ratio"):
-        from pmsmjax.plotting_analysis import plot_feasibility
+        from pmsmjax.plotting import plot_feasibility
 
         plot_feasibility(fm, ax=ax)
     else:

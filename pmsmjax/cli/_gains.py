@@ -20,7 +20,7 @@ import sys
 import numpy as np
 
 import pmsmjax as pj
-from pmsmjax._gains_table import GAIN_COLUMNS, gain_columns, table_columns
+from pmsmjax._data._gains_table import GAIN_COLUMNS, gain_columns, table_columns
 
 from ._options import (
     CLIError,
@@ -155,7 +155,7 @@ def gains_command(args: argparse.Namespace) -> int:
                                            "; |z| >= 1: the tuned observer is unstable "
                                            "there"))
     if args.plot:
-        from pmsmjax.plotting_gains import plot_gains_vs_speed, plot_poles_vs_speed
+        from pmsmjax.plotting import plot_gains_vs_speed, plot_poles_vs_speed
 
         title = f"{table['observer']} on {drive.name}, T_s = {T_s:g} s"
         files["gains_plot"] = os.path.join(out, "gains.png")

@@ -132,7 +132,7 @@ PLOT_ORDERS = tuple(h for h in range(-25, 26) if h)
 
 
 def response_curves(choice, drive, speed_pu: float, i_pu, orders, T_s: float) -> dict:
-    """The curves of `--plot` (`pmsmjax.plotting_analysis.plot_response`): the angle
+    """The curves of `--plot` (`pmsmjax.plotting.plot_response`): the angle
     ripple over `PLOT_ORDERS` and, for an observer with a continuous transfer function,
     `analysis.bode_data` over signed frequencies up to 0.4 / T_s (log-spaced, 1 Hz to
     that)."""
@@ -169,7 +169,7 @@ def response_command(args: argparse.Namespace) -> int:
     if args.out:
         write_json(os.path.join(prepare_out_dir(args.out), "response.json"), report)
     if args.plot:
-        from pmsmjax.plotting_analysis import plot_response
+        from pmsmjax.plotting import plot_response
 
         curves = response_curves(choice, drive, float(args.speed), i_pu, args.orders,
                                  float(args.T_s))

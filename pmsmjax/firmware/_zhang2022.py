@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._gains_table import TabulatedDesign
+from .._data._gains_table import TabulatedDesign
 from ..observers import AFOObserver, ESOObserver, LESOObserver
 from ..observers._eso import ESODesign, FixedGains
 from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f

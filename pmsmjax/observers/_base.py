@@ -40,8 +40,8 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._frames import wrap_angle
-from .._params import PMSMParams
-from .._validate import recheck
+from .._plant._params import PMSMParams
+from .._plant._recheck import recheck
 
 
 class Measurement(eqx.Module):
@@ -181,7 +181,7 @@ class AbstractObserver(eqx.Module):
         """Raise `ValueError`, naming the argument, for a concrete value this observer
         cannot run with at the sampling period `T_s` (s). `simulate` and `replay` call it
         before they compile a run, which traces the observer's Python floats
-        (`pmsmjax._batching.values_as_arrays`), so that checks made inside `step` no
+        (`pmsmjax._sim._batching.values_as_arrays`), so that checks made inside `step` no
         longer see them. Default: the construction checks of the observer and every
         module in it (which `with_design` and `with_motor` skip); an observer with a
         bound on `T_s` adds it."""

@@ -39,9 +39,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._flying_start import model_back_emf
+from .._data._flying_start import model_back_emf
 from .._frames import rotation_between, wrap_angle
-from .._params import PMSMParams
+from .._plant._params import PMSMParams
 from ._base import AbstractObserver, Estimate, Measurement
 
 

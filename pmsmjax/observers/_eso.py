@@ -57,7 +57,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._frames import park, rotate, wrap_angle
-from .._params import Drive, PMSMParams
+from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive, is_concrete
 from ._base import (
     AbstractObserver,

@@ -48,7 +48,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._frames import J, jmul, rotate
-from .._params import PMSMParams
+from .._plant._params import PMSMParams
 from .._validate import check_positive, check_range, is_concrete
 
 

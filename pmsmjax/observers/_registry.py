@@ -8,7 +8,7 @@ preset. `make_observer(name, drive, ...)` is the one place a name becomes an obs
 
 from __future__ import annotations
 
-from .._params import Drive, PMSMParams
+from .._plant._params import Drive, PMSMParams
 from ._base import AbstractObserver
 
 

@@ -149,7 +149,7 @@ import jax
 import jax.numpy as jnp
 
 from .._frames import rotate, wrap_angle
-from .._params import Drive, PMSMParams
+from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive
 from ._base import (
     AbstractObserver,

@@ -102,7 +102,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import analysis
-from .._params import Drive, preset
+from .._plant._params import Drive, preset
 from ..observers import RotorFluxObserver
 
 
@@ -306,7 +306,7 @@ class Experiment:
         the run stayed bounded (`ok`), and the trajectory (`traj`). `windows`:
         `{label: (t0, t1)}` (s), further windows of the same run, measured the same way
         under `label` (without `traj`)."""
-        from .._simulate import simulate
+        from .._sim._simulate import simulate
 
         traj = simulate(self.drive, **self.kwargs)
         out = self.measure(traj, self.window)
@@ -362,9 +362,9 @@ def experiment(name: str, *, slot_harmonic: float | None = None, T_s: float = T_
     docstring, started with the true angle and speed; no sensor noise, no inverter
     non-linearity.
     """
-    from .._control import FOC
-    from .._params import MORAWIEC_SLOT_HARMONIC
-    from .._scenario import Profile, Scenario
+    from .._control._foc import FOC
+    from .._plant._params import MORAWIEC_SLOT_HARMONIC
+    from .._sim._scenario import Profile, Scenario
 
     if name not in EXPERIMENTS:
         raise ValueError(f"Unknown experiment {name!r}; choose one of "

@@ -29,12 +29,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._control import FOC, FOCOutput
+from .._control._controllers import FOCOutput
+from .._control._foc import FOC
+from .._data._replay import replay_estimates
 from .._frames import angle_error
-from .._params import Drive, preset, replace_params
-from .._replay import replay_estimates
-from .._scenario import Profile, Scenario
-from .._simulate import simulate
+from .._plant._params import Drive, preset, replace_params
+from .._sim._scenario import Profile, Scenario
+from .._sim._simulate import simulate
 from ..analysis import equilibria_traced
 from ..observers import (
     OperatingPoint,

@@ -40,13 +40,13 @@ import math
 import jax.random as jr
 import numpy as np
 
-from .._control import FOC
+from .._control._foc import FOC
+from .._data._replay import replay
 from .._frames import park
-from .._metrics import error_stats, replay_stats, settling_time
-from .._params import Drive, preset
-from .._replay import replay
-from .._scenario import Profile, Scenario
-from .._simulate import Sensing, scale_motor, simulate
+from .._plant._params import Drive, preset
+from .._sim._metrics import error_stats, replay_stats, settling_time
+from .._sim._scenario import Profile, Scenario
+from .._sim._simulate import Sensing, scale_motor, simulate
 from ..analysis import equilibria
 from ..observers import (
     AFOObserver,

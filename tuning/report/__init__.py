@@ -2,8 +2,7 @@
 it knows nothing of how the designs were found."""
 
 from .export import gains_table as gains_table
-from .figures import plot_report as plot_report
-from .figures import PLOTS as PLOTS
+from .figures import PLOTS as PLOTS, plot_report as plot_report
 from .summary import (
     REQUIRED_KEYS as REQUIRED_KEYS,
     load_design as load_design,

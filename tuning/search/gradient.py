@@ -21,8 +21,6 @@ searches keep only the best design evaluated.
 
 from __future__ import annotations
 
-import math
-
 import jax.numpy as jnp
 import numpy as np
 import optax

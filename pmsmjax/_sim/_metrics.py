@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
-from ._frames import wrap_angle
+from .._frames import wrap_angle
 
 
 _EPS = 1e-12  # added under the square roots of `trajectory_metrics` (finite gradient at 0)

@@ -1,7 +1,7 @@
 """Plots for `pmsmjax.analysis` (matplotlib only).
 
 Never imported by `pmsmjax` or `pmsmjax.analysis`; import it explicitly:
-`from pmsmjax.plotting_analysis import plot_feasibility`.
+`from pmsmjax.plotting import plot_feasibility`.
 """
 
 from __future__ import annotations

@@ -8,8 +8,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._control import _limit_scale
-from ._validate import check_positive
+from .._validate import check_positive
+from ._controllers import FOCOutput, FOCState
+from ._limits import _limit_scale
 
 
 def _rot(c, s, x, y):
@@ -165,7 +166,7 @@ class DualCurrentControl(eqx.Module):
         controller angle, `theta_u` (rad) the advanced output angle. Returns `(state,
         FOCOutput, u_xy)`: `FOCOutput.u_dq` is the alpha-beta voltage at `theta_hat`'s
         frame (V), `u_xy` the x-y voltage (V, stationary)."""
-        from ._control import FOCOutput, FOCState
+
 
         s_state, i_ref, tau_ref = foc._references(state, w_hat, w_ref, T_s,
                                                   i_ref_override, speed_mode)

@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from ._frames import wrap_angle
+from .._frames import wrap_angle
 
 
 _TRAJ_FIELDS = ("t", "w_m", "w_hat", "w_m_ref", "tau_M", "tau_L", "tau_ref", "i_dq", "i_ref",

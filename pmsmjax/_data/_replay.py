@@ -1,6 +1,6 @@
 """Offline replay: run an observer over recorded stator voltages and currents.
 
-The recorded-data convention (`pmsmjax._io`) stores at each sampling
+The recorded-data convention (`pmsmjax._data._recording`) stores at each sampling
 instant t_k the current `i_ab[k]` sampled at t_k and the voltage `u_ab[k]` applied over
 [t_k, t_{k+1}). The observer interface (`observers._base`) hands the observer at t_k the
 current at t_k and the voltage over the *previous* period, so replay feeds
@@ -20,12 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._batching import batched_like, values_as_arrays
+from .._plant._params import Inverter, PMSMParams
+from .._sim._batching import batched_like, values_as_arrays
+from .._sim._simulate import observer_voltage, scale_motor
+from .._validate import NonFiniteInputError, is_concrete
+from ..observers import AbstractObserver, Measurement
 from ._flying_start import unknown_start
-from ._params import Inverter, PMSMParams
-from ._simulate import observer_voltage, scale_motor
-from ._validate import NonFiniteInputError, is_concrete
-from .observers import AbstractObserver, Measurement
 
 
 def _arrays(data, u_ab, i_ab, t):
@@ -138,7 +138,7 @@ def _scan(observer, u_ab, i_ab, T_s, theta0, w0, scales, inverter=None):
     u_prev = jnp.concatenate([jnp.zeros((1, 2), u_ab.dtype), u_ab[:-1]], 0)
     nan = jnp.full((), jnp.nan, dtype)
     # every carry batched (under vmap) and differentiated (under jvp/grad) from the
-    # start: one pass of the scan's fixpoints over the step (pmsmjax._batching)
+    # start: one pass of the scan's fixpoints over the step (pmsmjax._sim._batching)
     state0 = batched_like(observer.init(theta0=theta0, w0=w0), observer, u_ab, i_ab, T_s,
                           theta0, w0, scales)
 
@@ -225,7 +225,7 @@ def replay_estimates(observer: AbstractObserver, data=None, u_ab=None, i_ab=None
         raise ValueError(f"`replay(inverter=...)` must be a `pmsmjax.Inverter` (e.g. "
                          f"`drive.inverter`) or None; got {type(inverter).__name__}.")
     # the observer's and inverter's Python floats as traced values: another design or
-    # model replays with the compiled program (pmsmjax._batching.values_as_arrays);
+    # model replays with the compiled program (pmsmjax._sim._batching.values_as_arrays);
     # checks that need the observer's concrete values run first
     observer.check_values(T_s)
     observer, inverter = values_as_arrays((observer, inverter), dtype)

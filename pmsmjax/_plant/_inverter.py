@@ -38,7 +38,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from ._frames import inv_vsd, vsd
+from .._frames import inv_vsd, vsd
 
 
 _S3 = math.sqrt(3.0)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
+
 #: jaxlib's `kMinWorkPerTask` (FLOP): a batched LAPACK call with less estimated work runs
 #: inline on its own thread and cannot block.
 LAPACK_MIN_WORK = 200_000

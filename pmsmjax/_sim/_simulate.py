@@ -20,17 +20,18 @@ import jax.random as jr
 import numpy as np
 from jax.ad_checkpoint import checkpoint_name
 
+from .._control._foc import FOC
+from .._frames import wrap_angle
+from .._plant._inverter import dead_time_error_ab
+from .._plant._motor import PMSM, PlantInput, PlantState, _is_zero, cos_sin, join_state, split_state
+from .._plant._params import Drive, DualThreePhaseParams, PMSMParams
+from .._plant._recheck import recheck
+from .._validate import NonFiniteInputError, check_positive, is_concrete
+from ..observers import AbstractObserver, Measurement
 from ._batching import batched_like, values_as_arrays
-from ._control import FOC
-from ._frames import wrap_angle
 from ._integrate import RK4, check_step, integrate
-from ._inverter import dead_time_error_ab
-from ._motor import PMSM, PlantInput, PlantState, _is_zero, cos_sin, join_state, split_state
-from ._params import Drive, DualThreePhaseParams, PMSMParams
 from ._scenario import Scenario
 from ._solution import RESULTS, Trajectory
-from ._validate import NonFiniteInputError, check_positive, is_concrete, recheck
-from .observers import AbstractObserver, Measurement
 
 
 _OK_NAME = "pmsmjax.simulate.ok"
@@ -237,7 +238,7 @@ def simulate(
             arguments[k] = np.asarray(v, dtype=np.float64)
     # The same for the parameters: a new value of a Python float in the drive, the
     # controller or the observer (a mismatched model, another design) runs the compiled
-    # program again (pmsmjax._batching.values_as_arrays); checks that need the observer's
+    # program again (pmsmjax._sim._batching.values_as_arrays); checks that need the observer's
     # concrete values run first
     observer.check_values(T_s)
     recheck((drive, controller))
@@ -323,7 +324,7 @@ def _simulate(arguments: dict) -> Trajectory:
         noise=None if key is None else jnp.zeros((_NOISE_BLOCK, 2), dtype),
         i_meas_prev=jnp.zeros(2, dtype) if compensate else None,
     )
-    # under vmap, every carry batched from the start (pmsmjax._batching: one pass of
+    # under vmap, every carry batched from the start (pmsmjax._sim._batching: one pass of
     # the scan's batching fixpoint over the step instead of three or four)
     carry0 = batched_like(carry0, arguments)
     carry_dtypes = jax.tree_util.tree_map(lambda a: a.dtype, carry0)

@@ -54,12 +54,12 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ._integrate import RK4, integrate
-from ._io import RecordedData
-from ._motor import PMSM, PlantInput, PlantState, cos_sin
+from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
+from .._plant._params import Drive, Inverter
+from .._sim._integrate import RK4, integrate
+from .._sim._simulate import _check_common
 from ._identifiable import IDENTIFIABLE as IDENTIFIABLE
-from ._params import Drive, Inverter
-from ._simulate import _check_common
+from ._recording import RecordedData
 
 
 _MOTOR = ("R_s", "L_d", "L_q", "psi_f")
@@ -412,6 +412,6 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
 
 def _fitted_drive(drive: Drive, vals: dict) -> Drive:
     """`drive` with the fitted values, validated like a user's `replace_params`."""
-    from ._params import replace_params
+    from .._plant._params import replace_params
 
     return replace_params(drive, **vals)

@@ -13,7 +13,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._validate import check_positive, is_concrete
+from .._validate import check_positive, is_concrete
 
 
 class Profile(eqx.Module):

@@ -18,7 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._validate import check_finite, check_positive, is_concrete
+from .._validate import check_finite, check_positive, is_concrete
 
 
 class EMFHarmonics(eqx.Module):
@@ -197,7 +197,7 @@ class Inverter(eqx.Module):
       k is applied over [t_{k+1}, t_{k+2}).
     - `u_dt`: dead-time and device-drop voltage error per phase (V), >= 0; default `None`
       (an ideal inverter, at no cost). Each phase receives its commanded voltage less
-      `u_dt * tanh(i_x / i_dt)` (see `pmsmjax._inverter` for the model).
+      `u_dt * tanh(i_x / i_dt)` (see `pmsmjax._plant._inverter` for the model).
     - `i_dt`: width of that error's transition around zero phase current (A), > 0;
       default 0.1 A (a few percent of rated current is typical).
     """

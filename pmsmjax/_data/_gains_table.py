@@ -53,8 +53,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._params import PMSMParams
-from .observers import (
+from .._plant._params import PMSMParams
+from ..observers import (
     AbstractGainSchedule,
     AbstractObserver,
     eso_gains,

@@ -90,8 +90,7 @@ from pathlib import Path
 
 import jax
 
-from pmsmjax._lapack_pool import (  # noqa: F401 (public, see below)
-    LAPACK_MIN_WORK, LapackCall, concurrent_lapack_calls)
+from pmsmjax.runtime._lapack_pool import LAPACK_MIN_WORK, LapackCall, concurrent_lapack_calls  # noqa: F401 (public, see below)
 
 
 #: XLA flags `configure` adds for fast single runs (see the module docstring).
@@ -327,7 +326,7 @@ def _source_hash() -> str:
     if _SOURCE_HASH is None:
         import hashlib
 
-        root = Path(__file__).resolve().parent
+        root = Path(__file__).resolve().parents[1]
         h = hashlib.sha256()
         for p in sorted(root.rglob("*.py")):
             h.update(str(p.relative_to(root)).encode())
@@ -384,7 +383,7 @@ def _program_key(tag: str, fn, args) -> str | None:
 
     import jaxlib
 
-    from . import __version__
+    from .. import __version__
 
     try:
         desc = (tag, _describe(fn), _describe(args))

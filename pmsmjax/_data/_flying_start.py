@@ -29,9 +29,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._frames import rotation_between, wrap_angle
-from ._params import PMSMParams
-from ._validate import is_concrete
+from .._frames import rotation_between, wrap_angle
+from .._plant._params import PMSMParams
+from .._validate import is_concrete
 
 
 #: `replay` with no initial estimate takes a recording to start with the rotor turning

@@ -35,7 +35,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._frames import park
+from .._frames import park
 from ._inverter import dead_time_error_ab, dead_time_error_vsd
 from ._params import DualThreePhaseParams, EMFHarmonics, Inverter, Mechanics, PMSMParams
 
@@ -135,7 +135,7 @@ class PMSM(eqx.Module):
     - `mechanics`: `Mechanics`.
     - `inverter`: optional `Inverter` whose dead-time error (`u_dt`, `i_dt`) the windings
       see: the input voltage is then the *commanded* one, and the machine receives it
-      less the error at its present phase currents (`pmsmjax._inverter`), evaluated
+      less the error at its present phase currents (`pmsmjax._plant._inverter`), evaluated
       continuously inside each integration step. `None` or `u_dt = 0`: ideal.
     """
 

@@ -1,7 +1,7 @@
 """Plots for `pmsmjax.papers.morawiec2023` (matplotlib only).
 
 Never imported by `pmsmjax`; import it explicitly:
-`from pmsmjax.plotting_morawiec2023 import plot_spectra`.
+`from pmsmjax.papers.morawiec2023_plots import plot_spectra`.
 """
 
 from __future__ import annotations

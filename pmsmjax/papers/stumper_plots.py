@@ -1,6 +1,6 @@
 """Figures for stumper's parallel-model estimator (matplotlib only, like `plotting`).
 
-Not imported by `pmsmjax/__init__.py`: `from pmsmjax.plotting_stumper import
+Not imported by `pmsmjax/__init__.py`: `from pmsmjax.papers.stumper_plots import
 plot_sensitivity`. Angles in degrees.
 """
 
