@@ -97,6 +97,14 @@ class PMSMParams(eqx.Module):
         """Inductance matrix diag(L_d, L_q) (H)."""
         return jnp.diag(jnp.stack([jnp.asarray(self.L_d), jnp.asarray(self.L_q)]))
 
+    def extended_flux(self, i_d):
+        r"""Extended (active) flux $\psi_{ex} = \psi_f + (L_d - L_q)\,i_d$ (V s) at the
+        d-current `i_d` (A): the flux along the d axis whose rotation gives the
+        extended back-EMF $\omega\psi_{ex}$ of a salient machine and its torque
+        $\tfrac32 n_p \psi_{ex} i_q$. The one place every observer, controller and
+        analysis reads it from."""
+        return self.psi_f + (self.L_d - self.L_q) * i_d
+
     def psi_pm_dq(self, theta):
         """PM flux linkage in rotor coordinates at electrical angle `theta` (rad) -> (V s, 2)."""
         psi = jnp.stack([self.psi_f + 0.0 * theta, 0.0 * theta], axis=-1)
