@@ -109,11 +109,15 @@ from ._sim._metrics import (  # noqa: E402
     LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,
     LOCK_DEG as LOCK_DEG,
     LOCK_DWELL_S as LOCK_DWELL_S,
+    STATIC_WINDOW as STATIC_WINDOW,
     error_stats as error_stats,
     lock_status as lock_status,
     replay_stats as replay_stats,
+    run_errors as run_errors,
+    run_metrics as run_metrics,
     settled_mask as settled_mask,
     settling_time as settling_time,
+    static_window as static_window,
     trajectory_metrics as trajectory_metrics,
 )
 from ._sim._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402

@@ -61,3 +61,79 @@ def test_trajectory_metrics_exponential_decay():
     g = jax.grad(settle)(1.0 / tau)
     x = dt / tau
     assert float(g) == pytest.approx(-dt ** 2 * math.cosh(x) / math.sinh(x) ** 2, rel=2e-8)
+
+
+@pytest.mark.parametrize("T_s, save_every, t_end", [(125e-6, 4, 0.3), (1 / 6600, 4, 0.15),
+                                                    (250e-6, 2, 0.1), (62.5e-6, 1, 0.0301)])
+def test_static_window_is_a_time(T_s, save_every, t_end):
+    """The static window holds the saved samples at t >= 0.8 t_end (the samples as
+    `simulate` saves them: the first of every `save_every` steps), whatever the sampling
+    period and `save_every`; counted here in integers of steps, a route without the time
+    arithmetic."""
+    n_steps = round(t_end / T_s) // save_every * save_every
+    k = np.arange(0, n_steps, save_every)  # the saved steps
+    t = k * T_s
+    got = np.asarray(pj.static_window(jnp.asarray(t)))
+    want = 5 * k >= 4 * n_steps  # k T_s >= 0.8 N T_s
+    np.testing.assert_array_equal(got, want)
+    assert pj.STATIC_WINDOW == 0.2
+    # batched times: the same window per row
+    both = np.asarray(pj.static_window(jnp.stack([jnp.asarray(t), jnp.asarray(t) + 1.0])))
+    np.testing.assert_array_equal(both, np.stack([want, want]))
+
+
+def test_settling_time_from_a_start():
+    """`t_from`: the samples before it are ignored, the time counts from it; a loop over
+    the samples as the reference."""
+    t = np.arange(100) * 0.01
+    err = np.where((t > 0.2) & (t < 0.55), 3.0, 0.5)
+    err[:10] = 9.0  # outside the band, but before the start
+    for t_from in (0.15, 0.3, 0.6):
+        outside = [j for j in range(100) if t[j] >= t_from - 1e-9 and abs(err[j]) > 1.0]
+        want = t[outside[-1] + 1] - t_from if outside else 0.0
+        got = float(pj.settling_time(t, err, 1.0, t_from=t_from))
+        assert got == pytest.approx(want, abs=1e-12), t_from
+    assert float(pj.settling_time(t, err, 1.0)) == pytest.approx(0.55, abs=1e-12)
+    # batched: one start per run
+    two = pj.settling_time(t, np.stack([err, err]), 1.0, t_from=jnp.array([0.15, 0.6]))
+    np.testing.assert_allclose(np.asarray(two), [0.4, 0.0], atol=1e-12)
+
+
+def test_run_metrics_against_numpy():
+    """`pmsmjax.run_metrics`, the one definition of the per-run metrics, recomputed in
+    NumPy on synthetic runs: a decaying error with noise, one with a non-finite sample
+    (180 deg, not ok, lost lock), one that diverged."""
+    from .helpers import lock_status_loop
+
+    rng = np.random.default_rng(1)
+    n, dt = 500, 4e-4  # 0.2 s
+    t = np.arange(n) * dt
+    th = np.stack([0.5 * np.exp(-t / 0.02) + 0.03 + 0.002 * rng.standard_normal(n)] * 3)
+    th[1, 300] = np.nan
+    w_err = 2.0 * rng.standard_normal((3, n))
+    ok = np.array([True, True, False])
+    traj = types.SimpleNamespace(t=jnp.asarray(np.broadcast_to(t, th.shape)),
+                                 theta_err=jnp.asarray(th), w_m=jnp.asarray(w_err),
+                                 w_hat=jnp.zeros((3, n)), ok=jnp.asarray(ok))
+    m = {k: np.asarray(v) for k, v in pj.run_metrics(
+        traj, lock_deg=30.0, settle_from=0.01, settle_band_deg=1.0).items()}
+    win = t >= 0.8 * n * dt - 1e-9
+    for j in range(3):
+        d = np.degrees(np.where(np.isfinite(th[j]), th[j], np.pi))
+        assert m["static_deg"][j] == pytest.approx(d[win].mean(), rel=1e-12)
+        assert m["noise_rad_s"][j] == pytest.approx(w_err[j][win].std(), rel=1e-9)
+        assert m["rms_deg"][j] == pytest.approx(np.sqrt(np.mean(d ** 2)), rel=1e-9)
+        assert m["max_abs_deg"][j] == pytest.approx(np.max(np.abs(d)), rel=1e-12)
+        out = np.nonzero((t >= 0.01 - 1e-9) & (np.abs(d - d[win].mean()) > 1.0))[0]
+        settle = t[out[-1] + 1] - 0.01 if out.size else 0.0
+        assert m["settle_s"][j] == pytest.approx(settle, abs=1e-12)
+        ref = lock_status_loop(t, th[j], ok=bool(ok[j]), lock_deg=30.0)
+        assert bool(m["lost_lock"][j]) == ref[2]
+        assert bool(m["ok"][j]) == (j == 0)
+    assert not m["lost_lock"][0] and m["lost_lock"][1] and m["lost_lock"][2]
+    th_deg, w, ok_ = pj.run_errors(traj)
+    assert float(th_deg[1, 300]) == 180.0 and bool(ok_[0]) and not bool(ok_[1])
+    # differentiable: the static error's gradient wrt an offset of the error is 1
+    g = jax.grad(lambda c: pj.run_metrics(types.SimpleNamespace(
+        **{**vars(traj), "theta_err": traj.theta_err + c}))["static_deg"][0])(0.0)
+    assert float(g) == pytest.approx(180.0 / math.pi, rel=1e-12)

@@ -1,14 +1,18 @@
 r"""Per-run metrics -> per-run losses -> a tail-risk aggregate with per-metric constraints.
 
-**Metrics of one run** (`run_metrics`; $\tilde\theta$ the wrapped angle error, true minus
-estimate, in deg; $\tilde\omega = \omega - \hat\omega$):
+**Metrics of one run** (`run_metrics`): the library's run metrics (`pmsmjax.run_metrics`,
+the one definition the comparison job uses too; $\tilde\theta$ the wrapped angle error,
+true minus estimate, in deg; $\tilde\omega = \omega - \hat\omega$) and two of the tuner's
+own, made of the same errors (`pmsmjax.run_errors`):
 
 - `rms_deg`: RMS of $\tilde\theta$ over the whole run (ramps, reversal, load step);
 - `peak_deg`: a smooth peak of $|\tilde\theta|$, the $p$-norm mean
   $(\mathrm{mean}|\tilde\theta|^p)^{1/p}$ with $p = 8$ (differentiable, within a
   few per cent of the maximum for a transient that lasts a few per cent of the run);
-- `static_deg`: mean of $\tilde\theta$ over the last 20 % of the run;
-- `noise_rad_s`: standard deviation of $\tilde\omega$ over the last 20 % (electrical);
+- `static_deg`: mean of $\tilde\theta$ over the static window (`pmsmjax.static_window`:
+  the last `pmsmjax.STATIC_WINDOW` = 20 % of the run, by time);
+- `noise_rad_s`: standard deviation of $\tilde\omega$ over the static window
+  (electrical);
 - `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
   the mean $|\tilde\theta|$ over 10 ms above `lock_deg` after lock, or the run diverged);
   `out_of_lock`: the fraction of samples above `lock_deg`, smooth (a logistic of width
@@ -54,8 +58,6 @@ from .problem import TuningProblem
 
 #: The p of the smooth peak.
 PEAK_P = 8
-#: Fraction of the run over which the static error and the noise are measured.
-STATIC_WINDOW = 0.2
 #: The training constraint holds the RMS error within this fraction of the tolerance
 #: (a margin for runs the tuner does not see).
 MARGIN = 0.5
@@ -80,29 +82,20 @@ class Metrics(eqx.Module):
 
 def run_metrics(traj: pj.Trajectory, problem: TuningProblem) -> Metrics:
     """`Metrics` of a (batched) trajectory (samples on the last axis)."""
-    th = traj.theta_err
-    w_err = traj.w_m - traj.w_hat
-    fin = jnp.isfinite(th) & jnp.isfinite(w_err)
-    ok = traj.ok & jnp.all(fin, axis=-1)
-    th = jnp.rad2deg(jnp.where(fin, th, jnp.pi))
-    w_err = jnp.where(fin, w_err, 0.0)
-    n = th.shape[-1]
-    rms = jnp.sqrt(jnp.mean(th ** 2, axis=-1) + 1e-12)
+    base = pj.run_metrics(traj, lock_deg=problem.lock_deg)
+    th, _, ok = pj.run_errors(traj)
     a = jnp.abs(th) + 1e-6
     peak = jnp.mean(a ** PEAK_P, axis=-1) ** (1.0 / PEAK_P)
-    k0 = int(round((1 - STATIC_WINDOW) * n))
-    static = jnp.mean(th[..., k0:], axis=-1)
-    we = w_err[..., k0:]
-    noise = jnp.sqrt(jnp.var(we, axis=-1) + 1e-12)
     out = jnp.mean(jax.nn.sigmoid((jnp.abs(th) - problem.lock_deg) / 2.0), axis=-1)
-    lost = pj.lock_status(traj.t, traj.theta_err, ok=ok, lock_deg=problem.lock_deg)["lost"]
+    rms, noise = base["rms_deg"], base["noise_rad_s"]
     loss = (rms / problem.theta_unit_deg + problem.w_peak * peak / problem.peak_unit_deg
             + problem.w_noise * noise / problem.noise_unit_rad_s)
     worst = (180.0 / problem.theta_unit_deg + problem.w_peak * 180.0 /
              problem.peak_unit_deg)
     loss = jnp.where(ok, loss, jax.lax.stop_gradient(jnp.maximum(loss, worst)))
-    return Metrics(rms_deg=rms, peak_deg=peak, static_deg=static, noise_rad_s=noise,
-                   out_of_lock=out, lost_lock=lost, ok=ok, loss=loss)
+    return Metrics(rms_deg=rms, peak_deg=peak, static_deg=base["static_deg"],
+                   noise_rad_s=noise, out_of_lock=out, lost_lock=base["lost_lock"], ok=ok,
+                   loss=loss)
 
 
 def cvar(r, fraction: float):

@@ -9,8 +9,15 @@ Two kinds:
 
 - **Reporting** (`error_stats`, `settled_mask`, `replay_stats`): NumPy, concrete arrays,
   plain floats out (JSON-ready).
-- **Differentiable** (`settling_time`, `trajectory_metrics`): JAX, pure, jit/vmap/grad
-  safe, any leading batch axes.
+- **Differentiable** (`settling_time`, `run_errors`, `run_metrics`,
+  `trajectory_metrics`): JAX, pure, jit/vmap/grad safe, any leading batch axes.
+
+**The static window** (`STATIC_WINDOW`, `static_window`): the static angle error and the
+speed-estimate noise of a run are measured over its last 20 %, by time: the samples at
+$t \ge t_0 + 0.8\,(t_{end} - t_0)$, with the run's end $t_{end}$ one sample spacing after
+its last sample (as `simulate` saves them, the first sample of every `save_every` steps).
+A time, not a count of samples: the same part of the run whatever the sampling period
+`T_s` and `save_every`; the samples in it are derived from it.
 """
 
 from __future__ import annotations
@@ -21,7 +28,13 @@ import numpy as np
 from .._frames import wrap_angle
 
 
-_EPS = 1e-12  # added under the square roots of `trajectory_metrics` (finite gradient at 0)
+_EPS = 1e-12  # added under the square roots of the metrics (finite gradient at 0)
+
+#: The static window: the last fraction of a run's duration over which the static angle
+#: error and the speed-estimate noise are measured (`static_window`).
+STATIC_WINDOW = 0.2
+#: Settling band of the angle error (deg) of `run_metrics` and `replay_stats`.
+SETTLE_BAND_DEG = 2.0
 
 #: Loss of lock: the angle error's magnitude above this (deg) ...
 LOCK_DEG = 45.0
@@ -42,11 +55,11 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
     next `acquire_s` (or up to the last whole window, near the end of the run) is in lock
     too: an acquisition's overshoot that passes through the band and out again (the ESO
     catching a rotor that starts to turn does) is not a lock. It *lost lock* at the
-    start of the first later window whose mean exceeds `lock_deg`, or when the run diverged or produced a
-    non-finite error (`ok` False: lost at the first non-finite sample, or at the end for a
-    diverged run; a non-finite sample counts as 180 deg). A mean, not "every sample
-    above": an estimate that spins through every angle is out of lock although some of
-    its samples pass near the true angle.
+    start of the first later window whose mean exceeds `lock_deg`, or when the run
+    diverged or produced a non-finite error (`ok` False: lost at the first non-finite
+    sample, or at the end for a diverged run; a non-finite sample counts as 180 deg). A
+    mean, not "every sample above": an estimate that spins through every angle is out of
+    lock although some of its samples pass near the true angle.
 
     Why these numbers: at 45 deg the current control, which runs in the estimated frame,
     produces cos 45 = 71 % of the torque per ampere it intends and as much again in the
@@ -104,26 +117,48 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
                                                jnp.nan)}
 
 
-def settling_time(t, err, tol):
+def _spacing(t):
+    """Sample spacing (s) of equally spaced times `t` (samples on the last axis), shape
+    `(..., 1)`; 0 for a single sample."""
+    n = t.shape[-1]
+    return (t[..., -1:] - t[..., :1]) / max(n - 1, 1)
+
+
+def _at_or_after(t, t_from):
+    """True at the samples `t >= t_from`, up to a thousandth of the sample spacing (the
+    rounding of computed times, never a whole sample)."""
+    return t >= jnp.asarray(t_from)[..., None] - 1e-3 * _spacing(t)
+
+
+def settling_time(t, err, tol, t_from=None):
     """Time after which `|err| <= tol` for good; `nan` if it never settles (the last
     sample is outside the band). Works under `vmap`.
 
     **Arguments:**
 
-    - `t`: sample times (s), `(..., N)`.
+    - `t`: sample times (s), `(..., N)`, equally spaced.
     - `err`: the error on `t` (any unit), `(..., N)`.
     - `tol`: the band (unit of `err`).
+    - `t_from`: the samples before this time (s; a scalar or the batch shape) are
+      ignored, and the time is measured from it (0 if no later sample is outside the
+      band); default `t[..., 0]`.
 
-    **Returns:** the settling time (s), measured from `t[..., 0]`.
+    **Returns:** the settling time (s), measured from `t_from`.
     """
-    t = jnp.asarray(t)
-    err = jnp.asarray(err)
+    shape = jnp.broadcast_shapes(jnp.shape(t), jnp.shape(err))
+    t = jnp.broadcast_to(jnp.asarray(t), shape)
+    err = jnp.broadcast_to(jnp.asarray(err), shape)
     out = jnp.abs(err) > tol
+    if t_from is None:
+        t_from = t[..., 0]
+    else:
+        out = out & _at_or_after(t, t_from)
     idx = jnp.arange(t.shape[-1])
     last_out = jnp.max(jnp.where(out, idx, -1), axis=-1)
     n = t.shape[-1]
     k = jnp.clip(last_out + 1, 0, n - 1)
-    ts = jnp.take(t, k, axis=-1) - t[..., 0]
+    t_set = jnp.take_along_axis(t, k[..., None], -1)[..., 0]
+    ts = jnp.where(last_out < 0, 0.0, t_set - t_from)
     return jnp.where(last_out >= n - 1, jnp.nan, ts)
 
 
@@ -171,7 +206,7 @@ def settled_mask(t, *references, t_settle: float) -> np.ndarray:
 
 
 def replay_stats(t, theta_hat, w_hat, theta=None, w_m=None, *, t_settle=0.0,
-                 tol_deg=2.0) -> dict:
+                 tol_deg=SETTLE_BAND_DEG) -> dict:
     """Error statistics of estimates against the true angle and speed.
 
     **Arguments:**
@@ -214,6 +249,94 @@ def _safe_sqrt(x):
     return jnp.sqrt(jnp.maximum(x, 0.0) + _EPS)
 
 
+def _window_mean(x, mask):
+    """Mean of `x` over the samples where `mask` (last axis; at least one counted)."""
+    mask = mask.astype(x.dtype)
+    return jnp.sum(x * mask, -1) / jnp.maximum(jnp.sum(mask, -1), 1.0)
+
+
+def _window_std(x, mask):
+    """`(std, mean)` of `x` over the samples where `mask` (the std with 1e-12 under its
+    square root: a finite gradient at 0)."""
+    mean = _window_mean(x, mask)
+    return _safe_sqrt(_window_mean((x - mean[..., None]) ** 2, mask)), mean
+
+
+def static_window(t):
+    """The static window of a run (`STATIC_WINDOW`, module docstring): True at the
+    samples of its last 20 % by time.
+
+    **Arguments:** `t`: sample times (s), equally spaced, samples on the last axis (any
+    leading batch axes), the run's end one spacing after the last sample.
+
+    **Returns:** a boolean array of the shape of `t`.
+    """
+    t = jnp.asarray(t)
+    n = t.shape[-1]
+    t0 = t[..., 0]
+    t_end = t0 + n * _spacing(t)[..., 0]
+    return _at_or_after(t, t0 + (1.0 - STATIC_WINDOW) * (t_end - t0))
+
+
+def run_errors(traj):
+    r"""The errors of a (batched) closed-loop `Trajectory` that its metrics are made of:
+    `(theta_err_deg, w_err, ok)`, the angle error $\tilde\theta$ (deg, true minus
+    estimate, wrapped), the speed-estimate error $\tilde\omega = \omega - \hat\omega$
+    (rad/s, electrical) and whether the run did not diverge and every sample is finite.
+    A non-finite sample counts as 180 deg and 0 rad/s (as in `lock_status`), replaced
+    before any arithmetic, so no NaN reaches a gradient.
+
+    **Arguments:** `traj`: a `Trajectory` (any leading batch axes; samples on the last
+    axis).
+    """
+    th, w_err = traj.theta_err, traj.w_m - traj.w_hat
+    fin = jnp.isfinite(th) & jnp.isfinite(w_err)
+    ok = traj.ok & jnp.all(fin, axis=-1)
+    return (jnp.rad2deg(jnp.where(fin, th, jnp.pi)), jnp.where(fin, w_err, 0.0), ok)
+
+
+def run_metrics(traj, *, lock_deg: float = LOCK_DEG, settle_from=None,
+                settle_band_deg: float = SETTLE_BAND_DEG) -> dict:
+    r"""The per-run metrics of a (batched) closed-loop `Trajectory`: **the one
+    definition** of the tuner's (`tuning.run_metrics`) and the observer comparison's
+    (`tuning.compare`) run metrics. On `run_errors`' $\tilde\theta$ (deg) and
+    $\tilde\omega$ (rad/s):
+
+    - `static_deg`: the static angle error, the mean of $\tilde\theta$ over the static
+      window (`static_window`, the last 20 % of the run);
+    - `noise_rad_s`: the speed-estimate noise, the standard deviation of $\tilde\omega$
+      over the static window;
+    - `rms_deg`: RMS of $\tilde\theta$ over the whole run;
+    - `max_abs_deg`: largest $|\tilde\theta|$ over the run;
+    - `settle_s`: settling time (`settling_time`), from `settle_from` until
+      $|\tilde\theta - $ `static_deg` $| \le$ `settle_band_deg` for good (0 if it never
+      leaves the band; NaN if the last sample is outside it);
+    - `lost_lock`: the run lost lock (`lock_status` with `lock_deg`);
+    - `ok`: the run did not diverge and every sample is finite.
+
+    The square roots carry 1e-12 (a finite gradient at 0); jit, vmap and grad safe.
+
+    **Arguments:**
+
+    - `traj`: a `Trajectory` (any leading batch axes; samples on the last axis).
+    - `lock_deg`: the loss-of-lock threshold (deg).
+    - `settle_from`: start of the settling time (s; default the first sample).
+    - `settle_band_deg`: the settling band (deg).
+
+    **Returns:** a dict of arrays with the batch shape of `traj`.
+    """
+    t = jnp.asarray(traj.t)
+    th, w_err, ok = run_errors(traj)
+    win = jnp.broadcast_to(static_window(t), th.shape)
+    static = _window_mean(th, win)
+    noise, _ = _window_std(w_err, win)
+    settle = settling_time(t, th - static[..., None], settle_band_deg, settle_from)
+    lost = lock_status(t, traj.theta_err, ok=ok, lock_deg=lock_deg)["lost"]
+    return dict(static_deg=static, rms_deg=_safe_sqrt(jnp.mean(th ** 2, -1)),
+                max_abs_deg=jnp.max(jnp.abs(th), -1), settle_s=settle, noise_rad_s=noise,
+                lost_lock=lost, ok=ok)
+
+
 def trajectory_metrics(traj, *, t_transient, T_s, save_every=1, theta_err0) -> dict:
     r"""Differentiable error metrics of a (batched) closed-loop `Trajectory`.
 
@@ -254,16 +377,13 @@ def trajectory_metrics(traj, *, t_transient, T_s, save_every=1, theta_err0) -> d
     th = jnp.where(fin, th, 0.0)
     w_err = jnp.where(fin, w_err, 0.0)
     dt = T_s * save_every
-    mask = (t >= t_transient - 0.5 * T_s).astype(th.dtype)
-    nm = jnp.maximum(jnp.sum(mask, -1), 1.0)
-    mean = lambda x: jnp.sum(x * mask, -1) / nm  # noqa: E731
-    pos_ms = mean(th ** 2)
-    th_ss = mean(th)
+    mask = jnp.broadcast_to(t >= t_transient - 0.5 * T_s, th.shape)
+    pos_ms = _window_mean(th ** 2, mask)
+    th_ss = _window_mean(th, mask)
     dev = th - th_ss[..., None]
     th0 = jnp.where(theta_err0 == 0, 1.0, theta_err0)
     itse = jnp.sum(t * dev ** 2, -1) * dt
-    w_mean = mean(w_err)
-    w_var = mean((w_err - w_mean[..., None]) ** 2)
+    noise, w_mean = _window_std(w_err, mask)
     return dict(pos_rms_deg=jnp.degrees(_safe_sqrt(pos_ms)), theta_ss_deg=jnp.degrees(th_ss),
-                settle_s=_safe_sqrt(4.0 * itse / th0 ** 2), noise_rad_s=_safe_sqrt(w_var),
+                settle_s=_safe_sqrt(4.0 * itse / th0 ** 2), noise_rad_s=noise,
                 w_bias_rad_s=w_mean, ok=ok)
