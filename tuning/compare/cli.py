@@ -18,19 +18,19 @@ from pmsmjax.observers import observer_names
 
 
 def build_parser(prog: str = "python -m tuning compare") -> argparse.ArgumentParser:
-    from .job import TUNERS, CompareConfig
+    from .config import TUNERS, CompareConfig
 
     p = argparse.ArgumentParser(
         prog=prog,
         description=(
             "Which observer for my drive? Runs every registered observer that applies to "
             "the motor (or --observers), with its paper design and the design tuned by "
-            "the closed-loop tuner (python -m tuning), on one common grid of closed-loop speed-controlled "
-            "sensorless runs (speeds in both directions, no load to rated load, a speed "
-            "ramp and a load step, observer-model mismatch of L_d, L_q, R_s and psi_f, "
-            "current noise), checks the same grid with the generic equilibrium analysis, "
-            "and writes one table (comparison.md), the numbers (comparison.json) and "
-            "figures. Interrupted runs continue where they stopped."),
+            "the closed-loop tuner (python -m tuning), on one common grid of closed-loop "
+            "speed-controlled sensorless runs (speeds in both directions, no load to "
+            "rated load, a speed ramp and a load step, observer-model mismatch of L_d, "
+            "L_q, R_s and psi_f, current noise), checks the same grid with the generic "
+            "equilibrium analysis, and writes one table (comparison.md), the numbers "
+            "(comparison.json) and figures. Interrupted runs continue where they stopped."),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     add_drive_options(p)  # --motor, --motor-file, --set: as every pmsmjax command
     p.add_argument("--observers", action=ListOption, default=None, metavar="NAME",
@@ -92,7 +92,9 @@ def jobs_for(value, distributed: bool) -> int:
 def main(argv=None, prog: str = "python -m tuning compare") -> int:
     pj.runtime.configure()
     args = build_parser(prog).parse_args(argv)
-    from .job import CompareConfig, CompareInterrupted, markdown, run_comparison
+    from .config import CompareConfig
+    from .job import CompareInterrupted, run_comparison
+    from .report import markdown
 
     kw = {"motor": args.motor or "zhang750"}
     if args.motor_file is not None:

@@ -15,12 +15,11 @@ time).
 
 from __future__ import annotations
 
-import json
 import pathlib
 
 import numpy as np
 
-from .job import TRACE_SAMPLES
+from .config import DESIGNS, TRACE_SAMPLES
 
 
 #: (key, label) of the bar charts.
@@ -82,7 +81,7 @@ def plot_comparison(summary: dict, out, sweeps=None) -> list[pathlib.Path]:
 
 def _maps(summary, sweeps, plt):
     names = list(summary["observers"])
-    designs = ("paper", "tuned")
+    designs = DESIGNS
     g = summary["grid"]
     data = {}
     for n in names:
@@ -139,7 +138,8 @@ def _bars(summary, sweeps, plt):
     fig, axes = plt.subplots(1, len(BARS), figsize=(2.6 * len(BARS), 3.4))
     x = np.arange(len(names))
     for ax, (key, label) in zip(axes, BARS):
-        for k, (d, color) in enumerate((("paper", "C0"), ("tuned", "C1"))):
+        for k, d in enumerate(DESIGNS):
+            color = f"C{k}"
             v = [summary["observers"][n]["designs"].get(d, {}).get(key) for n in names]
             h = [np.nan if a is None else a for a in v]
             ax.bar(x + (k - 0.5) * 0.38, h, width=0.38, color=color, label=d)
@@ -162,12 +162,12 @@ def _traces(summary, sweeps, plt):
     n_saved = int(round(c["t_end"] / c["T_s"])) // c["save_every"]
     fig, (a1, a2) = plt.subplots(2, 1, sharex=True, figsize=(8, 5))
     for k, n in enumerate(summary["observers"]):
-        for d, ls in (("paper", "-"), ("tuned", "--")):
+        for d, ls in zip(DESIGNS, ("-", "--")):
             r = _runs(sweeps, n, d)
             if r is None:
                 continue
             th = r["trace_theta_deg"][idx]
-            stride = max(1, n_saved // TRACE_SAMPLES)  # as `compare.run_point` keeps them
+            stride = max(1, n_saved // TRACE_SAMPLES)  # as `points.run_point` keeps them
             t = np.arange(th.shape[-1]) * stride * c["T_s"] * c["save_every"]
             kw = dict(color=f"C{k % 10}", ls=ls, lw=1.0,
                       label=n if d == "paper" else None)
@@ -187,7 +187,3 @@ def _traces(summary, sweeps, plt):
     fig.tight_layout()
     return fig
 
-
-def load_summary(out) -> dict:
-    """`comparison.json` of the job folder `out`."""
-    return json.loads((pathlib.Path(out) / "comparison.json").read_text())

@@ -20,7 +20,8 @@ def main(argv=None) -> int:
     p.add_argument("--sweep-dir", required=True)
     p.add_argument("--batch-size", type=int, default=None)
     args = p.parse_args(argv)
-    from .job import CompareConfig, _Context, _Units, observer_entry
+    from .config import CompareConfig
+    from .job import _Context, _Units, observer_entry
 
     out = pathlib.Path(args.out)
     config = CompareConfig.from_dict(json.loads((out / "job.json").read_text())["config"])

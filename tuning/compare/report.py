@@ -1,0 +1,155 @@
+r"""The per-observer metrics of the comparison (`aggregate`) and its table,
+`comparison.md` (`markdown`).
+
+**Per-observer metrics** (`aggregate`), over the runs that kept lock (runs that lost lock
+are counted and located instead, their angle error is meaningless):
+
+- `static_worst_deg`: largest $|$`static_deg`$|$; `static_rms_deg`: RMS of `static_deg`;
+- `rms_worst_deg`: largest `rms_deg`;
+- `settle_worst_s`, `settle_median_s`: over the runs that settled; `n_unsettled` counts
+  the others;
+- `noise_median_rad_s`, `noise_worst_rad_s`;
+- `lost_lock`: count, and `lost_lock_where`: the grid points (speed, load, case);
+- `feasible_fraction`: the fraction of the analysis grid (the same speeds, both signs,
+  loads and mismatch cases, at constant speed and current) where the generic analysis
+  (`pmsmjax.analysis.equilibria_traced`, or the family's own route) finds the designed
+  equilibrium stable and no other stable equilibrium;
+- `harmonic_deg_per_pct`: the largest peak angle-error ripple per 1 % back-EMF harmonic
+  (`pmsmjax.analysis.harmonic_ripple`, orders `harmonic_orders` at `harmonic_speeds_pu`,
+  matched model, no load), where that analysis is available;
+- `observer_us_per_step`: compute cost of one observer step (us; `pmsmjax.replay` of a
+  recorded run, batch 1, best of three after compilation; in the `timing` block of the
+  JSON: it is a measurement of this machine, not of the observer alone).
+
+A metric that cannot be computed is `null` in the JSON with its reason in `flags`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import pmsmjax as pj
+
+from .config import CASE_NAMES, DESIGNS, CompareConfig
+
+
+def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dict:
+    """Per-observer metrics of one design from its per-run metrics `runs` and the
+    analysis `feas` (numpy arrays over the grid, or None if not run; see the module
+    docstring). Every value
+    is a float, an int, a list or None with its reason in `flags`."""
+    flags = {}
+    lost = np.asarray(runs["lost_lock"]).reshape(-1)
+    keep = ~lost
+    static = np.asarray(runs["static_deg"]).reshape(-1)[keep]
+    out = {"n_runs": int(lost.size), "lost_lock": int(lost.sum())}
+    where = []
+    for j in np.nonzero(lost)[0]:
+        c = int(grid["case"][j])
+        where.append(dict(speed_pu=float(grid["speed_pu"][j]),
+                          load_pu=float(grid["load_pu"][j]),
+                          **dict(zip(CASE_NAMES, config.cases[c]))))
+    out["lost_lock_where"] = where
+
+    def put(name, values, fn, why):
+        v = values[np.isfinite(values)] if values.size else values
+        if v.size == 0:
+            out[name] = None
+            flags[name] = why
+        else:
+            out[name] = float(fn(v))
+
+    none_kept = "every run lost lock"
+    put("static_worst_deg", static, lambda v: np.max(np.abs(v)), none_kept)
+    put("static_rms_deg", static, lambda v: np.sqrt(np.mean(v ** 2)), none_kept)
+    put("rms_worst_deg", np.asarray(runs["rms_deg"]).reshape(-1)[keep], np.max, none_kept)
+    st = np.asarray(runs["settle_s"]).reshape(-1)[keep]
+    out["n_unsettled"] = int(np.sum(~np.isfinite(st)))
+    why = none_kept if st.size == 0 else "no run settled within the band"
+    put("settle_worst_s", st, np.max, why)
+    put("settle_median_s", st, np.median, why)
+    nz = np.asarray(runs["noise_rad_s"]).reshape(-1)[keep]
+    put("noise_median_rad_s", nz, np.median, none_kept)
+    put("noise_worst_rad_s", nz, np.max, none_kept)
+    if feas is None:
+        out["feasible_fraction"] = out["analysis_failed"] = None
+        flags["feasible_fraction"] = flags["analysis_failed"] = \
+            "the analysis was not run (analysis = False)"
+    else:
+        f = np.asarray(feas["feasible"]).reshape(-1)
+        out["feasible_fraction"] = float(np.mean(f))
+        out["analysis_failed"] = int(np.sum(np.asarray(feas["status"]).reshape(-1) < 0))
+    out["flags"] = flags
+    return out
+
+
+COLUMNS = (
+    ("static_worst_deg", "worst static error (deg)", "{:.2f}"),
+    ("static_rms_deg", "RMS static error (deg)", "{:.2f}"),
+    ("rms_worst_deg", "worst run RMS error (deg)", "{:.2f}"),
+    ("settle_worst_s", "worst settling (s)", "{:.3f}"),
+    ("noise_median_rad_s", "median speed noise (rad/s)", "{:.3g}"),
+    ("lost_lock", "lost lock (runs)", "{}"),
+    ("feasible_fraction", "feasible (analysis)", "{:.0%}"),
+    ("harmonic_deg_per_pct", "harmonic ripple (deg / %)", "{:.3g}"),
+)
+
+
+def _fmt(v, f):
+    return "n/a" if v is None else f.format(v)
+
+
+def markdown(summary: dict) -> str:
+    """`comparison.md`: the table (observers as rows, paper and tuned design) and the
+    definitions of the metrics."""
+    c = summary["config"]
+    g = summary["grid"]
+    lines = [f"# Observer comparison on {summary['motor']}", "",
+             f"{g['n_runs']} closed-loop, speed-controlled sensorless runs per observer and "
+             f"design: speeds {', '.join(f'{s:g}' for s in g['speeds_pu'])} p.u., loads "
+             f"{', '.join(f'{x:g}' for x in g['loads_pu'])} p.u. (step at 0.6 t_end), "
+             f"{len(g['cases'])} observer-model mismatch cases (k_d, k_q, k_R, k_psi), "
+             f"current noise {c['noise_std']:g} A, T_s = {c['T_s']:g} s, "
+             f"t_end = {c['t_end']:g} s.", "",
+             "| observer | design | " + " | ".join(h for _, h, _ in COLUMNS)
+             + " | observer step (us) |",
+             "|---|---|" + "---|" * (len(COLUMNS) + 1)]
+    for name, e in summary["observers"].items():
+        cost = _fmt(e.get("observer_us_per_step"), "{:.3g}")
+        for dname in DESIGNS:
+            m = e["designs"].get(dname, {})
+            cells = [_fmt(m.get(k), f) for k, _, f in COLUMNS]
+            lines.append(f"| {name} | {dname} | " + " | ".join(cells) + f" | {cost} |")
+    lines += ["", "n/a: not computed; the reason is in `flags` in comparison.json."]
+    if summary["skipped"]:
+        lines += ["", "Not applicable to this motor: " + "; ".join(
+            f"{k} ({v})" for k, v in summary["skipped"].items())]
+    flags = sorted({f"{n}/{d}: {k}: {v}" for n, e in summary["observers"].items()
+                    for d, m in e["designs"].items() for k, v in m.get("flags", {}).items()})
+    if flags:
+        lines += ["", "## Flags", ""] + [f"- {f}" for f in flags]
+    lines += ["", "## Definitions", "",
+              f"- static error: mean angle error (true minus estimate) over the last "
+              f"{pj.STATIC_WINDOW:.0%} of each run; worst = largest magnitude, RMS over the "
+              f"runs that kept lock;",
+              "- run RMS error: RMS of the angle error over the whole run;",
+              f"- settling: from the start of the speed ramp (0.1 t_end) until the angle "
+              f"error stays within {c['settle_band_deg']:g} deg of its static value;",
+              "- speed noise: standard deviation of the speed-estimate error over the "
+              "static window (rad/s, electrical);",
+              f"- lost lock: |angle error| above {c['lock_deg']:g} deg, or a diverged or "
+              "non-finite run (these runs are left out of the other columns);",
+              "- feasible: fraction of the grid (constant speed and current) where the "
+              "generic equilibrium analysis finds the designed equilibrium stable and no "
+              "other stable equilibrium;",
+              "- harmonic ripple: largest peak angle-error ripple per 1 % back-EMF "
+              "harmonic (orders " + ", ".join(str(o) for o in c["harmonic_orders"])
+              + ");",
+              "- observer step: compute cost of one observer step (replay at batch 1, "
+              "best of three; a measurement of this machine);",
+              "- tuned: the existing tuner from the paper design on a small training "
+              f"problem ({c['tuner']}, {c['tune_steps']} steps).", ""]
+    return "\n".join(lines)
+
+
+__all__ = ["COLUMNS", "aggregate", "markdown"]
