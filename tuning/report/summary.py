@@ -9,12 +9,12 @@ among them) in `designs`.
 from __future__ import annotations
 
 import json
-import math
 import pathlib
 
 import numpy as np
 
 import pmsmjax as pj
+from pmsmjax.cli import json_safe, write_json
 
 from .export import gains_table
 
@@ -24,20 +24,6 @@ DESIGN_FILE = "design.json"
 MOTOR_FILE = "motor.toml"
 REQUIRED_KEYS = ("accounting", "verdict", "designs", "default", "problem")
 SPLITS = ("train", "heldout", "validation")
-
-
-def _clean(x):
-    """Plain JSON types; non-finite floats become None."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, (np.ndarray, np.generic)) or hasattr(x, "__array__"):
-        a = np.asarray(x)
-        return _clean(a.tolist()) if a.ndim else _clean(a.item())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
 
 
 def _targets(report) -> dict:
@@ -118,7 +104,7 @@ def summary(report) -> dict:
             "more than the tolerance, better (any amount), worst RMS angle error change, "
             "runs losing lock that the paper design holds.",
         ])
-    return _clean(out)
+    return json_safe(out)
 
 
 def write_report(report, out, *, plot: bool = True) -> dict:
@@ -127,13 +113,13 @@ def write_report(report, out, *, plot: bool = True) -> dict:
     out = pathlib.Path(out)
     out.mkdir(parents=True, exist_ok=True)
     s = summary(report)
-    (out / DESIGN_FILE).write_text(json.dumps(_clean({
+    write_json(out / DESIGN_FILE, {
         "observer": report.problem.observer, "name": report.default,
         "coordinates": report.space.as_dict(report.tuned),
-        "design": s["designs"][report.default]["design"]}), indent=1))
+        "design": s["designs"][report.default]["design"]}, indent=1)
     pj.write_gains_table(gains_table(report), out)
     pj.save_motor_file(report.problem.drive(), out / MOTOR_FILE)
-    (out / SUMMARY_FILE).write_text(json.dumps(s, indent=1, allow_nan=False))
+    write_json(out / SUMMARY_FILE, s, indent=1)
     if plot:
         from .figures import plot_report
 
