@@ -54,10 +54,23 @@ class _Parser(argparse.ArgumentParser):
         raise CLIError(f"{self.prog}: error: {message} (see `{self.prog} --help`)")
 
 
+class _RootParser(_Parser):
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, with an unknown option named by the command it was given to
+        (`pmsmjax feasibility: error: unrecognized arguments: ...`)."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            command = getattr(ns, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            raise CLIError(f"{prog}: error: unrecognized arguments: {' '.join(extras)} (see "
+                           f"`{prog} --help`)")
+        return ns
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse parser with one subparser per command (the observer choices are read
     from the registry `pmsmjax.observers` each time)."""
-    parser = _Parser(
+    parser = _RootParser(
         prog="pmsmjax",
         description="Differentiable PMSM drive simulator: command-line front end. "
                     "Run `pmsmjax COMMAND --help` for the options of each command.",

@@ -43,8 +43,6 @@ from ._sweep_options import (
 #: `status` codes of the map (those of `pmsmjax.analysis.DesignClass`).
 STATUS = {0: "feasible", 1: "infeasible", 2: "no equilibrium", -1: "degenerate"}
 STATUS_CODES = "0 feasible, 1 infeasible, 2 no equilibrium, -1 degenerate or failed"
-PER_DESIGN = ("status", "n_nonzero", "stable_theta_deg", "principal_stable",
-              "principal_theta_deg")
 _DEFAULT_AXES = (("zeta1", (0.0, 5.0, 101)), ("ratio", (0.0, 2.0, 101)))
 
 

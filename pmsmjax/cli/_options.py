@@ -14,13 +14,9 @@ r"""Options and helpers shared by the subcommands of `pmsmjax`, each defined onc
 **One spelling and one unit per option, across `pmsmjax` and `python -m tuning`:**
 angles in degrees (`--theta0 DEG`), speeds in p.u. of the rated electrical speed
 (`--speed PU`, `--speeds PU ...`, `--speed0 PU`), lists as space-separated values after
-a plural option (`--speeds 0.2 0.6`, `--observers eso leso`; the comma-separated form
-still works, with a deprecation message), observer-model mismatch as ratios observer /
-plant (`--mismatch L_q=1.3` in simulate, replay and the analysis commands; the tuner's
-range of ratios `--mismatch-range LO HI`), `--out` always a folder. Old spellings that are cheap to keep
-(`--mismatch-L-q RATIO`, `--w-m0 RAD_S`, `--w0 RAD_S`, `motor --out FILE.toml`, the
-tuner's `--mismatch LO HI`) still work and print a deprecation message
-(`DeprecatedOption`).
+a plural option (`--speeds 0.2 0.6`, `--observers eso leso`), observer-model mismatch as
+ratios observer / plant (`--mismatch L_q=1.3` in simulate, replay and the analysis
+commands), `--out` always a folder.
 
 A bad value raises `CLIError` (or `argparse.ArgumentTypeError` while parsing); `main`
 prints it as one line and exits with status 2.
@@ -36,7 +32,6 @@ import json
 import math
 import os
 import re
-import sys
 import time
 from collections.abc import Callable
 
@@ -184,13 +179,6 @@ def grid_values(spec) -> np.ndarray:
     return np.linspace(lo, hi, n)
 
 
-def speed_list(text: str) -> list[float]:
-    items = [s.strip() for s in text.split(",")]
-    if not all(items):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of numbers")
-    return [_number(s, "speed") for s in items]
-
-
 def speed_range(text: str) -> tuple[float, float]:
     parts = text.split(":")
     if len(parts) != 2:
@@ -209,35 +197,11 @@ def speed_range(text: str) -> tuple[float, float]:
     return lo, hi
 
 
-def deprecation(parser: argparse.ArgumentParser, old: str, new: str) -> None:
-    """Print the deprecation message of an old spelling (stderr, one line)."""
-    print(f"{parser.prog}: {old} is deprecated; {new}", file=sys.stderr)
-
-
-class DeprecatedOption(argparse.Action):
-    """An old spelling of an option: stores (or with `append=True` appends) its value
-    like `store`/`append` and prints `instead` as a deprecation message."""
-
-    def __init__(self, option_strings, dest, *, instead: str, append: bool = False, **kw):
-        self.instead = instead
-        self.append = append
-        super().__init__(option_strings, dest, **kw)
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        deprecation(parser, option_string, self.instead)
-        if self.append:
-            cur = getattr(namespace, self.dest, None)
-            values = (list(cur) if cur is not None and cur is not self.default else []) \
-                + [values]
-        setattr(namespace, self.dest, values)
-
-
 class ListOption(argparse.Action):
     """A list option: space-separated values (`nargs="+"`), each converted by `item`;
     repeating the option adds to the list (with `groups=True` each occurrence is one
-    group, a list of lists). The old comma-separated form (`0.2,0.6`) is split, with a
-    deprecation message that suggests the spaced form of this option (or of `plural`,
-    for a one-value option, `nargs=None`, that used to take a comma-separated list)."""
+    group, a list of lists). A value with a comma is refused with the spaced form of this
+    option (or of `plural`, for a one-value option, `nargs=None`) in the message."""
 
     def __init__(self, option_strings, dest, *, item=str, groups: bool = False,
                  plural: str | None = None, **kw):
@@ -248,37 +212,28 @@ class ListOption(argparse.Action):
         super().__init__(option_strings, dest, **kw)
 
     def __call__(self, parser, namespace, values, option_string=None):
-        items, commas = [], []
+        items = []
         for v in [values] if isinstance(values, str) else values:
-            parts = v.split(",")
-            if len(parts) > 1:
-                commas.append(v)
-            for x in parts:
-                if not x.strip():
-                    raise argparse.ArgumentError(self, f"{v!r} has an empty item")
-                try:
-                    items.append(self.item(x.strip()))
-                except argparse.ArgumentTypeError as e:
-                    raise argparse.ArgumentError(self, str(e)) from None
-                except ValueError:
-                    raise argparse.ArgumentError(self, f"invalid value {x.strip()!r}"
-                                                 ) from None
-        if commas:  # only once the values are good: a bad one is a one-line error
-            opt = self.plural or option_string
-            deprecation(parser, f"{option_string} {' '.join(commas)} (comma-separated)",
-                        f"give the values separated by spaces: {opt} "
-                        + " ".join(" ".join(x.strip() for x in v.split(",")) for v in commas))
+            if "," in v:
+                spaced = " ".join(x.strip() for x in v.split(","))
+                raise argparse.ArgumentError(
+                    self, f"{v!r}: give the values separated by spaces, e.g. "
+                          f"{self.plural or option_string} {spaced}")
+            try:
+                items.append(self.item(v.strip()))
+            except argparse.ArgumentTypeError as e:
+                raise argparse.ArgumentError(self, str(e)) from None
+            except ValueError:
+                raise argparse.ArgumentError(self, f"invalid value {v.strip()!r}") from None
         cur = getattr(namespace, self.dest, None)
         cur = list(cur) if cur is not None and cur is not self.default else []
         setattr(namespace, self.dest, cur + ([items] if self.groups else items))
 
 
-def add_initial_state_options(group, *, what: str, old_speed: str | None = None,
-                              unknown: str | None = None) -> None:
+def add_initial_state_options(group, *, what: str, unknown: str | None = None) -> None:
     """`--theta0 DEG` and `--speed0 PU`: the initial angle and speed of `what` (the rotor,
     or the observer's estimate), in the units of every command (degrees, p.u. of the
-    rated electrical speed). `old_speed`: the old spelling (rad/s) kept with a
-    deprecation message. `unknown`: what happens when neither is given (the defaults
+    rated electrical speed). `unknown`: what happens when neither is given (the defaults
     are then 0). `initial_state_from_args` reads them."""
     default = f"default: {unknown}" if unknown else "default: 0"
     group.add_argument("--theta0", type=finite_float, default=None, metavar="DEG",
@@ -286,34 +241,23 @@ def add_initial_state_options(group, *, what: str, old_speed: str | None = None,
     group.add_argument("--speed0", type=finite_float, default=None, metavar="PU",
                        help=f"initial electrical speed of {what} (p.u. of the rated speed "
                             f"Drive.w_rated, any sign; {default})")
-    if old_speed is not None:
-        group.add_argument(old_speed, dest="speed0_rad_s", type=finite_float, default=None,
-                           metavar="RAD_S", action=DeprecatedOption,
-                           instead="give --speed0 PU (p.u. of the rated speed)",
-                           help="deprecated: the initial speed in rad/s; use --speed0 PU")
 
 
 def initial_state_from_args(args, drive: pj.Drive) -> tuple[float, float]:
-    """`(theta0 in rad, speed0 in rad/s)` of `--theta0 DEG`, `--speed0 PU` (or the
-    deprecated rad/s spelling)."""
-    old = getattr(args, "speed0_rad_s", None)
-    if old is not None and args.speed0 is not None:
-        raise CLIError(f"--speed0 {args.speed0:g} and the deprecated rad/s option "
-                       f"{old:g} both set the initial speed; give --speed0 only")
-    w0 = old if old is not None else float(args.speed0 or 0.0) * float(drive.w_rated)
-    return math.radians(float(args.theta0 or 0.0)), float(w0)
+    """`(theta0 in rad, speed0 in rad/s)` of `--theta0 DEG` and `--speed0 PU`."""
+    return (math.radians(float(args.theta0 or 0.0)),
+            float(args.speed0 or 0.0) * float(drive.w_rated))
 
 
 def initial_state_given(args) -> bool:
-    """Whether `--theta0` or `--speed0` (or its old spelling) was given."""
-    return (args.theta0 is not None or args.speed0 is not None
-            or getattr(args, "speed0_rad_s", None) is not None)
+    """Whether `--theta0` or `--speed0` was given."""
+    return args.theta0 is not None or args.speed0 is not None
 
 
-# Let values that start with a minus sign but are not plain numbers (-0.5,0.5 or -1:1 or
-# -1e-3) be read as values, not as unknown options; argparse's own pattern only accepts
-# -12 and -1.5. (`--speed=-0.5,0.5` works either way.)
-_NEGATIVE_VALUE = re.compile(r"^-\.?[0-9][0-9.eE+\-:,]*$")
+# Let values that start with a minus sign but are not plain numbers (-1:1 or -1e-3) be
+# read as values, not as unknown options; argparse's own pattern only accepts -12 and
+# -1.5. (`--zeta1=-1:1` works either way.)
+_NEGATIVE_VALUE = re.compile(r"^-\.?[0-9][0-9.eE+\-:]*$")
 
 
 def allow_negative_values(parser: argparse.ArgumentParser) -> None:
@@ -555,8 +499,8 @@ def compile_and_run(fn, *args, **kwargs):
 def add_operating_point_options(parser: argparse.ArgumentParser, *, speed: str) -> None:
     """The speed and the current of the analysis commands.
 
-    `speed` says how the speed is given: `"list"` (`--speed`, repeatable or comma-
-    separated), `"one"` (`--speed`, one value) or `"range"` (`--speed-range LO:HI`).
+    `speed` says how the speed is given: `"list"` (`--speeds PU ...`, and `--speed PU`
+    repeatable), `"one"` (`--speed`, one value) or `"range"` (`--speed-range LO:HI`).
     """
     if speed not in ("list", "one", "range"):
         raise ValueError(f"speed must be 'list', 'one' or 'range'; got {speed!r}")
@@ -575,8 +519,7 @@ def add_operating_point_options(parser: argparse.ArgumentParser, *, speed: str) 
         g.add_argument("--speed", action=ListOption, item=finite_float, groups=True,
                        nargs=None, plural="--speeds", default=None,
                        metavar="PU", help="one speed (p.u.), as in the other commands; "
-                                          "repeatable (the comma-separated list "
-                                          "PU,PU,... is deprecated: use --speeds)")
+                                          "repeatable, and with --speeds")
     elif speed == "one":
         g.add_argument("--speed", type=finite_float, default=0.5, metavar="PU",
                        help=f"{w0_text}, nonzero for the zhang2022 schedules (default: "
@@ -664,10 +607,9 @@ def _design_list(classes: dict) -> str:
 def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                          sensored: bool = False, mismatch: bool = False,
                          flux: str | None = "one", fixed_at: bool = True,
-                         default_note: str = "", old_mismatch: bool = True) -> None:
+                         default_note: str = "") -> None:
     """`--observer` (choices: the registry, plus `sensored` with `sensored=True`),
-    `--observer-set`, `--gain`, with `mismatch` the `--mismatch NAME=RATIO` ratios (and the
-    deprecated `--mismatch-X RATIO` where the command had them, `old_mismatch`), and the
+    `--observer-set`, `--gain`, with `mismatch` the `--mismatch NAME=RATIO` ratios, and the
     zhang2022 shorthands. `flux`: `"one"` (`--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min` as
     single values), `"grid"` (the caller adds `--zeta1`/`--ratio` as map axes) or None."""
     classes = _observer_classes(sensored)
@@ -698,12 +640,6 @@ def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                             + ", ".join(MODEL_PARAMETERS) + ". Example: --mismatch "
                             "L_q=1.3. The same as --observer-set NAME=RATIO*plant value "
                             "(give one of the two)")
-        for p, unit in MODEL_PARAMETERS.items() if old_mismatch else ():
-            opt = "--mismatch-" + p.replace("_", "-")
-            g.add_argument(opt, dest="mismatch_" + p, type=positive_float, default=None,
-                           metavar="RATIO", action=DeprecatedOption,
-                           instead=f"give --mismatch {p}=RATIO",
-                           help=f"deprecated: --mismatch {p}=RATIO")
     z = parser.add_argument_group(
         "zhang2022 observers (eso, leso, afo): shorthands for --gain")
     bw = z.add_mutually_exclusive_group()
@@ -829,8 +765,6 @@ def _observer_motor(args, plant: pj.PMSMParams) -> pj.PMSMParams:
                 f"observer's machine model; allowed: "
                 + ", ".join(f"{k} ({u})" for k, u in MODEL_PARAMETERS.items()))
         values[name] = (value, f"--observer-set {name}={value:g}")
-    ratios = [(p, getattr(args, "mismatch_" + p), "--mismatch-" + p.replace("_", "-"))
-              for p in MODEL_PARAMETERS if getattr(args, "mismatch_" + p, None) is not None]
     for p, ratio in getattr(args, "mismatch", None) or []:
         if p not in MODEL_PARAMETERS:
             raise CLIError(f"--mismatch {p}={ratio:g}: unknown parameter {p!r} of the "
@@ -839,18 +773,13 @@ def _observer_motor(args, plant: pj.PMSMParams) -> pj.PMSMParams:
         if not ratio > 0:
             raise CLIError(f"--mismatch {p}={ratio:g}: RATIO must be > 0 (observer's {p} "
                            f"/ plant's {p})")
-        ratios.append((p, ratio, "--mismatch"))
-    for p, ratio, opt in ratios:
-        if opt == "--mismatch":
-            opt = f"--mismatch {p}="
-        else:
-            opt += " "
+        spelled = f"--mismatch {p}={ratio:g}"
         if p in values:
             raise CLIError(
-                f"{opt}{ratio:g} and {values[p][1]} both set the observer's {p}; allowed: "
+                f"{spelled} and {values[p][1]} both set the observer's {p}; allowed: "
                 f"one of the two (the ratio to the plant's value, or the value in "
                 f"{MODEL_PARAMETERS[p]})")
-        values[p] = (ratio * float(getattr(plant, p)), f"{opt}{ratio:g}")
+        values[p] = (ratio * float(getattr(plant, p)), spelled)
     motor = plant
     for p, (value, spelled) in values.items():
         fields = {f: getattr(motor, f) for f in type(motor).__dataclass_fields__}

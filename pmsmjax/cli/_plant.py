@@ -30,11 +30,11 @@ def _plant_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     g = p.add_argument_group("input")
     g.add_argument("--data", required=True, metavar="FILE",
-                   help="recorded drive data (.npz or .csv, format in docs/conventions.md): t (s) and "
-                        "u_ab (V) are required, tau_L (N m) is used if present (else zero "
-                        "load); i_ab (A), theta (rad) and w_m (rad/s), if present, are "
-                        "compared with the simulation")
-    add_initial_state_options(g, what="the rotor", old_speed="--w-m0")
+                   help="recorded drive data (.npz or .csv, format in "
+                        "docs/conventions.md): t (s) and u_ab (V) are required, tau_L (N m) "
+                        "is used if present (else zero load); i_ab (A), theta (rad) and w_m "
+                        "(rad/s), if present, are compared with the simulation")
+    add_initial_state_options(g, what="the rotor")
     g.add_argument("--init-from-data", action="store_true",
                    help="take the initial angle, speed and current from the first sample of "
                         "the data (needs theta; uses w_m and i_ab if present) instead of "

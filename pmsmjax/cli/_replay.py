@@ -36,7 +36,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="recorded drive data (.npz or .csv, format in docs/conventions.md) "
                         "with t, u_ab, i_ab (and optionally theta, w_m to score the estimates)")
     add_initial_state_options(
-        g, what="the observer's estimate", old_speed="--w0",
+        g, what="the observer's estimate",
         unknown="unknown: a rotor that turns from the first samples is caught from their "
                 "back-EMF (as --flying-start), otherwise 0")
     g.add_argument("--voltage", choices=("applied", "commanded"), default="applied",
@@ -52,7 +52,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
-    add_observer_options(p, default="eso", mismatch=True, old_mismatch=False)
+    add_observer_options(p, default="eso", mismatch=True)
     add_design_option(p)
     add_output_options(p, None)
 

@@ -232,7 +232,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="the observer's initial speed estimate (p.u. of the rated speed; "
                         "default: the rotor's initial speed, i.e. known)")
     add_observer_options(p, default="sensored", sensored=True, mismatch=True,
-                         old_mismatch=False, default_note=": the encoder angle and speed")
+                         default_note=": the encoder angle and speed")
     add_design_option(p)
     add_output_options(p, "results")
 
