@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
+from pmsmjax.cli import CLIError, observer_from_args
 from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
-from pmsmjax.cli._options import CLIError, initial_state_from_args, observer_from_args
+from pmsmjax.cli._drive_options import initial_state_from_args
 from tuning.__main__ import build_parser as tuning_parser, problem_from_args
 from tuning.compare.cli import build_parser as compare_parser
 

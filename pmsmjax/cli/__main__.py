@@ -3,7 +3,8 @@
 Every command is a module of this package that defines `COMMAND`, a `Command` with its
 name, help texts, `add_arguments(parser)` and `run(args) -> exit status`; `COMMANDS` below
 lists them, and `build_parser` makes one argparse subparser per command. The options that
-several commands share are defined once in `_options.py`. `tune` and `compare` hand
+several commands share are defined once, a module per idea (`_values`, `_drive_options`,
+`_output`, `_operating_point`, `_observer_options`, `_sweep_options`). `tune` and `compare` hand
 over to the `tuning` package, imported only when they run (`_tuning.py`).
 
 Errors in the inputs (a bad file, a bad `--set`, an unknown motor or observer, an invalid
@@ -34,7 +35,9 @@ from . import (
     _simulate,
     _tuning,
 )
-from ._options import CLIError, Command, out_dir_transaction
+from ._command import Command
+from ._output import out_dir_transaction
+from ._values import CLIError
 
 
 #: The commands, by name, in the order `pmsmjax --help` lists them.

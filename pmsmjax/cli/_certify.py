@@ -13,25 +13,13 @@ import time
 
 import numpy as np
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_json_option,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    check_operating_point,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    header,
-    observer_from_args,
-    positive_float,
-    positive_int,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header
+from ._observer_options import add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, check_operating_point, current_from_args
+from ._output import add_json_option, add_output_options, prepare_out_dir, print_json
+from ._values import CLIError, positive_float, positive_int
 
 
 QUICK = dict(n_speed=21, n_dirs=256, alphas=(0.8, 0.99), n_time=80, n_k1_speeds=5)
@@ -163,7 +151,7 @@ def certify_command(args: argparse.Namespace) -> int:
         path = os.path.join(out, "certificate.json")
         write_json(path, report)
     if to_stdout:
-        print(dumps_json(report))
+        print_json(report)
     else:
         if ok:
             print(f"certified |dw/dt| <= {report['dw_dt_bound_rad_s2']:.4g} rad/s^2 "

@@ -11,23 +11,13 @@ import sys
 
 import numpy as np
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_json_option,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    check_operating_point,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    header,
-    observer_from_args,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header
+from ._observer_options import add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, check_operating_point, current_from_args
+from ._output import add_json_option, add_output_options, prepare_out_dir, print_json
+from ._values import CLIError
 
 
 #: status of the equilibria computation and feasibility of the design, by code
@@ -131,7 +121,7 @@ def equilibria_command(args: argparse.Namespace) -> int:
         path = os.path.join(prepare_out_dir(args.out), "equilibria.json")
         write_json(path, report)
     if args.json:
-        print(dumps_json(report))
+        print_json(report)
     else:
         d = report["design"]
         print(f"pmsmjax equilibria: {drive.name}, {choice.describe()}, i_dq = "

@@ -7,17 +7,12 @@ import argparse
 
 from pmsmjax.firmware import SUPPORTED, export_c
 
+from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_observer_options,
-    add_output_options,
-    drive_from_args,
-    positive_float,
-    prepare_out_dir,
-)
+from ._drive_options import add_drive_options, drive_from_args
+from ._observer_options import add_observer_options
+from ._output import add_output_options, prepare_out_dir
+from ._values import CLIError, positive_float
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:

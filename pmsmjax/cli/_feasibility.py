@@ -13,24 +13,12 @@ import time
 import jax
 import numpy as np
 
-from ._options import (
-    MODEL_PARAMETERS,
-    CLIError,
-    Command,
-    add_drive_options,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    grid,
-    grid_values,
-    json_safe,
-    named_grid,
-    observer_from_args,
-    prepare_out_dir,
-)
+from .._data._files import json_safe, json_text
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args
+from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, current_from_args
+from ._output import add_output_options, prepare_out_dir
 from ._sweep_options import (
     add_sweep_options,
     init_distributed,
@@ -38,6 +26,7 @@ from ._sweep_options import (
     run_sweep_with,
     sweep_settings,
 )
+from ._values import CLIError, grid, grid_values, named_grid
 
 
 #: `status` codes of the map (those of `pmsmjax.analysis.DesignClass`).
@@ -358,8 +347,8 @@ def feasibility_command(args: argparse.Namespace) -> int:
         "I_b": np.float64(fm.I_b), "motor": np.str_(drive.name),
         "observer": np.str_(choice.name), "observer_class": np.str_(choice.cls.__name__),
         "method": np.str_(fm.method), "status_codes": np.str_(STATUS_CODES),
-        "design": np.str_(dumps_json(info["design"])),
-        "observer_model": np.str_(dumps_json(info["model"])),
+        "design": np.str_(json_text(info["design"])),
+        "observer_model": np.str_(json_text(info["model"])),
     }
     m = choice.observer.motor
     for p in MODEL_PARAMETERS:

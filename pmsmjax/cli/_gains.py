@@ -22,18 +22,11 @@ import numpy as np
 import pmsmjax as pj
 from pmsmjax._data._gains_table import GAIN_COLUMNS, gain_columns, table_columns
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_output_options,
-    drive_from_args,
-    finite_float,
-    header,
-    positive_float,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header
+from ._output import add_output_options, prepare_out_dir
+from ._values import CLIError, finite_float, positive_float
 
 
 #: Speeds of the check for a constant design (p.u. of the rated speed, both signs).

@@ -9,7 +9,10 @@ import sys
 
 import pmsmjax as pj
 
-from ._options import CLIError, Command, add_drive_options, drive_from_args, prepare_out_dir
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args
+from ._output import prepare_out_dir
+from ._values import CLIError
 
 
 #: The file name `--out DIR` writes (the tuner writes its drive under the same name).

@@ -10,20 +10,18 @@ import numpy as np
 
 import pmsmjax as pj
 
-from ._options import (
-    CLIError,
-    Command,
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import (
     add_drive_options,
     add_initial_state_options,
-    add_output_options,
-    compile_and_run,
     drive_from_args,
     drive_info,
     initial_state_from_args,
-    positive_int,
-    prepare_out_dir,
-    write_json,
 )
+from ._output import add_output_options, prepare_out_dir
+from ._runs import compile_and_run
+from ._values import CLIError, positive_int
 
 
 def _plant_arguments(p: argparse.ArgumentParser) -> None:

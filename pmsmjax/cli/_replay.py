@@ -11,22 +11,21 @@ import numpy as np
 
 import pmsmjax as pj
 
+from .._data._files import write_json
+from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._options import (
-    CLIError,
-    Command,
+from ._drive_options import (
     add_drive_options,
     add_initial_state_options,
-    add_observer_options,
-    add_output_options,
     drive_from_args,
     drive_info,
     initial_state_from_args,
     initial_state_given,
-    nonneg_float,
-    prepare_out_dir,
-    write_json,
 )
+from ._observer_options import add_observer_options
+from ._output import add_output_options, prepare_out_dir
+from ._runs import run_lock_status
+from ._values import CLIError, nonneg_float
 
 
 def _replay_arguments(p: argparse.ArgumentParser) -> None:
@@ -146,8 +145,6 @@ def replay_command(args: argparse.Namespace) -> int:
     stats = pj.replay_stats(data.t, theta_hat, w_hat, data.theta, data.w_m, t_settle=t_settle)
     finite = bool(np.all(np.isfinite(theta_hat)) and np.all(np.isfinite(w_hat)))
     if data.theta is not None:
-        from ._simulate import run_lock_status
-
         lock = run_lock_status(data.t, np.asarray(data.theta) - theta_hat, finite)
         status = lock["status"]
     else:

@@ -12,24 +12,13 @@ import os
 
 import numpy as np
 
-from ._options import (
-    CLIError,
-    Command,
-    ListOption,
-    add_drive_options,
-    add_json_option,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    header,
-    observer_from_args,
-    positive_float,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header
+from ._observer_options import add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, current_from_args
+from ._output import add_json_option, add_output_options, prepare_out_dir, print_json
+from ._values import CLIError, ListOption, positive_float
 
 
 def _order(text: str) -> int:
@@ -177,7 +166,7 @@ def response_command(args: argparse.Namespace) -> int:
                                           f"{args.speed:g} p.u., T_s = {args.T_s:g} s")
         fig.savefig(os.path.join(args.out, "response.png"), dpi=120)
     if args.json:
-        print(dumps_json(report))
+        print_json(report)
         return 0
     op = report["operating_point"]
     print(f"pmsmjax response: {drive.name}, {choice.describe()}, speed {args.speed:g} p.u. "

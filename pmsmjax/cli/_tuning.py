@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import argparse
 
-from ._options import CLIError, Command
+from ._command import Command
+from ._values import CLIError
 
 
 #: The commands handed over to `tuning`, and what they run.
