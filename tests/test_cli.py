@@ -285,6 +285,29 @@ def test_every_option_has_help():
             assert action.help, f"{name} {action.option_strings} has no help"
 
 
+def test_a_command_is_its_module_and_one_line():
+    """Every module that `COMMAND_MODULES` lists registers its `COMMAND`, in that order;
+    every module of the package that defines a `COMMAND` is listed; the reference of
+    docs/cli.md (written from the parsers) has a section for every command."""
+    import importlib
+    import pkgutil
+
+    import pmsmjax.cli
+    from pmsmjax.cli.__main__ import COMMAND_MODULES
+    from pmsmjax.cli._reference import reference_markdown
+
+    def module(name):
+        return importlib.import_module(f"pmsmjax.cli.{name}")
+
+    assert list(COMMANDS.values()) == [module(m).COMMAND for m in COMMAND_MODULES]
+    defining = {m.name for m in pkgutil.iter_modules(pmsmjax.cli.__path__)
+                if m.name != "__main__" and hasattr(module(m.name), "COMMAND")}
+    assert defining == set(COMMAND_MODULES)
+    text = reference_markdown()
+    for name in COMMANDS:
+        assert f"## `pmsmjax {name}`" in text, name
+
+
 def _write_bad_csv(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("t,i_ab_a,i_ab_b\n0,0,0\n0.000125,0,0\n")

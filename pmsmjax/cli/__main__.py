@@ -1,11 +1,13 @@
 """The `pmsmjax` command line: the parser, the registry of commands, `main`.
 
 Every command is a module of this package that defines `COMMAND`, a `Command` with its
-name, help texts, `add_arguments(parser)` and `run(args) -> exit status`; `COMMANDS` below
-lists them, and `build_parser` makes one argparse subparser per command. The options that
-several commands share are defined once, a module per idea (`_values`, `_drive_options`,
-`_output`, `_operating_point`, `_observer_options`, `_sweep_options`). `tune` and `compare` hand
-over to the `tuning` package, imported only when they run (`_tuning.py`).
+name, help texts, `add_arguments(parser)` and `run(args) -> exit status`;
+`COMMAND_MODULES` below lists the modules, one line each, and `build_parser` makes one
+argparse subparser per command. A new command is its module and its line there. The
+options that several commands share are defined once, a module per idea (`_values`,
+`_drive_options`, `_output`, `_operating_point`, `_observer_options`, `_sweep_options`).
+`tune` and `compare` hand over to the `tuning` package, imported only when they run
+(`_tuning.py`).
 
 Errors in the inputs (a bad file, a bad `--set`, an unknown motor or observer, an invalid
 option value) end the command with exit status 2 and a one-line message on stderr, without
@@ -16,40 +18,42 @@ degenerate analysis, no certificate).
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 
 import pmsmjax as pj
 
-from . import (
-    _cache,
-    _certify,
-    _equilibria,
-    _export_c,
-    _feasibility,
-    _gains,
-    _identify,
-    _motor,
-    _plant,
-    _replay,
-    _response,
-    _simulate,
-    _tuning,
-)
+from . import _tuning
 from ._command import Command
 from ._output import out_dir_transaction
 from ._values import CLIError
 
 
-#: The commands, by name, in the order `pmsmjax --help` lists them.
+#: The modules of the commands, in the order `pmsmjax --help` lists them; each defines
+#: `COMMAND`.
+COMMAND_MODULES = (
+    "_simulate",
+    "_plant",
+    "_replay",
+    "_identify",
+    "_feasibility",
+    "_equilibria",
+    "_certify",
+    "_cache",
+    "_response",
+    "_export_c",
+    "_motor",
+    "_gains",
+    "_tune",
+    "_compare",
+)
+
+#: The commands, by name, in that order.
 COMMANDS: dict[str, Command] = {
-    m.COMMAND.name: m.COMMAND
-    for m in (_simulate, _plant, _replay, _identify, _feasibility, _equilibria, _certify,
-              _cache) + (_response, _export_c)
+    command.name: command
+    for command in (importlib.import_module(f".{m}", __package__).COMMAND
+                    for m in COMMAND_MODULES)
 }
-COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
-COMMANDS[_gains.COMMAND.name] = _gains.COMMAND
-COMMANDS[_tuning.TUNE.name] = _tuning.TUNE
-COMMANDS[_tuning.COMPARE.name] = _tuning.COMPARE
 
 
 class _Parser(argparse.ArgumentParser):
