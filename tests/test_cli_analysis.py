@@ -239,7 +239,8 @@ def test_equilibria_no_equilibrium_is_its_own_status(capsys):
 
 
 def test_certify_matches_the_api(tmp_path, capsys):
-    args = ["certify", "--quick", "--speed-range", "0.3:1", "--i-q", "0.5"]
+    args = ["certify", "--observer", "leso", "--quick", "--speed-range", "0.3:1", "--i-q",
+            "0.5"]
     assert main([*args, "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
     assert "certified |dw/dt| <=" in printed and str(tmp_path / "certificate.json") in printed
@@ -321,8 +322,8 @@ def test_certify_passes_any_observer_with_mismatch(monkeypatch, tmp_path, capsys
 # independent computations (tests/test_lyapunov.py)
 @pytest.mark.slow
 def test_certify_with_mismatch_matches_the_api(capsys):
-    args = ["certify", "--quick", "--n-speed", "3", "--n-dirs", "16", "--speed-range",
-            "0.3:1", "--i-q", "0.5", "--mismatch", "L_q=1.2"]
+    args = ["certify", "--observer", "leso", "--quick", "--n-speed", "3", "--n-dirs", "16",
+            "--speed-range", "0.3:1", "--i-q", "0.5", "--mismatch", "L_q=1.2"]
     assert main(args) == 0
     report = _strict_json(capsys.readouterr().out)
     m_hat = pj.replace_params(DRIVE, L_q=1.2 * float(DRIVE.motor.L_q)).motor

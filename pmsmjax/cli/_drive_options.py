@@ -79,6 +79,17 @@ def drive_info(drive: pj.Drive, args) -> dict:
     }
 
 
+def motor_text(drive: pj.Drive, args) -> str:
+    """The drive a command used, for its console: `motor NAME` (the preset's or the motor
+    file's name), the motor file and the `--set` replacements."""
+    text = f"motor {drive.name}"
+    if getattr(args, "motor_file", None) is not None:
+        text += f" from {args.motor_file}"
+    if args.set_params:
+        text += " with " + ", ".join(f"{k} = {v:g}" for k, v in args.set_params)
+    return text
+
+
 def header(command: str, drive: pj.Drive, args) -> dict:
     """The first keys of every JSON report: command, version, drive."""
     return {"command": command, "pmsmjax_version": pj.__version__, **drive_info(drive, args)}

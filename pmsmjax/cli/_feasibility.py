@@ -15,10 +15,10 @@ import numpy as np
 
 from .._data._files import json_safe, json_text
 from ._command import Command
-from ._drive_options import add_drive_options, drive_from_args
+from ._drive_options import add_drive_options, drive_from_args, motor_text
 from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args
 from ._operating_point import add_operating_point_options, current_from_args
-from ._output import add_output_options, prepare_out_dir
+from ._output import add_output_options, first_line, prepare_out_dir
 from ._sweep_options import (
     add_sweep_options,
     init_distributed,
@@ -303,9 +303,10 @@ def feasibility_command(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out) if writer else args.out
     S, NX, NY = len(speeds), len(x), len(y)
     if writer:
-        print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = "
-              f"({i_pu[0]:g}, {i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} "
-              f"speed{'s' if S > 1 else ''}")
+        print(first_line("feasibility", motor_text(drive, args), choice.describe(),
+                         f"i_dq = ({i_pu[0]:g}, {i_pu[1]:g}) p.u.",
+                         f"{NX} x {NY} designs ({xn} x {yn}) at {S} "
+                         f"speed{'s' if S > 1 else ''}"), flush=True)
     t0 = time.perf_counter()
     try:
         fm, infos = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu, settings)

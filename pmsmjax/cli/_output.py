@@ -1,7 +1,8 @@
 """Where a command's results go: `--out DIR` (a folder, left as it was when the command
-fails: `out_dir_transaction`), `--no-plot`, and `--json` (strict JSON on stdout,
-`print_json`). The JSON files are written by `pmsmjax._data._files.write_json`, the one
-writer of the library and its commands."""
+fails: `out_dir_transaction`), `--no-plot`, `--json` (strict JSON on stdout,
+`print_json`), and the first line of its console (`first_line`). The JSON files are
+written by `pmsmjax._data._files.write_json`, the one writer of the library and its
+commands."""
 
 from __future__ import annotations
 
@@ -106,3 +107,10 @@ def prepare_out_dir(path: str) -> str:
 def print_json(obj) -> None:
     """Print `obj` on stdout as indented, strict JSON (non-finite numbers become null)."""
     print(json_text(obj))
+
+
+def first_line(command: str, motor: str, observer: str, *details: str) -> str:
+    """The first console line of a command that runs or analyses an observer:
+    `pmsmjax COMMAND: motor ...; observer ...; details...`, with the drive of
+    `motor_text` and the observer of `ObserverChoice.describe`."""
+    return f"pmsmjax {command}: " + "; ".join((motor, observer, *details))

@@ -21,9 +21,10 @@ from ._drive_options import (
     drive_info,
     initial_state_from_args,
     initial_state_given,
+    motor_text,
 )
 from ._observer_options import add_observer_options
-from ._output import add_output_options, prepare_out_dir
+from ._output import add_output_options, first_line, prepare_out_dir
 from ._runs import run_lock_status
 from ._values import CLIError, nonneg_float
 
@@ -102,8 +103,8 @@ def replay_command(args: argparse.Namespace) -> int:
     if t_settle > duration:
         raise CLIError(f"--t-settle {t_settle:g}: the record lasts {duration:.6g} s; allowed: "
                        f"0 <= S <= {duration:.6g}")
-    print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
-          f"{data.T_s:g} s from {args.data}")
+    print(first_line("replay", motor_text(drive, args), choice.describe(),
+                     f"{data.n} samples at T_s = {data.T_s:g} s from {args.data}"))
     theta0, w0 = initial_state_from_args(args, drive)
     start = "given"
     if not args.flying_start and not initial_state_given(args):

@@ -18,9 +18,9 @@ import pmsmjax as pj
 from .._data._files import write_json
 from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._drive_options import add_drive_options, drive_from_args, drive_info
+from ._drive_options import add_drive_options, drive_from_args, drive_info, motor_text
 from ._observer_options import add_observer_options
-from ._output import add_output_options, prepare_out_dir
+from ._output import add_output_options, first_line, prepare_out_dir
 from ._runs import compile_and_run, run_lock_status
 from ._scenarios import SCENARIOS
 from ._values import CLIError, finite_float, nonneg_float, positive_float, positive_int
@@ -150,10 +150,11 @@ def simulate_command(args: argparse.Namespace) -> int:
     n_steps = scenario.n_steps(args.T_s)
     out = prepare_out_dir(args.out)
 
-    print(f"pmsmjax simulate: {drive.name}, {args.observer} FOC, scenario {args.scenario!r}: "
-          f"{description}")
+    text = ("observer sensored (the encoder's angle and speed)" if args.observer ==
+            "sensored" else choice.describe())
+    print(first_line("simulate", motor_text(drive, args), text + ", FOC",
+                     f"scenario {args.scenario!r}: {description}"))
     if args.observer != "sensored":
-        print(choice.describe())
         print("start-up: " + (_CATCH_TEXT if startup == "catch" else
                               _startup_text(controller.startup)))
     print(f"{n_steps} steps at T_s = {args.T_s:g} s")
