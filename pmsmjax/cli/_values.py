@@ -187,12 +187,12 @@ class ListOption(argparse.Action):
         setattr(namespace, self.dest, cur + ([items] if self.groups else items))
 
 
-# Let values that start with a minus sign but are not plain numbers (-1:1 or -1e-3) be
-# read as values, not as unknown options; argparse's own pattern only accepts -12 and
-# -1.5. (`--zeta1=-1:1` works either way.)
+# Values that start with a minus sign but are not plain numbers (-1:1, -1e-3); argparse's
+# own pattern only accepts -12 and -1.5. (`--speed=-1e-3` works either way.)
 _NEGATIVE_VALUE = re.compile(r"^-\.?[0-9][0-9.eE+\-:]*$")
 
 
 def allow_negative_values(parser: argparse.ArgumentParser) -> None:
+    """Let `parser` read `-1:1` and `-1e-3` as values, not as unknown options."""
     if hasattr(parser, "_negative_number_matcher"):
         parser._negative_number_matcher = _NEGATIVE_VALUE
