@@ -1,9 +1,11 @@
-# Two commands do everything (see README):
-#   make run    -> installs into .venv and runs the main job on its built-in default
+# Three commands do everything (see README):
+#   make run    -> installs into .venv and runs the main job, the gain tuner (python -m
+#                  tuning), on its built-in default into results/ (OUT=DIR elsewhere)
 #   make test   -> installs into .venv (with test and docs extras) and runs the test suite
 #   make docs   -> builds the documentation site into site/ (executes the notebooks)
-# Both install the tested versions pinned in constraints.txt (pyproject.toml keeps the
+# Each installs the tested versions pinned in constraints.txt (pyproject.toml keeps the
 # compatible ranges); `make lock` re-resolves the newest versions and rewrites the file.
+# Also: `make bench` and `make stress` (benchmarks/), `make clean`.
 PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python

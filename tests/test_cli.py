@@ -285,6 +285,63 @@ def test_every_option_has_help():
             assert action.help, f"{name} {action.option_strings} has no help"
 
 
+def test_a_command_is_its_module_and_one_line():
+    """Every module that `COMMAND_MODULES` lists registers its `COMMAND`, in that order;
+    every module of the package that defines a `COMMAND` is listed; the reference of
+    docs/cli.md (written from the parsers) has a section for every command."""
+    import importlib
+    import pkgutil
+
+    import pmsmjax.cli
+    from pmsmjax.cli.__main__ import COMMAND_MODULES
+    from pmsmjax.cli._reference import reference_markdown
+
+    def module(name):
+        return importlib.import_module(f"pmsmjax.cli.{name}")
+
+    assert list(COMMANDS.values()) == [module(m).COMMAND for m in COMMAND_MODULES]
+    defining = {m.name for m in pkgutil.iter_modules(pmsmjax.cli.__path__)
+                if m.name != "__main__" and hasattr(module(m.name), "COMMAND")}
+    assert defining == set(COMMAND_MODULES)
+    text = reference_markdown()
+    for name in COMMANDS:
+        assert f"## `pmsmjax {name}`" in text, name
+
+
+@pytest.mark.parametrize("command, argv, observer, work", [
+    ("equilibria", ["--zeta1", "0.5", "--ratio", "0.5"], "leso, zeta1 = 0.5",
+     "equilibria_report"),
+    ("feasibility", ["--zeta1", "0:5:3", "--ratio", "0:2:3"], "leso", "_map"),
+    ("certify", ["--quick"], "eso", "certificate_report"),  # the ESO, as everywhere
+    ("response", [], "fa-leso", "response_report"),
+    ("gains", ["--design", "TABLE"], "eso of the gains table", "gains_check"),
+])
+def test_an_analysis_names_its_observer_and_motor_first(command, argv, observer, work,
+                                                        tmp_path, capsys, monkeypatch):
+    """The first console line of every analysis command names the observer and the motor
+    it analyses, printed before the work starts (stopped here by a stand-in)."""
+    import importlib
+
+    from pmsmjax.cli import CLIError
+
+    def stop(*args, **kwargs):
+        raise CLIError("stopped after the first line")
+
+    monkeypatch.setattr(importlib.import_module(f"pmsmjax.cli._{command}"), work, stop)
+    drive = pj.replace_params(DRIVE, J=2e-3)
+    paper = make_observer("eso", drive)
+    table = pj.gains_table_constant("eso", dict(paper.design_parameters()),
+                                    dict(type(paper).design_units), drive=drive.name)
+    pj.write_gains_table(table, tmp_path / "table")
+    argv = [str(tmp_path / "table") if a == "TABLE" else a for a in argv]
+    assert main([command, "--set", "J=0.002", *argv, "--out", str(tmp_path / "out")]) == 2
+    captured = capsys.readouterr()
+    first = captured.out.splitlines()[0]
+    assert first.startswith(f"pmsmjax {command}: motor zhang750 with J = 0.002; observer "
+                            f"{observer}"), first
+    assert "stopped after the first line" in captured.err
+
+
 def _write_bad_csv(tmp_path):
     path = tmp_path / "bad.csv"
     path.write_text("t,i_ab_a,i_ab_b\n0,0,0\n0.000125,0,0\n")

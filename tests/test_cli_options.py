@@ -1,7 +1,6 @@
 """One command line: `pmsmjax tune`/`pmsmjax compare` hand over to `tuning` (imported
 only then), every command takes `--motor-file`/`--set`, one spelling and one unit per
-option across the commands, and the old spellings still work with a deprecation
-message."""
+option across the commands, and the old spellings are refused with a one-line error."""
 
 import argparse
 import json
@@ -13,8 +12,9 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from pmsmjax.cli import _options
+from pmsmjax.cli import CLIError, observer_from_args
 from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
+from pmsmjax.cli._drive_options import initial_state_from_args
 from tuning.__main__ import build_parser as tuning_parser, problem_from_args
 from tuning.compare.cli import build_parser as compare_parser
 
@@ -51,13 +51,13 @@ def test_every_command_takes_a_drive_and_the_tuner_commands_are_listed():
 
 def test_one_spelling_one_unit_across_commands():
     """An option spelled the same in two commands has the same unit (metavar), except
-    the deprecated spellings and the feasibility map's grid axes (documented there);
-    angles are in degrees and speeds in p.u. wherever they are options."""
+    the feasibility map's grid axes (documented there); angles are in degrees and speeds
+    in p.u. wherever they are options."""
     seen: dict[str, tuple] = {}
     grid_axes = {("feasibility", "--zeta1"), ("feasibility", "--ratio")}
     for name, parser in _all_parsers().items():
         for opt, action in _options_of(parser).items():
-            if (action.help or "").startswith("deprecated") or (name, opt) in grid_axes:
+            if (name, opt) in grid_axes:
                 continue
             if opt in ("--theta0",):
                 assert action.metavar == "DEG", (name, opt)
@@ -78,80 +78,76 @@ def test_one_spelling_one_unit_across_commands():
         assert _options_of(_all_parsers()[name])[opt].nargs == "+", (name, opt)
 
 
-def test_lists_parse_space_separated_and_commas_are_deprecated(capsys):
+def test_lists_parse_space_separated_and_commas_are_refused(capsys):
     p = build_parser()
     a = p.parse_args(["feasibility", "--speeds", "0.2", "-0.5", "--out", "x"])
     assert a.speed == [[0.2, -0.5]]
+    a = p.parse_args(["feasibility", "--speeds", "0.2", "0.5", "--speed", "1", "--out", "x"])
+    assert a.speed == [[0.2, 0.5], [1.0]]
     assert capsys.readouterr().err == ""
-    a = p.parse_args(["feasibility", "--speeds", "0.2,0.5", "--out", "x"])
-    assert a.speed == [[0.2, 0.5]]
-    assert "deprecated" in capsys.readouterr().err
-    a = p.parse_args(["feasibility", "--speed", "0.2,0.5", "--speed", "1", "--out", "x"])
-    assert a.speed == [[0.2, 0.5], [1.0]]  # the old spelling still works
-    assert "deprecated; give the values separated by spaces: --speeds 0.2 0.5" in \
-        capsys.readouterr().err
+    # the old comma-separated form: an error that spells the list with spaces
+    for argv, spaced in ((["--speeds", "0.2,0.5"], "--speeds 0.2 0.5"),
+                         (["--speed", "0.2,0.5"], "--speeds 0.2 0.5")):
+        with pytest.raises(CLIError, match=f"separated by spaces, e.g. {spaced}"):
+            p.parse_args(["feasibility", *argv, "--out", "x"])
     a = p.parse_args(["response", "--orders", "1", "-5", "7", "--out", "x"])
     assert a.orders == [1, -5, 7]
-    with pytest.raises(_options.CLIError, match="--orders"):
+    with pytest.raises(CLIError, match="--orders"):
         p.parse_args(["response", "--orders", "1", "0"])
     t = tuning_parser().parse_args(["--val-speeds", "0.2", "0.6", "--peers", "cmaes",
                                     "gradient"])
     assert t.val_speeds == [0.2, 0.6] and t.peers == ["cmaes", "gradient"]
-    t = tuning_parser().parse_args(["--val-speeds", "0.2,0.6"])
-    assert t.val_speeds == [0.2, 0.6] and "deprecated" in capsys.readouterr().err
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        tuning_parser().parse_args(["--val-speeds", "0.2,0.6"])
+    assert "e.g. --val-speeds 0.2 0.6" in capsys.readouterr().err
     c = compare_parser().parse_args(["--observers", "eso", "leso"])
     assert c.observers == ["eso", "leso"]
 
 
 def test_mismatch_is_one_ratio_per_parameter(capsys):
-    """`--mismatch L_q=1.3` gives the observer model of `--observer-set L_q=1.3 L_q` and of
-    the deprecated `--mismatch-L-q 1.3`; the tuner's range is `--mismatch-range LO HI`
-    (the deprecated `--mismatch LO HI` still works)."""
+    """`--mismatch L_q=1.3` gives the observer model of `--observer-set L_q=1.3 L_q`; the
+    old `--mismatch-L-q 1.3` is an unknown option."""
     drive = pj.preset("zhang750")
     L_q = float(drive.three_phase_motor.L_q)
     p = build_parser()
     models = []
     for extra in (["--mismatch", "L_q=1.3", "--mismatch", "R_s=0.8"],
-                  ["--mismatch-L-q", "1.3", "--mismatch-R-s", "0.8"],
                   ["--observer-set", f"L_q={1.3 * L_q!r}", "--mismatch", "R_s=0.8"]):
         args = p.parse_args(["equilibria", *extra])
-        models.append(_options.observer_from_args(args, drive).observer.motor)
-    err = capsys.readouterr().err
-    assert err.count("deprecated") == 2 and "--mismatch L_q=RATIO" in err
+        models.append(observer_from_args(args, drive).observer.motor)
     for m in models:
         assert float(m.L_q) == pytest.approx(1.3 * L_q, rel=1e-15)
         assert float(m.R_s) == pytest.approx(0.8 * float(drive.three_phase_motor.R_s))
     for bad, fragment in ((["--mismatch", "L_x=1.3"], "unknown parameter 'L_x'"),
                           (["--mismatch", "L_q=0"], "must be > 0"),
-                          (["--mismatch", "L_q=1.3", "--mismatch-L-q", "1.2"], "both set")):
+                          (["--mismatch", "L_q=1.3", "--mismatch", "L_q=1.2"], "both set")):
         args = p.parse_args(["equilibria", *bad])
-        with pytest.raises(_options.CLIError, match=fragment):
-            _options.observer_from_args(args, drive)
+        with pytest.raises(CLIError, match=fragment):
+            observer_from_args(args, drive)
+    with pytest.raises(CLIError, match="equilibria: error: unrecognized arguments: "
+                                       "--mismatch-L-q 1.3"):
+        p.parse_args(["equilibria", "--mismatch-L-q", "1.3"])
     for cmd in (["simulate", "--observer", "eso"], ["replay", "--data", "x", "--out", "o"]):
         args = p.parse_args([*cmd, "--mismatch", "L_q=1.3"])
-        m = _options.observer_from_args(args, drive).observer.motor
+        m = observer_from_args(args, drive).observer.motor
         assert float(m.L_q) == pytest.approx(1.3 * L_q, rel=1e-15)
 
 
 def test_initial_state_in_degrees_and_per_unit(capsys):
     """plant and replay: `--theta0 DEG` and `--speed0 PU`; the old rad/s spellings
-    (`--w-m0`, `--w0`) are converted, with a deprecation message."""
+    (`--w-m0`, `--w0`) are unknown options."""
     drive = pj.preset("zhang750")
     w_r = float(drive.w_rated)
     p = build_parser()
     for cmd, old in (("plant", "--w-m0"), ("replay", "--w0")):
         base = [cmd, "--data", "x.npz", "--out", "o"]
         a = p.parse_args([*base, "--theta0", "90", "--speed0", "0.5"])
-        theta0, w0 = _options.initial_state_from_args(a, drive)
+        theta0, w0 = initial_state_from_args(a, drive)
         assert theta0 == pytest.approx(math.pi / 2) and w0 == pytest.approx(0.5 * w_r)
         assert capsys.readouterr().err == ""
-        a = p.parse_args([*base, old, "100"])
-        assert _options.initial_state_from_args(a, drive) == (0.0, 100.0)
-        assert "--speed0 PU" in capsys.readouterr().err
-        a = p.parse_args([*base, old, "100", "--speed0", "0.5"])
-        with pytest.raises(_options.CLIError, match="both set the initial speed"):
-            _options.initial_state_from_args(a, drive)
-        capsys.readouterr()
+        with pytest.raises(CLIError, match=f"unrecognized arguments: {old} 100"):
+            p.parse_args([*base, old, "100"])
 
 
 def test_plant_run_takes_degrees_and_per_unit(tmp_path, capsys):
@@ -171,9 +167,10 @@ def test_motor_out_is_a_folder(tmp_path, capsys):
     assert main(["motor", "--export", "zhang750", "--out", str(tmp_path / "d")]) == 0
     assert pj.load_motor_file(tmp_path / "d" / "motor.toml").name == "zhang750"
     capsys.readouterr()
-    assert main(["motor", "--export", "zhang750", "--out", str(tmp_path / "m.toml")]) == 0
-    assert "deprecated" in capsys.readouterr().err
-    assert (tmp_path / "m.toml").read_text() == (tmp_path / "d" / "motor.toml").read_text()
+    (tmp_path / "m.toml").write_text("")  # the old meaning, --out FILE: refused
+    assert main(["motor", "--export", "zhang750", "--out", str(tmp_path / "m.toml")]) == 2
+    assert "exists and is not a directory" in capsys.readouterr().err
+    assert (tmp_path / "m.toml").read_text() == ""
 
 
 def test_tune_and_compare_hand_over_to_tuning(tmp_path, capsys):

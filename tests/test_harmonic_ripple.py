@@ -207,7 +207,7 @@ def test_response_command_reports_the_ripple_for_every_observer(capsys):
 
     # a zhang2022 flux observer (no back-EMF estimate): the ripple only
     assert main(["response", "--motor", "zhang750", "--observer", "leso", "--speed", "0.5",
-                 "--i-d", "0", "--i-q", "0.3", "--orders", "1,-5,7", "--json"]) == 0
+                 "--i-d", "0", "--i-q", "0.3", "--orders", "1", "-5", "7", "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     want = analysis.harmonic_ripple(make_observer("leso", DRIVE), DRIVE, OP, (1, -5, 7))
     assert [o["order"] for o in rep["orders"]] == [1, -5, 7]
@@ -218,7 +218,7 @@ def test_response_command_reports_the_ripple_for_every_observer(capsys):
             (o["order"] - 1) * W / (2 * math.pi))
     # a back-EMF observer: the ripple next to the back-EMF gain, in the table too
     assert main(["response", "--motor", "zhang750", "--observer", "fa-leso", "--speed",
-                 "0.5", "--i-d", "0", "--i-q", "0", "--orders", "-5,7,13"]) == 0
+                 "0.5", "--i-d", "0", "--i-q", "0", "--orders", "-5", "7", "13"]) == 0
     out = capsys.readouterr().out
     assert "ripple (deg/%)" in out and "|G|" in out
     obs = make_observer("fa-leso", DRIVE)

@@ -212,7 +212,7 @@ def test_response_command_json(capsys):
     from pmsmjax.cli.__main__ import main
 
     assert main(["response", "--motor", "li_dtp", "--observer", "c-leso", "--speed", "1",
-                 "--orders", "1,-5,7", "--json"]) == 0
+                 "--orders", "1", "-5", "7", "--json"]) == 0
     rep = json.loads(capsys.readouterr().out)
     obs = make_observer("c-leso", DTP)
     Gd = analysis.bemf_response(obs, W, (1, -5, 7), 1e-4)

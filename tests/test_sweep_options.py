@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from pmsmjax.cli._options import CLIError
+from pmsmjax.cli import CLIError
 from pmsmjax.cli._sweep_options import (
     DEFAULT_CHUNK_SIZE,
     SweepSettings,

@@ -18,7 +18,7 @@ import sys
 import time
 
 import pmsmjax as pj
-from pmsmjax.cli._options import ListOption, add_drive_options, finite_float, out_dir_transaction
+from pmsmjax.cli import ListOption, add_drive_options, finite_float, out_dir_transaction
 from pmsmjax.observers import observer_names
 
 from .problem import SEARCHES, TuningProblem

@@ -1,10 +1,13 @@
 """The `pmsmjax` command line: the parser, the registry of commands, `main`.
 
 Every command is a module of this package that defines `COMMAND`, a `Command` with its
-name, help texts, `add_arguments(parser)` and `run(args) -> exit status`; `COMMANDS` below
-lists them, and `build_parser` makes one argparse subparser per command. The options that
-several commands share are defined once in `_options.py`. `tune` and `compare` hand
-over to the `tuning` package, imported only when they run (`_tuning.py`).
+name, help texts, `add_arguments(parser)` and `run(args) -> exit status`;
+`COMMAND_MODULES` below lists the modules, one line each, and `build_parser` makes one
+argparse subparser per command. A new command is its module and its line there. The
+options that several commands share are defined once, a module per idea (`_values`,
+`_drive_options`, `_output`, `_operating_point`, `_observer_options`, `_sweep_options`).
+`tune` and `compare` hand over to the `tuning` package, imported only when they run
+(`_tuning.py`).
 
 Errors in the inputs (a bad file, a bad `--set`, an unknown motor or observer, an invalid
 option value) end the command with exit status 2 and a one-line message on stderr, without
@@ -15,38 +18,42 @@ degenerate analysis, no certificate).
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 
 import pmsmjax as pj
 
-from . import (
-    _cache,
-    _certify,
-    _equilibria,
-    _export_c,
-    _feasibility,
-    _gains,
-    _identify,
-    _motor,
-    _plant,
-    _replay,
-    _response,
-    _simulate,
-    _tuning,
+from . import _tuning
+from ._command import Command
+from ._output import out_dir_transaction
+from ._values import CLIError
+
+
+#: The modules of the commands, in the order `pmsmjax --help` lists them; each defines
+#: `COMMAND`.
+COMMAND_MODULES = (
+    "_simulate",
+    "_plant",
+    "_replay",
+    "_identify",
+    "_feasibility",
+    "_equilibria",
+    "_certify",
+    "_cache",
+    "_response",
+    "_export_c",
+    "_motor",
+    "_gains",
+    "_tune",
+    "_compare",
 )
-from ._options import CLIError, Command, out_dir_transaction
 
-
-#: The commands, by name, in the order `pmsmjax --help` lists them.
+#: The commands, by name, in that order.
 COMMANDS: dict[str, Command] = {
-    m.COMMAND.name: m.COMMAND
-    for m in (_simulate, _plant, _replay, _identify, _feasibility, _equilibria, _certify,
-              _cache) + (_response, _export_c)
+    command.name: command
+    for command in (importlib.import_module(f".{m}", __package__).COMMAND
+                    for m in COMMAND_MODULES)
 }
-COMMANDS[_motor.COMMAND.name] = _motor.COMMAND
-COMMANDS[_gains.COMMAND.name] = _gains.COMMAND
-COMMANDS[_tuning.TUNE.name] = _tuning.TUNE
-COMMANDS[_tuning.COMPARE.name] = _tuning.COMPARE
 
 
 class _Parser(argparse.ArgumentParser):
@@ -54,10 +61,23 @@ class _Parser(argparse.ArgumentParser):
         raise CLIError(f"{self.prog}: error: {message} (see `{self.prog} --help`)")
 
 
+class _RootParser(_Parser):
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, with an unknown option named by the command it was given to
+        (`pmsmjax feasibility: error: unrecognized arguments: ...`)."""
+        ns, extras = self.parse_known_args(args, namespace)
+        if extras:
+            command = getattr(ns, "command", None)
+            prog = f"{self.prog} {command}" if command else self.prog
+            raise CLIError(f"{prog}: error: unrecognized arguments: {' '.join(extras)} (see "
+                           f"`{prog} --help`)")
+        return ns
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argparse parser with one subparser per command (the observer choices are read
     from the registry `pmsmjax.observers` each time)."""
-    parser = _Parser(
+    parser = _RootParser(
         prog="pmsmjax",
         description="Differentiable PMSM drive simulator: command-line front end. "
                     "Run `pmsmjax COMMAND --help` for the options of each command.",

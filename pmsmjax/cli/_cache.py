@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from .. import runtime
-from ._options import Command
+from ._command import Command
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:

@@ -13,25 +13,13 @@ import time
 
 import numpy as np
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_json_option,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    check_operating_point,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    header,
-    observer_from_args,
-    positive_float,
-    positive_int,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header, motor_text
+from ._observer_options import add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, check_operating_point, current_from_args
+from ._output import add_json_option, add_output_options, first_line, prepare_out_dir, print_json
+from ._values import CLIError, positive_float, positive_int
 
 
 QUICK = dict(n_speed=21, n_dirs=256, alphas=(0.8, 0.99), n_time=80, n_k1_speeds=5)
@@ -50,8 +38,7 @@ def _certificate_defaults() -> dict:
 def _certify_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     add_operating_point_options(p, speed="range")
-    add_observer_options(p, default="leso", mismatch=True,
-                         default_note=": the linear-feedback ESO of zhang2022 §V")
+    add_observer_options(p, default="eso", mismatch=True)
     g = p.add_argument_group("certificate")
     g.add_argument("--c3", type=positive_float, default=0.5, metavar="C3",
                    help="target constant c3 of zhang2022 (43c), in (0, 1): the ball radius r "
@@ -147,9 +134,9 @@ def certify_command(args: argparse.Namespace) -> int:
     info_out = sys.stderr if to_stdout else sys.stdout
     out = prepare_out_dir(args.out) if args.out else None
     lo, hi = args.speed_range
-    print(f"pmsmjax certify: {drive.name}, {choice.describe()}, i_dq = ({i_pu[0]:g}, "
-          f"{i_pu[1]:g}) p.u.; speeds {lo:g}..{hi:g} p.u.; computing...", file=info_out,
-          flush=True)
+    print(first_line("certify", motor_text(drive, args), choice.describe(),
+                     f"i_dq = ({i_pu[0]:g}, {i_pu[1]:g}) p.u.", f"speeds {lo:g}..{hi:g} p.u.",
+                     "computing..."), file=info_out, flush=True)
     t0 = time.perf_counter()
     try:
         report = certificate_report(choice, drive, (lo, hi), i_pu, c3=args.c3,
@@ -163,7 +150,7 @@ def certify_command(args: argparse.Namespace) -> int:
         path = os.path.join(out, "certificate.json")
         write_json(path, report)
     if to_stdout:
-        print(dumps_json(report))
+        print_json(report)
     else:
         if ok:
             print(f"certified |dw/dt| <= {report['dw_dt_bound_rad_s2']:.4g} rad/s^2 "
@@ -185,7 +172,7 @@ COMMAND = Command(
          "|dw/dt|",
     description=(
         "Compute the Lyapunov certificate of zhang2022 §V (Khalil's Theorem 9.3) for the "
-        "observer (--observer, any of the registry; default leso) over --speed-range: the "
+        "observer (--observer, any of the registry; default eso) over --speed-range: the "
         "constants c1..c5, the ball radius and the certified bound on |dw/dt| (rad/s^2), "
         "with pmsmjax.analysis.slowly_varying_certificate. Observer-model mismatch "
         "(--observer-set, --mismatch NAME=RATIO) certifies the principal (static-error) "

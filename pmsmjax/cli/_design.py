@@ -16,7 +16,8 @@ import sys
 
 import pmsmjax as pj
 
-from ._options import CLIError, ObserverChoice, observer_from_args
+from ._observer_options import ObserverChoice, observer_from_args
+from ._values import CLIError
 
 
 def add_design_option(parser: argparse.ArgumentParser) -> None:

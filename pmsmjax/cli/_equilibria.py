@@ -11,23 +11,13 @@ import sys
 
 import numpy as np
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_json_option,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    check_operating_point,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    header,
-    observer_from_args,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header, motor_text
+from ._observer_options import add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, check_operating_point, current_from_args
+from ._output import add_json_option, add_output_options, first_line, prepare_out_dir, print_json
+from ._values import CLIError
 
 
 #: status of the equilibria computation and feasibility of the design, by code
@@ -122,6 +112,10 @@ def equilibria_command(args: argparse.Namespace) -> int:
     choice = observer_from_args(args, drive)
     i_pu, _ = current_from_args(args, drive)
     check_operating_point(choice.observer, drive, i_pu, speed_pu=float(args.speed))
+    if not args.json:  # (stdout holds the JSON and nothing else)
+        print(first_line("equilibria", motor_text(drive, args), choice.describe(),
+                         f"i_dq = ({i_pu[0]:g}, {i_pu[1]:g}) p.u. of "
+                         f"{float(drive.base.I_b):.4g} A"), flush=True)
     try:
         report = equilibria_report(choice, drive, float(args.speed), i_pu)
     except ValueError as e:
@@ -131,11 +125,9 @@ def equilibria_command(args: argparse.Namespace) -> int:
         path = os.path.join(prepare_out_dir(args.out), "equilibria.json")
         write_json(path, report)
     if args.json:
-        print(dumps_json(report))
+        print_json(report)
     else:
         d = report["design"]
-        print(f"pmsmjax equilibria: {drive.name}, {choice.describe()}, i_dq = "
-              f"({i_pu[0]:g}, {i_pu[1]:g}) p.u. of {float(drive.base.I_b):.4g} A")
         line = f"speed {args.speed:g} p.u. ({report['operating_point']['w0_rad_s']:.4g} rad/s)"
         if "zeta1_at_w0" in d:
             line += (f", design {d.get('schedule', 'fixed')}: zeta1 = {d['zeta1_at_w0']:.4g}, "

@@ -7,17 +7,12 @@ import argparse
 
 from pmsmjax.firmware import SUPPORTED, export_c
 
+from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_observer_options,
-    add_output_options,
-    drive_from_args,
-    positive_float,
-    prepare_out_dir,
-)
+from ._drive_options import add_drive_options, drive_from_args, motor_text
+from ._observer_options import add_observer_options
+from ._output import add_output_options, first_line, prepare_out_dir
+from ._values import CLIError, positive_float
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
@@ -42,8 +37,8 @@ def export_c_command(args: argparse.Namespace) -> int:
         paths = export_c(choice.observer, args.T_s, prepare_out_dir(args.out), float32=args.float32)
     except ValueError as e:
         raise CLIError(str(e)) from e
-    print(f"pmsmjax export-c: {drive.name}, {choice.describe()}; T_s = {args.T_s:g} s, "
-          f"{'float' if args.float32 else 'double'}")
+    print(first_line("export-c", motor_text(drive, args), choice.describe(),
+                     f"T_s = {args.T_s:g} s, {'float' if args.float32 else 'double'}"))
     print(f"wrote {', '.join(paths.values())}")
     print(f"build: cc -std=c99 -O2 -o replay {args.out}/replay_main.c "
           f"{args.out}/pmsm_observer.c -lm; run: ./replay < recording.csv")

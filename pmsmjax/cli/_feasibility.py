@@ -13,24 +13,12 @@ import time
 import jax
 import numpy as np
 
-from ._options import (
-    MODEL_PARAMETERS,
-    CLIError,
-    Command,
-    add_drive_options,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    grid,
-    grid_values,
-    json_safe,
-    named_grid,
-    observer_from_args,
-    prepare_out_dir,
-)
+from .._data._files import json_safe, json_text
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, motor_text
+from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, current_from_args
+from ._output import add_output_options, first_line, prepare_out_dir
 from ._sweep_options import (
     add_sweep_options,
     init_distributed,
@@ -38,13 +26,12 @@ from ._sweep_options import (
     run_sweep_with,
     sweep_settings,
 )
+from ._values import CLIError, grid, grid_values, named_grid
 
 
 #: `status` codes of the map (those of `pmsmjax.analysis.DesignClass`).
 STATUS = {0: "feasible", 1: "infeasible", 2: "no equilibrium", -1: "degenerate"}
 STATUS_CODES = "0 feasible, 1 infeasible, 2 no equilibrium, -1 degenerate or failed"
-PER_DESIGN = ("status", "n_nonzero", "stable_theta_deg", "principal_stable",
-              "principal_theta_deg")
 _DEFAULT_AXES = (("zeta1", (0.0, 5.0, 101)), ("ratio", (0.0, 2.0, 101)))
 
 
@@ -316,9 +303,10 @@ def feasibility_command(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out) if writer else args.out
     S, NX, NY = len(speeds), len(x), len(y)
     if writer:
-        print(f"pmsmjax feasibility: {drive.name}, {choice.describe()}, i_dq = "
-              f"({i_pu[0]:g}, {i_pu[1]:g}) p.u.; {NX} x {NY} designs ({xn} x {yn}) at {S} "
-              f"speed{'s' if S > 1 else ''}")
+        print(first_line("feasibility", motor_text(drive, args), choice.describe(),
+                         f"i_dq = ({i_pu[0]:g}, {i_pu[1]:g}) p.u.",
+                         f"{NX} x {NY} designs ({xn} x {yn}) at {S} "
+                         f"speed{'s' if S > 1 else ''}"), flush=True)
     t0 = time.perf_counter()
     try:
         fm, infos = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu, settings)
@@ -360,8 +348,8 @@ def feasibility_command(args: argparse.Namespace) -> int:
         "I_b": np.float64(fm.I_b), "motor": np.str_(drive.name),
         "observer": np.str_(choice.name), "observer_class": np.str_(choice.cls.__name__),
         "method": np.str_(fm.method), "status_codes": np.str_(STATUS_CODES),
-        "design": np.str_(dumps_json(info["design"])),
-        "observer_model": np.str_(dumps_json(info["model"])),
+        "design": np.str_(json_text(info["design"])),
+        "observer_model": np.str_(json_text(info["model"])),
     }
     m = choice.observer.motor
     for p in MODEL_PARAMETERS:

@@ -22,18 +22,11 @@ import numpy as np
 import pmsmjax as pj
 from pmsmjax._data._gains_table import GAIN_COLUMNS, gain_columns, table_columns
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_output_options,
-    drive_from_args,
-    finite_float,
-    header,
-    positive_float,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header, motor_text
+from ._output import add_output_options, first_line, prepare_out_dir
+from ._values import CLIError, finite_float, positive_float
 
 
 #: Speeds of the check for a constant design (p.u. of the rated speed, both signs).
@@ -118,12 +111,15 @@ def gains_check(table: dict, drive: pj.Drive, T_s: float, i_pu) -> dict:
 def gains_command(args: argparse.Namespace) -> int:
     table = pj.load_gains_table(args.design)
     drive = drive_from_args(args)
+    T_s = float(args.T_s if args.T_s is not None else table.get("T_s") or 125e-6)
+    i_pu = (float(args.i_d), float(args.i_q))
+    print(first_line("gains", motor_text(drive, args),
+                     f"observer {table['observer']} of the gains table {args.design}",
+                     f"discrete poles at T_s = {T_s:g} s"), flush=True)
     if table.get("drive") and table["drive"] != drive.name:
         print(f"note: --design {args.design} was tuned for drive {table['drive']!r}; the "
               f"check uses {drive.name!r} (pass its motor file with --motor-file)",
               file=sys.stderr)
-    T_s = float(args.T_s if args.T_s is not None else table.get("T_s") or 125e-6)
-    i_pu = (float(args.i_d), float(args.i_q))
     out = prepare_out_dir(args.out)
     try:
         check = gains_check(table, drive, T_s, i_pu)
@@ -139,8 +135,8 @@ def gains_command(args: argparse.Namespace) -> int:
     write_json(files["report"], report)
     tuned_at = (f"tuned at T_s = {table['T_s']:g} s" if table.get("T_s") else
                 "sampling period not recorded")
-    print(f"pmsmjax gains: {table['observer']} gains table ({table['kind']}, "
-          f"{len(table['rows'])} rows) for drive {table.get('drive') or '?'}; {tuned_at}")
+    print(f"gains table: {table['kind']}, {len(table['rows'])} rows, for drive "
+          f"{table.get('drive') or '?'}; {tuned_at}")
     print(f"objective: {table.get('objective') or 'not recorded'}; verdict: "
           + ("holds (the tuned design beat the paper's on every check)" if warning is None
              else "NOT validated"))

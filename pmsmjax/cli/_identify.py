@@ -9,18 +9,11 @@ import warnings
 
 import pmsmjax as pj
 
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_output_options,
-    drive_from_args,
-    drive_info,
-    positive_float,
-    positive_int,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, drive_info
+from ._output import add_output_options, prepare_out_dir
+from ._values import CLIError, positive_float, positive_int
 
 
 def _names(values: list[str]) -> list[str]:

@@ -9,7 +9,10 @@ import sys
 
 import pmsmjax as pj
 
-from ._options import CLIError, Command, add_drive_options, drive_from_args
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args
+from ._output import prepare_out_dir
+from ._values import CLIError
 
 
 #: The file name `--out DIR` writes (the tuner writes its drive under the same name).
@@ -25,8 +28,7 @@ def _motor_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--out", dest="out_dir", default=None, metavar="DIR",
                    help="write the motor file to DIR/motor.toml, DIR created if missing, "
                         "as every command writes into its --out folder (default: print it "
-                        "on stdout). A FILE ending in .toml (the old meaning) still works, "
-                        "with a deprecation message")
+                        "on stdout)")
     g.add_argument("--check", action="store_true",
                    help="only validate the drive (--motor-file FILE) and print a summary: "
                         "parameters, per-unit bases and derived ratings")
@@ -69,22 +71,10 @@ def motor_command(args: argparse.Namespace) -> int:
         print("\n".join(_summary(drive)))
         print("valid")
         return 0
-    text = pj.motor_file_text(drive)
     if args.out_dir is None:
-        sys.stdout.write(text)
+        sys.stdout.write(pj.motor_file_text(drive))
         return 0
-    if args.out_dir.endswith(".toml") and not os.path.isdir(args.out_dir):
-        print(f"pmsmjax motor: --out {args.out_dir} (a file) is deprecated; --out is a "
-              f"folder in every command: give --out DIR to write DIR/{MOTOR_FILE}",
-              file=sys.stderr)
-        path = args.out_dir
-    else:
-        if os.path.exists(args.out_dir) and not os.path.isdir(args.out_dir):
-            raise CLIError(f"--out {args.out_dir!r} exists and is not a directory")
-        path = os.path.join(args.out_dir, MOTOR_FILE)
-    folder = os.path.dirname(path)
-    if folder:
-        os.makedirs(folder, exist_ok=True)
+    path = os.path.join(prepare_out_dir(args.out_dir), MOTOR_FILE)
     pj.save_motor_file(drive, path)
     print("\n".join(_summary(drive)))
     print(f"wrote {path}")

@@ -10,31 +10,29 @@ import numpy as np
 
 import pmsmjax as pj
 
-from ._options import (
-    CLIError,
-    Command,
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import (
     add_drive_options,
     add_initial_state_options,
-    add_output_options,
-    compile_and_run,
     drive_from_args,
     drive_info,
     initial_state_from_args,
-    positive_int,
-    prepare_out_dir,
-    write_json,
 )
+from ._output import add_output_options, prepare_out_dir
+from ._runs import compile_and_run
+from ._values import CLIError, positive_int
 
 
 def _plant_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     g = p.add_argument_group("input")
     g.add_argument("--data", required=True, metavar="FILE",
-                   help="recorded drive data (.npz or .csv, format in docs/conventions.md): t (s) and "
-                        "u_ab (V) are required, tau_L (N m) is used if present (else zero "
-                        "load); i_ab (A), theta (rad) and w_m (rad/s), if present, are "
-                        "compared with the simulation")
-    add_initial_state_options(g, what="the rotor", old_speed="--w-m0")
+                   help="recorded drive data (.npz or .csv, format in "
+                        "docs/conventions.md): t (s) and u_ab (V) are required, tau_L (N m) "
+                        "is used if present (else zero load); i_ab (A), theta (rad) and w_m "
+                        "(rad/s), if present, are compared with the simulation")
+    add_initial_state_options(g, what="the rotor")
     g.add_argument("--init-from-data", action="store_true",
                    help="take the initial angle, speed and current from the first sample of "
                         "the data (needs theta; uses w_m and i_ab if present) instead of "

@@ -5,10 +5,8 @@ two commands `pmsmjax tune`/`pmsmjax compare` run), with its description, usage 
 one table per option group: option, value (the metavar: its unit or form), help with
 the default. The documentation site's hook (`docs/_hooks.py`) puts it into the page
 `docs/cli.md` at build time, so the reference cannot drift from the parsers.
-`python -m pmsmjax.cli._reference` prints it.
-
-Deprecated spellings are listed under their own heading per command. `tune` and
-`compare` import the `tuning` package (only when this function runs).
+`python -m pmsmjax.cli._reference` prints it. `tune` and `compare` import the `tuning`
+package (only when this function runs).
 """
 
 from __future__ import annotations
@@ -74,25 +72,16 @@ def _command(name: str, parser: argparse.ArgumentParser) -> list[str]:
     usage = parser.format_usage().strip()
     usage = usage[len("usage: "):] if usage.startswith("usage: ") else usage
     lines += ["```text", usage, "```", ""]
-    deprecated = []
     for group in parser._action_groups:
-        rows = []
-        for action in group._group_actions:
-            if not action.option_strings or isinstance(action, argparse._HelpAction):
-                continue
-            row = (f"| {', '.join(f'`{o}`' for o in action.option_strings)} | "
-                   f"{_value(action)} | {_help(parser, action)} |")
-            (deprecated if (action.help or "").startswith("deprecated") else rows
-             ).append(row)
+        rows = [f"| {', '.join(f'`{o}`' for o in action.option_strings)} | "
+                f"{_value(action)} | {_help(parser, action)} |"
+                for action in group._group_actions
+                if action.option_strings and not isinstance(action, argparse._HelpAction)]
         if rows:
             title = group.title if group.title not in ("options", "optional arguments") \
                 else "options"
             lines += [f"**{title}**", "", "| option | value | meaning |", "|---|---|---|",
                       *rows, ""]
-    if deprecated:
-        lines += ["**deprecated spellings** (still accepted, with a message naming the "
-                  "new one)", "", "| option | value | meaning |", "|---|---|---|",
-                  *deprecated, ""]
     if parser.epilog:
         lines += [" ".join(parser.epilog.split()), ""]
     return lines

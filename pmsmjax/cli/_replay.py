@@ -11,22 +11,22 @@ import numpy as np
 
 import pmsmjax as pj
 
+from .._data._files import write_json
+from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._options import (
-    CLIError,
-    Command,
+from ._drive_options import (
     add_drive_options,
     add_initial_state_options,
-    add_observer_options,
-    add_output_options,
     drive_from_args,
     drive_info,
     initial_state_from_args,
     initial_state_given,
-    nonneg_float,
-    prepare_out_dir,
-    write_json,
+    motor_text,
 )
+from ._observer_options import add_observer_options
+from ._output import add_output_options, first_line, prepare_out_dir
+from ._runs import run_lock_status
+from ._values import CLIError, nonneg_float
 
 
 def _replay_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,7 +36,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="recorded drive data (.npz or .csv, format in docs/conventions.md) "
                         "with t, u_ab, i_ab (and optionally theta, w_m to score the estimates)")
     add_initial_state_options(
-        g, what="the observer's estimate", old_speed="--w0",
+        g, what="the observer's estimate",
         unknown="unknown: a rotor that turns from the first samples is caught from their "
                 "back-EMF (as --flying-start), otherwise 0")
     g.add_argument("--voltage", choices=("applied", "commanded"), default="applied",
@@ -52,7 +52,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
-    add_observer_options(p, default="eso", mismatch=True, old_mismatch=False)
+    add_observer_options(p, default="eso", mismatch=True)
     add_design_option(p)
     add_output_options(p, None)
 
@@ -103,8 +103,8 @@ def replay_command(args: argparse.Namespace) -> int:
     if t_settle > duration:
         raise CLIError(f"--t-settle {t_settle:g}: the record lasts {duration:.6g} s; allowed: "
                        f"0 <= S <= {duration:.6g}")
-    print(f"pmsmjax replay: {drive.name}, {choice.describe()}; {data.n} samples at T_s = "
-          f"{data.T_s:g} s from {args.data}")
+    print(first_line("replay", motor_text(drive, args), choice.describe(),
+                     f"{data.n} samples at T_s = {data.T_s:g} s from {args.data}"))
     theta0, w0 = initial_state_from_args(args, drive)
     start = "given"
     if not args.flying_start and not initial_state_given(args):
@@ -146,8 +146,6 @@ def replay_command(args: argparse.Namespace) -> int:
     stats = pj.replay_stats(data.t, theta_hat, w_hat, data.theta, data.w_m, t_settle=t_settle)
     finite = bool(np.all(np.isfinite(theta_hat)) and np.all(np.isfinite(w_hat)))
     if data.theta is not None:
-        from ._simulate import run_lock_status
-
         lock = run_lock_status(data.t, np.asarray(data.theta) - theta_hat, finite)
         status = lock["status"]
     else:

@@ -12,24 +12,13 @@ import os
 
 import numpy as np
 
-from ._options import (
-    CLIError,
-    Command,
-    ListOption,
-    add_drive_options,
-    add_json_option,
-    add_observer_options,
-    add_operating_point_options,
-    add_output_options,
-    current_from_args,
-    drive_from_args,
-    dumps_json,
-    header,
-    observer_from_args,
-    positive_float,
-    prepare_out_dir,
-    write_json,
-)
+from .._data._files import write_json
+from ._command import Command
+from ._drive_options import add_drive_options, drive_from_args, header, motor_text
+from ._observer_options import add_observer_options, observer_from_args
+from ._operating_point import add_operating_point_options, current_from_args
+from ._output import add_json_option, add_output_options, first_line, prepare_out_dir, print_json
+from ._values import CLIError, ListOption, positive_float
 
 
 def _order(text: str) -> int:
@@ -160,6 +149,11 @@ def response_command(args: argparse.Namespace) -> int:
     i_pu, _ = current_from_args(args, drive)
     if args.plot and not args.out:
         raise CLIError("--plot writes DIR/response.png: give --out DIR")
+    if not args.json:  # (stdout holds the JSON and nothing else)
+        w = float(args.speed) * float(drive.w_rated)
+        print(first_line("response", motor_text(drive, args), choice.describe(),
+                         f"speed {args.speed:g} p.u. ({w / (2 * math.pi):.4g} Hz)",
+                         f"T_s = {args.T_s:g} s"), flush=True)
     try:
         report = response_report(choice, drive, float(args.speed), i_pu, args.orders,
                                  float(args.T_s))
@@ -177,11 +171,8 @@ def response_command(args: argparse.Namespace) -> int:
                                           f"{args.speed:g} p.u., T_s = {args.T_s:g} s")
         fig.savefig(os.path.join(args.out, "response.png"), dpi=120)
     if args.json:
-        print(dumps_json(report))
+        print_json(report)
         return 0
-    op = report["operating_point"]
-    print(f"pmsmjax response: {drive.name}, {choice.describe()}, speed {args.speed:g} p.u. "
-          f"({op['f_electrical_hz']:.4g} Hz), T_s = {args.T_s:g} s")
     bemf = "bemf_gain" in report["orders"][0]
     print(f"{'order':>6} {'f (Hz)':>10} {'ripple (deg/%)':>15}"
           + (f" {'|G|':>9} {'phase (deg)':>12}   continuous" if bemf else ""))

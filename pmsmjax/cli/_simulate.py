@@ -8,7 +8,6 @@ import math
 import os
 import sys
 import time
-from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -16,131 +15,15 @@ import numpy as np
 
 import pmsmjax as pj
 
+from .._data._files import write_json
+from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._options import (
-    CLIError,
-    Command,
-    add_drive_options,
-    add_observer_options,
-    add_output_options,
-    compile_and_run,
-    drive_from_args,
-    drive_info,
-    finite_float,
-    nonneg_float,
-    positive_float,
-    positive_int,
-    prepare_out_dir,
-    write_json,
-)
-
-
-# ---------------------------------------------------------------------------------------
-# Scenarios
-# ---------------------------------------------------------------------------------------
-
-@dataclasses.dataclass(frozen=True)
-class _ScenarioSpec:
-    help: str
-    uses_load: bool
-    default_load: float
-    build: Callable  # (drive, t_end, speed_pu, load_pu) -> (Scenario, description, w_m0)
-
-
-def _fmt_t(x: float) -> str:
-    return f"{x:.4g} s"
-
-
-def _build_default(drive, T, s, l):
-    w, tau = s * float(drive.w_rated), l * float(drive.tau_rated)
-    t0, t1, t_on, t_off = T / 30, 11 * T / 30, 8 * T / 15, 4 * T / 5
-    sc = pj.Scenario(t_end=T, w_m_ref=pj.Profile.ramp(t0, t1, 0.0, w),
-                     tau_L=pj.Profile.steps([t_on, t_off], [tau, 0.0]))
-    desc = (f"speed ramp 0 -> {s:g} p.u. ({w:.1f} rad/s electrical) from {_fmt_t(t0)} to "
-            f"{_fmt_t(t1)}, load step 0 -> {l:g} p.u. ({tau:.3g} N m) at {_fmt_t(t_on)} and "
-            f"back to 0 at {_fmt_t(t_off)}; {_fmt_t(T)} in all")
-    return sc, desc, 0.0
-
-
-def _build_ramp(drive, T, s, l):
-    del l
-    w = s * float(drive.w_rated)
-    t0, t1 = T / 30, 11 * T / 30
-    sc = pj.Scenario(t_end=T, w_m_ref=pj.Profile.ramp(t0, t1, 0.0, w))
-    desc = (f"speed ramp 0 -> {s:g} p.u. ({w:.1f} rad/s electrical) from {_fmt_t(t0)} to "
-            f"{_fmt_t(t1)}, no load; {_fmt_t(T)} in all")
-    return sc, desc, 0.0
-
-
-def _build_load_step(drive, T, s, l):
-    w, tau = s * float(drive.w_rated), l * float(drive.tau_rated)
-    t_on, t_off = T / 3, 2 * T / 3
-    sc = pj.Scenario(t_end=T, w_m_ref=pj.Profile.constant(w),
-                     tau_L=pj.Profile.steps([t_on, t_off], [tau, 0.0]))
-    desc = (f"constant speed {s:g} p.u. ({w:.1f} rad/s electrical, rotor starting at that "
-            f"speed), load step 0 -> {l:g} p.u. ({tau:.3g} N m) at {_fmt_t(t_on)} and back to "
-            f"0 at {_fmt_t(t_off)}; {_fmt_t(T)} in all")
-    return sc, desc, w
-
-
-def _build_reversal(drive, T, s, l):
-    del l
-    w = s * float(drive.w_rated)
-    a0, a1, b0, b1 = 0.05 * T, 0.3 * T, 0.5 * T, 0.75 * T
-    sc = pj.Scenario(t_end=T, w_m_ref=pj.Profile([0.0, a0, a1, b0, b1], [0.0, 0.0, w, w, -w]))
-    desc = (f"speed ramp 0 -> {s:g} p.u. ({w:.1f} rad/s electrical) from {_fmt_t(a0)} to "
-            f"{_fmt_t(a1)}, reversal to {-s:g} p.u. from {_fmt_t(b0)} to {_fmt_t(b1)}, no "
-            f"load; {_fmt_t(T)} in all")
-    return sc, desc, 0.0
-
-
-SCENARIOS: dict[str, _ScenarioSpec] = {
-    "default": _ScenarioSpec("speed ramp 0 -> SPEED, then a load step 0 -> LOAD and back "
-                             "(event times scale with --t-end)", True, 0.5, _build_default),
-    "ramp": _ScenarioSpec("speed ramp 0 -> SPEED, no load", False, 0.0, _build_ramp),
-    "load-step": _ScenarioSpec("rotor at SPEED from the start, load step 0 -> LOAD at "
-                               "t_end/3, back to 0 at 2 t_end/3", True, 0.5, _build_load_step),
-    "reversal": _ScenarioSpec("ramp 0 -> +SPEED, then reversal to -SPEED, no load", False,
-                              0.0, _build_reversal),
-}
-
-
-def run_lock_status(t, theta_err, ok: bool, w_m=None, startup=None, w_m_ref=None) -> dict:
-    """The lock status of a run (`pmsmjax.lock_status`, the one definition) as plain data
-    with the run's status: "successful", "lost lock at t = ... s", "never locked" or
-    "diverged". With an I/f start-up the observer is judged from the first sample at
-    which both the rotor and the speed reference (which the open-loop frame follows, so
-    the handover cannot begin earlier) have reached the handover speed: before it the
-    drive runs open loop, and a light rotor swinging about the open-loop current vector
-    can pass the handover speed early (zhang750 in the reversal scenario does)."""
-    t = np.asarray(t, float)
-    start = 0
-    if startup is not None and w_m is not None:
-        for w in (w_m, w_m_ref):
-            if w is None:
-                continue
-            fast = np.flatnonzero(np.abs(np.asarray(w)) >= float(startup.w_hand))
-            start = max(start, int(fast[0]) if fast.size else len(t) - 1)
-    st = {k: np.asarray(v).item() for k, v in pj.lock_status(
-        t[start:], np.asarray(theta_err)[start:], ok=ok).items()}
-    out = {"definition": f"mean |angle error| over {1e3 * pj.LOCK_DWELL_S:g} ms above "
-                         f"{pj.LOCK_DEG:g} deg after lock was acquired (held for "
-                         f"{1e3 * pj.LOCK_ACQUIRE_S:g} ms), or a diverged run "
-                         f"(pmsmjax.lock_status)",
-           "lock_deg": pj.LOCK_DEG, "dwell_s": pj.LOCK_DWELL_S,
-           "acquire_s": pj.LOCK_ACQUIRE_S, "judged_from_s": float(t[start]),
-           "acquired": bool(st["acquired"]), "lost": bool(st["lost"]),
-           "t_acquired_s": None if np.isnan(st["t_acquired"]) else float(st["t_acquired"]),
-           "t_lost_s": None if np.isnan(st["t_lost"]) else float(st["t_lost"])}
-    if not ok:
-        out["status"] = "diverged"
-    elif out["lost"]:
-        out["status"] = f"lost lock at t = {out['t_lost_s']:.4g} s"
-    elif not out["acquired"]:
-        out["status"] = "never locked"
-    else:
-        out["status"] = "successful"
-    return out
+from ._drive_options import add_drive_options, drive_from_args, drive_info, motor_text
+from ._observer_options import add_observer_options
+from ._output import add_output_options, first_line, prepare_out_dir
+from ._runs import compile_and_run, run_lock_status
+from ._scenarios import SCENARIOS
+from ._values import CLIError, finite_float, nonneg_float, positive_float, positive_int
 
 
 _CATCH_TEXT = ("catch: the observer re-started from the back-EMF of the first 64 samples "
@@ -172,10 +55,6 @@ def _speed_error_stats(x: np.ndarray, scale: float) -> dict:
     s = pj.error_stats(x)
     return s | {f"{k}_pu": s[k] / scale for k in keys}
 
-
-# ---------------------------------------------------------------------------------------
-# simulate
-# ---------------------------------------------------------------------------------------
 
 def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
@@ -232,7 +111,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="the observer's initial speed estimate (p.u. of the rated speed; "
                         "default: the rotor's initial speed, i.e. known)")
     add_observer_options(p, default="sensored", sensored=True, mismatch=True,
-                         old_mismatch=False, default_note=": the encoder angle and speed")
+                         default_note=": the encoder angle and speed")
     add_design_option(p)
     add_output_options(p, "results")
 
@@ -271,10 +150,11 @@ def simulate_command(args: argparse.Namespace) -> int:
     n_steps = scenario.n_steps(args.T_s)
     out = prepare_out_dir(args.out)
 
-    print(f"pmsmjax simulate: {drive.name}, {args.observer} FOC, scenario {args.scenario!r}: "
-          f"{description}")
+    text = ("observer sensored (the encoder's angle and speed)" if args.observer ==
+            "sensored" else choice.describe())
+    print(first_line("simulate", motor_text(drive, args), text + ", FOC",
+                     f"scenario {args.scenario!r}: {description}"))
     if args.observer != "sensored":
-        print(choice.describe())
         print("start-up: " + (_CATCH_TEXT if startup == "catch" else
                               _startup_text(controller.startup)))
     print(f"{n_steps} steps at T_s = {args.T_s:g} s")
@@ -385,8 +265,6 @@ def simulate_command(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 1
     return 0
-
-
 
 
 COMMAND = Command(

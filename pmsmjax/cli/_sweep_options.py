@@ -22,7 +22,8 @@ import os
 
 import jax
 
-from ._options import CLIError, keep_on_failure, nonneg_int, positive_int
+from ._output import keep_on_failure
+from ._values import CLIError, nonneg_int, positive_int
 
 
 #: Default points per chunk: None, chosen by `run_sweep` from the measured cost of the

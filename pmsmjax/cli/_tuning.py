@@ -1,5 +1,5 @@
-"""`pmsmjax tune` and `pmsmjax compare`: the gain tuner and the observer comparison of
-the `tuning` package, under the one command line.
+"""`pmsmjax tune` and `pmsmjax compare` (`_tune.py`, `_compare.py`): the gain tuner and the
+observer comparison of the `tuning` package, under the one command line.
 
 `tuning` imports `pmsmjax`, never the reverse: these commands import it only when they
 run (`handover`), so `import pmsmjax` and every other command never load it. Their
@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import argparse
 
-from ._options import CLIError, Command
+from ._command import Command
+from ._values import CLIError
 
 
 #: The commands handed over to `tuning`, and what they run.
@@ -40,7 +41,10 @@ def handover(name: str, argv: list[str]) -> int:
         return e.code if isinstance(e.code, int) else 0
 
 
-def _command(name: str, help: str, description: str) -> Command:
+def handover_command(name: str, help: str, description: str) -> Command:
+    """The `Command` `name` (in `HANDOVER`): its arguments are the `tuning` parser's,
+    shown by its own `--help`."""
+
     def add_arguments(p: argparse.ArgumentParser) -> None:
         p.add_argument("args", nargs=argparse.REMAINDER, metavar="...",
                        help=f"the options of `pmsmjax {name} --help`")
@@ -48,17 +52,3 @@ def _command(name: str, help: str, description: str) -> Command:
     return Command(name=name, help=help, description=description,
                    add_arguments=add_arguments,
                    run=lambda args: handover(name, args.args))
-
-
-TUNE = _command(
-    "tune", "tune an observer's gains under model mismatch (the main job; python -m tuning)",
-    "Gradient-based tuning of a sensorless observer's design so that it stays fast, "
-    "accurate and stable when its machine model is wrong, validated on closed-loop runs "
-    "it never trained on; writes the tuned gains as a table for firmware (gains.json, "
-    "gains.csv, gains.h) with the tuner's verdict. The same as `python -m tuning`.")
-COMPARE = _command(
-    "compare", "every observer, paper design and tuned, on one common grid "
-               "(python -m tuning compare)",
-    "Which observer for my drive? Runs every registered observer that applies to the "
-    "motor on one common grid of closed-loop sensorless runs and writes one table, the "
-    "numbers and figures. The same as `python -m tuning compare`.")

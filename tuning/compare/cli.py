@@ -12,8 +12,14 @@ import sys
 import time
 
 import pmsmjax as pj
-from pmsmjax.cli._options import CLIError, ListOption, add_drive_options
-from pmsmjax.cli._sweep_options import add_sweep_options, init_distributed, sweep_settings
+from pmsmjax.cli import (
+    CLIError,
+    ListOption,
+    add_drive_options,
+    add_sweep_options,
+    init_distributed,
+    sweep_settings,
+)
 from pmsmjax.observers import observer_names
 
 
