@@ -142,7 +142,7 @@ def test_a_map_reuses_only_its_own_compiled_function():
     compiled code) only when everything it closes over is the same."""
     from pmsmjax.cli.__main__ import build_parser
     from pmsmjax.cli._feasibility import _point_key
-    from pmsmjax.cli._options import current_from_args, drive_from_args, observer_from_args
+    from pmsmjax.cli import current_from_args, drive_from_args, observer_from_args
 
     def key(*argv):
         args = build_parser().parse_args(["feasibility", *argv])

@@ -60,7 +60,7 @@ def test_gains_command_compares_tuned_and_paper(table, tmp_path, capsys, monkeyp
     assert r["T_s"] == cfg.T_s and r["verdict"]["holds"] is False
     # the tuned gains at the table's rows are the table's own gain columns (written by
     # the tuner from its schedule; here recomputed from the interpolated table)
-    cols = pj._gains_table.table_columns(t)
+    cols = pj._data._gains_table.table_columns(t)
     rows = np.searchsorted(cols["w_m"], np.asarray(r["w_m"]))
     for k in ("G1_11", "G1_21", "g2_2", "g3_2", "k_p"):
         np.testing.assert_allclose(r["gains"][k]["tuned"], cols[k][rows], rtol=1e-9,
@@ -87,7 +87,7 @@ def test_response_plot(tmp_path, capsys, monkeypatch):
     assert main(["response", "--motor", "li_dtp", "--observer", "fa-leso", "--speed", "0.5",
                  "--plot", "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "response.png").stat().st_size > 0
-    from pmsmjax.cli._options import ObserverChoice
+    from pmsmjax.cli import ObserverChoice
     from pmsmjax.cli._response import response_curves
 
     drive = pj.preset("li_dtp")
