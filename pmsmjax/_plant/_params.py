@@ -533,3 +533,14 @@ def replace_params(drive: Drive, **values) -> Drive:
                 f"mechanics (J, B) and inverter (u_dc, u_max, u_dt, i_dt)."
             )
     return drive
+
+
+def scale_motor(motor, scales: dict):
+    """Multiply machine parameters by factors `{name: factor}` (R_s, L_d, L_q, psi_f)."""
+    if not scales:
+        return motor
+    if isinstance(motor, DualThreePhaseParams):
+        return eqx.tree_at(lambda m: m.ab, motor, scale_motor(motor.ab, scales))
+    names = list(scales)
+    return eqx.tree_at(lambda m: [getattr(m, n) for n in names], motor,
+                       [getattr(motor, n) * scales[n] for n in names])
