@@ -94,7 +94,6 @@ from ._plant._motorfile import (  # noqa: E402
     save_motor_file as save_motor_file,
 )
 from ._plant._params import (  # noqa: E402
-    PRESET_NAMES as PRESET_NAMES,
     BaseValues as BaseValues,
     Drive as Drive,
     DualThreePhaseParams as DualThreePhaseParams,
@@ -102,10 +101,10 @@ from ._plant._params import (  # noqa: E402
     Inverter as Inverter,
     Mechanics as Mechanics,
     PMSMParams as PMSMParams,
-    preset as preset,
     replace_params as replace_params,
     scale_motor as scale_motor,
 )
+from ._plant._presets import PRESET_NAMES as PRESET_NAMES, preset as preset  # noqa: E402
 from ._sim._dtypes import astype as astype  # noqa: E402
 from ._sim._metrics import (  # noqa: E402
     LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,
