@@ -94,7 +94,6 @@ from ._plant._motorfile import (  # noqa: E402
     save_motor_file as save_motor_file,
 )
 from ._plant._params import (  # noqa: E402
-    PRESET_NAMES as PRESET_NAMES,
     BaseValues as BaseValues,
     Drive as Drive,
     DualThreePhaseParams as DualThreePhaseParams,
@@ -102,9 +101,11 @@ from ._plant._params import (  # noqa: E402
     Inverter as Inverter,
     Mechanics as Mechanics,
     PMSMParams as PMSMParams,
-    preset as preset,
     replace_params as replace_params,
+    scale_motor as scale_motor,
 )
+from ._plant._presets import PRESET_NAMES as PRESET_NAMES, preset as preset  # noqa: E402
+from ._sim._dtypes import astype as astype  # noqa: E402
 from ._sim._metrics import (  # noqa: E402
     LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,
     LOCK_DEG as LOCK_DEG,
@@ -122,6 +123,7 @@ from ._sim._metrics import (  # noqa: E402
 )
 from ._sim._scenario import Profile as Profile, Scenario as Scenario  # noqa: E402
 from ._sim._solution import RESULTS as RESULTS, Trajectory as Trajectory  # noqa: E402
+from ._validate import NonFiniteInputError as NonFiniteInputError  # noqa: E402
 from .observers import (  # noqa: E402
     AbstractObserver as AbstractObserver,
     AFOObserver as AFOObserver,
@@ -150,33 +152,15 @@ if TYPE_CHECKING:
         identify as identify,
     )
     from ._data._replay import (
-        NonFiniteInputError as NonFiniteInputError,
         initial_estimate as initial_estimate,
         replay as replay,
         replay_estimates as replay_estimates,
     )
     from ._sim._integrate import RK4 as RK4, integrate as integrate
-    from ._sim._simulate import (
-        PlantTrace as PlantTrace,
-        Sensing as Sensing,
-        run_plant as run_plant,
-        scale_motor as scale_motor,
-        simulate as simulate,
-    )
+    from ._sim._plant_run import PlantTrace as PlantTrace, run_plant as run_plant
+    from ._sim._simulate import Sensing as Sensing, simulate as simulate
 
 __getattr__, __dir__ = lazy_exports(__name__, __file__, globals())
-
-
-def astype(tree, dtype):
-    """Cast every floating-point array leaf of `tree` to `dtype` (e.g. jnp.float32)."""
-    import jax.numpy as jnp
-
-    def cast(x):
-        if isinstance(x, jax.Array | float) and jnp.issubdtype(jnp.result_type(x), jnp.floating):
-            return jnp.asarray(x, dtype)
-        return x
-
-    return jax.tree_util.tree_map(cast, tree)
 
 
 try:

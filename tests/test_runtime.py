@@ -410,8 +410,8 @@ def _poly_ref(c, x, k, scale):
 @pytest.fixture
 def store(tmp_path, monkeypatch):
     d = tmp_path / "exported"
-    monkeypatch.setattr(pj.runtime, "_STORE_DIR", d)
-    monkeypatch.setattr(pj.runtime, "_LOADED", {})
+    monkeypatch.setattr(pj.runtime._stored, "_STORE_DIR", d)
+    monkeypatch.setattr(pj.runtime._stored, "_LOADED", {})
     _TRACES.clear()
     return d
 
@@ -424,7 +424,7 @@ def _check(out, c, x, k, scale):
 
 
 def test_stored_call_is_off_without_configure(monkeypatch):
-    monkeypatch.setattr(pj.runtime, "_STORE_DIR", None)
+    monkeypatch.setattr(pj.runtime._stored, "_STORE_DIR", None)
     p = _Poly(jnp.asarray([1.0, 2.0]), 2)
     assert pj.runtime.stored_call("poly", _poly_fn, (p, jnp.ones(3), 1.0), _Out) is None
 
@@ -437,7 +437,7 @@ def test_stored_program_gives_the_fresh_result_without_tracing(store):
     files = list(store.glob("poly-*.jaxexport"))
     assert len(files) == 1 and len(_TRACES) == 1
     # a new process: nothing loaded yet, the program is read from the file, not traced
-    pj.runtime._LOADED.clear()
+    pj.runtime._stored._LOADED.clear()
     c2 = jnp.asarray([1.0, 0.5, -0.75])  # new values of the inputs: same program
     out2 = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c2, 3), x, 2.0), _Out)
     _check(out2, c2, x, 3, 2.0)
@@ -447,7 +447,7 @@ def test_stored_program_gives_the_fresh_result_without_tracing(store):
 def test_changed_static_field_or_shape_is_not_served_a_stale_program(store):
     c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
     pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 3), x, 2.0), _Out)
-    pj.runtime._LOADED.clear()
+    pj.runtime._stored._LOADED.clear()
     out = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 2), x, 2.0), _Out)  # k: 3 -> 2
     _check(out, c, x, 2, 2.0)
     out = pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 2), x, 0.5), _Out)  # static scale
@@ -464,7 +464,7 @@ def test_corrupt_or_mismatched_stored_program_falls_back_to_a_trace(store):
     (path,) = store.glob("poly-*.jaxexport")
     for bad in (b"not a program", path.read_bytes()[:100]):
         path.write_bytes(bad)
-        pj.runtime._LOADED.clear()
+        pj.runtime._stored._LOADED.clear()
         with warnings.catch_warnings():
             warnings.simplefilter("error")  # no error and no warning: silently made again
             out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
@@ -475,7 +475,7 @@ def test_corrupt_or_mismatched_stored_program_falls_back_to_a_trace(store):
     pj.runtime.stored_call("poly", _poly_fn, (_Poly(c, 3), x[:3], 2.0), _Out)
     other = [p for p in store.glob("poly-*.jaxexport") if p != path]
     path.write_bytes(other[0].read_bytes())
-    pj.runtime._LOADED.clear()
+    pj.runtime._stored._LOADED.clear()
     out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
     _check(out, c, x, 3, 2.0)
     assert len(_TRACES) == 5
@@ -503,7 +503,7 @@ def test_stored_equilibria_equal_a_fresh_trace(store):
     ref = jax.device_get(equilibria(obs, plant, w0, i0))
     got = jax.device_get(equilibria_stored(obs, plant, w0, i0))
     assert list(store.glob("equilibria-*.jaxexport"))
-    pj.runtime._LOADED.clear()
+    pj.runtime._stored._LOADED.clear()
     again = jax.device_get(equilibria_stored(obs, plant, w0, i0))  # read from the file
     for out in (got, again):
         np.testing.assert_array_equal(out.valid, ref.valid)
@@ -522,13 +522,27 @@ def test_stored_equilibria_equal_a_fresh_trace(store):
 def test_changed_source_makes_the_program_again_and_removes_the_old_one(store, monkeypatch):
     c, x = jnp.asarray([0.5, -1.0, 0.25]), jnp.linspace(-2.0, 3.0, 7)
     args = (_Poly(c, 3), x, 2.0)
-    monkeypatch.setattr(pj.runtime, "_SOURCE_HASH", "a" * 64)  # the code as it was
+    monkeypatch.setattr(pj.runtime._stored, "_SOURCE_HASH", "a" * 64)  # the code as it was
     pj.runtime.stored_call("poly", _poly_fn, args, _Out)
     (old,) = store.glob("poly-*.jaxexport")
-    monkeypatch.setattr(pj.runtime, "_SOURCE_HASH", "b" * 64)  # the code changed
-    pj.runtime._LOADED.clear()
+    monkeypatch.setattr(pj.runtime._stored, "_SOURCE_HASH", "b" * 64)  # the code changed
+    pj.runtime._stored._LOADED.clear()
     out = pj.runtime.stored_call("poly", _poly_fn, args, _Out)
     _check(out, c, x, 3, 2.0)
     assert len(_TRACES) == 2  # traced again, not served the old program
     (new,) = store.glob("poly-*.jaxexport")
     assert new != old and not old.exists()
+
+
+def test_source_hash_covers_the_whole_package(monkeypatch):
+    """The key of a stored program hashes every source file of pmsmjax (not only of
+    `pmsmjax.runtime`, where the code that hashes them lives)."""
+    import hashlib
+    from pathlib import Path
+
+    root = Path(pj.__file__).resolve().parent
+    h = hashlib.sha256()
+    for p in sorted(root.rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode() + b"\0" + p.read_bytes() + b"\0")
+    monkeypatch.setattr(pj.runtime._stored, "_SOURCE_HASH", None)
+    assert pj.runtime._stored._source_hash() == h.hexdigest()

@@ -45,7 +45,6 @@ import jax.random as jr
 import numpy as np
 
 import pmsmjax as pj
-from pmsmjax._sim._simulate import scale_motor
 
 from .problem import TuningProblem
 
@@ -232,7 +231,7 @@ def _all_one(v) -> bool:
 def observer_model(drive: pj.Drive, k_d, k_q, k_R, k_psi) -> pj.PMSMParams:
     """The observer's machine model: the drive's with $L_d$, $L_q$, $R_s$, $\\psi_f$
     scaled by the factors (observer value / plant value)."""
-    return scale_motor(drive.three_phase_motor,
+    return pj.scale_motor(drive.three_phase_motor,
                        {"L_d": k_d, "L_q": k_q, "R_s": k_R, "psi_f": k_psi})
 
 

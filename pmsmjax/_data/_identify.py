@@ -56,8 +56,7 @@ import optimistix as optx
 
 from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
 from .._plant._params import Drive, Inverter
-from .._sim._integrate import RK4, integrate
-from .._sim._simulate import _check_common
+from .._sim._integrate import RK4, check_drive_step, integrate
 from ._identifiable import IDENTIFIABLE as IDENTIFIABLE
 from ._recording import RecordedData
 
@@ -297,7 +296,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     recs = _recordings(data)
     segs = []
     for k, r in enumerate(recs):
-        _check_common(drive, r.T_s, RK4(), n_substeps)
+        check_drive_step(drive, r.T_s, RK4(), n_substeps)
         m = max(2, int(round(segment / r.T_s)))
         if r.n - 1 < 2 * m:
             raise IdentifyError(

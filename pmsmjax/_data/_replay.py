@@ -20,9 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._plant._params import Inverter, PMSMParams
+from .._plant._inverter import observer_voltage
+from .._plant._params import Inverter, PMSMParams, scale_motor
 from .._sim._batching import batched_like, values_as_arrays
-from .._sim._simulate import observer_voltage, scale_motor
 from .._validate import NonFiniteInputError, is_concrete
 from ..observers import AbstractObserver, Measurement
 from ._flying_start import unknown_start

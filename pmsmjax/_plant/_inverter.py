@@ -77,6 +77,16 @@ def dead_time_error_vsd(u_dt, i_dt, i_ab, i_xy):
     return du_ab, du_xy
 
 
+def observer_voltage(u_cmd_prev, i_prev, i_now, u_dt, i_dt):
+    """The voltage a drive's observer sees for the period that ended at the present sample:
+    the commanded voltage `u_cmd_prev` (V, last axis 2) less the inverter error model
+    (`u_dt` V, `i_dt` A) averaged over the measured currents at the period's two ends
+    `i_prev`, `i_now` (A, last axis 2) (trapezoid rule)."""
+    e0 = dead_time_error_ab(u_dt, i_dt, i_prev[..., 0], i_prev[..., 1])
+    e1 = dead_time_error_ab(u_dt, i_dt, i_now[..., 0], i_now[..., 1])
+    return u_cmd_prev - 0.5 * (jnp.stack(e0, -1) + jnp.stack(e1, -1))
+
+
 def dead_time_fundamental(u_dt, i_dt, i_amp, n: int = 720):
     r"""Fundamental of the dead-time error along the current (V) for a sinusoidal current of
     amplitude `i_amp` (A): $\frac{1}{\pi}\int_0^{2\pi} u_{dt}\tanh(\hat i\cos\phi/i_{dt})

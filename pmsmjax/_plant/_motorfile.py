@@ -51,7 +51,6 @@ import json
 import math
 import os
 
-import equinox as eqx
 import numpy as np
 
 
@@ -424,8 +423,3 @@ def save_motor_file(drive: Drive, path) -> None:
     """Write the motor file of `drive` to `path` (`motor_file_text`)."""
     with open(path, "w", encoding="utf-8") as f:
         f.write(motor_file_text(drive))
-
-
-def drives_equal(a: Drive, b: Drive) -> bool:
-    """True if the two drives hold the same parameters, names and notes."""
-    return bool(eqx.tree_equal(a, b))

@@ -1,2 +1,3 @@
-"""The closed loop: scenarios, integration, the simulator, its solution and the metrics of a
-run. Private: the public names are re-exported by `pmsmjax`."""
+"""Simulation: scenarios, integration, the closed loop, open-loop plant runs, run dtypes,
+the solution and the metrics of a run. Private: the public names are re-exported by
+`pmsmjax`."""

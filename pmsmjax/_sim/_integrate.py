@@ -17,6 +17,9 @@ import diffrax as dfx
 import jax
 import numpy as np
 
+from .._plant._params import Drive, DualThreePhaseParams
+from .._validate import check_positive, is_concrete
+
 
 _RK4_TABLEAU = dfx.ButcherTableau(
     c=np.array([0.5, 0.5, 1.0]),
@@ -108,3 +111,25 @@ def check_step(T_s, n_substeps, rate, solver) -> None:
             f"needs T_s/n_substeps < {r / float(rate):.4g} s; use n_substeps >= {need} "
             f"or a shorter T_s."
         )
+
+
+def plant_rate(motor, w_max) -> float:
+    """Upper bound of the magnitude of the plant's electrical eigenvalues (1/s) up to the
+    electrical speed `w_max` (rad/s)."""
+    p = motor.ab if isinstance(motor, DualThreePhaseParams) else motor
+    L_min = min(float(p.L_d), float(p.L_q))
+    if isinstance(motor, DualThreePhaseParams):
+        L_min = min(L_min, float(motor.L_xy))
+    return math.hypot(float(p.R_s) / L_min, float(w_max))
+
+
+def check_drive_step(drive: Drive, T_s, solver, n_substeps) -> None:
+    """The checks every run of the plant makes (`simulate`, `run_plant`, `identify`):
+    `drive` is a `Drive`, the sampling period `T_s` (s) is positive, and the solver's step
+    `T_s / n_substeps` is stable up to twice the rated speed (`check_step`)."""
+    if not isinstance(drive, Drive):
+        raise ValueError(f"`drive` must be a `pmsmjax.Drive`; got {type(drive).__name__}.")
+    check_positive("simulate", "T_s", T_s, "s")
+    if is_concrete((drive.motor, drive.w_rated)):
+        check_step(T_s, n_substeps, plant_rate(drive.motor, 2.0 * float(drive.w_rated)),
+                   solver)

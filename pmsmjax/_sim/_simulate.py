@@ -1,4 +1,4 @@
-"""Closed-loop simulation and open-loop plant runs.
+"""Closed-loop simulation (the open-loop plant runs are in `_plant_run.py`).
 
 `simulate` runs sensor -> observer -> controller -> inverter -> plant at sampling period
 `T_s` with a `lax.scan` over sampling instants. The inverter voltage is held constant
@@ -11,7 +11,6 @@ differentiates through a whole run.
 from __future__ import annotations
 
 import functools
-import math
 
 import equinox as eqx
 import jax
@@ -22,14 +21,15 @@ from jax.ad_checkpoint import checkpoint_name
 
 from .._control._foc import FOC
 from .._frames import wrap_angle
-from .._plant._inverter import dead_time_error_ab
+from .._plant._inverter import observer_voltage
 from .._plant._motor import PMSM, PlantInput, PlantState, _is_zero, cos_sin, join_state, split_state
-from .._plant._params import Drive, DualThreePhaseParams, PMSMParams
+from .._plant._params import Drive, PMSMParams, scale_motor
 from .._plant._recheck import recheck
 from .._validate import NonFiniteInputError, check_positive, is_concrete
 from ..observers import AbstractObserver, Measurement
 from ._batching import batched_like, values_as_arrays
-from ._integrate import RK4, check_step, integrate
+from ._dtypes import cast_floats, run_dtype
+from ._integrate import RK4, check_drive_step, integrate
 from ._scenario import Scenario
 from ._solution import RESULTS, Trajectory
 
@@ -74,26 +74,6 @@ class Sensing(eqx.Module):
         return jnp.where(q > 0, jnp.round(x / jnp.where(q > 0, q, 1.0)) * q, x)
 
 
-def scale_motor(motor, scales: dict):
-    """Multiply machine parameters by factors `{name: factor}` (R_s, L_d, L_q, psi_f)."""
-    if not scales:
-        return motor
-    if isinstance(motor, DualThreePhaseParams):
-        return eqx.tree_at(lambda m: m.ab, motor, scale_motor(motor.ab, scales))
-    names = list(scales)
-    return eqx.tree_at(lambda m: [getattr(m, n) for n in names], motor,
-                       [getattr(motor, n) * scales[n] for n in names])
-
-
-def _plant_rate(motor, w_max):
-    """Upper bound of the magnitude of the plant's electrical eigenvalues (1/s)."""
-    p = motor.ab if isinstance(motor, DualThreePhaseParams) else motor
-    L_min = min(float(p.L_d), float(p.L_q))
-    if isinstance(motor, DualThreePhaseParams):
-        L_min = min(L_min, float(motor.L_xy))
-    return math.hypot(float(p.R_s) / L_min, float(w_max))
-
-
 def _finite_bounded(y: PlantState, i_bound, w_bound):
     """For `y` in component form: all finite, |i| < i_bound and |w_m| < w_bound."""
     i_d, i_q = y.i_dq
@@ -103,34 +83,9 @@ def _finite_bounded(y: PlantState, i_bound, w_bound):
     return ok
 
 
-def _run_dtype(*trees):
-    """Floating dtype of a run: the result type of the floating-point leaves of `trees`
-    (Python floats are weak: float32 parameters give a float32 run, see `astype`)."""
-    leaves = [x for x in jax.tree_util.tree_leaves(trees)
-              if jnp.issubdtype(jnp.result_type(x), jnp.floating)]
-    return jnp.result_type(float, *leaves)
-
-
-def _cast_floats(tree, dtype):
-    def cast(x):
-        x = jnp.asarray(x)
-        return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
-
-    return jax.tree_util.tree_map(cast, tree)
-
-
 def _rotate(c, s, x, y):
     """Components of the vector (x, y) rotated by the angle with cosine c and sine s."""
     return c * x - s * y, s * x + c * y
-
-
-def _check_common(drive: Drive, T_s, solver, n_substeps):
-    if not isinstance(drive, Drive):
-        raise ValueError(f"`drive` must be a `pmsmjax.Drive`; got {type(drive).__name__}.")
-    check_positive("simulate", "T_s", T_s, "s")
-    if is_concrete((drive.motor, drive.w_rated)):
-        check_step(T_s, n_substeps, _plant_rate(drive.motor, 2.0 * float(drive.w_rated)),
-                   solver)
 
 
 def simulate(
@@ -189,7 +144,7 @@ def simulate(
     **Returns:** a `Trajectory`.
     """
     arguments = dict(locals())  # first statement: exactly the call's arguments
-    _check_common(drive, T_s, solver, n_substeps)
+    check_drive_step(drive, T_s, solver, n_substeps)
     if observer is None or not isinstance(observer, AbstractObserver):
         raise ValueError(
             f"`observer` must be an `AbstractObserver` (e.g. `SensoredObserver()`); got "
@@ -242,7 +197,7 @@ def simulate(
     # concrete values run first
     observer.check_values(T_s)
     recheck((drive, controller))
-    dtype = _run_dtype(drive, controller)
+    dtype = run_dtype(drive, controller)
     for k in ("drive", "controller", "observer"):
         arguments[k] = values_as_arrays(arguments[k], dtype)
     return _simulate(arguments)
@@ -252,16 +207,6 @@ def _compensates(drive: Drive, observer_u_dt) -> bool:
     """Whether the observer's voltage is compensated for the inverter error (a static
     decision: False only when the model's `u_dt` is `None` or a Python zero)."""
     return not _is_zero(drive.inverter.u_dt if observer_u_dt is None else observer_u_dt)
-
-
-def observer_voltage(u_cmd_prev, i_prev, i_now, u_dt, i_dt):
-    """The voltage a drive's observer sees for the period that ended at the present sample:
-    the commanded voltage `u_cmd_prev` (V, last axis 2) less the inverter error model
-    (`u_dt` V, `i_dt` A) averaged over the measured currents at the period's two ends
-    `i_prev`, `i_now` (A, last axis 2) (trapezoid rule)."""
-    e0 = dead_time_error_ab(u_dt, i_dt, i_prev[..., 0], i_prev[..., 1])
-    e1 = dead_time_error_ab(u_dt, i_dt, i_now[..., 0], i_now[..., 1])
-    return u_cmd_prev - 0.5 * (jnp.stack(e0, -1) + jnp.stack(e1, -1))
 
 
 @eqx.filter_jit
@@ -280,7 +225,7 @@ def _simulate(arguments: dict) -> Trajectory:
     # The run's floating dtype follows the drive and controller parameters (float32 after
     # `astype`); inputs and initial states are cast to it, and so is the carried state
     # after every step, so a float64 leaf elsewhere (e.g. an observer) cannot promote it.
-    dtype = _run_dtype(drive, controller)
+    dtype = run_dtype(drive, controller)
     # The scenario's inputs and the current noise are evaluated inside the scan, from the
     # step index, so memory grows with the batch, not with batch x steps. The noise comes
     # in blocks of _NOISE_BLOCK steps (block j from `fold_in(key, j)`), drawn when a block
@@ -291,7 +236,7 @@ def _simulate(arguments: dict) -> Trajectory:
 
     def inputs_at(k):
         t_k = k.astype(dtype) * T_s_
-        return t_k, _cast_floats(scenario.sample(t_k), dtype)
+        return t_k, cast_floats(scenario.sample(t_k), dtype)
 
     def noise_block(j):
         return sensing.noise_std * jr.normal(jr.fold_in(key, j), (_NOISE_BLOCK, 2), dtype)
@@ -303,7 +248,7 @@ def _simulate(arguments: dict) -> Trajectory:
 
     inputs0 = inputs_at(jnp.asarray(0))[1]
 
-    y0 = _cast_floats(plant0.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0), dtype)
+    y0 = cast_floats(plant0.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0), dtype)
     if scenario.w_m_imposed is not None:
         y0 = eqx.tree_at(lambda y: y.w_m, y0, jnp.asarray(inputs0["w_m_imposed"], dtype))
     th_hat0 = y0.theta if theta_hat0 is None else jnp.asarray(theta_hat0, dtype)
@@ -313,9 +258,9 @@ def _simulate(arguments: dict) -> Trajectory:
     zero = jnp.zeros((), dtype)
     carry0 = dict(
         plant=split_state(y0),  # in component form (2-vectors as tuples)
-        ctrl=_cast_floats(controller.init(th_hat0) if getattr(controller, "startup", None)
+        ctrl=cast_floats(controller.init(th_hat0) if getattr(controller, "startup", None)
                           is not None else controller.init(), dtype),
-        obs=_cast_floats(observer.init(theta0=th_hat0, w0=w_hat0_), dtype),
+        obs=cast_floats(observer.init(theta0=th_hat0, w0=w_hat0_), dtype),
         u_prev=jnp.zeros(2, dtype),  # applied over [t_{k-1}, t_k)
         u_pending=u_zero,  # computed at k-1, applied over [t_k, t_{k+1}) if delayed
         i_hist=jnp.zeros((sensing.delay, 2), dtype),
@@ -441,7 +386,7 @@ def _simulate(arguments: dict) -> Trajectory:
             if drive.dual:
                 rec["i_xy"] = jnp.stack(y.i_xy, -1)
                 rec["u_xy"] = jnp.zeros_like(u_apply) if u_xy_apply is None else u_xy_apply
-            return _cast_floats(rec, dtype)
+            return cast_floats(rec, dtype)
 
         return new_carry, record
 
@@ -494,79 +439,3 @@ def _simulate(arguments: dict) -> Trajectory:
             "simulate: the run diverged (a state became non-finite or out of bounds); "
             "pass throw=False to get the status per run instead.")
     return traj
-
-
-class PlantTrace(eqx.Module):
-    """Output of `run_plant`: the plant's response to a recorded voltage sequence.
-
-    - `t` (s), `i_ab` (A, N x 2) sampled at t_k, `theta` (rad, electrical, unwrapped),
-      `w_m` (rad/s, electrical), `i_dq` (A), `tau_M` (N m), all at t_k.
-    """
-
-    t: jnp.ndarray
-    i_ab: jnp.ndarray
-    theta: jnp.ndarray
-    w_m: jnp.ndarray
-    i_dq: jnp.ndarray
-    tau_M: jnp.ndarray
-
-
-def run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver=RK4(), n_substeps: int = 4,
-              theta0=0.0, w_m0=0.0, i_dq0=(0.0, 0.0), w_m_imposed=None) -> PlantTrace:
-    """Open-loop plant run driven by a recorded voltage sequence (ZOH between samples).
-
-    **Arguments:**
-
-    - `drive`: the `Drive`.
-    - `t`: sampling instants (s), uniform spacing, shape (N,).
-    - `u_ab`: voltage commanded over [t_k, t_{k+1}) (V, (N, 2)); the machine receives
-      it less the inverter's dead-time error (`drive.inverter.u_dt`; none by default).
-    - `tau_L`: load torque over [t_k, t_{k+1}) (N m, (N,)); default zero.
-    - `theta0`, `w_m0`, `i_dq0`: initial state (rad, rad/s, A).
-    - `w_m_imposed`: if given ((N,) rad/s), the speed is imposed (dynamometer).
-
-    **Returns:** a `PlantTrace` with the state sampled at every t_k (before u_k acts).
-    """
-    t = jnp.asarray(t)
-    u_ab = jnp.asarray(u_ab)
-    N = t.shape[0]
-    if N < 2:
-        raise ValueError(f"`t` needs at least 2 samples; got {N}.")
-    if u_ab.shape != (N, 2):
-        raise ValueError(f"`u_ab` must have shape (N, 2) = ({N}, 2); got {u_ab.shape}.")
-    if is_concrete(t):
-        tn = np.asarray(t, dtype=float)
-        dt = np.diff(tn)
-        if not np.all(np.isfinite(tn)):
-            raise ValueError("`t` (s) must be finite; it contains NaN or inf.")
-        if dt[0] <= 0 or np.any(np.abs(dt - dt[0]) > 1e-6 * abs(dt[0])):
-            raise ValueError(
-                "`t` (s) must be increasing and uniformly spaced (relative tolerance 1e-6); "
-                f"spacings range from {dt.min():.6g} to {dt.max():.6g} s.")
-        _check_common(drive, float(dt[0]), solver, n_substeps)
-    return _run_plant(drive, t, u_ab, tau_L, solver=solver, n_substeps=n_substeps,
-                      theta0=theta0, w_m0=w_m0, i_dq0=i_dq0, w_m_imposed=w_m_imposed)
-
-
-@eqx.filter_jit
-def _run_plant(drive: Drive, t, u_ab, tau_L=None, *, solver, n_substeps, theta0, w_m0,
-               i_dq0, w_m_imposed) -> PlantTrace:
-    N = t.shape[0]
-    T_s = t[1] - t[0]
-    tau = jnp.zeros(N) if tau_L is None else jnp.asarray(tau_L)
-    plant = PMSM(drive.motor, drive.mechanics, drive.inverter)
-    y0 = plant.init(theta0=theta0, w_m0=w_m0, i_dq0=i_dq0)
-    imposed = w_m_imposed is not None
-    w_imp = jnp.zeros(N) if w_m_imposed is None else jnp.asarray(w_m_imposed)
-
-    def step(y, x):
-        u, tl, wi = x
-        if imposed:
-            y = eqx.tree_at(lambda s: s.w_m, y, wi)
-        out = (plant.i_ab(y), y.theta, y.w_m, y.i_dq, plant.torque(y))
-        args = PlantInput(u_ab=u, tau_L=tl, free=0.0 if imposed else 1.0)
-        return integrate(plant.vector_field, y, args, T_s, solver=solver,
-                         n_substeps=n_substeps), out
-
-    _, (i_ab, theta, w_m, i_dq, tau_M) = jax.lax.scan(step, y0, (u_ab, tau, w_imp))
-    return PlantTrace(t=t, i_ab=i_ab, theta=theta, w_m=w_m, i_dq=i_dq, tau_M=tau_M)

@@ -102,7 +102,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import analysis
-from .._plant._params import Drive, preset
+from .._plant._params import Drive
+from .._plant._presets import preset
 from ..observers import RotorFluxObserver
 
 
@@ -363,7 +364,7 @@ def experiment(name: str, *, slot_harmonic: float | None = None, T_s: float = T_
     non-linearity.
     """
     from .._control._foc import FOC
-    from .._plant._params import MORAWIEC_SLOT_HARMONIC
+    from .._plant._presets import MORAWIEC_SLOT_HARMONIC
     from .._sim._scenario import Profile, Scenario
 
     if name not in EXPERIMENTS:

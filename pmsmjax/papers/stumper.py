@@ -33,7 +33,8 @@ from .._control._controllers import FOCOutput
 from .._control._foc import FOC
 from .._data._replay import replay_estimates
 from .._frames import angle_error
-from .._plant._params import Drive, preset, replace_params
+from .._plant._params import Drive, replace_params
+from .._plant._presets import preset
 from .._sim._scenario import Profile, Scenario
 from .._sim._simulate import simulate
 from ..analysis import equilibria_traced
