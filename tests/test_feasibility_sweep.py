@@ -140,9 +140,9 @@ def test_two_processes_give_the_single_process_map(tmp_path):
 def test_a_map_reuses_only_its_own_compiled_function():
     """Maps computed again in one process reuse their per-point function (and so its
     compiled code) only when everything it closes over is the same."""
+    from pmsmjax.cli import current_from_args, drive_from_args, observer_from_args
     from pmsmjax.cli.__main__ import build_parser
     from pmsmjax.cli._feasibility import _point_key
-    from pmsmjax.cli import current_from_args, drive_from_args, observer_from_args
 
     def key(*argv):
         args = build_parser().parse_args(["feasibility", *argv])

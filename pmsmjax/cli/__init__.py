@@ -42,10 +42,3 @@ def main(argv: list[str] | None = None) -> int:
     from .__main__ import main as run
 
     return run(argv)
-
-
-from .._data._files import (  # noqa: E402
-    atomic_write as atomic_write,
-    json_safe as json_safe,
-    write_json as write_json,
-)
