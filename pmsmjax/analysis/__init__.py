@@ -69,12 +69,8 @@ from ._lock import (
     lock_basin as lock_basin,
     lock_time as lock_time,
 )
-from ._sweep import (
-    ChunkInfo as ChunkInfo,
-    SweepGrid as SweepGrid,
-    grid_product as grid_product,
-    run_sweep as run_sweep,
-)
+from ._sweep import ChunkInfo as ChunkInfo, run_sweep as run_sweep
+from ._sweep_grid import SweepGrid as SweepGrid, grid_product as grid_product
 
 
 # Loaded on first use (`pmsmjax._lazy`): the certificates import diffrax and optimistix.
