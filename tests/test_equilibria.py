@@ -290,7 +290,7 @@ def test_generic_routes_small_linear_algebra(m):
     """The generic route's Cholesky solve and pivoted determinant (loops over the size,
     for the compile time) against NumPy, for the sizes of the registry's observers, with
     rows that need pivoting, a singular matrix, and under vmap."""
-    from pmsmjax.analysis._generic import _chol_solve, _det
+    from pmsmjax.analysis._scaled import _chol_solve, _det
 
     rng = np.random.default_rng(m)
     B = rng.normal(size=(m, m))

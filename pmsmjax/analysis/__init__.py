@@ -7,22 +7,20 @@ from typing import TYPE_CHECKING
 
 from .._lazy import lazy_exports
 from ..observers._base import OperatingPoint as OperatingPoint
+from ._classify import DesignClass as DesignClass, classify as classify
 from ._dead_time import (
     dead_time_angle_error as dead_time_angle_error,
     dead_time_resistance as dead_time_resistance,
 )
-from ._equilibria import (
-    Equilibria as Equilibria,
-    eso_equilibria as eso_equilibria,
-    quartic_coefficients as quartic_coefficients,
-    quartic_equilibria as quartic_equilibria,
-    quartic_t_coefficients as quartic_t_coefficients,
-    trig_poly as trig_poly,
+from ._discrete import (
+    discrete_error_map as discrete_error_map,
+    discrete_error_run as discrete_error_run,
+    discrete_jacobian as discrete_jacobian,
+    discrete_poles as discrete_poles,
 )
+from ._equilibria import Equilibria as Equilibria, eso_equilibria as eso_equilibria
 from ._feasibility import (
-    DesignClass as DesignClass,
     FeasibilityMap as FeasibilityMap,
-    classify as classify,
     classify_designs as classify_designs,
     design_map as design_map,
     feasibility_map as feasibility_map,
@@ -42,10 +40,6 @@ from ._generic import (
     STATUS_NONE as STATUS_NONE,
     STATUS_OK as STATUS_OK,
     Stability as Stability,
-    discrete_error_map as discrete_error_map,
-    discrete_error_run as discrete_error_run,
-    discrete_jacobian as discrete_jacobian,
-    discrete_poles as discrete_poles,
     equilibria as equilibria,
     equilibria_traced as equilibria_traced,
     linearization as linearization,
@@ -69,23 +63,28 @@ from ._lock import (
     lock_basin as lock_basin,
     lock_time as lock_time,
 )
-from ._sweep import (
-    ChunkInfo as ChunkInfo,
-    SweepGrid as SweepGrid,
-    grid_product as grid_product,
-    run_sweep as run_sweep,
+from ._quartic import (
+    quartic_coefficients as quartic_coefficients,
+    quartic_equilibria as quartic_equilibria,
+    quartic_t_coefficients as quartic_t_coefficients,
+    trig_poly as trig_poly,
 )
+from ._sweep import ChunkInfo as ChunkInfo, run_sweep as run_sweep
+from ._sweep_grid import SweepGrid as SweepGrid, grid_product as grid_product
 
 
-# Loaded on first use (`pmsmjax._lazy`): the certificates import diffrax and optimistix.
+# Loaded on first use (`pmsmjax._lazy`): the certificates import optimistix, and their
+# validation by simulation diffrax.
 if TYPE_CHECKING:
     from ._lyapunov import (
         LyapunovCertificate as LyapunovCertificate,
+        lyapunov_solve as lyapunov_solve,
+        slowly_varying_certificate as slowly_varying_certificate,
+    )
+    from ._ramp import (
         RampRun as RampRun,
         fastest_converging_ramp as fastest_converging_ramp,
-        lyapunov_solve as lyapunov_solve,
         simulate_ramp as simulate_ramp,
-        slowly_varying_certificate as slowly_varying_certificate,
     )
 
 __getattr__, __dir__ = lazy_exports(__name__, __file__, globals())

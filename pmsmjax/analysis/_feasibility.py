@@ -16,15 +16,16 @@ mismatch) is
 "Designed equilibrium": $\tilde\theta = 0$ with matched parameters; with mismatch the
 equilibrium closest to $\tilde\theta = 0$. Whether it is itself stable is reported
 separately (`principal_stable`; it is Hurwitz for every $\zeta_1, \omega_1, \zeta_2,
-\omega_2 > 0$ with matched parameters, by zhang2022 (16)/(18)).
+\omega_2 > 0$ with matched parameters, by zhang2022 (16)/(18)). The classification of
+one point from its equilibria, and `classify` for any observer, are in
+`pmsmjax.analysis._classify`; `design_map` maps any observer over two of its design
+parameters.
 
 Two methods:
 
-- `"closed_form"` (matched parameters, linear feedback): the quartic route zhang2022 (34)-(36) with
-  its root $t = 0$ divided out, as a closed-form cubic, then the Jacobian zhang2022 (37) written out
-  by hand and the exact Routh-Hurwitz test, all element-wise in dimensionless variables
-  (flux / $|\psi_{a0}|$, speed error / $|\omega_0|$, time $\times|\omega_0|$). It is one
-  fused, vectorised XLA computation: millions of designs per second on one CPU core.
+- `"closed_form"` (matched parameters, linear feedback): the quartic route zhang2022
+  (34)-(36) and the Jacobian zhang2022 (37) in closed form (`pmsmjax.analysis._closed_form`):
+  millions of designs per second on one CPU core.
 - `"general"`: `eso_equilibria` (bracketing + `optimistix` bisection on the full
   right-hand side, Jacobian by `jax.jacfwd`), vmapped. Works with parameter mismatch and
   fal feedback; about 10^3 - 10^4 designs per second.
@@ -33,6 +34,7 @@ Two methods:
 equilibria do not depend on $\zeta_2$, $\omega_2$ (the condition $g_3 f = 0$ fixes only
 the direction of $f$), but their stability can.
 """
+
 
 from __future__ import annotations
 
@@ -44,281 +46,24 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._plant._params import Drive, PMSMParams
+from ..observers._base import OperatingPoint
 from ..observers._eso_design import eso_gains, psi_a, zhang38
-from ._equilibria import as_arrays, eso_equilibria
+from ._args import as_arrays, check_observer
+from ._classify import DesignClass, _class_from_equilibria, _resolve_classify
+from ._closed_form import (
+    _closed_form_classify,  # noqa: F401  (imported here by observers/_eso.py)
+    _closed_form_jit,
+)
+from ._equilibria import eso_equilibria
+from ._generic import equilibria_traced
 from ._linearize import check_frame
 
 
 METHODS = ("auto", "closed_form", "general")
 
-
-class DesignClass(eqx.Module):
-    """Classification of designs (any batch shape `...`).
-
-    - `status`: 0 feasible, 1 infeasible, 2 no equilibrium at all (mismatch only), -1
-      degenerate (see the module docstring).
-    - `n_nonzero`: number of equilibria other than the designed one.
-    - `stable_theta`: angle of the stable non-designed equilibrium closest to 0 (rad),
-      NaN if there is none (the static position error of an infeasible design).
-    - `theta`: angles of the non-designed equilibria (rad), `(..., K)`, NaN padded.
-    - `stable`: which of them are stable, `(..., K)`.
-    - `principal_stable`: the designed equilibrium is stable.
-    - `principal_theta`: its angle (rad): 0 with matched parameters, the steady-state
-      error caused by the mismatch otherwise (NaN if there is no equilibrium).
-    """
-
-    status: jnp.ndarray
-    n_nonzero: jnp.ndarray
-    stable_theta: jnp.ndarray
-    theta: jnp.ndarray
-    stable: jnp.ndarray
-    principal_stable: jnp.ndarray
-    principal_theta: jnp.ndarray
-
-
-# ---------------------------------------------------------------------------------------
-# Closed-form kernel (matched parameters, linear feedback)
-# ---------------------------------------------------------------------------------------
-# Written for speed: everything is element-wise over the batch (one fused XLA loop), no
-# trigonometric function of the equilibrium angle is evaluated (double-angle formulas on
-# the unit vector (cos x, sin x), x = theta/2), and the structural zeros and ones of the
-# Jacobian are removed at trace time (`_mul`, `_add` below), so that the characteristic
-# polynomial costs about a hundred flops.
-
-def _is_const(a, v):
-    return isinstance(a, float) and a == v
-
-
-def _mul(a, b):
-    if _is_const(a, 0.0) or _is_const(b, 0.0):
-        return 0.0
-    if _is_const(a, 1.0):
-        return b
-    if _is_const(b, 1.0):
-        return a
-    return a * b
-
-
-def _add(a, b):
-    if _is_const(a, 0.0):
-        return b
-    if _is_const(b, 0.0):
-        return a
-    return a + b
-
-
-def _det(A, rows, cols):
-    """Laplace expansion along the first row (trace-time recursion; sparse-aware)."""
-    if len(rows) == 1:
-        return A[rows[0]][cols[0]]
-    out = 0.0
-    for k, c in enumerate(cols):
-        a = A[rows[0]][c]
-        if _is_const(a, 0.0):
-            continue
-        minor = _det(A, rows[1:], cols[:k] + cols[k + 1:])
-        term = _mul(a, minor)
-        out = _add(out, term if k % 2 == 0 else -term)
-    return out
-
-
-def _charpoly4(A):
-    """det(sI - A) = s^4 + c1 s^3 + c2 s^2 + c3 s + c4 from principal minors."""
-    idx = range(4)
-    c1 = 0.0
-    for i in idx:
-        c1 = _add(c1, -A[i][i])
-    c2 = c3 = 0.0
-    for i in idx:
-        for j in range(i + 1, 4):
-            c2 = _add(c2, _det(A, (i, j), (i, j)))
-            for k in range(j + 1, 4):
-                c3 = _add(c3, -_det(A, (i, j, k), (i, j, k)))
-    c4 = _det(A, (0, 1, 2, 3), (0, 1, 2, 3))
-    return c1, c2, c3, c4
-
-
-def _hurwitz4(c1, c2, c3, c4):
-    """Routh-Hurwitz for the monic quartic: c1, c3, c4 > 0, c1 c2 - c3 > 0,
-    (c1 c2 - c3) c3 - c1^2 c4 > 0."""
-    d2 = c1 * c2 - c3
-    return (c1 > 0) & (c3 > 0) & (c4 > 0) & (d2 > 0) & (d2 * c3 - c1 * c1 * c4 > 0)
-
-
-def _cubic_cs(a0, a1, a2, a3, n_newton):
-    r"""Zeros of the binary cubic $a_0c^3 + a_1c^2s + a_2cs^2 + a_3s^3$ as unit vectors
-    $(c, s) = (\cos x, \sin x)$ (up to sign, which does not change $\theta = 2x$).
-
-    Closed form in $\tan x$ (if $|a_3| \ge |a_0|$) or $\cot x$, then Newton steps in $x$
-    applied as small rotations of $(c, s)$. Returns three `(c, s, valid)` and `ok`
-    (False if $a_0 = a_3 = 0$).
-    """
-    use_tan = jnp.abs(a3) >= jnp.abs(a0)
-    lead = jnp.where(use_tan, a3, a0)
-    ok = lead != 0
-    inv = 1.0 / jnp.where(ok, lead, 1.0)
-    B = jnp.where(use_tan, a2, a1) * inv
-    C = jnp.where(use_tan, a1, a2) * inv
-    D = jnp.where(use_tan, a0, a3) * inv
-    p = C - B * B * (1.0 / 3.0)
-    q = B * (2.0 / 27.0 * B * B - C / 3.0) + D
-    disc = (0.5 * q) ** 2 + (p * (1.0 / 3.0)) ** 3
-    three = disc < 0
-    pn = jnp.where(three, p, -1.0)
-    m = 2.0 * jnp.sqrt(pn * (-1.0 / 3.0))
-    phi = jnp.arccos(jnp.clip(3.0 * q / (pn * m), -1.0, 1.0)) * (1.0 / 3.0)
-    cp, sp = m * jnp.cos(phi), m * jnp.sin(phi)
-    h = 0.5 * math.sqrt(3.0)
-    sq = jnp.sqrt(jnp.where(three, 0.0, disc))
-    Acb = -jnp.sign(q) * jnp.cbrt(0.5 * jnp.abs(q) + sq)
-    Acb = jnp.where(q == 0, jnp.cbrt(sq), Acb)
-    y1 = jnp.where(Acb != 0, Acb - p / (3.0 * jnp.where(Acb != 0, Acb, 1.0)), 0.0)
-    shift = B * (1.0 / 3.0)
-    ys = [jnp.where(three, cp, y1) - shift, -0.5 * cp + h * sp - shift,
-          -0.5 * cp - h * sp - shift]
-    valids = [jnp.ones_like(three), three, three]
-    out = []
-    for y, valid in zip(ys, valids):
-        r = jax.lax.rsqrt(1.0 + y * y)
-        c = jnp.where(use_tan, r, y * r)
-        s = jnp.where(use_tan, y * r, r)
-        for _ in range(n_newton):
-            c2, s2 = c * c, s * s
-            Q = c * (a0 * c2 + a2 * s2) + s * (a1 * c2 + a3 * s2)
-            dQ = (-3.0 * a0 * c2 * s + a1 * c * (c2 - 2.0 * s2) + a2 * s * (2.0 * c2 - s2)
-                  + 3.0 * a3 * s2 * c)
-            d = jnp.clip(Q / jnp.where(dQ != 0, dQ, 1.0), -0.1, 0.1)
-            cd, sd = 1.0 - 0.5 * d * d, d * (1.0 - d * d * (1.0 / 6.0))
-            c, s = c * cd + s * sd, s * cd - c * sd  # rotate by -d: x <- x - d
-            r = jax.lax.rsqrt(c * c + s * s)
-            c, s = c * r, s * r
-        out.append((c, s, valid))
-    return out, ok
-
-
-def _closed_form_classify(w0, i_d, i_q, zeta1, ratio, zeta2, w2, L_d, L_q, psi_f,
-                          frame="observer", n_newton=2):
-    """Element-wise classification; every argument broadcasts (SI units)."""
-    sg = jnp.sign(w0)
-    aw = jnp.abs(w0)
-    awn = jnp.where(aw > 0, aw, 1.0)
-    dL = L_d - L_q
-    pad = dL * i_d + psi_f
-    paq = -dL * i_q
-    pn = jnp.sqrt(pad * pad + paq * paq)
-    ipn = 1.0 / jnp.where(pn > 0, pn, 1.0)
-    ud, uq = pad * ipn, paq * ipn
-    lam_d, lam_q, phi = 0.5 * dL * i_d * ipn, 0.5 * dL * i_q * ipn, psi_f * ipn
-    rho = ratio
-    W2 = w2 / awn
-    # r(theta) ~ n . e0(theta), n = rho J u + 2 zeta1 sign(w0) u (see _equilibria):
-    # Fourier coefficients P1..P4 (P5 = -P1 - P3), then the binary cubic in theta/2.
-    nd = -rho * uq + 2.0 * zeta1 * sg * ud
-    nq = rho * ud + 2.0 * zeta1 * sg * uq
-    P1 = -nd * lam_d + nq * lam_q
-    P2 = -nd * lam_q - nq * lam_d
-    P3 = -phi * nd
-    P4 = -phi * nq
-    roots, ok_form = _cubic_cs(2 * P2 + P4, -(4 * P1 + P3), P4 - 2 * P2, -P3, n_newton)
-
-    # Gains in the scaled variables (flux / |psi_a0|, speed / |w0|, time * |w0|):
-    # G1 = M1 u u^T with M1 = [[k, -cc], [cc, k]]; g2, g3 along (u_q, -u_d).
-    k = 2.0 * zeta1 * rho
-    cc = sg * (rho * rho - 1.0)
-    m0, m1 = k * ud - cc * uq, cc * ud + k * uq
-    G = [[m0 * ud, m0 * uq], [m1 * ud, m1 * uq]]
-    g2 = [2.0 * zeta2 * W2 * uq, -2.0 * zeta2 * W2 * ud]
-    g3 = [W2 * W2 * uq, -W2 * W2 * ud]
-    irho2 = 1.0 / jnp.where(rho > 0, rho * rho, 1.0)
-    o = frame == "observer"
-
-    def stability(ct, st, origin):
-        """Hurwitz test of the scaled Jacobian zhang2022 (37) at the equilibrium with angle theta
-        given by (cos theta, sin theta)."""
-        c2t, s2t = ct * ct - st * st, 2.0 * st * ct
-        # de0/dtheta (scaled) and u.e0
-        de_d = 2 * lam_d * s2t - 2 * lam_q * c2t + phi * st
-        de_q = -2 * lam_q * s2t - 2 * lam_d * c2t - phi * ct
-        ued = ud * de_d + uq * de_q
-        gd = g2[0] * de_d + g2[1] * de_q
-        hd = g3[0] * de_d + g3[1] * de_q
-        if origin:
-            j0 = j1 = 0.0
-        else:
-            e0d = lam_d * (1 - c2t) - lam_q * s2t + phi * (1 - ct)
-            e0q = -lam_q * (1 - c2t) - lam_d * s2t - phi * st
-            # equilibrium flux error psi = sign(w0) (u.e0) / rho^2 J M1 u; J psi = (j0, j1)
-            sc = sg * (ud * e0d + uq * e0q) * irho2
-            j0, j1 = -sc * m0, -sc * m1
-        og = o and not origin
-        A = [
-            [(-j0 * g2[0] if og else 0.0) - G[0][0], sg - (j0 * g2[1] if og else 0.0) - G[0][1],
-             (-j0 * gd if og else 0.0) - m0 * ued, j0],
-            [-sg - (j1 * g2[0] if og else 0.0) - G[1][0], (-j1 * g2[1] if og else 0.0) - G[1][1],
-             (-j1 * gd if og else 0.0) - m1 * ued, j1],
-            [-g2[0], -g2[1], -gd, 1.0],
-            [-g3[0], -g3[1], -hd, 0.0],
-        ]
-        return _hurwitz4(*_charpoly4(A))
-
-    principal_stable = stability(1.0, 0.0, True)
-    thetas, valids, stables = [], [], []
-    for c, s, valid in roots:
-        ct, st = c * c - s * s, 2.0 * c * s
-        th = jnp.arctan2(st, ct)
-        valid = valid & jnp.isfinite(th)
-        thetas.append(th)
-        valids.append(valid)
-        stables.append(stability(ct, st, False) & valid)
-    theta = jnp.stack(thetas, -1)
-    valid = jnp.stack(valids, -1)
-    stable = jnp.stack(stables, -1)
-    finite_in = jnp.isfinite(w0 + i_d + i_q + zeta1 + ratio + zeta2 + w2)
-    deg = ((aw == 0) | ~(rho > 0) | ~(pn > 0) | ~ok_form | ~finite_in
-           | jnp.any(valid & (jnp.abs(theta) < 1e-5), -1))
-    inf = jnp.any(stable, -1) & ~deg
-    status = jnp.where(deg, -1, jnp.where(inf, 1, 0)).astype(jnp.int32)
-    key = jnp.where(stable, jnp.abs(theta), jnp.inf)
-    st = jnp.take_along_axis(theta, jnp.argmin(key, -1)[..., None], -1)[..., 0]
-    return DesignClass(status=status, n_nonzero=jnp.where(deg, 0, jnp.sum(valid, -1)),
-                       stable_theta=jnp.where(inf, st, jnp.nan),
-                       theta=jnp.where(valid & ~deg[..., None], theta, jnp.nan),
-                       stable=stable & ~deg[..., None],
-                       principal_stable=principal_stable & ~deg,
-                       principal_theta=jnp.where(deg, jnp.nan, 0.0 * w0))
-
-
-_closed_form_jit = jax.jit(_closed_form_classify, static_argnames=("frame", "n_newton"))
-
-
 # ---------------------------------------------------------------------------------------
 # General route per design
 # ---------------------------------------------------------------------------------------
-
-def _class_from_equilibria(eq, degenerate=False) -> DesignClass:
-    """Feasibility of one operating point from its equilibria (any observer): status 0
-    if no equilibrium other than the principal one is stable, 1 if one is, 2 if there
-    is no equilibrium at all, -1 if the analysis is degenerate."""
-    other = eq.nonprincipal
-    stable = eq.stable & other
-    deg = (eq.status == -1) | degenerate
-    none = ~deg & (eq.status == 2)
-    inf = jnp.any(stable)
-    key = jnp.where(stable, jnp.abs(eq.theta), jnp.inf)
-    st = eq.theta[jnp.argmin(key)]
-    K = eq.valid.shape[-1]
-    # move the non-principal equilibria to the front
-    order = jnp.argsort(~other, stable=True)[: K - 1]
-    theta = jnp.where(other, eq.theta, jnp.nan)[order]
-    return DesignClass(
-        status=jnp.where(deg, -1, jnp.where(none, 2, jnp.where(inf, 1, 0))).astype(jnp.int32),
-        n_nonzero=jnp.where(deg, 0, eq.n_nonzero),
-        stable_theta=jnp.where(inf & ~deg, st, jnp.nan),
-        theta=jnp.where(deg, jnp.nan, theta),
-        stable=stable[order] & ~deg,
-        principal_stable=eq.stable[eq.principal] & ~deg,
-        principal_theta=jnp.where(deg | none, jnp.nan, eq.theta[eq.principal]))
-
 
 def _general_classify(w0, i0, zeta1, ratio, zeta2, w2, motor, motor_hat, a, eta, frame,
                       n_grid, max_roots):
@@ -572,58 +317,6 @@ def feasibility_map(drive: Drive, speeds, zeta1, ratio, *, i_dq=(0.0, 0.0),
 
 
 
-# ---------------------------------------------------------------------------------------
-# Any observer: classification and maps over two named design parameters
-# ---------------------------------------------------------------------------------------
-
-CLASSIFY_METHODS = ("auto", "closed_form", "generic")
-
-
-def _resolve_classify(owner, observer, plant, method, w_m, i_dq):
-    if method not in CLASSIFY_METHODS:
-        raise ValueError(f"`{owner}(method=...)` must be one of "
-                         f"{', '.join(map(repr, CLASSIFY_METHODS))}; got {method!r}.")
-    fast = plant is None and observer.fast_classify(w_m, i_dq) is not None
-    if method == "closed_form" and not fast:
-        raise ValueError(
-            f"`{owner}(method='closed_form')`: {type(observer).__name__} with this design "
-            f"has no closed-form classification" + (" with observer-model mismatch"
-                                                     if plant is not None else "")
-            + "; use method='generic'.")
-    return "closed_form" if (fast and method != "generic") else "generic"
-
-
-def classify(observer, plant=None, w_m=None, i_dq=(0.0, 0.0), *, method: str = "auto",
-             **options) -> DesignClass:
-    """Feasibility of `observer` at one operating point (any observer, vmappable).
-
-    **Arguments:**
-
-    - `observer`: any `AbstractObserver`; its `motor` is its model.
-    - `plant`: the true machine (`PMSMParams`); None = the observer's own model (matched,
-      which allows a closed form where the family has one).
-    - `w_m`: electrical speed (rad/s); `i_dq`: current in the estimated frame (A).
-    - `method`: `"auto"` (the closed form when it applies, else generic),
-      `"closed_form"` or `"generic"` (`equilibria`).
-    - `options`: passed to `equilibria` (grid, slots, tolerances).
-
-    Returns a `DesignClass` (status 0 feasible, 1 infeasible, 2 no equilibrium, -1
-    degenerate; never raises for a bad point).
-    """
-    from ._generic import _op, check_observer, equilibria_traced
-
-    check_observer("classify", observer)
-    if w_m is None:
-        raise ValueError("`classify(w_m=...)` (rad/s) is required.")
-    dtype = jnp.result_type(w_m, float)
-    op = _op(w_m, i_dq, dtype)
-    if _resolve_classify("classify", observer, plant, method, op.w_m, op.i_dq) == \
-            "closed_form":
-        return observer.fast_classify(op.w_m, op.i_dq)
-    plant = observer.motor if plant is None else plant
-    return _class_from_equilibria(equilibria_traced(observer, plant, op, **options))
-
-
 def design_map(observer, drive: Drive, speeds, x, y, *, i_dq=(0.0, 0.0), plant=None,
                method: str = "auto", dtype=None, **options) -> FeasibilityMap:
     """Feasibility map of `observer` over two named design parameters (any observer).
@@ -647,8 +340,6 @@ def design_map(observer, drive: Drive, speeds, x, y, *, i_dq=(0.0, 0.0), plant=N
 
     One jitted, vmapped call over the whole grid. Returns a `FeasibilityMap`.
     """
-    from ._generic import check_observer
-
     check_observer("design_map", observer)
     if not isinstance(drive, Drive):
         raise ValueError(f"`design_map(drive=...)` must be a `Drive`; got "
@@ -726,8 +417,6 @@ def _design_map_setup(observer, drive, sp, x, y, cur, plant, method, dtype):
 def _design_point(observer, plant, w, i, a, b, xn, yn, method, options) -> DesignClass:
     """Classification of one design `xn = a`, `yn = b` at speed `w` (rad/s) and current
     `i` (A): the body of `design_map` (and of the command line's sweep of it)."""
-    from ._generic import OperatingPoint, equilibria_traced
-
     obs = observer.with_design(**{xn: a, yn: b})
     if method == "closed_form":
         return obs.fast_classify(w, i)

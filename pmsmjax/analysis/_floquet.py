@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from .._plant._params import PMSMParams
 from ..observers._base import AbstractObserver, OperatingPoint
-from ._generic import _program_inputs, check_observer, check_plant
+from ._args import _program_inputs, check_observer, check_plant
 
 
 class Floquet(eqx.Module):

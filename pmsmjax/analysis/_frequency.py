@@ -33,7 +33,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ..observers._base import AbstractObserver, Measurement
-from ._equilibria import as_arrays
+from ._args import as_arrays
 
 
 def _has_bemf(observer) -> None:

@@ -90,7 +90,8 @@ from .._frames import rotate
 from .._plant._params import Drive
 from .._sim._batching import values_as_arrays
 from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
-from ._generic import _true_flux_ab, check_observer
+from ._args import check_observer
+from ._discrete import _true_flux_ab
 
 
 _N_ANGLES = 16

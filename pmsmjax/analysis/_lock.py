@@ -165,7 +165,8 @@ def lock_basin(observer: AbstractObserver, drive: Drive, *, w_m=None, i_q=None,
                         w_m_imposed=Profile.constant(w_m))
     theta0 = 0.0
     op = OperatingPoint(w_m, (0.0, i_q))
-    th_design = float(observer.designed_error(op, drive.three_phase_motor)[observer.coordinates.angle])
+    th_design = float(observer.designed_error(op, drive.three_phase_motor)
+                      [observer.coordinates.angle])
 
     TH, WH = np.meshgrid(theta_err0, w_hat0, indexing="ij")
     th_flat, w_flat = TH.reshape(-1), WH.reshape(-1)
