@@ -6,6 +6,7 @@ renders the notebooks without executing them: tests/test_notebooks.py executes e
 notebook already, and `make docs` builds the site with them executed.
 """
 
+import html.parser
 import os
 import pathlib
 import re
@@ -21,14 +22,20 @@ ROOT = pathlib.Path(__file__).parents[1]
 DOCS = ROOT / "docs"
 
 
-@pytest.mark.timeout(600)
-def test_docs_build_strict(tmp_path):
-    site = tmp_path / "site"
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The site, built once for the tests of this module (strict, notebooks not executed)."""
+    site = tmp_path_factory.mktemp("docs") / "site"
     env = dict(os.environ, PMSMJAX_DOCS_EXECUTE="false", NO_MKDOCS_2_WARNING="1")
     proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-d",
                            str(site)], cwd=ROOT, env=env, capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    return site
+
+
+@pytest.mark.timeout(600)
+def test_docs_build_strict(site):
     # every notebook is a page (the hook adds them without editing mkdocs.yml), with
     # admonitions and the API reference rendered
     for nb in sorted((ROOT / "notebooks").glob("*.ipynb")):
@@ -37,6 +44,92 @@ def test_docs_build_strict(tmp_path):
     assert "Simulate one closed-loop run" in api
     assert 'class="admonition tip"' in (site / "getting-started.html").read_text()
     assert not (ROOT / ".cache").exists()  # the build writes nothing into the repository
+
+
+class _Text(html.parser.HTMLParser):
+    """The text a reader sees as prose: outside code, scripts, styles and formulas."""
+
+    SKIP = {"code", "pre", "script", "style", "math", "svg", "textarea", "title"}
+    VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta",
+            "source", "track", "wbr"}
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.depth, self.parts = 0, []
+
+    def handle_starttag(self, tag, attrs):
+        # a notebook code cell's source, kept as text for its copy button, is code too
+        copy_text = "clipboard-copy-txt" in (dict(attrs).get("class") or "")
+        if tag not in self.VOID and (self.depth or tag in self.SKIP or copy_text):
+            self.depth += 1
+
+    def handle_startendtag(self, tag, attrs):
+        pass
+
+    def handle_endtag(self, tag):
+        self.depth -= self.depth > 0
+
+    def handle_data(self, data):
+        if not self.depth:
+            self.parts.append(data)
+
+
+def _prose(page: pathlib.Path) -> str:
+    parser = _Text()
+    parser.feed(page.read_text(encoding="utf-8"))
+    return " ".join(parser.parts)
+
+
+# LaTeX left as text: a delimiter, a `$\cmd`, `$$`, a `$x$` or a backslash command
+_RAW_LATEX = re.compile(r"\\[()\[\]]|\$\$|\$\\|\\[a-zA-Z]{2,}|\$[^$\s]{1,40}\$")
+# a resource the browser would fetch from another host (a link to read is fine)
+_EXTERNAL = re.compile(
+    r"<(?:script|img|iframe|source|audio|video|embed|input)\b[^>]*\bsrc\s*=\s*[\"']?"
+    r"(?:https?:)?//|<link\b[^>]*\bhref\s*=\s*[\"']?(?:https?:)?//"
+    r"|\bimport\s*\(?\s*[\"'](?:https?:)?//|@import\s+(?:url\()?[\"']?(?:https?:)?//"
+    r"|url\(\s*[\"']?(?:https?:)?//", re.I)
+
+
+@pytest.mark.timeout(600)
+def test_formulas_are_rendered_and_nothing_loads_from_outside(site):
+    """Every formula (Markdown pages, docstrings in the API reference, notebook markdown)
+    is MathML in the built HTML, no LaTeX is left in the prose, and no page or stylesheet
+    fetches anything from another host (no CDN: the site reads offline)."""
+    raw, external = [], []
+    for page in sorted(site.rglob("*.html")):
+        name = str(page.relative_to(site))
+        text = _prose(page)
+        raw += [f"{name}: ...{text[max(0, m.start() - 30):m.end() + 30]!r}"
+                for m in _RAW_LATEX.finditer(text)]
+        external += [f"{name}: {m.group(0)[:120]}"
+                     for m in _EXTERNAL.finditer(page.read_text(encoding="utf-8"))]
+    for sheet in sorted(site.rglob("*.css")):
+        external += [f"{sheet.relative_to(site)}: {m.group(0)}"
+                     for m in _EXTERNAL.finditer(sheet.read_text(encoding="utf-8"))]
+    assert not raw, "LaTeX left as text:\n" + "\n".join(raw[:20])
+    assert not external, "fetched from outside:\n" + "\n".join(external[:20])
+    # each source of formulas renders: a Markdown page, docstrings, a notebook
+    for page, least in (("firmware.html", 50), ("api/observers.html", 50),
+                        ("notebooks/02_eso_observers.html", 10)):
+        assert (site / page).read_text().count("<math") >= least, page
+    assert 'display="block"' in (site / "api" / "observers.html").read_text()
+
+
+def test_math_hook_leaves_code_alone():
+    """The hook converts formulas in prose and keeps code, and `$...$` only where asked
+    (notebook markdown)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("docs_hooks", DOCS / "_hooks.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    page = (r'<p>angle \(\hat\theta &lt; \pi\)</p><pre><code>x = "\(a\)"</code></pre>'
+            r"<p>cost $5 and $x_1$</p>")
+    out = hooks.render_math(page)
+    assert out.count("<math") == 1 and r'"\(a\)"' in out and "$x_1$" in out
+    assert "&lt;" in out or "&#x0003C;" in out  # the formula's "<" is still escaped
+    out = hooks.render_math(page, dollars=True)
+    assert out.count("<math") == 2 and "cost $5 and" in out
 
 
 def test_motor_file_page_lists_the_schema():
