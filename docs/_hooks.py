@@ -5,6 +5,8 @@
   renders it (executed at build time unless `PMSMJAX_DOCS_EXECUTE=false`).
 - `BENCHMARKS.md`, `CITATION.cff` and the README are read from the repository root by
   the pages that include them (pymdownx.snippets), so they exist once.
+- An API page's `<!-- module docstring: pmsmjax.X.Y -->` line becomes the docstring of
+  the module that defines the public object `pmsmjax.X.Y` (see `_module_docstrings`).
 - The command-line reference in `cli.md` is written from the argparse parsers at build
   time (`pmsmjax.cli._reference`), so it cannot drift from the commands.
 - `firmware.md` (the firmware page) joins the navigation after "Comparing observers"
@@ -78,12 +80,48 @@ def on_files(files, config, **kwargs):
     return files
 
 
-def on_page_markdown(markdown, page, config, files, **kwargs):
-    if page.file.src_uri == "cli.md":
-        import sys
+def _import_root():
+    import sys
 
-        if str(ROOT) not in sys.path:
-            sys.path.insert(0, str(ROOT))
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+
+
+# `<!-- module docstring: pmsmjax.observers.RotorFluxObserver -->` in an API page: the
+# notes of the module that defines that public object (model, notation, equations). The
+# module is found at build time, so the page names public objects only and a private
+# module may move.
+_MODULE_DOC = re.compile(r"^<!-- module docstring: ([\w.]+) -->$", re.M)
+
+
+def _defining_module(public: str) -> str:
+    import importlib
+
+    _import_root()
+    parts = public.split(".")
+    for n in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:n]))
+        except ImportError:
+            continue
+        for attr in parts[n:]:
+            obj = getattr(obj, attr)
+        return obj.__module__
+    raise ImportError(public)
+
+
+def _module_docstrings(markdown: str) -> str:
+    return _MODULE_DOC.sub(lambda m: f"::: {_defining_module(m.group(1))}\n"
+                                     "    options:\n      show_root_heading: false\n"
+                                     "      show_root_toc_entry: false\n"
+                                     "      members: false\n", markdown)
+
+
+def on_page_markdown(markdown, page, config, files, **kwargs):
+    if page.file.src_uri.startswith("api/"):
+        markdown = _module_docstrings(markdown)
+    if page.file.src_uri == "cli.md":
+        _import_root()
         from pmsmjax.cli._reference import MARKER, reference_markdown
 
         if MARKER not in markdown:

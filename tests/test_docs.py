@@ -132,6 +132,115 @@ def test_math_hook_leaves_code_alone():
     assert out.count("<math") == 2 and "cost $5 and" in out
 
 
+# The packages whose public names the API reference documents, and their pages.
+_API = {
+    "pmsmjax": "pmsmjax", "pmsmjax.observers": "observers", "pmsmjax.analysis": "analysis",
+    "pmsmjax.firmware": "firmware", "pmsmjax.runtime": "runtime",
+    "pmsmjax.plotting": "plotting", "pmsmjax.papers": "papers", "tuning": "tuning",
+    "tuning.report": "tuning", "tuning.compare": "tuning",
+}
+
+
+def public_names(package: str) -> list[str]:
+    """A package's public names: `__all__` where it has one, else what its `__init__`
+    re-exports (`from .x import Y as Y`, or a name imported from inside the project that
+    the `__init__` does not use itself, as a linter's unused-import rule sees it; the
+    `if TYPE_CHECKING:` block of the lazy exports included) and the functions, classes and
+    constants it defines; never a name with a leading underscore."""
+    import ast
+    import importlib
+
+    module = importlib.import_module(package)
+    if hasattr(module, "__all__"):
+        return sorted(module.__all__)
+    tree = ast.parse(pathlib.Path(module.__file__).read_text(encoding="utf-8"))
+    used = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}
+    names = set()
+
+    def visit(body):
+        for node in body:
+            if isinstance(node, ast.If):
+                visit(node.body)
+            elif isinstance(node, ast.ImportFrom) and (
+                    node.level or (node.module or "").split(".")[0] in ("pmsmjax", "tuning")):
+                names.update(a.asname or a.name for a in node.names
+                             if a.asname == a.name or (a.asname or a.name) not in used)
+            elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+                names.add(node.name)
+            elif isinstance(node, ast.Assign):
+                names.update(t.id for t in node.targets if isinstance(t, ast.Name))
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+                names.add(node.target.id)
+
+    visit(tree.body)
+    return sorted(n for n in names if not n.startswith("_"))
+
+
+def test_public_names_rule():
+    """The rule above finds what the packages export (and nothing of their plumbing)."""
+    names = public_names("pmsmjax")
+    assert {"simulate", "Drive", "ESOObserver", "analysis", "papers", "LOCK_DEG",
+            "astype", "identify"} <= set(names)
+    assert not {"lazy_exports", "jax", "importlib", "TYPE_CHECKING"} & set(names)
+    assert {"LapackCall", "configure", "SAFE_FLAGS"} <= set(public_names("pmsmjax.runtime"))
+    assert {"slowly_varying_certificate", "OperatingPoint"} <= set(
+        public_names("pmsmjax.analysis"))
+    for package in _API:
+        module = __import__(package, fromlist=["_"])
+        for name in public_names(package):
+            assert hasattr(module, name), (package, name)
+
+
+@pytest.mark.timeout(600)
+def test_api_reference_lists_every_public_name(site):
+    """Every public class, function and module of the packages in `_API` has an entry in
+    the API reference (a heading with its public path, or, for a name that is also public
+    elsewhere, e.g. `pmsmjax.ESOObserver`, a link from its package's page to that entry),
+    and every public constant is named on its package's page: a new public name without
+    a docs entry fails here."""
+    import inspect
+    import types
+
+    pages = {p.stem: p.read_text(encoding="utf-8") for p in (site / "api").glob("*.html")}
+    ids = {i for text in pages.values() for i in re.findall(r'\bid="([\w.]+)"', text)
+           if "." in i and "._" not in i}
+
+    def resolve(path):
+        import importlib
+
+        parts = path.split(".")
+        for n in range(len(parts), 0, -1):
+            try:
+                obj = importlib.import_module(".".join(parts[:n]))
+            except ImportError:
+                continue
+            for part in parts[n:]:
+                obj = getattr(obj, part, None)
+            return obj
+
+    missing = []
+    for package, page in _API.items():
+        module = resolve(package)
+        text = pages[page]
+        for name in public_names(package):
+            obj, path = getattr(module, name), f"{package}.{name}"
+            entry = isinstance(obj, types.ModuleType) or inspect.isclass(obj) \
+                or inspect.isfunction(obj) or isinstance(obj, types.BuiltinFunctionType) \
+                or callable(obj) and hasattr(obj, "__wrapped__")
+            if not entry:  # a constant: an entry, or named on its package's page
+                if not any(i.rsplit(".", 1)[-1] == name for i in ids) \
+                        and f"<code>{name}</code>" not in text:
+                    missing.append(f"{path} (constant, not named on api/{page}.md)")
+                continue
+            if path in ids:
+                continue
+            same = [i for i in ids if i.rsplit(".", 1)[-1] == name and resolve(i) is obj]
+            if not any(f'href="#{i}"' in text or f'.html#{i}"' in text for i in same):
+                missing.append(path + ("" if not same else f" (documented as {same[0]}, "
+                                       f"but api/{page}.md does not link there)"))
+    assert not missing, "public names without an API entry:\n" + "\n".join(missing)
+
+
 def test_motor_file_page_lists_the_schema():
     text = (DOCS / "motor-file.md").read_text()
     for section, fields in pj.MOTOR_FILE_SCHEMA.items():
