@@ -6,10 +6,12 @@ renders the notebooks without executing them: tests/test_notebooks.py executes e
 notebook already, and `make docs` builds the site with them executed.
 """
 
+import html
 import html.parser
 import os
 import pathlib
 import re
+import shutil
 import subprocess
 import sys
 
@@ -113,6 +115,48 @@ def test_formulas_are_rendered_and_nothing_loads_from_outside(site):
                         ("notebooks/02_eso_observers.html", 10)):
         assert (site / page).read_text().count("<math") >= least, page
     assert 'display="block"' in (site / "api" / "observers.html").read_text()
+
+
+_MEASURE = """<!doctype html><html><head><meta charset="utf-8"></head><body>
+<iframe id="f" src="PAGE" style="width:1280px;height:900px"></iframe><pre id="r">-</pre>
+<script>
+document.getElementById("f").addEventListener("load", () => {
+  const d = document.getElementById("f").contentDocument, w = d.defaultView;
+  const maths = [...d.querySelectorAll("math")], fracs = [...d.querySelectorAll("mfrac")];
+  const box = e => e.getBoundingClientRect();
+  document.getElementById("r").textContent = JSON.stringify({
+    math: maths.length,
+    mathml: maths.filter(m => m instanceof w.MathMLElement).length,
+    sized: maths.filter(m => box(m).width > 0 && box(m).height > 0).length,
+    mfrac: fracs.length,
+    stacked: fracs.filter(f => f.children.length == 2 &&
+      box(f.children[0]).bottom <= box(f.children[1]).top + 1).length});
+});
+</script></body></html>"""
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="no chromium (apt-get install "
+                    "chromium); the static checks above always run")
+def test_formulas_render_in_chromium(site, tmp_path):
+    """In a real browser (headless Chromium) the formulas of the observers' API page are
+    MathML elements with a size, and every fraction is laid out as a fraction (numerator
+    above denominator), so the browser renders them, with no script. The step to look at
+    the pages by eye is in getting-started.md ("Looking at it in a browser")."""
+    import json
+
+    page = tmp_path / "measure.html"
+    page.write_text(_MEASURE.replace("PAGE", (site / "api" / "observers.html").as_uri()))
+    proc = subprocess.run(
+        ["chromium", "--headless", "--no-sandbox", "--disable-gpu",
+         "--allow-file-access-from-files", f"--user-data-dir={tmp_path / 'profile'}",
+         "--virtual-time-budget=10000", "--dump-dom", page.as_uri()],
+        capture_output=True, text=True, timeout=300)
+    m = re.search(r'<pre id="r">([^<]*)</pre>', proc.stdout)
+    assert m and m.group(1) != "-", proc.stdout[-2000:] + proc.stderr[-2000:]
+    n = json.loads(html.unescape(m.group(1)))
+    assert n["math"] >= 100 and n["mathml"] == n["math"] and n["sized"] == n["math"], n
+    assert n["mfrac"] >= 10 and n["stacked"] == n["mfrac"], n
 
 
 def test_math_hook_leaves_code_alone():
