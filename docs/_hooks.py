@@ -160,14 +160,24 @@ _NB_LOADERS = [
 ]
 
 
+# standard LaTeX operator names latex2mathml does not know, as the operators they are
+_OPERATORS = re.compile(r"\\(arg)(?![a-zA-Z])")
+# a command latex2mathml passed through as text (`<mi>\foo</mi>`): not rendered
+_UNKNOWN = re.compile(r">\\[a-zA-Z]+<")
+
+
 def _mathml(latex: str, display: bool, where: str) -> str | None:
     from latex2mathml.converter import convert
 
+    tex = _OPERATORS.sub(r"\\operatorname{\1}", html.unescape(latex).strip())
     try:
-        return convert(html.unescape(latex).strip(), display="block" if display else "inline")
+        out = convert(tex, display="block" if display else "inline")
     except Exception as e:  # noqa: BLE001 - any failure: report the formula, keep its text
         log.warning("%s: formula not converted to MathML (%s): %s", where, e, latex)
         return None
+    if _UNKNOWN.search(out):
+        log.warning("%s: formula with a command latex2mathml does not know: %s", where, latex)
+    return out
 
 
 def _render_text(text: str, dollars: bool, where: str) -> str:
