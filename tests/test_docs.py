@@ -82,8 +82,9 @@ def _prose(page: pathlib.Path) -> str:
     return " ".join(parser.parts)
 
 
-# LaTeX left as text: a delimiter, a `$\cmd`, `$$`, a `$x$` or a backslash command
-_RAW_LATEX = re.compile(r"\\[()\[\]]|\$\$|\$\\|\\[a-zA-Z]{2,}|\$[^$\s]{1,40}\$")
+# LaTeX left as text: a delimiter, a `$\cmd`, `$$`, a `$x$` (`$D = $` too: arithmatex
+# takes no space before a closing dollar) or a backslash command
+_RAW_LATEX = re.compile(r"\\[()\[\]]|\$\$|\$\\|\\[a-zA-Z]{2,}|\$\S[^$\n]{0,60}\$")
 # a resource the browser would fetch from another host (a link to read is fine)
 _EXTERNAL = re.compile(
     r"<(?:script|img|iframe|source|audio|video|embed|input)\b[^>]*\bsrc\s*=\s*[\"']?"

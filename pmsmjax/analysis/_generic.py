@@ -6,7 +6,7 @@ and the true machine `plant` (`PMSMParams`); observer-model mismatch in any para
 `OperatingPoint` (constant speed $\omega_0$, current $i_0$ in the estimated frame).
 
 **Scaling.** All tests and tolerances work on the scaled system
-$F(z) = f(Dz)/(D\,\Omega)$ with $D = $ `observer.error_scale(op, plant)` and the rate
+$F(z) = f(Dz)/(D\,\Omega)$ with $D$ = `observer.error_scale(op, plant)` and the rate
 $\Omega = |\omega_0|$ (1 rad/s at standstill): a positive similarity and time scaling,
 which changes no sign of a real part and keeps the entries O(1).
 
