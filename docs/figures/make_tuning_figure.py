@@ -7,10 +7,9 @@ two of the figures its report writes side by side (a few minutes on 2 cores):
 - `validation.png`: the verdict's evidence, each validation run's RMS angle error, paper
   design against the deployed design, with the rule's +tolerance line.
 
-    .venv/bin/python docs/figures/make_tuning_figure.py [--out results/tuning-docs]
+    .venv/bin/python docs/figures/make_tuning_figure.py   # the job's folder: results/tuning-docs
 """
 
-import argparse
 import pathlib
 
 import matplotlib
@@ -24,17 +23,15 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 
 HERE = pathlib.Path(__file__).resolve().parent
+OUT = pathlib.Path("results/tuning-docs")
 
 if __name__ == "__main__":
-    p = argparse.ArgumentParser()
-    p.add_argument("--out", default="results/tuning-docs")
-    args = p.parse_args()
     pj.runtime.configure()
     report = tuning.tune(tuning.TuningProblem())
-    tuning.write_report(report, args.out)
+    tuning.write_report(report, OUT)
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.4))
     for ax, name in zip(axes, ("search.png", "validation.png")):
-        ax.imshow(plt.imread(pathlib.Path(args.out) / name))
+        ax.imshow(plt.imread(OUT / name))
         ax.set_axis_off()
     fig.tight_layout(pad=0.2)
     fig.savefig(HERE / "tuning.png", dpi=150)
