@@ -94,20 +94,26 @@ def _import_root():
 _MODULE_DOC = re.compile(r"^<!-- module docstring: ([\w.]+) -->$", re.M)
 
 
-def _defining_module(public: str) -> str:
+def resolve(path: str):
+    """The object named by a dotted path (`pmsmjax.observers.ESOObserver`; None where an
+    attribute is missing): the longest importable module prefix, then attributes."""
     import importlib
 
     _import_root()
-    parts = public.split(".")
+    parts = path.split(".")
     for n in range(len(parts), 0, -1):
         try:
             obj = importlib.import_module(".".join(parts[:n]))
         except ImportError:
             continue
         for attr in parts[n:]:
-            obj = getattr(obj, attr)
-        return obj.__module__
-    raise ImportError(public)
+            obj = getattr(obj, attr, None)
+        return obj
+    raise ImportError(path)
+
+
+def _defining_module(public: str) -> str:
+    return resolve(public).__module__
 
 
 def _module_docstrings(markdown: str) -> str:

@@ -121,6 +121,16 @@ def test_formulas_are_rendered_and_nothing_loads_from_outside(site):
     assert 'display="block"' in (site / "api" / "observers.html").read_text()
 
 
+def _hooks():
+    """The site's MkDocs hooks (docs/_hooks.py) as a module."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("docs_hooks", DOCS / "_hooks.py")
+    hooks = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hooks)
+    return hooks
+
+
 _MEASURE = """<!doctype html><html><head><meta charset="utf-8"></head><body>
 <iframe id="f" src="PAGE" style="width:1280px;height:900px"></iframe><pre id="r">-</pre>
 <script>
@@ -166,11 +176,7 @@ def test_formulas_render_in_chromium(site, tmp_path):
 def test_math_hook_leaves_code_alone():
     """The hook converts formulas in prose and keeps code, and `$...$` only where asked
     (notebook markdown)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("docs_hooks", DOCS / "_hooks.py")
-    hooks = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(hooks)
+    hooks = _hooks()
     page = (r'<p>angle \(\hat\theta &lt; \pi\)</p><pre><code>x = "\(a\)"</code></pre>'
             r"<p>cost $5 and $x_1$</p>")
     out = hooks.render_math(page)
@@ -253,19 +259,7 @@ def test_api_reference_lists_every_public_name(site):
     ids = {i for text in pages.values() for i in re.findall(r'\bid="([\w.]+)"', text)
            if "." in i and "._" not in i}
 
-    def resolve(path):
-        import importlib
-
-        parts = path.split(".")
-        for n in range(len(parts), 0, -1):
-            try:
-                obj = importlib.import_module(".".join(parts[:n]))
-            except ImportError:
-                continue
-            for part in parts[n:]:
-                obj = getattr(obj, part, None)
-            return obj
-
+    resolve = _hooks().resolve
     missing = []
     for package, page in _API.items():
         module = resolve(package)
