@@ -12,6 +12,7 @@ import pathlib
 
 import matplotlib
 
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
@@ -48,8 +49,9 @@ if __name__ == "__main__":
         table[name] = {
             "preset": preset, "w_m_rad_s": w_m, "fraction_locked": b.fraction_locked,
             "fraction_locked_from_zero_speed": float(np.mean(zero)),
-            "T_s": T_S.get(name, 125e-6), "worst_t_lock_s": (b.worst_t_lock if math.isfinite(b.worst_t_lock)
-                               else None), "tol_rad": b.tol, "t_end_s": b.t_end}
+            "T_s": T_S.get(name, 125e-6),
+            "worst_t_lock_s": b.worst_t_lock if math.isfinite(b.worst_t_lock) else None,
+            "tol_rad": b.tol, "t_end_s": b.t_end}
         print(name, table[name])
     fig.savefig(HERE / "lock_basins.png", dpi=80)
     (HERE / "lock_basins.json").write_text(json.dumps(table, indent=1) + "\n")

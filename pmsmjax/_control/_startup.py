@@ -48,7 +48,7 @@ class IfStartup(eqx.Module):
     linearly to 1 over `t_blend` and never falls again (one start per run; until the
     observer agrees the drive stays in open loop); with the smooth step
     $s = \lambda^2(3 - 2\lambda)$ the controller angle is
-    $	heta_c = 	heta_{if} + s\,\mathrm{wrap}(\hat	heta - 	heta_{if})$, its speed
+    $\theta_c = \theta_{if} + s\,\mathrm{wrap}(\hat\theta - \theta_{if})$, its speed
     $(1 - s)\omega_{if} + s\hat\omega$, and the current reference
     $(1 - s)\,i_{if} + s\,i_{speed}$, the speed loop's (fed with the controller speed).
     Bumpless: until the handover starts, the speed loop's integrator is held at the

@@ -2,7 +2,7 @@ r"""The scaled error system of an observer at an operating point, and the small 
 linear algebra its solves use (`pmsmjax.analysis._generic`'s equilibria).
 
 **Scaling.** All tests and tolerances work on the scaled system
-$F(z) = f(Dz)/(D\,\Omega)$ with $D = $ `observer.error_scale(op, plant)` and the rate
+$F(z) = f(Dz)/(D\,\Omega)$ with $D$ = `observer.error_scale(op, plant)` and the rate
 $\Omega = |\omega_0|$ (1 rad/s at standstill): a positive similarity and time scaling,
 which changes no sign of a real part and keeps the entries O(1).
 """

@@ -65,21 +65,22 @@ standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartu
   |\mathrm{Im}\,d|)^{1/2}$ on its eigenvalues $\mu \pm \sqrt d$ is at most 0.5 (0.19
   for the C-LESO, 0.05 for the FA-LESO at $T_s = 100\,\mu$s on `li_dtp`; truncation
   below $4\times10^{-18}$), otherwise at $X/8$ followed by three doublings:
-  `_phi_pair_apply`, a `lax.cond` as the GI-LESO's below). The GI-LESO needs only the action on one vector, $e^Xy + \varphi_1(X)g_0
-  + \varphi_2(X)g_1$ (the exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1],
-  [0, 0, 0]]$ applied to $[y; 0; 1]$): while the row-sum norm of $X$ in the design's
-  units (`GILESOObserver._complex_scale`, about $3\omega_0T_s$: 0.47 at
-  $T_s = 100\,\mu$s on `li_dtp`) is at most 0.5, its Taylor series of degree 14 by
-  Horner's rule (one $4\times4$ matrix-vector product a degree; truncation below
-  $4\times10^{-17}$), otherwise the three matrix functions (balanced, degree 12, five
-  doublings; `_phi_apply`, a `lax.cond`; under `vmap` one branch for the whole batch).
+  `_phi_pair_apply`, a `lax.cond` as the GI-LESO's below). The GI-LESO needs only the
+  action on one vector, $e^Xy + \varphi_1(X)g_0 + \varphi_2(X)g_1$ (the exponential of
+  the augmented matrix $[[X, g_1, g_0], [0, 0, 1], [0, 0, 0]]$ applied to $[y; 0; 1]$):
+  while the row-sum norm of $X$ in the design's units (`GILESOObserver._complex_scale`,
+  about $3\omega_0T_s$: 0.47 at $T_s = 100\,\mu$s on `li_dtp`) is at most 0.5, its Taylor
+  series of degree 14 by Horner's rule (one $4\times4$ matrix-vector product a degree;
+  truncation below $4\times10^{-17}$), otherwise the three matrix functions (balanced,
+  degree 12, five doublings; `_phi_apply`, a `lax.cond`; under `vmap` one branch for the
+  whole batch).
   Exact to round-off for eigenvalues (balanced norms) of $X$ up to about 8, far beyond
   the designs' $|X| \approx 0.2$ at $T_s = 100\,\mu$s (`_propagator` assembles the
   real transition matrix; the tests check it against `scipy.linalg.expm` of the real
-  augmented system, and `jax.grad` through a replay against finite differences). The observer's own dynamics (at a
-  given speed estimate) are integrated exactly, so they stay stable for any bandwidth and
-  $T_s$ (only the PLL's update is explicit); the
-  one-step Jacobian in error coordinates is $I + T_sA + O(T_s^2)$ (the contract test).
+  augmented system, and `jax.grad` through a replay against finite differences). The
+  observer's own dynamics (at a given speed estimate) are integrated exactly, so they stay
+  stable for any bandwidth and $T_s$ (only the PLL's update is explicit); the one-step
+  Jacobian in error coordinates is $I + T_sA + O(T_s^2)$ (the contract test).
 
 In steady state at constant speed every signal turns at $\omega = \hat\omega$, and then
 the rotating hold is exact: the discrete observer has exactly the continuous steady state,
@@ -91,7 +92,7 @@ exact and the discrete response departs from them by $O((h - 1)\omega T_s)$
 **Error coordinates** (`error_rhs`): $\varepsilon_1$ and $s$ in the true rotor frame minus
 their designed steady state at the true speed and current (`steady_state`), then
 $\tilde\theta = \theta - \hat\theta$ and $\tilde\omega = \omega - \hat\omega$. The designed
-equilibrium is $\varepsilon_1 = s = 0$, $\tilde\omega = 0$ and $\tilde\theta = $ the
+equilibrium is $\varepsilon_1 = s = 0$, $\tilde\omega = 0$ and $\tilde\theta$ equal to the
 observer's phase lag at the fundamental plus the parameter-mismatch offset
 (`designed_error`): zero for the FA-LESO with a matched model, $-\arg G(j\omega)$
 otherwise.

@@ -72,8 +72,8 @@ $[t_{k-1}, t_k)$.
   chord, $\tfrac{2}{T_s}\arcsin(|\hat e|T_s/(2\hat K))$.
 - Tracking filter stumper (37)-(38), $\dot z = v_1\varepsilon$, $\dot{\tilde\theta} = z +
   v_2\varepsilon$, $\varepsilon = \hat\theta - \tilde\theta$: the input error is taken at
-  the midpoint against the filter's own prediction, $\varepsilon = \mathrm{wrap}(\hat\theta_m
-  - \tilde\theta_{k-1} - z_{k-1}T_s/2)$, then forward Euler over $T_s$. At constant speed
+  the midpoint against the filter's own prediction, $\varepsilon = \mathrm{wrap}(\hat\theta_m -
+  \tilde\theta_{k-1} - z_{k-1}T_s/2)$, then forward Euler over $T_s$. At constant speed
   the equilibrium is $z = \omega$, $\tilde\theta = \theta$ exactly; under a constant
   acceleration $c$ (electrical) it lags by $c/v_1$ (stumper (39) with $c = n_p\dot
   \omega_M$). Poles: $s^2 + v_2 s + v_1$ (the paper's $v_1 = 16000$, $v_2 = 253$ give

@@ -144,7 +144,7 @@ class QuadraturePLL(eqx.Module):
     - `w_pll`: natural frequency (rad/s), > 0.
     - `zeta_pll`: damping (-), > 0.
     - `w_min`: normalisation floor (rad/s, electrical), > 0.
-    - `fll`: gain of the acquisition assist, $k_f = $ `fll` $\\omega_{pll}$ (-), >= 0;
+    - `fll`: gain of the acquisition assist, $k_f$ = `fll` $\\omega_{pll}$ (-), >= 0;
       0 switches it off (the bare PI loop, which cannot leave $\\hat\\omega = 0$).
     """
 
