@@ -309,7 +309,7 @@ def run_metrics(traj, *, lock_deg: float = LOCK_DEG, settle_from=None,
     - `rms_deg`: RMS of $\tilde\theta$ over the whole run;
     - `max_abs_deg`: largest $|\tilde\theta|$ over the run;
     - `settle_s`: settling time (`settling_time`), from `settle_from` until
-      $|\tilde\theta - $ `static_deg` $| \le$ `settle_band_deg` for good (0 if it never
+      the angle error stays within `settle_band_deg` of `static_deg` for good (0 if it never
       leaves the band; NaN if the last sample is outside it);
     - `lost_lock`: the run lost lock (`lock_status` with `lock_deg`);
     - `ok`: the run did not diverge and every sample is finite.
