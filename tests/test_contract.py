@@ -152,7 +152,7 @@ def test_discrete_jacobian_is_the_derivative_of_the_step_and_compiles_once():
     op, a second route), and one compiled program for other designs, periods, speeds and
     a mismatched plant (the same schedule, `fixed_ratio`: a schedule is a structure, and
     another one compiles its own): their values are the program's inputs."""
-    from pmsmjax.analysis._generic import _discrete_jacobian
+    from pmsmjax.analysis._discrete import _discrete_jacobian
 
     plant = SALIENT.three_phase_motor
     w, i = _op(SALIENT)

@@ -153,7 +153,7 @@ def test_gamma_2_is_beyond_the_sampling_limit_with_the_fig16b_model():
     ideal current control: gamma = 2.0 p.u. runs into a limit cycle at 6.6 kHz but
     converges at 66 kHz (a discretisation limit, not a continuous-time instability);
     the default 1.0 p.u. converges at 6.6 kHz to the same steady offset."""
-    from pmsmjax._sim._simulate import scale_motor
+    from pmsmjax import scale_motor
 
     w, i = 0.2 * W_R, jnp.array([-0.034, 0.33]) * I_B
     tail = {}

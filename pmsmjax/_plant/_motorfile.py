@@ -59,6 +59,7 @@ try:  # Python >= 3.11
 except ModuleNotFoundError:  # Python 3.10: the same parser as a package
     import tomli as tomllib
 
+from .._files import atomic_write
 from ._params import (
     BaseValues,
     Drive,
@@ -420,6 +421,6 @@ def motor_file_text(drive: Drive) -> str:
 
 
 def save_motor_file(drive: Drive, path) -> None:
-    """Write the motor file of `drive` to `path` (`motor_file_text`)."""
-    with open(path, "w", encoding="utf-8") as f:
-        f.write(motor_file_text(drive))
+    """Write the motor file of `drive` to `path` (`motor_file_text`), atomically: an
+    interrupted write leaves the previous file."""
+    atomic_write(path, motor_file_text(drive))

@@ -55,7 +55,6 @@ from .._frames import wrap_angle
 from .._plant._params import PMSMParams
 from ..observers._base import AbstractObserver, OperatingPoint
 from ._args import _op, as_arrays, check_observer, check_plant
-from ._discrete import _discrete_jacobian  # noqa: F401  (tests/test_contract.py)
 from ._equilibria import Equilibria
 from ._linearize import charpoly, routh_hurwitz
 from ._scaled import _make_scaled, _Scaled

@@ -41,7 +41,7 @@ import zipfile
 import jax
 import numpy as np
 
-from .._data._files import atomic_write, fsync_dir
+from .._files import atomic_write, fsync_dir
 
 
 _FORMAT = "pmsmjax-sweep/1"

@@ -11,7 +11,7 @@ The names below are what other packages (`tuning`, whose `pmsmjax tune` and `pms
 compare` share these options) use of it.
 """
 
-from .._data._files import (
+from .._files import (
     atomic_write as atomic_write,
     json_safe as json_safe,
     write_json as write_json,

@@ -13,7 +13,7 @@ import time
 import jax
 import numpy as np
 
-from .._data._files import json_safe, json_text
+from .._files import json_safe, json_text
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, motor_text
 from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args

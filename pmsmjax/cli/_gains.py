@@ -22,7 +22,7 @@ import numpy as np
 import pmsmjax as pj
 from pmsmjax._data._gains_table import GAIN_COLUMNS, gain_columns, table_columns
 
-from .._data._files import write_json
+from .._files import write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, header, motor_text
 from ._output import add_output_options, first_line, prepare_out_dir

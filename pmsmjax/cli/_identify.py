@@ -9,7 +9,7 @@ import warnings
 
 import pmsmjax as pj
 
-from .._data._files import write_json
+from .._files import write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, drive_info
 from ._output import add_output_options, prepare_out_dir

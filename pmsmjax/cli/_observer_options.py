@@ -16,7 +16,7 @@ import math
 import pmsmjax as pj
 from pmsmjax.observers import SensoredObserver, make_observer, observer_class, observer_names
 
-from .._data._files import json_safe
+from .._files import json_safe
 from ._values import CLIError, finite_float, name_value, positive_float
 
 

@@ -1,7 +1,7 @@
 """Where a command's results go: `--out DIR` (a folder, left as it was when the command
 fails: `out_dir_transaction`), `--no-plot`, `--json` (strict JSON on stdout,
 `print_json`), and the first line of its console (`first_line`). The JSON files are
-written by `pmsmjax._data._files.write_json`, the one writer of the library and its
+written by `pmsmjax._files.write_json`, the one writer of the library and its
 commands."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import argparse
 import contextlib
 import os
 
-from .._data._files import json_text
+from .._files import json_text
 from ._values import CLIError
 
 

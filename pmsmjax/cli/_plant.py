@@ -10,7 +10,7 @@ import numpy as np
 
 import pmsmjax as pj
 
-from .._data._files import write_json
+from .._files import write_json
 from ._command import Command
 from ._drive_options import (
     add_drive_options,

@@ -11,7 +11,7 @@ import numpy as np
 
 import pmsmjax as pj
 
-from .._data._files import write_json
+from .._files import write_json
 from ._command import Command
 from ._design import add_design_option, observer_with_design
 from ._drive_options import (

@@ -12,7 +12,7 @@ import os
 
 import numpy as np
 
-from .._data._files import write_json
+from .._files import write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, header, motor_text
 from ._observer_options import add_observer_options, observer_from_args

@@ -43,11 +43,11 @@ import numpy as np
 from .._control._foc import FOC
 from .._data._replay import replay
 from .._frames import park
-from .._plant._params import Drive
+from .._plant._params import Drive, scale_motor
 from .._plant._presets import preset
 from .._sim._metrics import error_stats, replay_stats, settling_time
 from .._sim._scenario import Profile, Scenario
-from .._sim._simulate import Sensing, scale_motor, simulate
+from .._sim._simulate import Sensing, simulate
 from ..analysis import equilibria
 from ..observers import (
     AFOObserver,

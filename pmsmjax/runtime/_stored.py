@@ -4,10 +4,11 @@ package docstring says when they are on)."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import jax
+
+from .._files import atomic_write
 
 
 #: Sub-directory of `cache_dir()` with the stored (exported) programs.
@@ -194,9 +195,7 @@ def stored_call(tag: str, fn, args: tuple, out_type):
         return None
     try:
         d.mkdir(parents=True, exist_ok=True)
-        tmp = d / f".{path.name}.{os.getpid()}.tmp"
-        tmp.write_bytes(blob)
-        os.replace(tmp, path)
+        atomic_write(path, blob)
         for old in d.glob(f"{tag}-*.jaxexport"):  # stored by another version of the code
             if not old.name.startswith(stem):
                 old.unlink(missing_ok=True)

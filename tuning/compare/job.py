@@ -48,7 +48,6 @@ from .points import (
     _space,
     _sweep_fns,
     harmonic_sensitivity,
-    operating_current as operating_current,  # the comparison notebook imports it from here
 )
 from .report import aggregate, markdown
 
