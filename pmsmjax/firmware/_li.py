@@ -6,9 +6,9 @@ The exact ZOH discretisation is computed in C every sample as the exponential of
 real augmented system at the PLL speed (the matrix whose transition `_propagator`
 returns), by a balanced scaling-and-squaring Taylor series (4 balancing sweeps, degree
 12, 6 squarings); the Python step computes the same transition in the half-size complex
-form (`_transition`), so the two agree to round-off. The observer's matrices `(A_s, B_s, C_s, D_x, D_1)` are read
-from the observer's own `_matrices(w_hat)`: each is fitted (and checked, to rounding)
-as a combination of the basis functions $1$, $\hat\omega$ and
+form (`_transition`), so the two agree to round-off. The observer's matrices
+`(A_s, B_s, C_s, D_x, D_1)` are read from the observer's own `_matrices(w_hat)`: each
+is fitted (and checked, to rounding) as a combination of the basis functions $1$, $\hat\omega$ and
 $\max(\hat\omega^2, w_c^2)$ ($w_c$ = 0 but for the GI-LESO), so a change of
 `_matrices` within that family needs no change here; a matrix outside it is refused.
 The PLL is `QuadraturePLL.step`.
@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..observers._leso import AbstractBackEMFLESO, GILESOObserver
-from ._emit import CObserver, lit, scalar as _f
+from ._c import CObserver, lit, scalar as _f
 
 
 _W_FIT = np.array([-5000.0, -900.0, -80.0, -3.0, 0.0, 0.4, 60.0, 700.0, 4200.0])
@@ -181,7 +181,8 @@ static void pmsm_expm(pmsm_real M[PMSM_N][PMSM_N])
         for (j = 0; j < PMSM_N; j++) M[i][j] = E[i][j] * d[i] / d[j];
 }}
 """
-    step = f"""{mat_decl}    pmsm_real M[PMSM_N][PMSM_N], v[PMSM_N], x1[2], sn[PMSM_NS], eps[2], e_hat[2];
+    step = f"""{mat_decl}    pmsm_real M[PMSM_N][PMSM_N], v[PMSM_N], x1[2], sn[PMSM_NS], \
+eps[2], e_hat[2];
     pmsm_real d_lam[2], half, x, sinc, cvec[2], delta[2], tmp[2], wh = s->w;
     pmsm_real theta = s->theta, w = s->w;
     int i, j;

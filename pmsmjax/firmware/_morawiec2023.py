@@ -11,7 +11,7 @@ while it turns by $\Delta\theta$ (exact integral, sinc rule).
 from __future__ import annotations
 
 from ..observers._rotor_flux import _SIGNS, RotorFluxObserver
-from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f
+from ._c import FLUX_STATE_INIT, CObserver, lit, scalar as _f
 
 
 _FIELDS = (

@@ -9,7 +9,7 @@ tracking filter and the speed low-pass (forward Euler).
 from __future__ import annotations
 
 from ..observers._parallel_model import E_MIN, RHO_MIN, ParallelModelObserver
-from ._emit import CObserver, lit, scalar as _f
+from ._c import CObserver, lit, scalar as _f
 
 
 _FIELDS = (

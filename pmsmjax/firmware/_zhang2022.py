@@ -17,7 +17,7 @@ import numpy as np
 from .._data._gains_table import TabulatedDesign
 from ..observers import AFOObserver, ESOObserver, LESOObserver
 from ..observers._eso import ESODesign, FixedGains
-from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f
+from ._c import FLUX_STATE_INIT, CObserver, lit, scalar as _f
 
 
 _FIELDS = (
