@@ -1,6 +1,6 @@
 r"""C emitter of the li-fa-leso back-EMF observers (`CLESOObserver`, `GILESOObserver`,
 `FALESOObserver`: "c-leso", "gi-leso", "fa-leso") with their quadrature PLL:
-`AbstractBackEMFLESO.step` line by line (`observers/_leso.py`).
+`AbstractBackEMFLESO.step` line by line (`observers/_back_emf_leso.py`).
 
 The exact ZOH discretisation is computed in C every sample as the exponential of the
 real augmented system at the PLL speed (the matrix whose transition `_propagator`
@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..observers._leso import AbstractBackEMFLESO, GILESOObserver
+from ..observers import AbstractBackEMFLESO, GILESOObserver
 from ._c import CObserver, lit, scalar as _f
 
 

@@ -1,6 +1,10 @@
 """Position and speed observers. All implement the `AbstractObserver` contract; the
 registry (`make_observer`, `observer_names`) is the one place a name becomes one."""
 
+from ._back_emf_leso import (
+    AbstractBackEMFLESO as AbstractBackEMFLESO,
+    LESOState as LESOState,
+)
 from ._base import (
     AbstractObserver as AbstractObserver,
     ErrorCoordinates as ErrorCoordinates,
@@ -34,12 +38,10 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
-from ._leso import (
-    AbstractBackEMFLESO as AbstractBackEMFLESO,
+from ._li_leso import (
     CLESOObserver as CLESOObserver,
     FALESOObserver as FALESOObserver,
     GILESOObserver as GILESOObserver,
-    LESOState as LESOState,
 )
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
