@@ -68,7 +68,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import rotate, wrap_angle
+from .._frames import back_emf_angle, rotate, wrap_angle
 from .._plant._params import PMSMParams
 from .._validate import check_positive
 from ._base import (
@@ -479,7 +479,7 @@ def _designed_error(obs: AbstractBackEMFLESO, op: OperatingPoint, plant: PMSMPar
     def body(th, _):
         eps_s, s_s = obs._steady_truth(plant, w, rotate(i0, -th))
         e_dq = -m.L_q * (C @ s_s + Dx @ eps_s)
-        return jnp.arctan2(sg * e_dq[0], sg * e_dq[1]), None
+        return -back_emf_angle(e_dq, sg), None  # theta - theta_hat
 
     th, _ = jax.lax.scan(body, jnp.zeros((), w.dtype), None, length=n_iter)
     return jnp.zeros(n + 4, w.dtype).at[2 + n].set(th)
