@@ -1,6 +1,9 @@
 """Position and speed observers. All implement the `AbstractObserver` contract; the
 registry (`make_observer`, `observer_names`) is the one place a name becomes one."""
 
+from .._control._limits import (
+    d_current_feedforward as d_current_feedforward,  # stumper (48), a control law
+)
 from ._back_emf_leso import (
     AbstractBackEMFLESO as AbstractBackEMFLESO,
     LESOState as LESOState,
@@ -47,8 +50,9 @@ from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
     backemf_polar as backemf_polar,
-    d_current_feedforward as d_current_feedforward,
     parallel_model_angle as parallel_model_angle,
+)
+from ._parallel_model_sensitivity import (
     parallel_model_angle_printed as parallel_model_angle_printed,
     parallel_model_offset as parallel_model_offset,
     parallel_model_offsets_printed as parallel_model_offsets_printed,
