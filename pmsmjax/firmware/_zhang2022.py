@@ -15,8 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._data._gains_table import TabulatedDesign
-from ..observers import AFOObserver, ESOObserver, LESOObserver
-from ..observers._eso import ESODesign, FixedGains
+from ..observers import AFOObserver, ESODesign, ESOObserver, FixedGains, LESOObserver
 from ._c import FLUX_STATE_INIT, CObserver, lit, scalar as _f
 
 

@@ -19,11 +19,8 @@ from ._base import (
 )
 from ._catch import CatchState as CatchState, FlyingCatch as FlyingCatch
 from ._eso import (
-    AbstractGainSchedule as AbstractGainSchedule,
     AFOObserver as AFOObserver,
-    ESODesign as ESODesign,
     ESOObserver as ESOObserver,
-    FixedGains as FixedGains,
     FluxObserverState as FluxObserverState,
     LESOObserver as LESOObserver,
 )
@@ -40,6 +37,11 @@ from ._eso_design import (
     psi_a as psi_a,
     sigma1 as sigma1,
     zhang38 as zhang38,
+)
+from ._eso_schedules import (
+    AbstractGainSchedule as AbstractGainSchedule,
+    ESODesign as ESODesign,
+    FixedGains as FixedGains,
 )
 from ._li_leso import (
     CLESOObserver as CLESOObserver,
