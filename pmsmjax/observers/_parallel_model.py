@@ -401,7 +401,6 @@ class ParallelModelObserver(AbstractObserver):
         # the current's angle in the estimated frame, gamma = phi - theta_tilde (held at
         # 0 without current)
         rho, gamma = polar(i0)
-        c_g, s_g = jnp.cos(gamma), jnp.sin(gamma)
         rho_dot_f = -x_rho
         phi_dot_f = w - x_phi
         Ld, Lq = plant.L_d, plant.L_q
@@ -423,13 +422,12 @@ class ParallelModelObserver(AbstractObserver):
 
         def raw(p):
             """(16)-(17) relative to the filter's angle, eps = theta_raw - theta_tilde
-            = gamma + atan2(y, x), as one atan2 of (x, y) turned by gamma; with the
-            Cartesian pair (X, Y) and the slope d eps / dp."""
-            y, x = -s * (A_P + p * B_P), s * (A_O + p * B_O)
-            dy, dx = -s * B_P, s * B_O
-            X, Y = c_g * x - s_g * y, s_g * x + c_g * y
-            r2 = jnp.maximum(x * x + y * y, E_MIN ** 2)
-            return jnp.arctan2(Y, X), r2, (x * dy - y * dx) / r2
+            = gamma + back_emf_angle(e, s), as one angle of the back-EMF e = (e_P, e_O)
+            turned by gamma; with |e|^2 and the slope d eps / dp."""
+            e_P, e_O = A_P + p * B_P, A_O + p * B_O
+            r2 = jnp.maximum(e_P * e_P + e_O * e_O, E_MIN ** 2)
+            eps = back_emf_angle(rotate(jnp.stack([e_P, e_O]), gamma), s)
+            return eps, r2, (e_P * B_O - e_O * B_P) / r2
 
         # Newton steps on p - z - v2 eps(p) = 0 (unrolled: the loop is smooth and well
         # conditioned where the error model is well posed, see the module docstring)
