@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..observers import AbstractBackEMFLESO, GILESOObserver
-from ._c import CObserver, lit, scalar as _f
+from ._c import CObserver, lit, model_defines, model_doc, scalar as _f
 
 
 _W_FIT = np.array([-5000.0, -900.0, -80.0, -3.0, 0.0, 0.4, 60.0, 700.0, 4200.0])
@@ -68,7 +68,6 @@ def _mat_c(name, coef) -> list[str]:
 
 def emit(observer: AbstractBackEMFLESO) -> CObserver:
     m = observer.motor
-    R_s, L_d, L_q, psi_f = (_f(m.R_s), _f(m.L_d), _f(m.L_q), _f(m.psi_f))
     p = observer.pll
     w_pll, zeta_pll, w_min = _f(p.w_pll), _f(p.zeta_pll), _f(p.w_min)
     fll = _f(p.fll)
@@ -97,10 +96,7 @@ def emit(observer: AbstractBackEMFLESO) -> CObserver:
     mat_decl = "".join(f"    pmsm_real {name}[{r}][{c}];\n" for name, (r, c) in shapes.items())
     mat_fill = "\n".join(line for name, coef in fits for line in _mat_c(name, coef))
     helpers = f"""/* observer model (SI) and PLL */
-#define PMSM_RS {lit(R_s)}
-#define PMSM_LD {lit(L_d)}
-#define PMSM_LQ {lit(L_q)}
-#define PMSM_PSIF {lit(psi_f)}
+{model_defines(m)}
 #define PMSM_WPLL {lit(w_pll)}
 #define PMSM_ZPLL {lit(zeta_pll)}
 #define PMSM_WMIN {lit(w_min)}
@@ -307,7 +303,7 @@ eps[2], e_hat[2];
     title = f"{name} back-EMF observer of li-fa-leso with a quadrature PLL"
     doc = (
         f"Observer: {title}.",
-        f"Model: R_s = {R_s!r} Ohm, L_d = {L_d!r} H, L_q = {L_q!r} H, psi_f = {psi_f!r} V s.",
+        model_doc(m),
         f"Design: {', '.join(f'{k} = {_f(v)!r}' for k, v in observer._own_design().items())};",
         f"PLL: w_pll = {w_pll!r} rad/s, zeta_pll = {zeta_pll!r}, w_min = {w_min!r} rad/s.",
         "Step: the exact ZOH transition over T_s of the observer driven by the current",
