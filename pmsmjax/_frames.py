@@ -9,6 +9,8 @@ $A$ maps to a vector of length $A$.
 - `park(x_ab, theta) = rotate(x_ab, -theta)`, `inv_park(x_dq, theta) = rotate(x_dq, theta)`.
 - `wrap_angle` maps to $(-\pi, \pi]$; `angle_error(theta, theta_hat)` is
   `wrap(theta - theta_hat)` (true minus estimate).
+- `back_emf_angle(e, sigma)`: the rotor's d-axis angle read off a back-EMF vector,
+  $\mathrm{atan2}(-\sigma e_\alpha, \sigma e_\beta)$.
 - `vsd` / `inv_vsd`: vector-space decomposition of a dual three-phase machine with sets
   `a1 b1 c1` at 0, 120, 240 deg and `a2 b2 c2` shifted by `gamma` (default 30 deg).
 """
@@ -94,6 +96,18 @@ def rotation_between(a, b):
     cross = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
     dot = a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
     return jnp.arctan2(cross, jnp.where((cross == 0) & (dot == 0), 1.0, dot))
+
+
+def back_emf_angle(e, sigma=1.0):
+    r"""The angle (rad, in $[-\pi, \pi]$) of the rotor's d axis read off its back-EMF `e`
+    (V, last axis 2; in any frame, the angle is then relative to that frame's first
+    axis): $\mathrm{atan2}(-\sigma e_\alpha, \sigma e_\beta)$.
+
+    The (extended) back-EMF $\omega\psi_{ex}[-\sin\theta, \cos\theta]$ lies on the q
+    axis, 90 deg ahead of the d axis in the direction of rotation, so its direction gives
+    the angle once the sign of the speed is known: `sigma` = $\mathrm{sign}\,\omega$
+    (+1 or -1; broadcasts). With the wrong sign the angle is off by $\pi$."""
+    return jnp.arctan2(-sigma * e[..., 0], sigma * e[..., 1])
 
 
 def angle_error(theta, theta_hat):

@@ -326,21 +326,22 @@ def test_replay_gradient_matches_finite_differences(name, param):
 
 
 def test_gi_leso_action_path_and_fallback_against_scipy():
-    """The GI-LESO's transition takes the Taylor action (`_phi_action`) where the scaled
-    norm of X is at most `_ACTION_NORM` and the balanced matrix functions otherwise; both
+    """The GI-LESO's transition takes the Taylor action (`phi_action`) where the scaled
+    norm of X is at most `ACTION_NORM` and the balanced matrix functions otherwise; both
     sides of the switch (T_s = 100 us and 1 ms, and a 4x bandwidth at 100 us) agree with
     `scipy.linalg.expm` of the complex augmented matrix [[X, g1, g0], [0, 0, 1], [0, 0, 0]]
     applied to [y; 0; 1]. Tolerance: 1e-12 relative to the size of the terms, as the
     transition test (round-off is ~1e-15; the truncation bound at the switch 4e-17)."""
     sl = pytest.importorskip("scipy.linalg")
-    from pmsmjax.observers import _leso as L
+    from pmsmjax.observers import _matrix_functions as F
+    from pmsmjax.observers._back_emf_leso import _to_complex
     rng = np.random.default_rng(3)
     base = make_observer("gi-leso", DTP)
     sides = set()
     batch = []
     for obs, T_s in ((base, 1e-4), (base, 1e-3), (base.with_design(w0=4.0 * base.w0), 1e-4)):
         for w in (-1.3 * W, 0.0, 0.6 * W, 2.0 * W):
-            A, B, C, Dx, D1 = (L._to_complex(M) for M in obs._matrices(jnp.asarray(w)))
+            A, B, C, Dx, D1 = (_to_complex(M) for M in obs._matrices(jnp.asarray(w)))
             Ao = np.asarray(jnp.block([[Dx + D1, C], [B, A]]))
             X = (Ao - 1j * w * np.eye(4)) * T_s
             d = np.asarray(obs._complex_scale(jnp.asarray(w)))
@@ -354,25 +355,25 @@ def test_gi_leso_action_path_and_fallback_against_scipy():
             zs = np.r_[y / d, 0.0, 1.0]
             ref = d * (sl.expm(M) @ zs)[:4]
             size = d * (np.abs(sl.expm(np.abs(M))) @ np.abs(zs))[:4]
-            out = np.asarray(L._phi_apply(jnp.asarray(X), y, g0, g1, jnp.asarray(rho)))
+            out = np.asarray(F.phi_apply(jnp.asarray(X), y, g0, g1, jnp.asarray(rho)))
             assert np.max(np.abs(out - ref) / size) < 1e-12, (T_s, w, rho)
-            if rho <= L._ACTION_NORM:
-                act = np.asarray(L._phi_action(jnp.asarray(X), y, g0, g1))
+            if rho <= F.ACTION_NORM:
+                act = np.asarray(F.phi_action(jnp.asarray(X), y, g0, g1))
                 assert np.max(np.abs(act - ref) / size) < 1e-12, (T_s, w, rho)
-            sides.add(bool(rho <= L._ACTION_NORM))
+            sides.add(bool(rho <= F.ACTION_NORM))
             batch.append((X, y, g0, g1, rho, ref, size))
     assert sides == {True, False}  # both branches were exercised
     # under vmap one branch serves the batch: a mixed batch (fallback for all) and one
     # that is all within the action's norm agree with the references as well
-    for sel in (batch, [b for b in batch if b[4] <= L._ACTION_NORM]):
+    for sel in (batch, [b for b in batch if b[4] <= F.ACTION_NORM]):
         Xs, ys, g0s, g1s, rhos, refs, sizes = (np.stack(c) for c in zip(*sel))
-        out = np.asarray(jax.vmap(L._phi_apply)(Xs, ys, g0s, g1s, rhos))
+        out = np.asarray(jax.vmap(F.phi_apply)(Xs, ys, g0s, g1s, rhos))
         assert np.max(np.abs(out - refs) / sizes) < 1e-12
 
 
 def test_pair_functions_series_path_and_doublings_against_scipy():
-    """The C-/FA-LESO's pair functions (`_phi_pair_apply`) take the series directly at X
-    where the eigenvalue bound `_pair_radius` is at most `_PAIR_NORM` and three doublings
+    """The C-/FA-LESO's pair functions (`phi_pair_apply`) take the series directly at X
+    where the eigenvalue bound `pair_radius` is at most `PAIR_NORM` and three doublings
     otherwise; both sides of the switch (T_s = 10 us .. 1 ms, speeds -2..2 p.u., and a 10x
     gain at 100 us) agree with `scipy.linalg.expm` of the block matrix [[X, I, 0],
     [0, 0, I], [0, 0, 0]] (whose first block row is e^X, phi_1(X), phi_2(X)), in balanced
@@ -380,12 +381,12 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
     1e-12 relative to the size of the terms (expm of the entrywise modulus), as the
     transition test (round-off ~1e-15; the series' truncation at the switch 4e-18)."""
     sl = pytest.importorskip("scipy.linalg")
-    from pmsmjax.observers import _leso as L
+    from pmsmjax.observers import _matrix_functions as F
     sides, batch = set(), []
     # each function compiled once (op by op, every small operation compiles on its own)
     complex_system = eqx.filter_jit(lambda o, w: o._complex_system(w))
-    pair_radius, pair_apply = jax.jit(L._pair_radius), jax.jit(L._phi_pair_apply)
-    pair_series = jax.jit(lambda mu, d: L._phi_pair(mu, d, squarings=0))
+    pair_radius, pair_apply = jax.jit(F.pair_radius), jax.jit(F.phi_pair_apply)
+    pair_series = jax.jit(lambda mu, d: F.phi_pair(mu, d, squarings=0))
     c_base, f_base = make_observer("c-leso", DTP), make_observer("fa-leso", DTP)
     cases = [(o, T_s) for o in (c_base, f_base) for T_s in (1e-5, 1e-4, 1e-3)]
     cases += [(c_base.with_design(w0=10.0 * c_base.w0), 1e-4),
@@ -417,17 +418,17 @@ def test_pair_functions_series_path_and_doublings_against_scipy():
 
             out = as_matrices(pair_apply(jnp.asarray(mu), jnp.asarray(d)))
             assert np.max(np.abs(out - ref) / size) < 1e-12, (T_s, w, rho)
-            if rho <= L._PAIR_NORM:
+            if rho <= F.PAIR_NORM:
                 ser = as_matrices(pair_series(jnp.asarray(mu), jnp.asarray(d)))
                 assert np.max(np.abs(ser - ref) / size) < 1e-12, (T_s, w, rho)
-            sides.add(rho <= L._PAIR_NORM)
+            sides.add(rho <= F.PAIR_NORM)
             batch.append((mu, d, N, ref, size, rho))
     assert sides == {True, False}  # both branches were exercised
     # under vmap one branch serves the batch: a mixed batch (the doublings for all) and
     # one that is all within the series' bound
-    for sel in (batch, [b for b in batch if b[5] <= L._PAIR_NORM]):
+    for sel in (batch, [b for b in batch if b[5] <= F.PAIR_NORM]):
         mus, ds = jnp.asarray([b[0] for b in sel]), jnp.asarray([b[1] for b in sel])
-        E = jax.jit(jax.vmap(L._phi_pair_apply))(mus, ds)
+        E = jax.jit(jax.vmap(F.phi_pair_apply))(mus, ds)
         for j, (mu, d, N, ref, size, rho) in enumerate(sel):
             out = np.concatenate([complex(e[0][j]) * np.eye(2) + complex(e[1][j]) * N
                                   for e in E], 1)

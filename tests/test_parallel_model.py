@@ -12,14 +12,15 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from pmsmjax.observers import Measurement, make_observer
-from pmsmjax.observers._parallel_model import (
+from pmsmjax.observers import (
+    Measurement,
     d_current_feedforward,
+    make_observer,
     parallel_model_angle,
     parallel_model_angle_printed,
     parallel_model_offset,
-    polar,
 )
+from pmsmjax.observers._parallel_model import polar
 
 from .helpers import rot
 

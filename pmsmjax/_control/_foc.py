@@ -153,8 +153,7 @@ class FOC(eqx.Module):
             s_state = state.speed
             i_ref = i_ref_override
             m = self.current.motor
-            tau_ref = self.k_tau * (
-                (m.psi_f + (m.L_d - m.L_q) * i_ref[..., 0]) * i_ref[..., 1])
+            tau_ref = self.k_tau * (m.extended_flux(i_ref[..., 0]) * i_ref[..., 1])
         return s_state, i_ref, tau_ref
 
     def step(self, state: FOCState, i_dq, w_hat, w_ref, T_s, *, i_ref_override=None,

@@ -1,5 +1,6 @@
-"""Current references and limits: the voltage circle, MTPA and voltage-limit-aware field
-weakening (see `pmsmjax._control._foc` for the control structure)."""
+"""Current references and limits: the voltage circle, MTPA, voltage-limit-aware field
+weakening and stumper's d-current feedforward (see `pmsmjax._control._foc` for the
+control structure)."""
 
 from __future__ import annotations
 
@@ -82,7 +83,7 @@ class CurrentRefs(eqx.Module):
         dL = motor.L_d - motor.L_q
         if self.strategy == "id_const":
             i_d = self.i_d + 0.0 * tau_ref
-            i_q = tau_ref / (k_tau * (motor.psi_f + dL * i_d))
+            i_q = tau_ref / (k_tau * motor.extended_flux(i_d))
         else:
             # Newton on tau(i_q) = k i_q (psi_f + dL i_d(i_q)) along the MTPA locus; a fixed
             # number of iterations keeps it differentiable and vmappable.
@@ -92,13 +93,32 @@ class CurrentRefs(eqx.Module):
                 s = jnp.sqrt(motor.psi_f ** 2 + 4.0 * dL ** 2 * i_q ** 2)
                 did = 4.0 * dL * i_q / (motor.psi_f + s) - \
                     2.0 * dL * i_q ** 2 * (4.0 * dL ** 2 * i_q / s) / (motor.psi_f + s) ** 2
-                f = k_tau * i_q * (motor.psi_f + dL * i_d) - tau_ref
-                df = k_tau * (motor.psi_f + dL * i_d + dL * i_q * did)
+                psi_ex = motor.extended_flux(i_d)
+                f = k_tau * i_q * psi_ex - tau_ref
+                df = k_tau * (psi_ex + dL * i_q * did)
                 i_q = i_q - f / df
             i_d = mtpa_i_d(i_q, motor)
         i_q_max = jnp.sqrt(jnp.maximum(self.i_max ** 2 - i_d ** 2, 0.0))
         i_q = jnp.clip(i_q, -i_q_max, i_q_max)
         return jnp.stack([i_d, i_q], -1)
+
+
+def d_current_feedforward(i_q_ref, dw_ref_dt, v1, i_d0=0.0):
+    r"""stumper (48) with the sign corrected: $i_d^* = i_{d0}^* - \tan(\Delta\varphi_e)
+    i_q^*$ with the tracking filter's lag $\Delta\varphi_e = \dot\omega^*/v_1$ (39).
+
+    - `i_q_ref`: q current reference (A); `dw_ref_dt`: slope of the *electrical* speed
+      reference (rad/s^2, $n_p\dot\omega_M^*$); `v1`: tracking-filter gain (1/s^2);
+      `i_d0`: the constant d current (A).
+
+    During an acceleration the estimate lags ($\theta - \tilde\theta = \Delta\varphi_e >
+    0$), so a current $i_0$ set in the estimated frame is $e^{-\Delta\varphi_e J}i_0$ in
+    the rotor frame: its d component $i_d^*\cos\Delta\varphi_e + i_q^*\sin\Delta\varphi_e$
+    vanishes for $i_d^* = -\tan(\Delta\varphi_e)\,i_q^*$, a *negative* d current while
+    accelerating with positive torque (as the paper's experiment reports, -2.25 A). The
+    printed $+\tan$ doubles the misalignment instead.
+    """
+    return i_d0 - jnp.tan(dw_ref_dt / v1) * i_q_ref
 
 
 def _safe_sqrt(x):
@@ -125,7 +145,6 @@ def field_weakening(i_dq, tau_ref, motor: PMSMParams, k_tau, w, u_lim, i_max):
     live, so that the derivatives are the implicit function's (differentiable). `w`
     electrical speed (rad/s), `u_lim` usable voltage amplitude (V).
     """
-    dL = motor.L_d - motor.L_q
     psi_max = u_lim / jnp.maximum(jnp.abs(w), 1e-9)
     i_d0, i_q0 = i_dq[..., 0], i_dq[..., 1]
     tau = jnp.abs(tau_ref)
@@ -135,7 +154,7 @@ def field_weakening(i_dq, tau_ref, motor: PMSMParams, k_tau, w, u_lim, i_max):
         return jnp.minimum(q_v, _safe_sqrt(i_max ** 2 - i_d ** 2))
 
     def torque(i_d, psi_max):
-        return k_tau * (motor.psi_f + dL * i_d) * q_avail(i_d, psi_max)
+        return k_tau * motor.extended_flux(i_d) * q_avail(i_d, psi_max)
 
     inside = jnp.hypot(motor.L_d * i_d0 + motor.psi_f, motor.L_q * i_q0) <= psi_max
     pm = jax.lax.stop_gradient(psi_max)
@@ -171,5 +190,5 @@ def field_weakening(i_dq, tau_ref, motor: PMSMParams, k_tau, w, u_lim, i_max):
                      0.0)
     i_d = i_d - step
     q_lim = q_avail(i_d, psi_max)
-    i_q = jnp.clip(tau_ref / (k_tau * (motor.psi_f + dL * i_d)), -q_lim, q_lim)
+    i_q = jnp.clip(tau_ref / (k_tau * motor.extended_flux(i_d)), -q_lim, q_lim)
     return jnp.where(inside[..., None], i_dq, jnp.stack([i_d, i_q], -1))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._frames import wrap_angle
 from .._plant._params import Drive
 from .._validate import check_positive
 
@@ -22,10 +23,6 @@ class StartupState(eqx.Module):
     off: jnp.ndarray
     off_obs: jnp.ndarray
     t: jnp.ndarray
-
-
-def _wrap(x):
-    return jnp.arctan2(jnp.sin(x), jnp.cos(x))
 
 
 class IfStartup(eqx.Module):
@@ -97,7 +94,7 @@ class IfStartup(eqx.Module):
 
     def init(self, theta0=0.0) -> StartupState:
         z = jnp.zeros(())
-        return StartupState(theta=_wrap(jnp.asarray(theta0, float)), w=z, lam=z, off=z,
+        return StartupState(theta=wrap_angle(jnp.asarray(theta0, float)), w=z, lam=z, off=z,
                             off_obs=z, t=z)
 
     def amplitude(self, state: StartupState):
@@ -117,7 +114,7 @@ class IfStartup(eqx.Module):
         aligning = t < self.t_align
         dw = jnp.clip(w_ref - state.w, -self.a_max * T_s, self.a_max * T_s)
         w_if = jnp.where(aligning, 0.0, state.w + dw)
-        th_if = _wrap(state.theta + T_s * w_if)
+        th_if = wrap_angle(state.theta + T_s * w_if)
         # hand over once above w_hand with the observer in agreement: its angle within
         # 90 deg of the open-loop frame (the rotor's load angle is) and its speed within
         # 25 % of the frame's (no false lock at pi, no slipping PLL)
@@ -126,9 +123,9 @@ class IfStartup(eqx.Module):
         go = (state.lam > 0) | ((jnp.abs(w_if) >= self.w_hand) & agree)
         lam = jnp.clip(state.lam + jnp.where(go, T_s / self.t_blend, 0.0), 0.0, 1.0)
         new = StartupState(theta=th_if, w=w_if, lam=lam, off=state.off,
-                           off_obs=_wrap(th_if - theta_hat), t=t)
+                           off_obs=wrap_angle(th_if - theta_hat), t=t)
         s = self.weight(new)
-        d = _wrap(theta_hat - th_if)
-        theta_c = _wrap(th_if + s * d)
+        d = wrap_angle(theta_hat - th_if)
+        theta_c = wrap_angle(th_if + s * d)
         new = eqx.tree_at(lambda t: t.off, new, -s * d)
         return new, theta_c, (1.0 - s) * w_if + s * w_hat

@@ -18,7 +18,7 @@ rotor's q axis for either saliency). Its rotation between successive periods (th
 increment, $\mathrm{atan2}$ of the cross and dot products) summed over the window and
 divided by its length gives $\hat\omega$, with its sign; its direction gives the angle,
 $\theta_{k+1/2} = \mathrm{atan2}(-\sigma\hat e_\alpha, \sigma\hat e_\beta)$ with
-$\sigma = \mathrm{sign}\,\hat\omega$, and the circular mean of
+$\sigma = \mathrm{sign}\,\hat\omega$ (`back_emf_angle`), and the circular mean of
 $\theta_{k+1/2} - \hat\omega(k + \tfrac12)T_s$ over the window is the angle at $t_0$.
 Both are least-squares-free and exact for noise-free data at constant speed (up to the
 hold of the current between samples, $O(\omega T_s)^2$).
@@ -29,7 +29,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._frames import rotation_between, wrap_angle
+from .._frames import back_emf_angle, rotation_between, wrap_angle
 from .._plant._params import PMSMParams
 from .._validate import is_concrete
 
@@ -105,7 +105,7 @@ def flying_start(motor: PMSMParams, u_ab, i_ab, T_s, n: int = 64) -> FlyingStart
     e = model_back_emf(motor, u, i0, i1, T_s)
     w0 = jnp.sum(rotation_between(e[:-1], e[1:])) / ((n - 1) * T_s)
     sg = jnp.where(w0 < 0, -1.0, 1.0)
-    th_mid = jnp.arctan2(-sg * e[:, 0], sg * e[:, 1])
+    th_mid = back_emf_angle(e, sg)
     k = jnp.arange(n) + 0.5
     d = th_mid - w0 * k * T_s
     s_, c_ = jnp.mean(jnp.sin(d)), jnp.mean(jnp.cos(d))

@@ -1,65 +1,51 @@
 """The generic part of the C emitter: the number type, libm names, the files, and the
-replay program. Each observer family (`_zhang2022`, ...) supplies a `CObserver`: the
-state struct's fields, the `init` body, the `step` body and its helper functions."""
+replay program, and the one table (`_EMITTERS`) from an observer class to its family's
+emitter. Each family (`_zhang2022`, `_morawiec2023`, `_stumper`, `_li`) supplies a
+`CObserver` (`_c`): the state struct's fields, the `init` body, the `step` body and its
+helper functions."""
 
 from __future__ import annotations
 
-import dataclasses
-import math
 import pathlib
-
-import numpy as np
+from collections.abc import Callable
 
 from .._validate import check_positive
+from ..observers import (
+    AFOObserver,
+    CLESOObserver,
+    ESOObserver,
+    FALESOObserver,
+    GILESOObserver,
+    LESOObserver,
+    ParallelModelObserver,
+    RotorFluxObserver,
+)
+from . import _li, _morawiec2023, _stumper, _zhang2022
+from ._c import CObserver
 
 
-#: registered observer names the emitter supports (the others raise `ValueError`)
+#: registered observer names the emitter supports (the others raise
+#: `UnsupportedObserverError`)
 SUPPORTED = ("eso", "leso", "afo", "rotor-flux", "parallel-model", "c-leso", "gi-leso",
              "fa-leso")
 
 
-@dataclasses.dataclass(frozen=True)
-class CObserver:
-    """One observer as C text (all in terms of `pmsm_real` and the `PMSM_*` math macros).
-
-    - `name`: the registered name; `title`: one line naming the observer and paper.
-    - `doc`: lines of the header comment (equations, gains, units).
-    - `fields`: `(C declaration, comment)` of the state struct's members.
-    - `helpers`: static C functions used by `step` (text).
-    - `init`: body of `pmsm_obs_init(s, theta0, w0)`.
-    - `step`: body of `pmsm_obs_step(s, i_ab, u_ab_prev, theta_hat, w_hat)`.
-    """
-
-    name: str
-    title: str
-    doc: tuple[str, ...]
-    fields: tuple[tuple[str, str], ...]
-    helpers: str
-    init: str
-    step: str
+class UnsupportedObserverError(ValueError):
+    """`export_c` / `render` got an observer whose class has no C emitter."""
 
 
-def scalar(x) -> float:
-    """A concrete parameter leaf (Python or array scalar) as a float, for generated code."""
-    return float(np.asarray(x))
-
-
-#: `pmsm_obs_init` of the flux observers (zhang2022's and morawiec2023's, same state).
-FLUX_STATE_INIT = """    s->psi_ab[0] = PMSM_R(0.0);
-    s->psi_ab[1] = PMSM_R(0.0);
-    s->theta = pmsm_wrap(theta0);
-    s->w = w0;
-    s->i_prev[0] = PMSM_R(0.0);
-    s->i_prev[1] = PMSM_R(0.0);
-    s->started = 0;"""
-
-
-def lit(x) -> str:
-    """A C literal of the number `x` (double text that round-trips), cast to pmsm_real."""
-    x = float(x)
-    if not math.isfinite(x):
-        raise ValueError(f"a generated constant must be finite; got {x!r}.")
-    return f"PMSM_R({x!r})"
+#: observer class -> its family's emitter `(observer, T_s) -> CObserver`; looked up by
+#: the exact class (a subclass may change the step, so it needs its own entry)
+_EMITTERS: dict[type, Callable[[object, float], CObserver]] = {
+    ESOObserver: lambda o, T_s: _zhang2022.emit(o),
+    LESOObserver: lambda o, T_s: _zhang2022.emit(o),
+    AFOObserver: lambda o, T_s: _zhang2022.emit(o),
+    RotorFluxObserver: lambda o, T_s: _morawiec2023.emit(o),
+    ParallelModelObserver: _stumper.emit,
+    CLESOObserver: lambda o, T_s: _li.emit(o),
+    GILESOObserver: lambda o, T_s: _li.emit(o),
+    FALESOObserver: lambda o, T_s: _li.emit(o),
+}
 
 
 def _math_macros(float32: bool) -> str:
@@ -240,21 +226,13 @@ def render(observer, T_s: float, *, float32: bool = False) -> dict[str, str]:
     """The generated files `{name: text}` for `observer` (a registered observer of
     `SUPPORTED`) at sampling period `T_s` (s)."""
     check_positive("export_c", "T_s", T_s, "s")
-    from ..observers import ParallelModelObserver, RotorFluxObserver
-    from ..observers._leso import AbstractBackEMFLESO
-    from ._li import emit as emit_li
-    from ._morawiec2023 import emit as emit_morawiec
-    from ._stumper import emit as emit_stumper
-    from ._zhang2022 import emit as emit_zhang
-
-    if isinstance(observer, AbstractBackEMFLESO):
-        obs = emit_li(observer)
-    elif isinstance(observer, ParallelModelObserver):
-        obs = emit_stumper(observer, float(T_s))
-    elif isinstance(observer, RotorFluxObserver):
-        obs = emit_morawiec(observer)
-    else:
-        obs = emit_zhang(observer)
+    emitter = _EMITTERS.get(type(observer))
+    if emitter is None:
+        raise UnsupportedObserverError(
+            f"export-c has no C emitter for {type(observer).__name__}; it supports "
+            f"{', '.join(c.__name__ for c in _EMITTERS)} (the observers "
+            f"{', '.join(SUPPORTED)}).")
+    obs = emitter(observer, float(T_s))
     return {"pmsm_observer.h": _header(obs, float(T_s), float32),
             "pmsm_observer.c": _source(obs),
             "replay_main.c": REPLAY_MAIN}

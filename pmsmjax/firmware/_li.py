@@ -1,14 +1,14 @@
 r"""C emitter of the li-fa-leso back-EMF observers (`CLESOObserver`, `GILESOObserver`,
 `FALESOObserver`: "c-leso", "gi-leso", "fa-leso") with their quadrature PLL:
-`AbstractBackEMFLESO.step` line by line (`observers/_leso.py`).
+`AbstractBackEMFLESO.step` line by line (`observers/_back_emf_leso.py`).
 
 The exact ZOH discretisation is computed in C every sample as the exponential of the
 real augmented system at the PLL speed (the matrix whose transition `_propagator`
 returns), by a balanced scaling-and-squaring Taylor series (4 balancing sweeps, degree
 12, 6 squarings); the Python step computes the same transition in the half-size complex
-form (`_transition`), so the two agree to round-off. The observer's matrices `(A_s, B_s, C_s, D_x, D_1)` are read
-from the observer's own `_matrices(w_hat)`: each is fitted (and checked, to rounding)
-as a combination of the basis functions $1$, $\hat\omega$ and
+form (`_transition`), so the two agree to round-off. The observer's matrices
+`(A_s, B_s, C_s, D_x, D_1)` are read from the observer's own `_matrices(w_hat)`: each
+is fitted (and checked, to rounding) as a combination of the basis functions $1$, $\hat\omega$ and
 $\max(\hat\omega^2, w_c^2)$ ($w_c$ = 0 but for the GI-LESO), so a change of
 `_matrices` within that family needs no change here; a matrix outside it is refused.
 The PLL is `QuadraturePLL.step`.
@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..observers._leso import AbstractBackEMFLESO, GILESOObserver
-from ._emit import CObserver, lit, scalar as _f
+from ..observers import AbstractBackEMFLESO, GILESOObserver
+from ._c import CObserver, lit, model_defines, model_doc, scalar as _f
 
 
 _W_FIT = np.array([-5000.0, -900.0, -80.0, -3.0, 0.0, 0.4, 60.0, 700.0, 4200.0])
@@ -68,7 +68,6 @@ def _mat_c(name, coef) -> list[str]:
 
 def emit(observer: AbstractBackEMFLESO) -> CObserver:
     m = observer.motor
-    R_s, L_d, L_q, psi_f = (_f(m.R_s), _f(m.L_d), _f(m.L_q), _f(m.psi_f))
     p = observer.pll
     w_pll, zeta_pll, w_min = _f(p.w_pll), _f(p.zeta_pll), _f(p.w_min)
     fll = _f(p.fll)
@@ -97,10 +96,7 @@ def emit(observer: AbstractBackEMFLESO) -> CObserver:
     mat_decl = "".join(f"    pmsm_real {name}[{r}][{c}];\n" for name, (r, c) in shapes.items())
     mat_fill = "\n".join(line for name, coef in fits for line in _mat_c(name, coef))
     helpers = f"""/* observer model (SI) and PLL */
-#define PMSM_RS {lit(R_s)}
-#define PMSM_LD {lit(L_d)}
-#define PMSM_LQ {lit(L_q)}
-#define PMSM_PSIF {lit(psi_f)}
+{model_defines(m)}
 #define PMSM_WPLL {lit(w_pll)}
 #define PMSM_ZPLL {lit(zeta_pll)}
 #define PMSM_WMIN {lit(w_min)}
@@ -181,7 +177,8 @@ static void pmsm_expm(pmsm_real M[PMSM_N][PMSM_N])
         for (j = 0; j < PMSM_N; j++) M[i][j] = E[i][j] * d[i] / d[j];
 }}
 """
-    step = f"""{mat_decl}    pmsm_real M[PMSM_N][PMSM_N], v[PMSM_N], x1[2], sn[PMSM_NS], eps[2], e_hat[2];
+    step = f"""{mat_decl}    pmsm_real M[PMSM_N][PMSM_N], v[PMSM_N], x1[2], sn[PMSM_NS], \
+eps[2], e_hat[2];
     pmsm_real d_lam[2], half, x, sinc, cvec[2], delta[2], tmp[2], wh = s->w;
     pmsm_real theta = s->theta, w = s->w;
     int i, j;
@@ -306,7 +303,7 @@ static void pmsm_expm(pmsm_real M[PMSM_N][PMSM_N])
     title = f"{name} back-EMF observer of li-fa-leso with a quadrature PLL"
     doc = (
         f"Observer: {title}.",
-        f"Model: R_s = {R_s!r} Ohm, L_d = {L_d!r} H, L_q = {L_q!r} H, psi_f = {psi_f!r} V s.",
+        model_doc(m),
         f"Design: {', '.join(f'{k} = {_f(v)!r}' for k, v in observer._own_design().items())};",
         f"PLL: w_pll = {w_pll!r} rad/s, zeta_pll = {zeta_pll!r}, w_min = {w_min!r} rad/s.",
         "Step: the exact ZOH transition over T_s of the observer driven by the current",

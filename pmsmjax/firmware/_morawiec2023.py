@@ -11,7 +11,7 @@ while it turns by $\Delta\theta$ (exact integral, sinc rule).
 from __future__ import annotations
 
 from ..observers._rotor_flux import _SIGNS, RotorFluxObserver
-from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f
+from ._c import FLUX_STATE_INIT, CObserver, lit, model_defines, model_doc, scalar as _f
 
 
 _FIELDS = (
@@ -24,7 +24,6 @@ _FIELDS = (
 
 def emit(observer: RotorFluxObserver) -> CObserver:
     m = observer.motor
-    R_s, L_d, L_q, psi_f = (_f(m.R_s), _f(m.L_d), _f(m.L_q), _f(m.psi_f))
     c_alpha, c_lambda, k_c = _f(observer.c_alpha), _f(observer.c_lambda), _f(observer.k_c)
     c_theta, gamma = _f(observer.c_theta), _f(observer.gamma)
     k_theta = -_SIGNS[observer.theta_sign] * c_theta
@@ -34,10 +33,7 @@ def emit(observer: RotorFluxObserver) -> CObserver:
     dw_c = ("    *dw = PMSM_GAMMA * (cross - PMSM_KC * s_w);" if printed else
             "    *dw = -PMSM_GAMMA * (cross + PMSM_KC * sgn * s_w);")
     helpers = f"""/* observer model and gains (SI) */
-#define PMSM_RS {lit(R_s)}
-#define PMSM_LD {lit(L_d)}
-#define PMSM_LQ {lit(L_q)}
-#define PMSM_PSIF {lit(psi_f)}
+{model_defines(m)}
 #define PMSM_CALPHA {lit(c_alpha)}
 #define PMSM_CLAMBDA {lit(c_lambda)}
 #define PMSM_KC {lit(k_c)}
@@ -167,7 +163,7 @@ static void pmsm_rates(pmsm_real th, pmsm_real w, const pmsm_real psi[2],
         f"Observer: rotor-flux, {title}.",
         "M. Morawiec, A. Lewicki, I. C. Odeh, IEEE Trans. Ind. Electron. 70(12), 2023,",
         "doi:10.1109/TIE.2023.3250851.",
-        f"Model: R_s = {R_s!r} Ohm, L_d = {L_d!r} H, L_q = {L_q!r} H, psi_f = {psi_f!r} V s.",
+        model_doc(m),
         f"Gains: c_alpha = {c_alpha!r}, c_lambda = {c_lambda!r} 1/A, k_c = {k_c!r},",
         f"  c_theta = {c_theta!r} 1/s (v_theta = {k_theta!r} theta_lambda, sign "
         f"{observer.theta_sign}), gamma = {gamma!r} 1/(s^2 A^2);",

@@ -9,7 +9,7 @@ tracking filter and the speed low-pass (forward Euler).
 from __future__ import annotations
 
 from ..observers._parallel_model import E_MIN, RHO_MIN, ParallelModelObserver
-from ._emit import CObserver, lit, scalar as _f
+from ._c import CObserver, lit, model_defines, model_values, scalar as _f
 
 
 _FIELDS = (
@@ -35,7 +35,7 @@ _INIT = """    s->rho_prev = PMSM_R(0.0);
 
 def emit(observer: ParallelModelObserver, T_s: float) -> CObserver:
     m = observer.motor
-    R_s, L_d, L_q, psi_f = (_f(m.R_s), _f(m.L_d), _f(m.L_q), _f(m.psi_f))
+    R_s, L_d, L_q, psi_f = model_values(m)
     v1, v2, T_LP, T_w = (_f(observer.v1), _f(observer.v2), _f(observer.T_LP),
                          _f(observer.T_w))
     if not T_s < 2.0 * min(T_LP, T_w):
@@ -43,10 +43,7 @@ def emit(observer: ParallelModelObserver, T_s: float) -> CObserver:
                          f"{2.0 * min(T_LP, T_w)!r} s for the parallel-model observer "
                          f"(forward-Euler filters); got {T_s!r}.")
     helpers = f"""/* observer model and design (SI) */
-#define PMSM_RS {lit(R_s)}
-#define PMSM_LD {lit(L_d)}
-#define PMSM_LQ {lit(L_q)}
-#define PMSM_PSIF {lit(psi_f)}
+{model_defines(m)}
 #define PMSM_V1 {lit(v1)}
 #define PMSM_V2 {lit(v2)}
 #define PMSM_TLP {lit(T_LP)}

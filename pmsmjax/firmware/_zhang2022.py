@@ -15,9 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from .._data._gains_table import TabulatedDesign
-from ..observers import AFOObserver, ESOObserver, LESOObserver
-from ..observers._eso import ESODesign, FixedGains
-from ._emit import FLUX_STATE_INIT, CObserver, lit, scalar as _f
+from ..observers import AFOObserver, ESODesign, ESOObserver, FixedGains, LESOObserver
+from ._c import FLUX_STATE_INIT, CObserver, lit, model_defines, model_doc, scalar as _f
 
 
 _FIELDS = (
@@ -169,15 +168,11 @@ def emit(observer) -> CObserver:
         raise ValueError(f"export-c supports the observers eso, leso, afo; got "
                          f"{type(observer).__name__}.")
     m = observer.motor
-    R_s, L_d, L_q, psi_f = (_f(m.R_s), _f(m.L_d), _f(m.L_q), _f(m.psi_f))
     gains_c, gains_doc = _schedule_c(observer.design)
     afo = isinstance(observer, AFOObserver)
     helpers = [
         "/* observer model: R_s (Ohm), L_d, L_q (H), psi_f (V s) */",
-        f"#define PMSM_RS {lit(R_s)}",
-        f"#define PMSM_LD {lit(L_d)}",
-        f"#define PMSM_LQ {lit(L_q)}",
-        f"#define PMSM_PSIF {lit(psi_f)}",
+        model_defines(m),
         "",
         "/* model flux L i + psi_f in the frame at angle theta, from i_ab; also i_dq */",
         "static void pmsm_model_flux(const pmsm_real i_ab[2], pmsm_real theta,",
@@ -304,7 +299,7 @@ def emit(observer) -> CObserver:
         f"Observer: {name}, {title}.",
         "M. Zhang, B. Xia, J. Zhang, IEEE Trans. Energy Convers. 37(4), 2022,",
         "doi:10.1109/TEC.2022.3177707.",
-        f"Model: R_s = {R_s!r} Ohm, L_d = {L_d!r} H, L_q = {L_q!r} H, psi_f = {psi_f!r} V s.",
+        model_doc(m),
         f"Feedback: {fb}.",
         *gains_doc,
         *(() if isinstance(observer.design, FixedGains) else (

@@ -1,6 +1,13 @@
 """Position and speed observers. All implement the `AbstractObserver` contract; the
 registry (`make_observer`, `observer_names`) is the one place a name becomes one."""
 
+from .._control._limits import (
+    d_current_feedforward as d_current_feedforward,  # stumper (48), a control law
+)
+from ._back_emf_leso import (
+    AbstractBackEMFLESO as AbstractBackEMFLESO,
+    LESOState as LESOState,
+)
 from ._base import (
     AbstractObserver as AbstractObserver,
     ErrorCoordinates as ErrorCoordinates,
@@ -12,11 +19,8 @@ from ._base import (
 )
 from ._catch import CatchState as CatchState, FlyingCatch as FlyingCatch
 from ._eso import (
-    AbstractGainSchedule as AbstractGainSchedule,
     AFOObserver as AFOObserver,
-    ESODesign as ESODesign,
     ESOObserver as ESOObserver,
-    FixedGains as FixedGains,
     FluxObserverState as FluxObserverState,
     LESOObserver as LESOObserver,
 )
@@ -34,19 +38,23 @@ from ._eso_design import (
     sigma1 as sigma1,
     zhang38 as zhang38,
 )
-from ._leso import (
-    AbstractBackEMFLESO as AbstractBackEMFLESO,
+from ._eso_schedules import (
+    AbstractGainSchedule as AbstractGainSchedule,
+    ESODesign as ESODesign,
+    FixedGains as FixedGains,
+)
+from ._li_leso import (
     CLESOObserver as CLESOObserver,
     FALESOObserver as FALESOObserver,
     GILESOObserver as GILESOObserver,
-    LESOState as LESOState,
 )
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
     backemf_polar as backemf_polar,
-    d_current_feedforward as d_current_feedforward,
     parallel_model_angle as parallel_model_angle,
+)
+from ._parallel_model_sensitivity import (
     parallel_model_angle_printed as parallel_model_angle_printed,
     parallel_model_offset as parallel_model_offset,
     parallel_model_offsets_printed as parallel_model_offsets_printed,

@@ -16,10 +16,10 @@ $\mathrm{atan2}(\hat e_{k-3/2}\times\hat e_{k-1/2}, \hat e_{k-3/2}\cdot\hat e_{k
 At $k = n$ (`n` periods, default 64) the mean increment over $T_s$ is the speed
 $\hat\omega_c$ and the direction of the last $\hat e$, advanced by half a period, the angle
 ($\theta = \mathrm{atan2}(-\sigma\hat e_\alpha, \sigma\hat e_\beta)$, $\sigma =
-\mathrm{sign}\,\hat\omega_c$, as `flying_start`). If these show a turning rotor, the
-observer's state is replaced by `observer.init(theta, w)` at that sample; otherwise it
-runs on untouched (a rotor at rest or too slow: nothing to catch, and the drive's
-start-up, e.g. `IfStartup`, takes over).
+\mathrm{sign}\,\hat\omega_c$: `back_emf_angle`, as `flying_start`). If these show a
+turning rotor, the observer's state is replaced by `observer.init(theta, w)` at that
+sample; otherwise it runs on untouched (a rotor at rest or too slow: nothing to catch,
+and the drive's start-up, e.g. `IfStartup`, takes over).
 
 *Turning* means: the back-EMF is more than `TURNING_FRACTION` (a fifth) of the voltage
 on average over the window and it agrees with the speed it turns at, $\frac12 <
@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 
 from .._data._flying_start import model_back_emf
-from .._frames import rotation_between, wrap_angle
+from .._frames import back_emf_angle, rotation_between, wrap_angle
 from .._plant._params import PMSMParams
 from ._base import AbstractObserver, Estimate, Measurement
 
@@ -139,7 +139,7 @@ class FlyingCatch(AbstractObserver):
         # at k = n: the catch
         w_c = turn / ((self.n - 1) * T_s)
         sg = jnp.where(w_c < 0, -1.0, 1.0)
-        th_c = wrap_angle(jnp.arctan2(-sg * e[0], sg * e[1]) + 0.5 * w_c * T_s)
+        th_c = wrap_angle(back_emf_angle(e, sg) + 0.5 * w_c * T_s)
         e_mean = e_sum / self.n
         psi = jnp.abs(m.psi_f)
         ratio = e_mean / jnp.maximum(jnp.abs(w_c) * psi, jnp.finfo(dtype).tiny)

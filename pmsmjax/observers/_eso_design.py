@@ -88,7 +88,7 @@ def psi_a(motor: PMSMParams, i_dq):
     """Auxiliary flux zhang2022 (7) at current `i_dq` (A, estimator frame) -> (V s, (2,))."""
     dL = motor.L_d - motor.L_q
     i_dq = jnp.asarray(i_dq)
-    return jnp.stack([dL * i_dq[..., 0] + motor.psi_f, -dL * i_dq[..., 1]], -1)
+    return jnp.stack([motor.extended_flux(i_dq[..., 0]), -dL * i_dq[..., 1]], -1)
 
 
 def zhang38(w0, w_rated):

@@ -15,7 +15,9 @@ $$\hat e_P = u_P - \hat R\rho - \hat L\dot\rho = -\psi_f\omega\sin(\theta - \phi
 (stumper (13)-(14)): $(\hat e_P, \hat e_O)$ is the back-EMF vector in the frame of the
 current. Its angle gives the rotor angle (16)-(17), its length the speed (18)-(19).
 
-**Errata corrected here** (tests in `test_parallel_model.py` fail on the printed forms):
+**Errata corrected here** (tests in `test_parallel_model.py` fail on the printed forms,
+which `_parallel_model_sensitivity` keeps, with the paper's sensitivity analysis (21)-(32)
+and the closed-form offsets `parallel_model_offset`):
 
 - stumper (17): the case distinction on the sign of $-\hat L\rho\dot\phi - u_O$ is right
   only for $\omega > 0$: that quantity is $\psi_f\omega\cos(\theta - \phi)$ and changes
@@ -106,7 +108,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import rotate, wrap_angle
+from .._frames import back_emf_angle, rotate, wrap_angle
 from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive, is_concrete
 from ._base import (
@@ -155,134 +157,12 @@ def backemf_polar(u_P, u_O, rho, rho_dot, phi_dot, R_hat, L_hat):
     return u_P - R_hat * rho - L_hat * rho_dot, -u_O - L_hat * rho * phi_dot
 
 
-def _safe_atan2(y, x, fallback):
-    ok = x * x + y * y > E_MIN ** 2
-    return jnp.where(ok, jnp.arctan2(jnp.where(ok, y, 0.0), jnp.where(ok, x, 1.0)),
-                     fallback), ok
-
-
 def parallel_model_angle(e_P, e_O, phi, s):
     r"""stumper (16)-(17), corrected: $\hat\theta = \phi + \mathrm{atan2}(-s e_P, s e_O)$
-    (rad, not wrapped) for the rotation direction `s` (+1 or -1)."""
-    return phi + jnp.arctan2(-s * e_P, s * e_O)
-
-
-def parallel_model_angle_printed(e_P, e_O, phi):
-    """stumper (16)-(17) as printed: `-arctan((L rho_dot + R rho - u_P)/(L rho phi_dot +
-    u_O)) + phi`, plus pi where `-L rho phi_dot - u_O < 0`. Correct only for positive
-    speed (kept to show the erratum)."""
-    bar = -jnp.arctan((-e_P) / (-e_O)) + phi
-    return jnp.where(e_O >= 0, bar, bar + jnp.pi)
-
-
-def d_current_feedforward(i_q_ref, dw_ref_dt, v1, i_d0=0.0):
-    r"""stumper (48) with the sign corrected: $i_d^* = i_{d0}^* - \tan(\Delta\varphi_e)
-    i_q^*$ with the tracking filter's lag $\Delta\varphi_e = \dot\omega^*/v_1$ (39).
-
-    - `i_q_ref`: q current reference (A); `dw_ref_dt`: slope of the *electrical* speed
-      reference (rad/s^2, $n_p\dot\omega_M^*$); `v1`: tracking-filter gain (1/s^2);
-      `i_d0`: the constant d current (A).
-
-    During an acceleration the estimate lags ($\theta - \tilde\theta = \Delta\varphi_e >
-    0$), so a current $i_0$ set in the estimated frame is $e^{-\Delta\varphi_e J}i_0$ in
-    the rotor frame: its d component $i_d^*\cos\Delta\varphi_e + i_q^*\sin\Delta\varphi_e$
-    vanishes for $i_d^* = -\tan(\Delta\varphi_e)\,i_q^*$, a *negative* d current while
-    accelerating with positive torque (as the paper's experiment reports, -2.25 A). The
-    printed $+\tan$ doubles the misalignment instead.
-    """
-    return i_d0 - jnp.tan(dw_ref_dt / v1) * i_q_ref
-
-
-def parallel_model_offset(plant: PMSMParams, dR, dL, w_m, i_dq, *, frame="rotor",
-                        dpsi=0.0):
-    r"""Closed-form steady-state angle offset $\hat\theta - \theta$ (rad, estimate minus
-    true, as stumper (21)) of the raw estimator (16)-(17) under model errors.
-
-    Derivation: in steady state $\dot\rho = 0$, $\dot\phi = \omega$ and
-    $u = R i + L_q\,\omega J i + e_{ext}$ (extended back-EMF $\omega\psi_{ext}$ on the q
-    axis, $\psi_{ext} = \psi_f + (L_d - L_q)i_d$). The estimator subtracts
-    $\hat R i + \hat L\omega J i$, so its back-EMF is, in rotor coordinates,
-    $\hat e = [\Delta L\,\omega i_q - \Delta R\,i_d,\ \omega\psi_{ext} - \Delta R\,i_q
-    - \Delta L\,\omega i_d]$ with $\Delta R = \hat R - R$, $\Delta L = \hat L - L_q$ (estimate
-    minus true), and the offset is its angle from the q axis.
-
-    - `frame="rotor"`: `i_dq` is the current in rotor coordinates (open loop, stumper
-      (31)-(32) corrected; `s` = sign of the speed):
-      $\Delta\theta = \mathrm{atan2}(s(\Delta R i_d - \Delta L\omega i_q),
-      s(\omega\psi_{ext} - \Delta R i_q - \Delta L\omega i_d))$.
-    - `frame="estimated"`: `i_dq` is held in the estimated frame (closed loop, what the
-      controller's references are): the estimator's equilibrium is where $\hat e$ lies on
-      the estimated q axis, $\sin\Delta\theta = (\Delta R i_d - \Delta L\omega i_q)/
-      (\omega\psi_{ext})$ (isotropic machine; with saliency $\psi_{ext}$ depends on the
-      rotor-frame $i_d$ and is solved by fixed-point steps). NaN where no equilibrium
-      exists (|sin| > 1).
-
-    `dpsi`: unused by the angle (the estimator's angle does not depend on $\hat\psi_f$),
-    kept so that a mismatch in every model parameter can be passed. Broadcasts over
-    `dR` (Ohm), `dL` (H), `w_m` (rad/s, electrical), `i_dq` (A, `(..., 2)`).
-    """
-    del dpsi
-    i_dq = jnp.asarray(i_dq)
-    i_d, i_q = i_dq[..., 0], i_dq[..., 1]
-    w = jnp.asarray(w_m)
-    if frame == "rotor":
-        psi_ext = plant.psi_f + (plant.L_d - plant.L_q) * i_d
-        s = jnp.where(w >= 0, 1.0, -1.0)
-        return jnp.arctan2(s * (dR * i_d - dL * w * i_q),
-                           s * (w * psi_ext - dR * i_q - dL * w * i_d))
-    if frame == "estimated":
-        num = dR * i_d - dL * w * i_q
-        x = jnp.zeros_like(num * w)
-        for _ in range(8):
-            i_d_rot = i_d * jnp.cos(x) - i_q * jnp.sin(x)  # rotor frame: e^{x J} i_dq
-            psi_ext = plant.psi_f + (plant.L_d - plant.L_q) * i_d_rot
-            sn = num / (w * psi_ext)
-            x = jnp.where(jnp.abs(sn) <= 1.0, jnp.arcsin(jnp.clip(sn, -1.0, 1.0)), jnp.nan)
-        return x
-    raise ValueError(f"`parallel_model_offset(frame=...)` must be 'rotor' or 'estimated'; "
-                     f"got {frame!r}.")
-
-
-def parallel_model_sensitivity(u_P, u_O, rho, rho_dot, phi_dot, R, L, dR=0.0, dL=0.0,
-                                *, printed=False):
-    r"""The angle offsets (rad, estimate minus true, stumper (21) in electrical angle)
-    of the raw estimate (16) at one instant, for an inductance error `dL` (H) alone,
-    stumper (22)-(25), and for a resistance error `dR` (Ohm) alone, stumper (27)-(30);
-    `R` (Ohm), `L` (H): the true values; `u_P`, `u_O` (V), `rho` (A), `rho_dot` (A/s),
-    `phi_dot` (rad/s) as in (11)-(14). Positive speed (the rule of (16) without the
-    half-turn of (17)). Returns `(offset_L, offset_R)`.
-
-    Derivation: with $a = L\dot\rho + R\rho - u_P$ and $b = -(L\rho\dot\phi + u_O)$ the
-    exact angle is that of $(b, a)$; the estimator's is that of $(b - \Delta L\rho\dot
-    \phi, a + \Delta L\dot\rho + \Delta R\rho)$, and the angle between two vectors is
-    $\mathrm{atan}(v\times\hat v / v\cdot\hat v)$. For $\Delta L$ this is (22)-(25) as
-    printed; for $\Delta R$ it is $\mathrm{atan}(-\Delta R\,c_{R1}/(\Delta R\,c_{R2} +
-    c_{R3}))$: the printed (27) lacks the minus sign in the numerator (`printed=True`
-    returns the printed form).
-    """
-    a = L * rho_dot + R * rho - u_P
-    c3 = (L * rho * phi_dot + u_O) ** 2 + a ** 2
-    c_L1 = -u_O * rho_dot + rho * phi_dot * (R * rho - u_P)
-    c_L2 = rho * phi_dot * (L * rho * phi_dot + u_O) + rho_dot * a
-    c_R1 = rho * (L * rho * phi_dot + u_O)
-    c_R2 = rho * a
-    off_L = jnp.arctan(dL * c_L1 / (dL * c_L2 + c3))
-    sign = 1.0 if printed else -1.0
-    off_R = jnp.arctan(sign * dR * c_R1 / (dR * c_R2 + c3))
-    return off_L, off_R
-
-
-def parallel_model_offsets_printed(plant: PMSMParams, dR, dL, w_m, i_dq):
-    """stumper (31) and (32) as printed (rad): `(dtheta_L, dtheta_R)`, with
-    `n_p phi_M - phi = -atan2(i_q, i_d)` and the paper's K = `psi_f`, omega_M = w_m/n_p.
-    Kept to show the errata (see `parallel_model_offset` for the derivation)."""
-    i_dq = jnp.asarray(i_dq)
-    i_d, i_q = i_dq[..., 0], i_dq[..., 1]
-    n_p, K = plant.n_p, plant.psi_f
-    rho_sin, rho_cos = -i_q, i_d  # rho sin(n_p phi_M - phi), rho cos(...)
-    d_L = jnp.arctan(n_p * rho_sin * dL / (n_p * rho_cos * dL - K / n_p))
-    d_R = jnp.arctan(-rho_cos * dR / (rho_sin * dR - K * w_m / n_p))
-    return d_L, d_R
+    (rad, not wrapped) for the rotation direction `s` (+1 or -1): the back-EMF's angle
+    (`back_emf_angle`) in the frame of the current, plus that frame's angle `phi`. The
+    printed rule is `parallel_model_angle_printed` (`_parallel_model_sensitivity`)."""
+    return phi + back_emf_angle(jnp.stack([e_P, e_O], -1), s)
 
 
 class ParallelModelState(eqx.Module):
@@ -418,12 +298,14 @@ class ParallelModelObserver(AbstractObserver):
         # the resistive drop of the mean current (in continuous time [rho, 0])
         e_P = e_P + m.R_s * (rho_m - i_mean[0])
         e_O = e_O - m.R_s * i_mean[1]
-        ang, ok = _safe_atan2(-s * e_P, s * e_O, fallback - phi_m)
-        theta_raw = phi_m + ang
+        # the back-EMF's angle in the frame of phi_m; undefined (the fallback, with finite
+        # gradients) where the back-EMF vanishes
         e2 = e_P * e_P + e_O * e_O
+        ok = e2 > E_MIN ** 2
+        e_safe = jnp.stack([jnp.where(ok, e_P, 0.0), jnp.where(ok, e_O, 1.0)], -1)
+        theta_raw = phi_m + jnp.where(ok, back_emf_angle(e_safe, s), fallback - phi_m)
         e_mag = jnp.where(ok, jnp.sqrt(jnp.where(ok, e2, 1.0)), 0.0)
-        i_d_hat = rho_m * jnp.cos(phi_m - theta_raw)
-        K_ext = m.psi_f + (m.L_d - m.L_q) * i_d_hat
+        K_ext = m.extended_flux(rho_m * jnp.cos(phi_m - theta_raw))
         if T_s is None:
             w_abs = e_mag / K_ext
         else:  # |chord| = 2 K sin(w T_s / 2) / T_s over one interval
@@ -519,7 +401,6 @@ class ParallelModelObserver(AbstractObserver):
         # the current's angle in the estimated frame, gamma = phi - theta_tilde (held at
         # 0 without current)
         rho, gamma = polar(i0)
-        c_g, s_g = jnp.cos(gamma), jnp.sin(gamma)
         rho_dot_f = -x_rho
         phi_dot_f = w - x_phi
         Ld, Lq = plant.L_d, plant.L_q
@@ -541,13 +422,12 @@ class ParallelModelObserver(AbstractObserver):
 
         def raw(p):
             """(16)-(17) relative to the filter's angle, eps = theta_raw - theta_tilde
-            = gamma + atan2(y, x), as one atan2 of (x, y) turned by gamma; with the
-            Cartesian pair (X, Y) and the slope d eps / dp."""
-            y, x = -s * (A_P + p * B_P), s * (A_O + p * B_O)
-            dy, dx = -s * B_P, s * B_O
-            X, Y = c_g * x - s_g * y, s_g * x + c_g * y
-            r2 = jnp.maximum(x * x + y * y, E_MIN ** 2)
-            return jnp.arctan2(Y, X), r2, (x * dy - y * dx) / r2
+            = gamma + back_emf_angle(e, s), as one angle of the back-EMF e = (e_P, e_O)
+            turned by gamma; with |e|^2 and the slope d eps / dp."""
+            e_P, e_O = A_P + p * B_P, A_O + p * B_O
+            r2 = jnp.maximum(e_P * e_P + e_O * e_O, E_MIN ** 2)
+            eps = back_emf_angle(rotate(jnp.stack([e_P, e_O]), gamma), s)
+            return eps, r2, (e_P * B_O - e_O * B_P) / r2
 
         # Newton steps on p - z - v2 eps(p) = 0 (unrolled: the loop is smooth and well
         # conditioned where the error model is well posed, see the module docstring)
@@ -559,7 +439,7 @@ class ParallelModelObserver(AbstractObserver):
             p = p - (p - z - self.v2 * eps) / dg
         eps, r2, _ = raw(p)
         # (18)-(19): |e| over the extended flux, i_d along the raw estimate's d axis
-        K_ext = m.psi_f + (m.L_d - m.L_q) * rho * jnp.cos(gamma - eps)
+        K_ext = m.extended_flux(rho * jnp.cos(gamma - eps))
         w_raw = s * jnp.sqrt(r2) / K_ext
         dx_th = w - p
         dx_w = -self.v1 * eps
@@ -595,8 +475,7 @@ class ParallelModelObserver(AbstractObserver):
         s = jnp.where(w >= 0, 1.0, -1.0)
 
         def psi_ext(x):
-            return plant.psi_f + (plant.L_d - plant.L_q) * (i0[0] * jnp.cos(x)
-                                                            - i0[1] * jnp.sin(x))
+            return plant.extended_flux(i0[0] * jnp.cos(x) - i0[1] * jnp.sin(x))
 
         def branch(k):
             sn = jnp.clip(num / (w_s * plant.psi_f), -1.0, 1.0)

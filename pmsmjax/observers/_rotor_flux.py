@@ -148,7 +148,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import rotate, wrap_angle
+from .._frames import rotate, rotation_between, wrap_angle
 from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive
 from ._base import (
@@ -291,10 +291,8 @@ def _inductance_ab(motor: PMSMParams, theta):
 def flux_angle_error(lam_ab, lam_hat_ab):
     """$\\tilde\\theta_\\lambda$ of morawiec2023 (30)-(31) (rad): the angle from `lam_ab`
     to `lam_hat_ab`, atan2 of their cross and dot products (the quadrant-corrected
-    arctangent of $\\varphi$; see the module docstring on (31))."""
-    cross = lam_ab[..., 0] * lam_hat_ab[..., 1] - lam_ab[..., 1] * lam_hat_ab[..., 0]
-    dot = lam_ab[..., 0] * lam_hat_ab[..., 0] + lam_ab[..., 1] * lam_hat_ab[..., 1]
-    return jnp.arctan2(cross, dot)
+    arctangent of $\\varphi$; see the module docstring on (31)): `rotation_between`."""
+    return rotation_between(lam_ab, lam_hat_ab)
 
 
 # ---------------------------------------------------------------------------------------

@@ -206,14 +206,14 @@ def mismatch_offset(plant: pj.PMSMParams, model: pj.PMSMParams, w, i_dq_hat, G=1
         h = 1e-7
         d = (e_est(th + h).real * sg - f) / h
         th = th - f / d
-    return float(math.atan2(math.sin(th), math.cos(th)))
+    return float(pj.wrap_angle(th))
 
 
 def mismatch_offset_printed(plant, model, w, i_dq_hat, which: str) -> float:
     """li-fa-leso (42) (`which="R_s"`) or (43) (`"L_q"`) with $\\Delta X = \\hat X - X$
     (the reading that gives the right sign; see the module docstring); rad."""
     i_d, i_q = (float(v) for v in i_dq_hat)
-    E = w * (float(plant.psi_f) + (float(plant.L_d) - float(plant.L_q)) * i_d)
+    E = w * float(plant.extended_flux(i_d))
     if which == "R_s":
         dR = float(model.R_s) - float(plant.R_s)
         return math.atan(-dR * i_d / (E - dR * i_q))

@@ -277,7 +277,7 @@ def _torque_limit(drive):
     m = drive.three_phase_motor
     i_d0 = 0.05 * float(drive.base.I_b)
     i_q = math.sqrt(float(drive.i_max) ** 2 - i_d0 ** 2)
-    return float(drive.k_tau) * (float(m.psi_f) + (float(m.L_d) - float(m.L_q)) * i_d0) * i_q
+    return float(drive.k_tau) * float(m.extended_flux(i_d0)) * i_q
 
 
 #: Fig. 3's load: 95 % of the current-limited torque (the printed 8.8 N m needs 8.3 A)
@@ -317,8 +317,7 @@ def steady_state(rpm: float, load: float = LOAD_RATED, *, t_end: float = 0.3,
     w = rpm * RPM
     obs = ParallelModelObserver.from_drive(drive, L_hat=L_hat)
     m = drive.three_phase_motor
-    i_q0 = load / (float(drive.k_tau) * (float(m.psi_f) + (float(m.L_d) - float(m.L_q))
-                                        * 0.05 * float(drive.base.I_b)))
+    i_q0 = load / (float(drive.k_tau) * float(m.extended_flux(0.05 * float(drive.base.I_b))))
     sc = Scenario(t_end=t_end, w_m_ref=Profile.constant(w), tau_L=Profile.constant(load))
     tr = simulate(drive, _foc(drive, tau0=load), obs, sc, T_s=T_S, w_m0=w,
                   i_dq0=(0.05 * float(drive.base.I_b), i_q0), observer_u_dt=observer_u_dt)
@@ -347,8 +346,7 @@ def acceleration(load: float, *, feedforward: bool, t_end: float = 0.4,
     obs = ParallelModelObserver.from_drive(drive, L_hat=L_hat)
     m = drive.three_phase_motor
     i_d0 = 0.05 * float(drive.base.I_b)
-    i_q0 = load / (float(drive.k_tau) * (float(m.psi_f) + (float(m.L_d) - float(m.L_q))
-                                        * i_d0))
+    i_q0 = load / (float(drive.k_tau) * float(m.extended_flux(i_d0)))
     sc = Scenario(t_end=t_end, w_m_ref=Profile.ramp(t0, t1, w0, w1),
                   tau_L=Profile.constant(load))
     tr = simulate(drive, _foc(drive, feedforward=feedforward, tau0=load,

@@ -1,0 +1,390 @@
+r"""Back-EMF linear extended-state observers of li-fa-leso: C-LESO, GI-LESO and FA-LESO.
+
+Reference: Y. Li, Y. Hu, X. Ma, L. Liu, "Sensorless Control of Dual Three-Phase IPMSM
+Based on Frequency Adaptive Linear Extended State Observer" (li-fa-leso).
+
+**Model.** The equivalent back-EMF model li-fa-leso (4)-(6) in the stationary frame (for a
+dual three-phase machine: its alpha-beta subspace),
+$L_q\,di_{ab}/dt = u_{ab} - R_s i_{ab} - e_{ab}$, $e_{ab} = \omega[\psi_f + (L_d - L_q)
+i_d][-\sin\theta, \cos\theta]^T$, with $x_1 = i_{ab}$, $x_2 = -e_{ab}/L_q$ (7)-(8). The
+LESO with gain functions $l_1(t)$, $l_2(t)$ (9) estimates $\hat e_{ab} = -\hat L_q\hat x_2$
+(10); its transfer function is li-fa-leso (14),
+$\hat e/e = L_2(s)/(s^2 + (\mu + L_1(s))s + L_2(s))$. Each observer here is that LESO in
+the form of `AbstractBackEMFLESO` (`_back_emf_leso`: the exact discretisation, the
+steady state and the error coordinates), $\dot s = A_s s + B_s\varepsilon_1$,
+$\hat x_2 = C_s s + D_x\varepsilon_1$, with:
+
+- C-LESO (15)-(17): $l_1 = 2\omega_0 - \mu$, $l_2 = \omega_0^2$: $s = \hat x_2$,
+  $\dot{\hat x}_2 = -\omega_0^2\varepsilon_1$, $D_1 = -2\omega_0$.
+- GI-LESO (29)-(30): $L_2(s) = \omega_0^2 + G(s)$, $G(s) = 2K_r\omega_c s/(s^2 +
+  2\omega_c s + \omega_r^2)$: $s = (\hat x_2, r, q)$ with $\dot r = q$, $\dot q = \varepsilon_1 -
+  \omega_r^2 r - 2\omega_c q$, $\dot{\hat x}_2 = -\omega_0^2\varepsilon_1 - 2K_r\omega_c q$;
+  $\omega_r$ is the estimated speed (`resonance="estimated"`, the default) or fixed
+  (`"fixed"`, Table II's $\hat\omega_e = 100\pi$ on `li_dtp`).
+- FA-LESO (25)-(28): $L_1 = -j\hat\omega - \mu$, $L_2 = k_1 + k_2 s$: $s = z$ with
+  $\hat x_2 = -k_2\varepsilon_1 - z$, $\dot z = k_1\varepsilon_1$, $D_1 = \hat\omega J$.
+
+A `QuadraturePLL` (`_pll.py`) turns $\hat e_{ab}$ into $\hat\theta$, $\hat\omega$; the
+FA-LESO (and the GI-LESO with `resonance="estimated"`) adapt to that $\hat\omega$.
+
+**Lock, low speed, reversals** (measured, not from the paper; docs "Lock acquisition,
+start-up and reversals"): with the PLL's acquisition assist all three lock from any
+initial angle and speed estimate (zero and the wrong sign included) on a turning rotor,
+within 0.1 s on `li_dtp` at 0.5 p.u. (`analysis.lock_basin`); they keep the lock down to
+0.01 p.u. on zhang750 (matched model, ideal sensing); below the PLL's `w_min`
+(0.05 p.u.) its loop gain fades. They reverse through zero speed in the closed loop at
+about 1700 rad/s^2 (zhang750, 0.5 p.u.); the GI-LESO not at 2500 rad/s^2. At
+standstill they cannot see the angle: a drive starts them with `pmsmjax.IfStartup`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._plant._params import Drive, PMSMParams
+from .._validate import check_positive
+from ._back_emf_leso import AbstractBackEMFLESO, blk
+from ._base import ErrorCoordinates, OperatingPoint
+from ._pll import PLL_UNITS, QuadraturePLL
+
+
+#: Table II of li-fa-leso is given for `li_dtp`, whose rated electrical speed is 100 pi
+#: rad/s; `from_drive` scales every rate by w_rated / (100 pi) on other machines.
+_W_REF = 100.0 * math.pi
+
+
+def _coords(s_names, s_units, s_doc):
+    return ErrorCoordinates(
+        names=("eps_d", "eps_q", *s_names, "theta", "w"),
+        units=("A", "A", *s_units, "rad", "rad/s"), angle=2 + len(s_names),
+        doc=("current-estimate error x1_hat - i, rotor frame d axis, minus its designed "
+             "steady state", "the same, q axis", *s_doc,
+             "angle error theta - theta_hat", "speed error w - w_hat (PLL speed)"))
+
+
+def _check_motor(owner, motor):
+    if not isinstance(motor, PMSMParams):
+        raise ValueError(f"`{owner}(motor=...)` must be a `PMSMParams` (the observer's "
+                         f"machine model, alpha-beta subspace); got {type(motor).__name__}.")
+
+
+def _check_pll(owner, pll):
+    if not isinstance(pll, QuadraturePLL):
+        raise ValueError(f"`{owner}(pll=...)` must be a `QuadraturePLL`; got "
+                         f"{type(pll).__name__}.")
+
+
+def _scale(drive: Drive) -> float:
+    return float(drive.w_rated) / _W_REF
+
+
+class CLESOObserver(AbstractBackEMFLESO):
+    r"""Conventional LESO, li-fa-leso (9), (15)-(17), with a quadrature PLL.
+
+    $l_1 = 2\omega_0 - \mu$, $l_2 = \omega_0^2$ (16): $\hat e/e = \omega_0^2/(s^2 +
+    2\omega_0 s + \omega_0^2)$ (17), a low-pass whose phase lag
+    $2\arctan(\omega/\omega_0)$ becomes the steady-state angle error.
+
+    **Arguments:**
+
+    - `motor`: the observer's machine model (`PMSMParams`; uses $R_s$, $L_q$, and $L_d$,
+      $\psi_f$ in the PLL's normalisation).
+    - `w0`: observer bandwidth $\omega_0$ (rad/s), > 0.
+    - `pll`: `QuadraturePLL`.
+    """
+
+    motor: PMSMParams
+    w0: float
+    pll: QuadraturePLL
+
+    coordinates: ClassVar[ErrorCoordinates] = _coords(
+        ("x2_d", "x2_q"), ("A/s", "A/s"),
+        ("extended state x2_hat (= -e_hat/L_q) minus its steady state, rotor frame d",
+         "the same, q"))
+    design_units: ClassVar[dict[str, str]] = {
+        "w0": "rad/s, C-LESO bandwidth li-fa-leso (16)", **PLL_UNITS}
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "w0": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
+
+    def __init__(self, motor: PMSMParams, w0, pll: QuadraturePLL):
+        _check_motor("CLESOObserver", motor)
+        _check_pll("CLESOObserver", pll)
+        self.motor, self.w0, self.pll = motor, w0, pll
+
+    def __check_init__(self):
+        check_positive("CLESOObserver", "w0", self.w0, "rad/s")
+
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None, **design):
+        """Table II of li-fa-leso on `li_dtp` ($\\omega_0 = 500\\pi$), scaled by
+        `w_rated / (100 pi)` elsewhere; PLL `QuadraturePLL.for_speed(w_rated)`."""
+        motor = drive.three_phase_motor if motor is None else motor
+        obs = cls(motor, 500.0 * math.pi * _scale(drive),
+                  QuadraturePLL.for_speed(float(drive.w_rated)))
+        return obs.with_design(**design) if design else obs
+
+    def _own_design(self):
+        return {"w0": self.w0}
+
+    def _matrices(self, w_hat):
+        w0 = jnp.asarray(self.w0) + 0.0 * w_hat
+        z = 0.0 * w0
+        return (blk(z), blk(-w0 ** 2), blk(1.0 + z), blk(z), blk(-2.0 * w0))
+
+    def _complex_system(self, w_hat):
+        w0 = jnp.asarray(self.w0, jnp.result_type(w_hat, float))
+        k, b = -2.0 * w0, -w0 ** 2
+        return ((k, 1.0), (b, 0.0)), (-k, -b), 1.0, 0.0
+
+
+class GILESOObserver(AbstractBackEMFLESO):
+    r"""LESO with a generalised integrator, li-fa-leso (29)-(30), with a quadrature PLL.
+
+    $L_1 = 2\omega_0 - \mu$, $L_2(s) = \omega_0^2 + G(s)$,
+    $G(s) = 2K_r\omega_c s/(s^2 + 2\omega_c s + \omega_r^2)$ (30): $\hat e/e =
+    (G + \omega_0^2)/(s^2 + 2\omega_0 s + G + \omega_0^2)$ (29), order 4 per axis.
+    At $s = j\omega_r$ the integrator's gain is $K_r$, finite: (37)'s
+    "$|G(j\hat\omega_e)| \to \infty$" does not hold, and with Table II's
+    $K_r = 2\omega_0^2$ the GI-LESO keeps a lag $\arg(3\omega_0^2/(3\omega_0^2 - \omega^2 +
+    2j\omega_0\omega))$ at its resonance.
+
+    **Arguments:**
+
+    - `motor`, `pll`: as `CLESOObserver`.
+    - `w0`: bandwidth $\omega_0$ (rad/s); `K_r`: integrator gain (rad^2/s^2);
+      `w_c`: its attenuation coefficient $\omega_c$ (rad/s); all > 0.
+    - `w_r`: fixed resonant frequency (rad/s, used when `resonance="fixed"`), > 0.
+    - `resonance`: `"estimated"` ($\omega_r = |\hat\omega|$, the PLL's speed; default)
+      or `"fixed"` ($\omega_r$ = `w_r`). The resonance is floored at $\omega_c$ so that
+      the integrator stays a damped band-pass at standstill.
+    """
+
+    motor: PMSMParams
+    w0: float
+    K_r: float
+    w_c: float
+    w_r: float
+    pll: QuadraturePLL
+    resonance: str = eqx.field(static=True)
+
+    n_s: ClassVar[int] = 6
+    coordinates: ClassVar[ErrorCoordinates] = _coords(
+        ("x2_d", "x2_q", "r_d", "r_q", "q_d", "q_q"),
+        ("A/s", "A/s", "A s^2", "A s^2", "A s", "A s"),
+        ("extended state x2_hat minus its steady state, rotor frame d", "the same, q",
+         "generalised-integrator state r (dr/dt = q) minus steady state, d", "same, q",
+         "generalised-integrator state q minus steady state, d", "same, q"))
+    design_units: ClassVar[dict[str, str]] = {
+        "w0": "rad/s, LESO bandwidth li-fa-leso (16), (29)",
+        "K_r": "rad^2/s^2, generalised-integrator gain li-fa-leso (30)",
+        "w_c": "rad/s, generalised-integrator attenuation coefficient li-fa-leso (30)",
+        "w_r": "rad/s, fixed resonant frequency (resonance='fixed'; Table II 100 pi)",
+        **PLL_UNITS}
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "w0": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
+
+    def __init__(self, motor: PMSMParams, w0, K_r, w_c, w_r, pll: QuadraturePLL,
+                 resonance: str = "estimated"):
+        _check_motor("GILESOObserver", motor)
+        _check_pll("GILESOObserver", pll)
+        if resonance not in ("estimated", "fixed"):
+            raise ValueError(f"`GILESOObserver(resonance=...)` must be 'estimated' or "
+                             f"'fixed'; got {resonance!r}.")
+        self.motor, self.w0, self.K_r, self.w_c, self.w_r = motor, w0, K_r, w_c, w_r
+        self.pll, self.resonance = pll, resonance
+
+    def __check_init__(self):
+        for k, u in (("w0", "rad/s"), ("K_r", "rad^2/s^2"), ("w_c", "rad/s"),
+                     ("w_r", "rad/s")):
+            check_positive("GILESOObserver", k, getattr(self, k), u)
+
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None,
+                   resonance: str = "estimated", **design):
+        """Table II on `li_dtp`: $\\omega_0 = 500\\pi$, $K_r = 2\\omega_0^2$,
+        $\\omega_c = \\pi$, $\\omega_r = 100\\pi$ (used with `resonance="fixed"`); every
+        rate scaled by `w_rated / (100 pi)` on other machines."""
+        motor = drive.three_phase_motor if motor is None else motor
+        a = _scale(drive)
+        w0 = 500.0 * math.pi * a
+        obs = cls(motor, w0, 2.0 * w0 ** 2, math.pi * a, 100.0 * math.pi * a,
+                  QuadraturePLL.for_speed(float(drive.w_rated)), resonance=resonance)
+        return obs.with_design(**design) if design else obs
+
+    def _own_design(self):
+        return {"w0": self.w0, "K_r": self.K_r, "w_c": self.w_c, "w_r": self.w_r}
+
+    def fast_equilibria(self, plant: PMSMParams, op: OperatingPoint, n_grid=None):
+        r"""With the resonance at the estimated speed (`resonance="estimated"`): the
+        equilibria located on this observer's twin with the resonance fixed at
+        $\max(|\omega|, \omega_c)$, their stability from this observer's own Jacobian.
+        None with a fixed resonance (the generic route).
+
+        Why the twin has the same equilibria: at an equilibrium the PLL's integrator is at
+        rest and the estimated frame turns at the true speed, so $\hat\omega = \omega$,
+        and the resonance $\max(|\hat\omega|, \omega_c)$ takes the twin's value there;
+        every other equation is the same. The Jacobians differ in the speed-error column
+        (the resonance moves with $\hat\omega$), so stability is read from this
+        observer's. Why not the generic route directly: its inner least-squares solve at
+        fixed angle errors away from the equilibria oscillates for this observer (the
+        resonator's gain $K_r$ makes the residual strongly curved in the speed error:
+        undamped Gauss-Newton steps then never settle, and every point was reported
+        degenerate), while on the twin it converges as for the C-LESO. `n_grid`: the
+        generic route's grid (None: its default)."""
+        if self.resonance != "estimated":
+            return None
+        return _gi_twin_equilibria(self, plant, op, n_grid)
+
+
+    def _matrices(self, w_hat):
+        w0 = jnp.asarray(self.w0) + 0.0 * w_hat
+        z = 0.0 * w0
+        wr = (jnp.abs(w_hat) if self.resonance == "estimated"
+              else jnp.asarray(self.w_r) + z)
+        wr2 = jnp.maximum(wr ** 2, jnp.asarray(self.w_c) ** 2)
+        O, I2 = blk(z), blk(1.0 + z)
+        A = jnp.block([[O, O, blk(-2.0 * self.K_r * self.w_c + z)],
+                       [O, O, I2],
+                       [O, blk(-wr2), blk(-2.0 * self.w_c + z)]])
+        B = jnp.concatenate([blk(-w0 ** 2), O, I2], 0)
+        C = jnp.concatenate([I2, O, O], 1)
+        return A, B, C, O, blk(-2.0 * w0)
+
+    def _complex_system(self, w_hat):
+        # constant patterns times the coefficients (one elementwise expression, no
+        # assembly); rows and columns [x1, x2_hat, r, q]
+        dt = jnp.result_type(w_hat, float)
+        w0 = jnp.asarray(self.w0, dt)
+        wr = (jnp.abs(w_hat) if self.resonance == "estimated" else jnp.asarray(self.w_r, dt))
+        wr2 = jnp.maximum(wr ** 2, jnp.asarray(self.w_c, dt) ** 2)
+        P = _GI_PATTERNS.astype(dt)
+        Ao = (P[0] - 2.0 * w0 * P[1] - w0 ** 2 * P[2] - (2.0 * self.K_r * self.w_c) * P[3]
+              - wr2 * P[4] - (2.0 * self.w_c) * P[5])
+        g_i = 2.0 * w0 * P[1, :, 0] + w0 ** 2 * P[2, :, 0] - P[0, :, 0]
+        return Ao, g_i, (1.0, 0.0, 0.0), 0.0
+
+    def _complex_scale(self, w_hat):
+        r"""$[1, \omega_0, d_q/\omega_r, d_q]$, $d_q = \sqrt{\omega_0/(2K_r\omega_c)}$:
+        scales the cycles $x_1 \leftrightarrow \hat x_2$ ($\omega_0T_s$ each way),
+        $r \leftrightarrow q$ ($\omega_rT_s$) and $x_1 \to q \to \hat x_2$ to equal
+        entries, so the row-sum norm is about $3\omega_0T_s$ (0.47 at 100 us on
+        `li_dtp`)."""
+        w0 = jnp.asarray(self.w0) + 0.0 * w_hat
+        wr = (jnp.abs(w_hat) if self.resonance == "estimated"
+              else jnp.asarray(self.w_r) + 0.0 * w0)
+        wr = jnp.sqrt(jnp.maximum(wr ** 2, jnp.asarray(self.w_c) ** 2))
+        dq = jnp.sqrt(w0 / (2.0 * self.K_r * self.w_c))
+        return jnp.stack([jnp.ones_like(w0), w0, dq / wr, dq])
+
+
+def _unit(i, j, n=4):
+    return np.eye(n)[i][:, None] * np.eye(n)[j][None, :]
+
+
+#: The GI-LESO's complex observer matrix as constant patterns (`_complex_system`): the
+#: ones, then the entries of -2 w0, -w0^2, -2 K_r w_c, -w_r^2, -2 w_c.
+_GI_PATTERNS = np.stack([_unit(0, 1) + _unit(2, 3) + _unit(3, 0), _unit(0, 0), _unit(1, 0),
+                         _unit(1, 3), _unit(3, 2), _unit(3, 3)])
+
+
+class FALESOObserver(AbstractBackEMFLESO):
+    r"""Frequency-adaptive LESO, li-fa-leso (25)-(28), with a quadrature PLL.
+
+    $L_1(s) = -j\hat\omega - \mu$, $L_2(s) = k_1 + k_2 s$ (25): $\hat e/e = (k_1 + k_2 s)/
+    (s^2 - j\hat\omega s + k_1 + k_2 s)$ (26), unity gain and zero phase at
+    $s = j\hat\omega$ (19): no steady-state angle error at any constant speed, of either
+    sign, with a matched model. Stable for $k_1, k_2 > 0$ at every $\hat\omega$ (22)-(24);
+    the generalised Routh array's last entry is $a_2^{(2)} = k_1k_2^2$ (the printed
+    (23) drops a factor $k_2$, the sign is the same: `pmsmjax.analysis.routh_complex2`).
+
+    The price of (26) passing DC ($G(0) = 1$): one root of (22) sits near
+    $s \approx -k_1/(k_2 - j\hat\omega)$, real part $-k_1k_2/(k_2^2 + \hat\omega^2)$, about
+    $-0.08$ 1/s at 25 Hz with Table II's gains: a constant (stationary-frame) error in the
+    estimate, e.g. left by a start-up transient, decays with a time constant of about
+    10 s. It shows in the linearised error dynamics as a pair at $-0.08 \pm j\omega$
+    (`pmsmjax equilibria`), and the tuner's Hurwitz margin penalises it.
+
+    **Arguments:**
+
+    - `motor`, `pll`: as `CLESOObserver`.
+    - `k1` (1/s^2), `k2` (1/s): the gains of (25), > 0.
+    """
+
+    motor: PMSMParams
+    k1: float
+    k2: float
+    pll: QuadraturePLL
+
+    coordinates: ClassVar[ErrorCoordinates] = _coords(
+        ("z_d", "z_q"), ("A/s", "A/s"),
+        ("integral state z (x2_hat = -k2 eps - z) minus its steady state, rotor frame d",
+         "the same, q"))
+    design_units: ClassVar[dict[str, str]] = {
+        "k1": "1/s^2, FA-LESO gain k1 li-fa-leso (25)",
+        "k2": "1/s, FA-LESO gain k2 li-fa-leso (25)", **PLL_UNITS}
+    tunable: ClassVar[dict[str, tuple[float, float]]] = {
+        "k1": (0.1, 10.0), "k2": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
+
+    def __init__(self, motor: PMSMParams, k1, k2, pll: QuadraturePLL):
+        _check_motor("FALESOObserver", motor)
+        _check_pll("FALESOObserver", pll)
+        self.motor, self.k1, self.k2, self.pll = motor, k1, k2, pll
+
+    def __check_init__(self):
+        check_positive("FALESOObserver", "k1", self.k1, "1/s^2")
+        check_positive("FALESOObserver", "k2", self.k2, "1/s")
+
+    @classmethod
+    def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None, **design):
+        """Table II on `li_dtp`: $k_1 = 10\\pi$, $k_2 = 100\\pi$; scaled as time is
+        ($k_1$ by the square, $k_2$ by the ratio `w_rated / (100 pi)`) elsewhere."""
+        motor = drive.three_phase_motor if motor is None else motor
+        a = _scale(drive)
+        obs = cls(motor, 10.0 * math.pi * a ** 2, 100.0 * math.pi * a,
+                  QuadraturePLL.for_speed(float(drive.w_rated)))
+        return obs.with_design(**design) if design else obs
+
+    def _own_design(self):
+        return {"k1": self.k1, "k2": self.k2}
+
+    def _matrices(self, w_hat):
+        w_hat = jnp.asarray(w_hat)
+        z = 0.0 * w_hat
+        return (blk(z), blk(self.k1 + z), blk(-1.0 + z), blk(-self.k2 + z),
+                blk(z, w_hat))
+
+    def _complex_system(self, w_hat):
+        w_hat = jnp.asarray(w_hat)
+        dt = jnp.result_type(w_hat, float)
+        k2 = jnp.asarray(self.k2, dt)
+        k = jax.lax.complex(-k2, w_hat.astype(dt))
+        b = jnp.asarray(self.k1, dt)
+        return ((k, -1.0), (b, 0.0)), (-k, -b), -1.0, -k2
+
+
+@eqx.filter_jit
+def _gi_twin_equilibria(obs, plant, op, n_grid):
+    # `GILESOObserver.fast_equilibria`, one compiled program (inlined under an outer
+    # jit): run op by op, the twin's generic route traced its loops anew at every call
+    # (about 25 s per operating point)
+    from ..analysis._generic import _make_scaled, equilibria_traced, jacobian_readout
+
+    dtype = jnp.result_type(op.w_m, float)
+    wr = jnp.maximum(jnp.abs(jnp.asarray(op.w_m, dtype)), jnp.asarray(obs.w_c, dtype))
+    twin = GILESOObserver(obs.motor, obs.w0, obs.K_r, obs.w_c, wr, obs.pll,
+                          resonance="fixed")
+    grid = {} if n_grid is None else {"n_grid": n_grid}
+    eq = equilibria_traced(twin, plant, op, method="generic", **grid)
+    sys = _make_scaled(obs, plant, op, 1.0)
+    z = jnp.where(eq.valid[:, None], eq.x, 0.0) / sys.scale
+    A = jax.vmap(jax.jacfwd(sys.F))(z)  # scaled, as the generic route's test
+    _, hurwitz, A_si = jacobian_readout(sys, A)
+    stable = eq.valid & hurwitz & ~eq.tangent
+    return eqx.tree_at(lambda e: (e.stable, e.jacobian), eq,
+                       (stable, jnp.where(eq.valid[:, None, None], A_si, jnp.nan)))
