@@ -50,10 +50,7 @@ from ..observers._base import OperatingPoint
 from ..observers._eso_design import eso_gains, psi_a, zhang38
 from ._args import as_arrays, check_observer
 from ._classify import DesignClass, _class_from_equilibria, _resolve_classify
-from ._closed_form import (
-    _closed_form_classify,  # noqa: F401  (imported here by observers/_eso.py)
-    _closed_form_jit,
-)
+from ._closed_form import _closed_form_jit
 from ._equilibria import eso_equilibria
 from ._generic import equilibria_traced
 from ._linearize import check_frame

@@ -64,12 +64,8 @@ import optimistix as optx
 from .._plant._params import Drive, PMSMParams
 from .._sim._batching import values_as_arrays
 from ..observers._base import AbstractObserver, OperatingPoint
-from ..observers._eso import (
-    AbstractGainSchedule,
-    ESOObserver,
-    LESOObserver,
-    _AbstractFluxObserver,
-)
+from ..observers._eso import ESOObserver, LESOObserver, _AbstractFluxObserver
+from ..observers._eso_schedules import AbstractGainSchedule
 from ._args import as_arrays
 from ._linearize import check_frame, eso_rhs
 

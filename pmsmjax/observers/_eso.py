@@ -357,7 +357,7 @@ class _AbstractESO(_AbstractFluxObserver):
                 and d.schedule != "fixed_w1" and is_concrete((d.n2, d.n3))
                 and float(d.n2) == 0.0 and float(d.n3) == 0.0):
             return None
-        from ..analysis._feasibility import _closed_form_classify
+        from ..analysis._closed_form import _closed_form_classify
 
         zeta1, w1 = d.zeta1_w1(w_m)
         aw = jnp.abs(w_m)

@@ -252,9 +252,3 @@ def _components(e_ab, c, s):
     return -(e0 * c + e1 * s), -e0 * s + e1 * c
 
 
-def default_pll_design(w_rated) -> dict:
-    """`{w_pll, zeta_pll, w_min}` of `QuadraturePLL.for_speed(w_rated)` (SI; the
-    assist's `fll` keeps its default and is not a design parameter)."""
-    p = QuadraturePLL.for_speed(float(w_rated))
-    return {"w_pll": p.w_pll, "zeta_pll": p.zeta_pll, "w_min": p.w_min}
-
