@@ -198,7 +198,7 @@ def _with_ratios(rows: list[dict]) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    ap = h.parser(__doc__, MODULE, quick_help="batch 1, 1000 samples, no closed loop, "
+    ap = h.parser(__doc__, MODULE, quick_help="batch 1, no closed loop, "
                   "fewer repeats: every observer in under a minute")
     ap.add_argument("--observers", default=None,
                     help="comma-separated observers of the registry (default: all)")
@@ -225,7 +225,7 @@ def main(argv=None) -> int:
                dtypes=args.dtypes.split(","), loop_batches=_ints(args.loop_batches),
                loop_steps=args.loop_steps, repeats=5, per_sample=0.2)
     if args.quick:
-        cfg.update(batches=[1], steps=1000, loop_batches=[], repeats=2, per_sample=0.02)
+        cfg.update(batches=[1], loop_batches=[], repeats=3, per_sample=0.05)
     import pmsmjax  # noqa: F401  (its XLA flags before JAX starts)
 
     print(h.machine_line())
