@@ -39,10 +39,10 @@ docs: $(VENV)/.installed-tests
 	$(VENV)/bin/mkdocs build --strict
 
 bench: $(VENV)/.installed-tests
-	$(PY) benchmarks/bench_simulate.py
+	$(PY) -m benchmarks.throughput.simulate --json $(OUT)/benchmarks/throughput.simulate.json
 
 stress: $(VENV)/.installed-tests
-	$(PY) benchmarks/stress_hang.py --out $(OUT)/stress
+	$(PY) -m benchmarks.reproducers.stress_hang --out $(OUT)/stress --json $(OUT)/stress/stress.json
 
 # Resolve the newest versions allowed by pyproject.toml in a scratch environment, run
 # nothing, and write them to constraints.txt (review the diff, then run `make test`).

@@ -172,13 +172,9 @@ def test_docs_command_lines_parse():
 
 
 def test_quick_start_benchmark_times_the_readme_commands():
-    """benchmarks/bench_startup.py --readme times the README's quick start as written."""
-    import importlib.util
+    """benchmarks/commands/startup.py --readme times the README's quick start as written."""
+    from benchmarks.commands import startup as bench
 
-    spec = importlib.util.spec_from_file_location(
-        "bench_startup", ROOT / "benchmarks" / "bench_startup.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
     readme = [argv for argv in command_lines(ROOT / "README.md")
               if _program(argv)[0] == "pmsmjax"]
     timed = [[a.replace("{tmp}/", "") for a in cmd]

@@ -162,15 +162,11 @@ def test_release_compiled_drops_the_mappings_of_compiled_programs():
 @pytest.mark.skipif((pj.runtime.memory_maps() or (0, 0))[1] > 300_000,
                     reason="vm.max_map_count too large to fill in a test")
 def test_the_mapping_limit_kills_compilation_and_release_compiled_prevents_it():
-    """benchmarks/map_limit.py: a process with all but 60 of its allowed mappings taken
-    dies within a few compilations (a segfault after LLVM's "Cannot allocate memory" when
-    run alone; an abort in one full-suite run); releasing compiled programs after each
-    one keeps it alive through 12."""
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
-    try:
-        import map_limit
-    finally:
-        sys.path.pop(0)
+    """benchmarks/reproducers/map_limit.py: a process with all but 60 of its allowed
+    mappings taken dies within a few compilations (a segfault after LLVM's "Cannot
+    allocate memory" when run alone; an abort in one full-suite run); releasing compiled
+    programs after each one keeps it alive through 12."""
+    from benchmarks.reproducers import map_limit
     dies = map_limit.run(headroom=60, programs=12, release=False, timeout=280)
     assert dies["fatal_signal"] and dies["out_of_memory"] and not dies["finished"], dies
     assert dies["compiled"] < 12

@@ -6,29 +6,28 @@ run compiles and fills the cache ("cold"), the second finds its programs there (
 A third configuration runs with the cache switched off (`PMSMJAX_CACHE=0`), which is what
 every run cost before the cache. Wall time of the whole process, best of `--repeats`.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_startup.py [--quick | --readme] [--out FILE.json]
+    python -m benchmarks.commands.startup            # every command, the main job's --quick
+    python -m benchmarks.commands.startup --full-job # ... and the full main job (make run)
+    python -m benchmarks.commands.startup --readme   # the README's quick start
+    python -m benchmarks.commands.startup --quick    # the same as --readme
 
-`--quick` leaves out the full main job (`python -m tuning`, about 2 minutes) and runs its
-`--quick` variant instead. `--readme` runs only the README's three quick-start commands
+`--readme` (and `--quick`) runs only the README's three quick-start commands
 (`README_QUICK_START`, in the README's order), which the README says take a few seconds.
 """
 
 from __future__ import annotations
 
-import argparse
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
+from .. import _harness as h
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import write_report  # noqa: E402
+
+MODULE = "benchmarks.commands.startup"
 
 
 #: The README's quick start (keep in step with README.md; `--readme` times it).
@@ -50,7 +49,7 @@ def readme_commands(tmp: Path) -> dict[str, list[str]]:
             for name, cmd in README_QUICK_START.items()}
 
 
-def commands(tmp: Path, quick: bool) -> dict[str, list[str]]:
+def commands(tmp: Path, full_job: bool) -> dict[str, list[str]]:
     data = tmp / "sim" / "recording.npz"  # written by the simulate run
     cmds = {
         "simulate (default run)": ["-m", "pmsmjax", "simulate", "--out", str(tmp / "sim"),
@@ -65,41 +64,40 @@ def commands(tmp: Path, quick: bool) -> dict[str, list[str]]:
         "equilibria": ["-m", "pmsmjax", "equilibria", "--speed", "0.5", "--json"],
         "certify --quick": ["-m", "pmsmjax", "certify", "--quick", "--json"],
     }
-    if quick:
-        cmds["main job --quick"] = ["-m", "tuning", "--quick", "--no-progress", "--no-plot",
-                                    "--out", str(tmp / "tune")]
-    else:
+    if full_job:
         cmds["main job (make run)"] = ["-m", "tuning", "--no-progress", "--out",
                                        str(tmp / "tune")]
+    else:
+        cmds["main job --quick"] = ["-m", "tuning", "--quick", "--no-progress", "--no-plot",
+                                    "--out", str(tmp / "tune")]
     return cmds
 
 
 def timed(args, env) -> float:
-    t0 = time.perf_counter()
-    res = subprocess.run([sys.executable, *args], env=env, capture_output=True, text=True)
-    wall = time.perf_counter() - t0
-    if res.returncode not in (0, 1):
-        raise SystemExit(f"{' '.join(args)} failed ({res.returncode}):\n{res.stderr[-2000:]}")
-    return wall
+    """Wall time of `python ARGS` in a fresh process (exit 0 or 1: a verdict, not a failure)."""
+    c = h.run_child([sys.executable, *args], env, check=False)
+    if c.returncode not in (0, 1):
+        raise SystemExit(f"{' '.join(args)} failed ({c.returncode}):\n{c.stderr[-2000:]}")
+    return c.wall_s
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the README's quick start (as --readme)")
     ap.add_argument("--readme", action="store_true",
                     help="only the README's quick-start commands")
+    ap.add_argument("--full-job", action="store_true",
+                    help="the full main job (make run, minutes) instead of its --quick")
     ap.add_argument("--repeats", type=int, default=1)
-    ap.add_argument("--out", default="results/bench_startup.json")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="pmsmjax-startup-"))
     rows = []
     try:
-        cmds = readme_commands(tmp) if args.readme else commands(tmp, args.quick)
+        readme = args.readme or args.quick
+        cmds = readme_commands(tmp) if readme else commands(tmp, args.full_job)
         for name, cmd in cmds.items():
             cache = tmp / "cache"
             shutil.rmtree(cache, ignore_errors=True)
-            env = dict(os.environ, PMSMJAX_CACHE_DIR=str(cache), MPLBACKEND="Agg")
-            env.pop("PMSMJAX_CACHE", None)
+            env = h.child_env(cache=str(cache))
             off = min(timed(cmd, dict(env, PMSMJAX_CACHE="0")) for _ in range(args.repeats))
             cold = timed(cmd, env)
             warm = min(timed(cmd, env) for _ in range(args.repeats))
@@ -108,12 +106,12 @@ def main():
                   flush=True)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    print("\n| command | no cache (s) | cold (s) | warm (s) |\n|---|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['command']} | {r['no_cache_s']:.1f} | {r['cold_s']:.1f} | "
-              f"{r['warm_s']:.1f} |")
-    write_report(args.out, rows)
+    print(h.machine_line())
+    h.table(rows, [("command", "command", ""), ("no cache (s)", "no_cache_s", ".1f"),
+                   ("cold (s)", "cold_s", ".1f"), ("warm (s)", "warm_s", ".1f")])
+    h.write_report(args.json, rows, benchmark=MODULE, repeats=args.repeats)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -7,28 +7,25 @@ The persistent compilation cache is off (`PMSMJAX_CACHE=0`), so every program co
 as on a machine that runs the job for the first time. `--repeat N` runs the job N times
 (fresh processes) and reports each.
 
-Usage:
+`--quick` runs a smaller job: `--quick --peers local --search local` (the local search
+alone, no gradient program), which compiles the closed-loop batches but not the tuner's
+gradient.
 
-    .venv/bin/python benchmarks/bench_tuner_compile.py [--repeat 1] [--timeout 900]
-        [--out results/bench_tuner_compile.json]
+Usage (from the repository root):
+
+    python -m benchmarks.compile.tuner [--repeat 1] [--timeout 900] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import write_report  # noqa: E402
+from .. import _harness as h
 
 
-ROOT = Path(__file__).resolve().parents[1]
+MODULE = "benchmarks.compile.tuner"
 
 #: The child: count JAX's compile events, run the quick job, print one JSON line last.
 CHILD = r"""
@@ -57,42 +54,42 @@ def report():
         tracing_s=acc[ev + "jaxpr_trace_duration"],
         largest=sorted(per, key=lambda p: -p[1])[:8])))
 atexit.register(report)
-sys.argv = ["tuning", "--quick", "--no-plot", "--no-progress", "--out", sys.argv[1]]
+sys.argv = ["tuning", "--quick", "--no-plot", "--no-progress", "--out", *sys.argv[1:]]
 runpy.run_module("tuning", run_name="__main__")
 """
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeat", type=int, default=1)
-    ap.add_argument("--timeout", type=float, default=900.0)
-    ap.add_argument("--out", default=str(ROOT / "results" / "bench_tuner_compile.json"))
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the local search alone (no gradient program)")
+    ap.add_argument("--repeat", type=int, default=1, help="runs, each a fresh process")
+    ap.add_argument("--timeout", type=float, default=900.0, help="limit per run, s")
     args = ap.parse_args(argv)
     if args.repeat < 1:
         ap.error(f"--repeat must be >= 1; got {args.repeat}")
-    env = dict(os.environ, PMSMJAX_CACHE="0")
+    extra = ["--peers", "local", "--search", "local"] if args.quick else []
+    env = h.child_env(cache=False)
     rows = []
     for k in range(args.repeat):
         with tempfile.TemporaryDirectory() as d:
-            p = subprocess.run([sys.executable, "-c", CHILD, str(Path(d) / "out")],
-                               capture_output=True, text=True, timeout=args.timeout,
-                               env=env, cwd=ROOT)
-        if p.returncode != 0:
-            sys.exit(f"run {k + 1}: the tuning job failed:\n{p.stderr[-3000:]}")
-        r = json.loads(p.stdout.strip().splitlines()[-1])
-        verdict = [ln for ln in p.stdout.splitlines() if ln.startswith("verdict:")]
+            c = h.python_child(CHILD, str(Path(d) / "out"), *extra, env=env,
+                               timeout=args.timeout)
+        if c.timed_out:
+            raise SystemExit(f"run {k + 1}: the tuning job ran past {args.timeout} s")
+        r = c.result
+        verdict = [ln for ln in c.stdout.splitlines() if ln.startswith("verdict:")]
         r["verdict"] = verdict[-1] if verdict else None
-        rows.append(r)
-    print("| run | wall s | CPU s | programs | >= 1 s | XLA compile s | lowering s | "
-          "tracing s |\n|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for k, r in enumerate(rows, 1):
-        print(f"| {k} | {r['wall_s']:.1f} | {r['cpu_s']:.1f} | {r['programs']} | "
-              f"{r['programs_over_1s']} | {r['backend_compile_s']:.1f} | "
-              f"{r['lowering_s']:.1f} | {r['tracing_s']:.1f} |")
+        rows.append(dict(run=k + 1, **r))
+    print(h.machine_line())
+    h.table(rows, [("run", "run", "d"), ("wall s", "wall_s", ".1f"), ("CPU s", "cpu_s", ".1f"),
+                   ("programs", "programs", "d"), (">= 1 s", "programs_over_1s", "d"),
+                   ("XLA compile s", "backend_compile_s", ".1f"),
+                   ("lowering s", "lowering_s", ".1f"), ("tracing s", "tracing_s", ".1f")])
     print("largest programs (s):", ", ".join(f"{n} {s:.1f}" for n, s in rows[0]["largest"]))
     print(rows[0]["verdict"])
-    write_report(args.out, rows, loadavg=os.getloadavg())
+    h.write_report(args.json, rows, benchmark=MODULE, job_args=["--quick", *extra],
+                   loadavg=os.getloadavg())
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -12,6 +12,8 @@ case: the wall time of the command, the CPU time of the command and its worker p
 
 Cases (`--cases`, comma-separated; default all):
 
+- `eso-quick`: `--quick --observers eso --jobs 1`, cold (the `--quick` run of this
+  benchmark);
 - `quick-1`, `quick-2`: `--quick` (8 observers, paper designs), `--jobs 1` / `--jobs 2`, cold;
 - `quick-warm`: `--quick --jobs 2` again with the cache of `quick-2`;
 - `default-2`: the default job (8 observers, paper and tuned designs, equilibrium
@@ -21,19 +23,16 @@ Cases (`--cases`, comma-separated; default all):
 - `eso-2proc`: the same on two `jax.distributed` processes (`--coordinator
   localhost:PORT --num-processes 2 --process-id 0/1`), cold.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_compare.py [--cases quick-2,quick-warm] [--out F.json]
+    python -m benchmarks.commands.compare [--cases quick-2,quick-warm] [--quick]
+
+Without `--cases` every case but `eso-quick` runs (about 15 minutes on 2 cores).
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
-import os
-import platform
-import resource
 import shutil
 import socket
 import subprocess
@@ -42,11 +41,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from .. import _harness as h
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
 
+MODULE = "benchmarks.commands.compare"
 CASES = {
+    "eso-quick": dict(args=["--quick", "--observers", "eso", "--jobs", "1"],
+                      cache="eso-quick"),
     "quick-1": dict(args=["--quick", "--jobs", "1"], cache="quick-1"),
     "quick-2": dict(args=["--quick", "--jobs", "2"], cache="quick-2"),
     "quick-warm": dict(args=["--quick", "--jobs", "2"], cache="quick-2", warm=True),
@@ -65,11 +66,6 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _children_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
-
-
 def run_case(name: str, work: Path) -> dict:
     spec = CASES[name]
     cache = work / "cache" / spec["cache"]
@@ -77,13 +73,13 @@ def run_case(name: str, work: Path) -> dict:
         shutil.rmtree(cache, ignore_errors=True)
     out = work / "jobs" / name
     shutil.rmtree(out, ignore_errors=True)
-    env = dict(os.environ, PMSMJAX_CACHE_DIR=str(cache), **spec.get("env", {}))
+    env = h.child_env(cache=str(cache), **spec.get("env", {}))
     base = [sys.executable, "-m", "tuning", "compare", "--out", str(out), "--no-plot",
             "--no-progress", *spec["args"]]
     procs = spec.get("procs", 1)
-    cpu0, t0 = _children_cpu(), time.perf_counter()
+    cpu0, t0 = h.children_cpu(), time.perf_counter()
     if procs == 1:
-        p = subprocess.run(base, env=env, cwd=REPO, capture_output=True, text=True)
+        p = subprocess.run(base, env=env, cwd=h.ROOT, capture_output=True, text=True)
         codes = [p.returncode]
         tail = p.stderr[-2000:]
     else:
@@ -91,13 +87,13 @@ def run_case(name: str, work: Path) -> dict:
         ps = [subprocess.Popen(base + ["--coordinator", f"localhost:{port}",
                                        "--num-processes", str(procs), "--process-id",
                                        str(i)], env=dict(env, JAX_PLATFORMS="cpu"),
-                               cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               cwd=h.ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True) for i in range(procs)]
         outs = [q.communicate() for q in ps]
         codes = [q.returncode for q in ps]
         tail = outs[0][1][-2000:]
     wall = time.perf_counter() - t0
-    cpu = _children_cpu() - cpu0
+    cpu = h.children_cpu() - cpu0
     if any(codes):
         raise RuntimeError(f"case {name}: exit {codes}\n{tail}")
     timing = json.loads((out / "timing.json").read_text())
@@ -120,34 +116,30 @@ def run_case(name: str, work: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--cases", default=",".join(CASES))
-    ap.add_argument("--out", default=str(HERE / "out" / "bench_compare.json"))
+    ap = h.parser(__doc__, MODULE, quick_help="the case eso-quick only")
+    ap.add_argument("--cases", default=None,
+                    help=f"comma-separated cases of {', '.join(CASES)}")
     ap.add_argument("--work", default=None, help="work folder (default: a temporary one)")
     args = ap.parse_args(argv)
-    names = [c for c in args.cases.split(",") if c]
+    names = [c for c in (args.cases or ("eso-quick" if args.quick else ",".join(
+        c for c in CASES if c != "eso-quick"))).split(",") if c]
     unknown = [c for c in names if c not in CASES]
     if unknown:
         ap.error(f"unknown cases {unknown}; choose from {', '.join(CASES)}")
     work = Path(args.work) if args.work else Path(tempfile.mkdtemp(prefix="bench_compare"))
     rows = []
-    print(f"{'case':<11} {'wall s':>8} {'CPU s':>8} {'obs':>4} {'runs':>6} "
-          f"{'steps/s':>10} {'compile s':>10} devices")
     for n in names:
-        r = run_case(n, work)
-        rows.append(r)
-        sps = f"{r['steps_per_s']:.3g}" if r["steps_per_s"] else "-"
-        print(f"{n:<11} {r['wall_s']:8.1f} {r['cpu_s']:8.1f} {r['observers']:4d} "
-              f"{r['runs']:6d} {sps:>10} {r['sweep_compile_s']:10.1f} {r['devices']}",
-              flush=True)
-    res = dict(benchmark="bench_compare", date=datetime.datetime.now().isoformat(
-        timespec="seconds"), machine=dict(node=platform.node(), cpus=os.cpu_count(),
-                                          python=platform.python_version(),
-                                          processor=platform.processor()),
-               load_average=os.getloadavg(), rows=rows)
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(res, indent=1))
-    print(f"wrote {args.out}")
+        rows.append(run_case(n, work))
+        print(f"  {n}: {rows[-1]['wall_s']:.1f} s", flush=True)
+    if not args.work:
+        shutil.rmtree(work, ignore_errors=True)
+    print(h.machine_line())
+    h.table(rows, [("case", "case", ""), ("wall s", "wall_s", ".1f"), ("CPU s", "cpu_s", ".1f"),
+                   ("observers", "observers", "d"), ("runs", "runs", "d"),
+                   ("drive-steps/s", "steps_per_s", ".3g"),
+                   ("sweep compile s", "sweep_compile_s", ".1f"),
+                   ("devices", lambda r: ",".join(map(str, r["devices"])), "")])
+    h.write_report(args.json, rows, benchmark=MODULE)
     return 0
 
 

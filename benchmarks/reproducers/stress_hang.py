@@ -55,22 +55,22 @@ Variants (process settings, applied before JAX starts):
 the custom calls to the Python CPU callback in their HLO, and how many of them a `while`
 body reaches (the ingredient of the public reports of hangs with asynchronous dispatch).
 
-Usage (results go to BENCHMARKS.md):
+Usage (from the repository root; `make stress` runs the defaults):
 
-    .venv/bin/python benchmarks/stress_hang.py [--runs 100] [--procs 3] [--load 2]
+    python -m benchmarks.reproducers.stress_hang [--runs 100] [--procs 3] [--load 2]
         [--variants default,small_loops,...] [--workloads certificate,loop]
-        [--timeout 120] [--out results/stress]
-    .venv/bin/python benchmarks/stress_hang.py --count-callbacks
+        [--timeout 120] [--out results/benchmarks/stress]
+    python -m benchmarks.reproducers.stress_hang --count-callbacks
+    python -m benchmarks.reproducers.stress_hang --quick   # 2 closed-loop iterations
+
+Stack dumps of hangs go to `--out`, the counts to `--json`.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import math
 import os
-import platform
 import queue
 import shutil
 import subprocess
@@ -78,6 +78,11 @@ import sys
 import threading
 import time
 from pathlib import Path
+
+from .. import _harness as h
+
+
+MODULE = "benchmarks.reproducers.stress_hang"
 
 
 SMALL_LOOPS = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=100000000"
@@ -249,17 +254,19 @@ def kernel_worker(args):
     env = dict(os.environ)
     if variant["xla_flags"]:
         env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + variant["xla_flags"]).strip()
+    # the kernel imports this module from the repository root
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(h.ROOT), env.get("PYTHONPATH")) if p)
     km, kc = start_new_kernel(kernel_name="python3", env=env)
     try:
         pid = km.provisioner.process.pid
         print(f"kernel_pid {pid}", flush=True)
-        setup = (f"import sys, time; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        setup = ("import time\n"
                  "import jax\n"
                  f"if {variant['sync']}: jax.config.update("
                  "'jax_cpu_enable_async_dispatch', False)\n"
                  f"if {variant['configure']}:\n"
                  "    import pmsmjax as pj; pj.runtime.configure(cache=False)\n"
-                 "import stress_hang as sh\n"
+                 "from benchmarks.reproducers import stress_hang as sh\n"
                  f"fns = {{w: sh._workload(w) for w in {args.workloads.split(',')!r}}}\n")
         kc.execute_interactive(setup, timeout=None, store_history=False)
         print("ready", flush=True)
@@ -435,10 +442,10 @@ def run_variant(variant, args, out: Path) -> dict:
     t_start = time.perf_counter()
 
     def start(k):
-        cmd = [sys.executable, __file__, "--child", "--variant", variant, "--mode", args.mode,
-               "--workloads", args.workloads, "--runs", str(todo[k])]
+        cmd = [sys.executable, "-m", MODULE, "--child", "--variant", variant, "--mode",
+               args.mode, "--workloads", args.workloads, "--runs", str(todo[k])]
         p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                             text=True)
+                             text=True, cwd=h.ROOT)
         q: queue.Queue = queue.Queue()
         threading.Thread(target=_reader, args=(p, q), daemon=True).start()
         slots[k] = dict(proc=p, q=q, last=time.monotonic(), ready=False, done=0, tail=[])
@@ -507,8 +514,9 @@ def run_variant(variant, args, out: Path) -> dict:
     return stats
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="2 iterations of the closed loop in one "
+                  "worker beside one busy process, configure()'s settings")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--variant", default="default")
     ap.add_argument("--variants", default=",".join(VARIANTS))
@@ -522,16 +530,20 @@ def main():
     ap.add_argument("--load", type=int, default=2, help="extra busy processes")
     ap.add_argument("--timeout", type=float, default=120.0,
                     help="seconds without progress that count as a hang")
-    ap.add_argument("--out", default="results/stress")
+    ap.add_argument("--out", default=str(h.RESULTS / "stress"),
+                    help="folder for the stack dumps of hangs")
     ap.add_argument("--count-callbacks", action="store_true",
                     help="count the host callbacks in the affected programs' compiled HLO")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if args.child:
         worker(args)
-        return
+        return 0
     if args.count_callbacks:
         count_callbacks()
-        return
+        return 0
+    if args.quick:
+        args.variants, args.workloads, args.runs, args.procs, args.load = (
+            "pmsmjax", "loop", 2, 1, 1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     loads = [_load_proc() for _ in range(args.load)]
@@ -552,20 +564,16 @@ def main():
     finally:
         for p in loads:
             p.kill()
-    print("\n| variant | mode | iterations | hangs | hangs per 100 | median s | max s |")
-    print("|---|---|---:|---:|---:|---:|---:|")
-    for r in results:
-        print(f"| {r['variant']} | {r['mode']} | {r['iterations']} | {r['hangs']} | "
-              f"{r['hangs_per_100']:.1f} | {r['median_iteration_s']} | "
-              f"{r['max_iteration_s']} |")
-    import jax
-
-    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(),
-                machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version(),
-                jax=jax.__version__, args=vars(args))
-    (out / "stress.json").write_text(json.dumps(dict(meta=meta, results=results), indent=2))
-    print(f"\nwrote {out / 'stress.json'}")
+            p.wait()
+    print()
+    h.table(results, [("variant", "variant", ""), ("mode", "mode", ""),
+                      ("iterations", "iterations", "d"), ("hangs", "hangs", "d"),
+                      ("hangs per 100", "hangs_per_100", ".1f"),
+                      ("median s", "median_iteration_s", ".3f"),
+                      ("max s", "max_iteration_s", ".3f")])
+    h.write_report(args.json, results, benchmark=MODULE, args=vars(args))
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

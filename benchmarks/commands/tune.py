@@ -11,35 +11,30 @@
    differences (step 1e-4 in the unconstrained coordinates) for runs of 0.05 to 0.5 s:
    norms, relative difference and cosine, and the time of one value-and-gradient.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_tuning.py [--observer NAME] [--budget SIMS]
-        [--horizons 0.05,0.1,0.2,0.3,0.5] [--out FILE.json]
+    python -m benchmarks.commands.tune [--observer NAME] [--budget SIMS]
+        [--horizons 0.05,0.1,0.2,0.3,0.5] [--quick]
 
-Prints two tables and writes JSON (default `benchmarks/out/bench_tuning.json`).
+`--quick` uses the small problem of `python -m tuning --quick` (`TuningProblem.quick()`)
+and two horizons. Prints two tables and writes JSON.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import pmsmjax as pj
+import tuning as tg
+
+from .. import _harness as h
 
 
-pj.runtime.configure()
-import tuning as tg  # noqa: E402
-
-
-HERE = Path(__file__).parent
+MODULE = "benchmarks.commands.tune"
 
 
 def searches(problem):
@@ -87,41 +82,39 @@ def horizons(problem, hs):
     return rows
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the small problem and two horizons")
     ap.add_argument("--observer", default="eso")
     ap.add_argument("--budget", type=int, default=None)
-    ap.add_argument("--horizons", default="0.05,0.1,0.2,0.3,0.5")
-    ap.add_argument("--out", default=str(HERE / "out" / "bench_tuning.json"))
-    args = ap.parse_args()
+    ap.add_argument("--horizons", default=None,
+                    help="run lengths, s (default 0.05,0.1,0.2,0.3,0.5; --quick: 0.05,0.1)")
+    args = ap.parse_args(argv)
+    pj.runtime.configure()  # the job's process settings, before any work
     kw = {} if args.budget is None else {"budget": args.budget}
-    problem = tg.TuningProblem(observer=args.observer, **kw)
+    make = tg.TuningProblem.quick if args.quick else tg.TuningProblem
+    problem = make(observer=args.observer, **kw)
     start, srows = searches(problem)
     print(f"searches: {problem.observer} on {problem.drive().name}, budget {problem.budget} "
           f"closed-loop simulations, paper design's objective {start:.4f}")
-    print(f"{'strategy':>10} {'objective':>10} {'sims':>6} {'wall s':>8} {'sims 50%':>9} "
-          f"{'wall 50%':>9} {'sims 90%':>9} {'wall 90%':>9}")
-    f = lambda v, fmt: "-" if v is None else format(v, fmt)  # noqa: E731
-    for r in srows:
-        print(f"{r['strategy']:>10} {r['objective']:10.4f} {r['sims']:6d} {r['wall_s']:8.1f} "
-              f"{f(r['sims_to_50pct'], 'd'):>9} {f(r['wall_to_50pct'], '.1f'):>9} "
-              f"{f(r['sims_to_90pct'], 'd'):>9} {f(r['wall_to_90pct'], '.1f'):>9}")
-    hs = [float(x) for x in args.horizons.split(",")]
+    h.table(srows, [("strategy", "strategy", ""), ("objective", "objective", ".4f"),
+                    ("simulations", "sims", "d"), ("wall s", "wall_s", ".1f"),
+                    ("sims to 50 %", "sims_to_50pct", "d"),
+                    ("wall to 50 %", "wall_to_50pct", ".1f"),
+                    ("sims to 90 %", "sims_to_90pct", "d"),
+                    ("wall to 90 %", "wall_to_90pct", ".1f")])
+    hs = [float(x) for x in (args.horizons or ("0.05,0.1" if args.quick else
+                                                "0.05,0.1,0.2,0.3,0.5")).split(",")]
     hrows = horizons(problem, hs)
     print("\ngradient against horizon (one training run of each kind)")
-    print(f"{'kind':>9} {'t_end s':>8} {'|grad|':>10} {'|fd|':>10} {'rel diff':>10} "
-          f"{'cosine':>9} {'grad s':>8}")
-    for r in hrows:
-        print(f"{r['kind']:>9} {r['t_end']:8.2f} {r['grad_norm']:10.3g} {r['fd_norm']:10.3g} "
-              f"{r['rel_error']:10.2e} {r['cos']:9.5f} {r['grad_time_s']:8.3f}")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"machine": platform.machine(), "cpus": os.cpu_count(),
-                               "observer": problem.observer, "budget": problem.budget,
-                               "paper_objective": start, "searches": srows,
-                               "horizons": hrows}, indent=1))
-    print(f"wrote {out}")
+    h.table(hrows, [("kind", "kind", ""), ("t_end s", "t_end", ".2f"),
+                    ("|grad|", "grad_norm", ".3g"), ("|fd|", "fd_norm", ".3g"),
+                    ("relative difference", "rel_error", ".2e"), ("cosine", "cos", ".5f"),
+                    ("value and gradient, s", "grad_time_s", ".3f")])
+    h.write_report(args.json, dict(searches=srows, horizons=hrows), benchmark=MODULE,
+                   observer=problem.observer, budget=problem.budget, paper_objective=start,
+                   quick=args.quick)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

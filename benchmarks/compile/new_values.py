@@ -11,35 +11,34 @@ new values, for
 
 - `simulate`: a 50 ms sensorless closed loop on zhang750 (ESO), the observer's PM flux
   scaled by 0.9, then 1.1 (`with_motor(scale_motor(...))`);
-- `simulate, plant`: the same with the plant's `L_q` changed by `replace_params`;
+- `simulate_plant`: the same with the plant's `L_q` changed by `replace_params`;
 - `replay`: 4,000 samples through the LESO with `zeta1` 0.7, then 1.3;
 - `harmonic_ripple`: the ESO at 0.5 p.u. with `w2` 200, then 400 rad/s;
 - `certificate`: `slowly_varying_certificate` of the fixed-ratio LESO with `zeta1` 0.8,
   then 1.5.
 
-`--pythonpath DIR` runs the children against another checkout (a `git worktree` of an
-earlier commit) for a before/after on the same machine.
+`--quick-compile` runs the children under quick compiles (the test suite's setting);
+`--pythonpath DIR` against another checkout (a `git worktree` of an earlier commit) for
+a before/after on the same machine.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_new_values.py [--quick] [--pythonpath DIR]
-        [--out FILE.json]
+    python -m benchmarks.compile.new_values [--quick-compile] [--pythonpath DIR]
+        [--cases simulate,replay] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 import time
-from pathlib import Path
+
+from .. import _harness as h
+from .trace import finish, run_child
 
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from bench_trace import add_child_options, finish, run_child  # noqa: E402
+MODULE = "benchmarks.compile.new_values"
 
 
-CASES = ("simulate", "simulate, plant", "replay", "harmonic_ripple", "certificate")
+CASES = ("simulate", "simulate_plant", "replay", "harmonic_ripple", "certificate")
 
 CHILD = """
 import json, sys, time
@@ -57,7 +56,7 @@ if case == "simulate":
         o = mk("eso", d).with_motor(pj.scale_motor(d.motor, {"psi_f": v}))
         return pj.simulate(d, foc, o, sc, throw=False).theta_err
     values = (0.9, 1.1)
-elif case == "simulate, plant":
+elif case == "simulate_plant":
     def call(v):
         dd = pj.replace_params(d, L_q=float(d.motor.L_q) * v)
         return pj.simulate(dd, foc, mk("eso", d), sc, throw=False).theta_err
@@ -89,26 +88,31 @@ print(json.dumps(out))
 """
 
 
-def child(case: str, quick: bool, pythonpath: str | None) -> dict:
-    return run_child(CHILD, [case], quick, pythonpath)
-
-
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    add_child_options(ap)
-    ap.add_argument("--out", default="benchmarks/out/new_values.json")
-    args = ap.parse_args()
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the `simulate` and `replay` cases only")
+    ap.add_argument("--cases", default=None,
+                    help=f"comma-separated cases (default: all: {','.join(CASES)})")
+    h.add_child_options(ap)
+    args = ap.parse_args(argv)
+    cases = (args.cases.split(",") if args.cases else
+             ["simulate", "replay"] if args.quick else list(CASES))
+    for c in cases:
+        if c not in CASES:
+            ap.error(f"--cases: unknown case {c!r}; choose from {', '.join(CASES)}")
     t0 = time.perf_counter()
     rows = []
-    print("| case | first call (s) | second call, new values (s) | checksums |")
-    print("|---|---:|---:|---|")
-    for case in CASES:
-        r = dict(case=case, quick=args.quick, **child(case, args.quick, args.pythonpath))
-        rows.append(r)
-        print(f"| {case} | {r['call1_s']:.2f} | {r['call2_s']:.2f} | "
-              f"{r['checksum1']:.10e}, {r['checksum2']:.10e} |", flush=True)
+    for case in cases:
+        rows.append(dict(case=case, quick_compile=args.quick_compile,
+                         **run_child(CHILD, [case], args.quick_compile, args.pythonpath)))
+        print(f"  {case}: done", flush=True)
+    print(h.machine_line())
+    h.table(rows, [("case", "case", ""), ("first call (s)", "call1_s", ".2f"),
+                   ("second call, new values (s)", "call2_s", ".2f"),
+                   ("checksums", lambda r: f"{r['checksum1']:.10e}, {r['checksum2']:.10e}",
+                    "")])
     finish(args, rows, t0)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

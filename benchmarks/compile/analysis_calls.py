@@ -3,7 +3,8 @@ first call (compilation included) and later calls with new values.
 
 Entry points whose body is a `lax` loop or a long chain of small operations cost a compile
 per call, or one per operation, when they are not compiled as one program. Measured here,
-each in a fresh process (the users' flags unless `--quick`, no compilation cache):
+each in a fresh process (the users' flags unless `--quick-compile`, no compilation
+cache):
 
 - `equilibria`: the parallel-model estimator's closed form (`fast_equilibria`), stumper_mt5
   with a mismatched model; zhang2022's ESO with fal feedback (the reduction
@@ -20,23 +21,17 @@ each in a fresh process (the users' flags unless `--quick`, no compilation cache
 Each row: the first call (s), the median of five later calls at other speeds (s), and the
 number of XLA compilations in each (JAX's compile events).
 
-Usage (an older tree: `PYTHONPATH=<its checkout>` in front):
+Usage (from the repository root; an older tree: `--pythonpath <its checkout>`):
 
-    .venv/bin/python benchmarks/bench_analysis_calls.py [--quick] [--case CASE] [--out FILE.json]
+    python -m benchmarks.compile.analysis_calls [--quick-compile] [--case CASE] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import subprocess
-import sys
-from pathlib import Path
+from .. import _harness as h
 
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+MODULE = "benchmarks.compile.analysis_calls"
 
 CASES = ("equilibria/parallel-model", "equilibria/eso", "designed_error/c-leso",
          "floquet/rotor-flux", "discrete_error_run/rotor-flux",
@@ -103,30 +98,25 @@ print(json.dumps(dict(case=case, first_s=first, first_compiles=c_first,
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true",
-                    help="quick compiles (PMSMJAX_QUICK_COMPILE=1, the test suite's)")
-    ap.add_argument("--out", default="results/bench_analysis_calls.json")
+    ap = h.parser(__doc__, MODULE, quick_help="the C-LESO's designed equilibrium only")
     ap.add_argument("--case", action="append", choices=CASES,
                     help="only this case (repeatable; default: all)")
+    h.add_child_options(ap)
     args = ap.parse_args(argv)
-    # PYTHONSAFEPATH (Python >= 3.11): the child does not import the pmsmjax of the
-    # working directory, so `PYTHONPATH=<another checkout>` measures that checkout
-    env = dict(os.environ, PMSMJAX_QUICK_COMPILE="1" if args.quick else "0",
-               PYTHONSAFEPATH="1")
+    env = h.child_env(quick_compile=args.quick_compile, cache=False,
+                      pythonpath=args.pythonpath)
+    cases = args.case or (["designed_error/c-leso"] if args.quick else CASES)
     rows = []
-    print(f"{'entry point / observer':32s} {'first s':>8s} {'compiles':>8s} "
-          f"{'later s':>9s} {'compiles':>8s}")
-    for case in args.case or CASES:
-        res = subprocess.run([sys.executable, "-c", CHILD, case], env=env, check=True,
-                             capture_output=True, text=True)
-        r = json.loads(res.stdout.strip().splitlines()[-1])
-        rows.append(r)
-        print(f"{case:32s} {r['first_s']:8.2f} {r['first_compiles']:8d} "
-              f"{r['later_s']:9.4f} {r['later_compiles']:8.1f}", flush=True)
-    from _report import write_report
-
-    write_report(args.out, rows, quick_compiles=args.quick)
+    for case in cases:
+        rows.append(h.python_child(CHILD, case, env=env).result)
+        print(f"  {case}: done", flush=True)
+    print(h.machine_line())
+    h.table(rows, [("entry point / observer", "case", ""), ("first call (s)", "first_s", ".2f"),
+                   ("its compiles", "first_compiles", "d"),
+                   ("later call (s)", "later_s", ".4f"),
+                   ("compiles per later call", "later_compiles", ".1f")])
+    h.write_report(args.json, rows, benchmark=MODULE, quick_compile=args.quick_compile,
+                   pythonpath=args.pythonpath)
     return 0
 
 

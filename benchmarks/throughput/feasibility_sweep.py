@@ -18,18 +18,18 @@ the map's time as the command prints it, the compile time (`sweep.json`), and de
 second over the map time and over the chunks alone (sum of chunk wall times, compile
 excluded).
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_feasibility_sweep.py [--quick] [--out FILE.json]
+    python -m benchmarks.throughput.feasibility_sweep [--quick] [--maps general]
+        [--configs "1 proc x 1 dev,2 proc x 1 dev"]
+
+`--quick`: the closed-form map on a 4 x 201 x 201 grid, one and two devices in one
+process.
 """
 
 from __future__ import annotations
 
-import argparse
-import datetime
 import json
-import os
-import platform
 import re
 import shutil
 import socket
@@ -39,15 +39,14 @@ import tempfile
 import time
 from pathlib import Path
 
+from .. import _harness as h
 
-HERE = Path(__file__).resolve().parent
-REPO = HERE.parent
-OUT = HERE / "out"
 
+MODULE = "benchmarks.throughput.feasibility_sweep"
 MAPS = {
     "closed form": ["--set", "L_d=1e-3", "--set", "L_q=4.9e-3", "--i-q", "2",
-                    "--zeta1", "0:5:501", "--ratio", "0:2:501", "--speeds", "0.2", "0.5", "1", "-0.5",
-                    "--chunk-size", "65536"],
+                    "--zeta1", "0:5:501", "--ratio", "0:2:501",
+                    "--speeds", "0.2", "0.5", "1", "-0.5", "--chunk-size", "65536"],
     "general": ["--i-q", "1", "--mismatch", "L_d=0.9", "--zeta1", "0.1:3:151",
                 "--ratio", "0.1:2:151", "--speeds", "0.2", "0.5", "1", "-0.5",
                 "--chunk-size", "4096"],
@@ -64,12 +63,9 @@ def _free_port() -> int:
 
 
 def _env(devices: int) -> dict:
-    env = dict(os.environ)
-    env["PMSMJAX_CACHE"] = "0"
-    env["JAX_PLATFORMS"] = "cpu"
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    flags = env.get("XLA_FLAGS", "")
-    flags = re.sub(r"--xla_force_host_platform_device_count=\d+", "", flags).strip()
+    env = h.child_env(cache=False, JAX_PLATFORMS="cpu")
+    flags = re.sub(r"--xla_force_host_platform_device_count=\d+", "",
+                   env.get("XLA_FLAGS", "")).strip()
     if devices > 1:
         flags = f"{flags} --xla_force_host_platform_device_count={devices}".strip()
     env["XLA_FLAGS"] = flags
@@ -86,13 +82,13 @@ def run(name: str, args: list[str], config: str, workdir: Path) -> dict:
     t0 = time.perf_counter()
     if procs == 1:
         ps = [subprocess.Popen(cmd, env=_env(devices), stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)]
+                               stderr=subprocess.PIPE, text=True, cwd=h.ROOT)]
     else:
         port = _free_port()
         ps = [subprocess.Popen(cmd + ["--coordinator", f"localhost:{port}", "--num-processes",
                                       "2", "--process-id", str(i)],
                                env=_env(1), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True) for i in range(2)]
+                               text=True, cwd=h.ROOT) for i in range(2)]
     outs = [p.communicate(timeout=1800) for p in ps]
     wall = time.perf_counter() - t0
     for p, (so, se) in zip(ps, outs):
@@ -113,40 +109,38 @@ def run(name: str, args: list[str], config: str, workdir: Path) -> dict:
                 designs_per_s_chunks=n / t_chunks if t_chunks > 0 else None)
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="smaller grids (a quick check)")
-    ap.add_argument("--out", default=str(OUT / "bench_feasibility_sweep.json"))
-    ap.add_argument("--maps", default=",".join(MAPS), help="comma-separated map names")
-    a = ap.parse_args()
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the closed-form map on a smaller grid, one "
+                  "process with one and with two devices")
+    ap.add_argument("--maps", default=None, help="comma-separated map names "
+                    f"(default: {', '.join(MAPS)})")
+    ap.add_argument("--configs", default=None, help="comma-separated configurations "
+                    f"(default: {', '.join(CONFIGS)})")
+    a = ap.parse_args(argv)
+    maps = (a.maps or ("closed form" if a.quick else ",".join(MAPS))).split(",")
+    configs = (a.configs or (",".join(CONFIGS[:2]) if a.quick else ",".join(CONFIGS)))
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for name in a.maps.split(","):
+        for name in maps:
             args = MAPS[name] + (QUICK[name] if a.quick else [])
-            for config in CONFIGS:
+            for config in configs.split(","):
                 row = run(name, args, config, Path(tmp))
                 rows.append(row)
                 print(f"{name:12s} {config:15s} {row['designs']:>9d} designs: wall "
                       f"{row['wall_s']:6.1f} s, map {row['map_s']:6.1f} s (compile "
                       f"{row['compile_s']:5.1f} s), {row['designs_per_s']:9.3g} /s, "
-                      f"chunks only {row['designs_per_s_chunks']:9.3g} /s", flush=True)
-    head = ("| map | processes x devices | designs | chunks | wall (s) | map (s) | "
-            "compile (s) | designs/s (map) | designs/s (chunks) |")
-    lines = [head, "|" + "---|" * 3 + "---:|" * 6]
-    for r in rows:
-        lines.append(f"| {r['map']} ({r['method']}) | {r['config']} | {r['designs']:,} | "
-                     f"{r['chunks']} | {r['wall_s']:.1f} | {r['map_s']:.1f} | "
-                     f"{r['compile_s']:.1f} | {r['designs_per_s']:.3g} | "
-                     f"{r['designs_per_s_chunks']:.3g} |")
-    table = "\n".join(lines)
-    print(table)
-    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version(),
-                quick=a.quick)
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(dict(meta=meta, rows=rows, table=table), indent=1))
-    print(f"wrote {a.out}")
+                      f"chunks only {h.fmt(row['designs_per_s_chunks'], '9.3g')} /s",
+                      flush=True)
+    print(h.machine_line())
+    h.table(rows, [
+        ("map", lambda r: f"{r['map']} ({r['method']})", ""),
+        ("processes x devices", "config", ""), ("designs", lambda r: f"{r['designs']:,}", ""),
+        ("chunks", "chunks", "d"), ("wall (s)", "wall_s", ".1f"), ("map (s)", "map_s", ".1f"),
+        ("compile (s)", "compile_s", ".1f"), ("designs/s (map)", "designs_per_s", ".3g"),
+        ("designs/s (chunks)", "designs_per_s_chunks", ".3g")])
+    h.write_report(a.json, rows, benchmark=MODULE, quick=a.quick)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -15,32 +15,25 @@ compilation cache off:
   for the others; `tests/test_li_leso.py`'s case), which traces, linearises and
   compiles, and its value.
 
-`--pythonpath DIR` runs the children against another checkout (e.g. a `git worktree`
-of an earlier commit) for a before/after comparison on the same machine.
+`--quick-compile` runs the children under quick compiles (the test suite's setting);
+`--pythonpath DIR` against another checkout (e.g. a `git worktree` of an earlier commit)
+for a before/after comparison on the same machine.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_trace.py [--observers eso,c-leso] [--quick]
-        [--pythonpath DIR] [--out FILE.json]
+    python -m benchmarks.compile.trace [--observers eso,c-leso] [--quick-compile]
+        [--pythonpath DIR] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import subprocess
-import sys
 import time
-from pathlib import Path
+
+from .. import _harness as h
 
 
-HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
-from _report import write_report  # noqa: E402
-from bench_quick_compile import _env  # noqa: E402
-
-
+MODULE = "benchmarks.compile.trace"
 OBSERVERS = ("eso", "parallel-model", "rotor-flux", "c-leso", "gi-leso", "fa-leso")
 GAIN = {"eso": "w2", "parallel-model": "v1", "rotor-flux": "k_c", "c-leso": "w0",
         "gi-leso": "w0", "fa-leso": "k2"}
@@ -93,64 +86,49 @@ print(json.dumps(out))
 
 
 def run_child(code: str, args: list[str], quick: bool, pythonpath: str | None) -> dict:
-    """Run `code` with `args` in a fresh Python process (XLA_FLAGS cleared, the cache off,
-    quick compiles or not; against the checkout `pythonpath` if given) and return the
+    """Run `code` with `args` in a fresh Python process (`XLA_FLAGS` cleared, the cache
+    off, quick compiles or not; against the checkout `pythonpath` if given) and return the
     JSON object its last line prints."""
-    env = _env(quick)
-    if pythonpath:
-        env["PYTHONPATH"] = pythonpath
-        env["PYTHONSAFEPATH"] = "1"  # the checkout named, not this one's current folder
-    res = subprocess.run([sys.executable, "-c", code, *args], env=env, capture_output=True,
-                         text=True, timeout=900, cwd="/")
-    if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(args)}: {res.stderr[-2000:]}")
-    return json.loads(res.stdout.strip().splitlines()[-1])
-
-
-def add_child_options(ap: argparse.ArgumentParser) -> None:
-    """`--quick` and `--pythonpath`, the options of `run_child`."""
-    ap.add_argument("--quick", action="store_true",
-                    help="quick compiles (PMSMJAX_QUICK_COMPILE=1, as the test suite)")
-    ap.add_argument("--pythonpath", default=None,
-                    help="run the children against this checkout (default: this one)")
+    env = h.child_env(quick_compile=quick, cache=False, clear_xla_flags=True,
+                      pythonpath=pythonpath)
+    return h.python_child(code, *args, env=env, timeout=900).result
 
 
 def finish(args, rows: list[dict], t0: float) -> None:
-    """Print the total time and load, and write the rows to `args.out`."""
+    """Print the total time and load, and write the rows to `args.json`."""
     print(f"Total {time.perf_counter() - t0:.0f} s; load average at the end "
           f"{os.getloadavg()[0]:.2f}.")
-    write_report(args.out, rows, quick=args.quick, pythonpath=args.pythonpath,
-                 load_end=os.getloadavg())
+    h.write_report(args.json, rows, quick_compile=args.quick_compile,
+                   pythonpath=args.pythonpath)
 
 
-def child(name: str, quick: bool, pythonpath: str | None) -> dict:
-    return run_child(CHILD, [name, GAIN[name]], quick, pythonpath)
-
-
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--observers", default=",".join(OBSERVERS),
-                    help="comma-separated observers (default: %(default)s)")
-    add_child_options(ap)
-    ap.add_argument("--out", default="benchmarks/out/trace.json")
-    args = ap.parse_args()
-    names = [n for n in args.observers.split(",") if n]
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the ESO only")
+    ap.add_argument("--observers", default=None,
+                    help=f"comma-separated observers (default: {','.join(OBSERVERS)})")
+    h.add_child_options(ap)
+    args = ap.parse_args(argv)
+    names = h.observer_names(args.observers or ("eso" if args.quick else OBSERVERS))
     for n in names:
         if n not in GAIN:
-            ap.error(f"--observers: unknown observer {n!r}; choose from {', '.join(GAIN)}")
+            ap.error(f"--observers: no gain to differentiate for {n!r}; choose from "
+                     f"{', '.join(GAIN)}")
     t0 = time.perf_counter()
     rows = []
-    print("| observer | vmapped run: trace + lower (s) | compile (s) | run (s) | "
-          "first grad of a replay (s) | checksum | gradient |")
-    print("|---|---:|---:|---:|---:|---:|---:|")
     for name in names:
-        r = dict(observer=name, quick=args.quick, **child(name, args.quick, args.pythonpath))
-        rows.append(r)
-        print(f"| {name} | {r['lower_s']:.2f} | {r['compile_s']:.2f} | {r['run_s']:.3f} | "
-              f"{r['grad_first_s']:.2f} | {r['checksum']:.12e} | {r['grad']:.12e} |",
-              flush=True)
+        rows.append(dict(observer=name, quick_compile=args.quick_compile,
+                         **run_child(CHILD, [name, GAIN[name]], args.quick_compile,
+                                     args.pythonpath)))
+        print(f"  {name}: done", flush=True)
+    print(h.machine_line())
+    h.table(rows, [("observer", "observer", ""),
+                   ("vmapped run: trace + lower (s)", "lower_s", ".2f"),
+                   ("compile (s)", "compile_s", ".2f"), ("run (s)", "run_s", ".3f"),
+                   ("first grad of a replay (s)", "grad_first_s", ".2f"),
+                   ("checksum", "checksum", ".12e"), ("gradient", "grad", ".12e")])
     finish(args, rows, t0)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

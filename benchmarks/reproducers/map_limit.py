@@ -6,21 +6,26 @@ Each run is a fresh process: it compiles one JAX program, then occupies all but
 `--headroom` of the mappings Linux allows it (`vm.max_map_count`; it splits one anonymous
 region into alternating read-only / read-write pages), and then compiles `--programs`
 distinct small programs, keeping every one (as JAX's jit caches do in a long-running
-process). With `--release` it calls `release_compiled()` after each compilation. Prints a
-table (mappings before, programs compiled, exit status, what the process printed last)
-and writes JSON.
+process). It runs twice: keeping every program, and calling `release_compiled()` after
+each compilation. Prints a table (mappings before, programs compiled, exit status, what
+the process died of) and writes JSON.
 
-    python benchmarks/map_limit.py [--headroom 200] [--programs 100] [--out DIR]
+Usage (from the repository root):
+
+    python -m benchmarks.reproducers.map_limit [--headroom 200] [--programs 100] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import subprocess
 import sys
 import time
+
+from .. import _harness as h
+
+
+MODULE = "benchmarks.reproducers.map_limit"
 
 
 CHILD = r"""
@@ -81,21 +86,20 @@ def run(headroom: int, programs: int, release: bool, timeout: float = 600) -> di
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--headroom", type=int, default=200)
-    ap.add_argument("--programs", type=int, default=100)
-    ap.add_argument("--out", default="results/map_limit")
+    ap = h.parser(__doc__, MODULE, quick_help="60 mappings of headroom, 12 programs")
+    ap.add_argument("--headroom", type=int, default=None, help="mappings left (default 200)")
+    ap.add_argument("--programs", type=int, default=None,
+                    help="programs compiled after (default 100)")
     a = ap.parse_args(argv)
-    rows = [run(a.headroom, a.programs, release) for release in (False, True)]
-    print(f"{'release':>8} {'maps before':>12} {'compiled':>9} {'exit':>5} "
-          f"{'LLVM ENOMEM':>12} {'segfault':>9} {'s':>6}")
-    for r in rows:
-        print(f"{str(r['release']):>8} {r['maps_before']!s:>12} {r['compiled']:>9} "
-              f"{r['returncode']:>5} {str(r['llvm_out_of_memory']):>12} "
-              f"{str(r['segfault']):>9} {r['seconds']:>6}")
-    os.makedirs(a.out, exist_ok=True)
-    with open(os.path.join(a.out, "map_limit.json"), "w") as f:
-        json.dump(dict(rows=rows, python=sys.version.split()[0]), f, indent=1)
+    headroom = a.headroom or (60 if a.quick else 200)
+    programs = a.programs or (12 if a.quick else 100)
+    rows = [run(headroom, programs, release) for release in (False, True)]
+    h.table(rows, [("release", lambda r: str(r["release"]), ""),
+                   ("maps before", "maps_before", "d"), ("compiled", "compiled", "d"),
+                   ("exit", "returncode", "d"),
+                   ("LLVM ENOMEM", lambda r: str(r["llvm_out_of_memory"]), ""),
+                   ("segfault", lambda r: str(r["segfault"]), ""), ("s", "seconds", ".1f")])
+    h.write_report(a.json, rows, benchmark=MODULE)
     return 0
 
 

@@ -20,31 +20,29 @@ default motor, speed and current, parsed by the CLI's own parser), it measures
 Every measurement has a time limit (`--timeout`, default 300 s); a run that reaches it is
 killed and recorded as "> LIMIT s".
 
-Usage:
+`--quick-compile` measures under quick compiles (the test suite's setting) instead of the
+users' flags; `benchmarks.compile.quick_compile` compares the two.
 
-    .venv/bin/python benchmarks/bench_compile.py [--observers eso,c-leso] [--timeout 300]
-        [--no-cli] [--no-api] [--no-generic] [--out FILE.json]
+Usage (from the repository root):
+
+    python -m benchmarks.compile.analysis                    # all eight, about 15 min
+    python -m benchmarks.compile.analysis --observers leso,c-leso
+    python -m benchmarks.compile.analysis --no-api           # the command only, about 5 min
+    python -m benchmarks.compile.analysis --quick            # the ESO, about a minute
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
-import resource
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _report import write_report  # noqa: E402
+from .. import _harness as h
 
 
-ROOT = Path(__file__).resolve().parents[1]
+MODULE = "benchmarks.compile.analysis"
 
 #: The child process: the CLI's defaults for `equilibria --observer NAME`, then two calls
 #: of the analysis the command makes; prints one JSON line.
@@ -90,42 +88,22 @@ print(json.dumps(dict(
     stable=[bool(s) for s in np.asarray(eq.stable)[valid]])))
 """
 
-_CPU = [0.0]  # CPU time of the finished child processes so far
-
 FAST_ROUTE = ("eso", "parallel-model")  # observers with their own route under "auto"
 
 
-def run(cmd, env, timeout):
-    """(wall seconds or None on timeout, CompletedProcess or None)."""
-    t0 = time.perf_counter()
-    try:
-        res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=timeout,
-                             cwd=ROOT)
-    except subprocess.TimeoutExpired:
-        ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-        _CPU[0] = ru.ru_utime + ru.ru_stime
-        return None, None
-    wall = time.perf_counter() - t0
-    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
-    res.cpu_s = ru.ru_utime + ru.ru_stime - _CPU[0]  # CPU time of this process
-    _CPU[0] = ru.ru_utime + ru.ru_stime
-    if res.returncode not in (0, 1):
-        raise SystemExit(f"{' '.join(cmd)} failed ({res.returncode}):\n{res.stderr[-3000:]}")
-    return wall, res
-
-
-def api(name, method, env, timeout):
-    wall, res = run([sys.executable, "-c", CHILD, name, method], dict(env, PMSMJAX_CACHE="0"),
-                    timeout)
-    if res is None:
+def api(name: str, method: str, env: dict, timeout: float) -> dict:
+    """The analysis as `pmsmjax equilibria --observer NAME` calls it, in a fresh process
+    with the compilation cache off: its first and later calls (`CHILD`)."""
+    c = h.python_child(CHILD, name, method, env=dict(env, PMSMJAX_CACHE="0"),
+                       timeout=timeout)
+    if c.timed_out:
         return dict(timeout=True, limit_s=timeout)
-    out = json.loads(res.stdout.strip().splitlines()[-1])
-    out["process_s"] = wall
-    out["process_cpu_s"] = res.cpu_s
-    return out
+    return dict(c.result, process_s=c.wall_s, process_cpu_s=c.cpu_s)
 
 
-def cli(name, env, timeout, tmp):
+def cli(name: str, env: dict, timeout: float, tmp: Path) -> dict:
+    """`python -m pmsmjax equilibria --observer NAME --json` in fresh processes: cold (the
+    cache off), filling an empty cache, then warm twice."""
     cmd = [sys.executable, "-m", "pmsmjax", "equilibria", "--observer", name, "--json"]
     cache = tmp / f"cache-{name}"
     shutil.rmtree(cache, ignore_errors=True)
@@ -134,9 +112,11 @@ def cli(name, env, timeout, tmp):
                    ("fill", dict(env, PMSMJAX_CACHE_DIR=str(cache))),
                    ("warm", dict(env, PMSMJAX_CACHE_DIR=str(cache))),
                    ("warm2", dict(env, PMSMJAX_CACHE_DIR=str(cache)))):
-        out[f"{key}_s"], res = run(cmd, e, timeout)
-        out[f"{key}_cpu_s"] = None if res is None else res.cpu_s
-        if res is None:
+        c = h.run_child(cmd, e, timeout=timeout, check=False)
+        if c.returncode not in (0, 1, None):
+            raise SystemExit(f"{' '.join(cmd)} failed ({c.returncode}):\n{c.stderr[-3000:]}")
+        out[f"{key}_s"], out[f"{key}_cpu_s"] = c.wall_s, c.cpu_s
+        if c.timed_out:
             break
     for key in ("fill", "warm", "warm2"):
         out.setdefault(f"{key}_s", None)
@@ -148,8 +128,8 @@ def fmt(v, limit):
     return f"> {limit:.0f}" if v is None else f"{v:.1f}"
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="the ESO only (its own route), API and command")
     ap.add_argument("--observers", default=None,
                     help="comma-separated subset of the registry (default: all)")
     ap.add_argument("--timeout", type=float, default=300.0,
@@ -158,15 +138,13 @@ def main():
     ap.add_argument("--no-api", action="store_true", help="only the CLI measurements")
     ap.add_argument("--no-generic", action="store_true",
                     help="do not also force the generic route for observers with their own")
-    ap.add_argument("--out", default="benchmarks/out/bench_compile.json")
-    args = ap.parse_args()
-    sys.path.insert(0, str(ROOT))
-    from pmsmjax.observers import observer_names
-
-    names = list(observer_names()) if args.observers is None else args.observers.split(",")
-    env = dict(os.environ, MPLBACKEND="Agg", PYTHONPATH=str(ROOT))
-    env.pop("PMSMJAX_CACHE", None)
-    env.pop("PMSMJAX_CACHE_DIR", None)
+    h.add_child_options(ap)
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.observers, args.no_generic = args.observers or "eso", True
+    names = h.observer_names(args.observers)
+    env = h.child_env(quick_compile=args.quick_compile, pythonpath=args.pythonpath,
+                      PMSMJAX_CACHE=None, PMSMJAX_CACHE_DIR=None)
     tmp = Path(tempfile.mkdtemp(prefix="pmsmjax-compile-"))
     load0 = os.getloadavg()
     rows = []
@@ -190,28 +168,34 @@ def main():
             rows.append(row)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    load1 = os.getloadavg()
     t = args.timeout
-    print("\n| observer | route | API first call (s) | its CPU (s) | API warm call (s) | CLI "
-          "cold, no cache (s) | its CPU (s) | CLI warm (s) | its CPU (s) |\n"
-          "|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    flat = []
     for r in rows:
         for route, a in (r["api"] or {"cli": {}}).items():  # {}: --no-api
             c = r.get("cli", {}) if route == "cli" else {}
-            warm = min((v for v in (c.get("warm_s"), c.get("warm2_s")) if v is not None),
-                       default=None)
-            kw = "warm_cpu_s" if warm == c.get("warm_s") else "warm2_cpu_s"
-            cpu = lambda v: "-" if v is None else f"{v:.1f}"  # noqa: E731
-            print(f"| {r['observer']} | {route} | "
-                  f"{fmt(a.get('first_s'), t) if a else '-'} | "
-                  f"{cpu(a.get('first_cpu_s'))} | "
-                  f"{'-' if a.get('timeout') or not a else format(a['second_s'], '.3f')} | "
-                  f"{fmt(c.get('cold_s'), t) if c else '-'} | {cpu(c.get('cold_cpu_s'))} | "
-                  f"{(fmt(warm, t) if c.get('fill_s') is not None else '-') if c else '-'} | "
-                  f"{cpu(c.get(kw))} |")
-    write_report(args.out, rows, loadavg_start=load0, loadavg_end=load1,
-                 timeout_s=args.timeout)
+            warm = [(c.get(k + "_s"), c.get(k + "_cpu_s")) for k in ("warm", "warm2")]
+            warm = min((w for w in warm if w[0] is not None), default=(None, None))
+            flat.append(dict(observer=r["observer"], route=route,
+                             first=a and fmt(a.get("first_s"), t),
+                             first_cpu=a.get("first_cpu_s"),
+                             second=None if a.get("timeout") else a.get("second_s"),
+                             cold=c and fmt(c.get("cold_s"), t), cold_cpu=c.get("cold_cpu_s"),
+                             warm=c and c.get("fill_s") is not None and fmt(warm[0], t),
+                             warm_cpu=warm[1]))
+    print()
+    print(h.machine_line())
+    h.table(flat, [
+        ("observer", "observer", ""), ("route", "route", ""),
+        ("API first call (s)", lambda r: r["first"] or "-", ""),
+        ("its CPU (s)", "first_cpu", ".1f"), ("API warm call (s)", "second", ".3f"),
+        ("CLI cold, no cache (s)", lambda r: r["cold"] or "-", ""),
+        ("its CPU (s)", "cold_cpu", ".1f"), ("CLI warm (s)", lambda r: r["warm"] or "-", ""),
+        ("its CPU (s)", "warm_cpu", ".1f")])
+    h.write_report(args.json, rows, benchmark=MODULE, loadavg_start=load0,
+                   loadavg_end=os.getloadavg(), timeout_s=args.timeout,
+                   quick_compile=args.quick_compile, pythonpath=args.pythonpath)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -9,9 +9,10 @@ to 1 N m at 0.15 s. A batch of B drives differs in `w_final` (0.2 ... 0.8 x rate
 
 The references implement the identical discrete algorithm:
 
-- `ref_numpy.py`: batched NumPy arrays, Python loop over time;
-- `ref_c.c`: scalar C, loop over drives and time, `gcc -O3 -march=native` (float64 and
-  float32 builds, plus an OpenMP build for the all-cores rows).
+- `benchmarks/reference/closed_loop_numpy.py`: batched NumPy arrays, Python loop over time;
+- `benchmarks/reference/closed_loop.c`: scalar C, loop over drives and time, `gcc -O3
+  -march=native` (float64 and float32 builds, plus an OpenMP build for the all-cores
+  rows).
 
 They are checked against pmsmjax (float64, final state and ISE to 1e-9) before timing.
 
@@ -27,41 +28,34 @@ lower, and XLA compile) separately from run time, and the compiled temporary mem
 cost of `jax.grad` of a scalar loss (ISE of the speed error) w.r.t. the speed-loop
 bandwidth `alpha_s` relative to the forward run of the same loss.
 
-Usage:
+Usage (from the repository root; `make bench` runs the full benchmark):
 
-    .venv/bin/python benchmarks/bench_simulate.py [--quick] [--out FILE.json]
+    python -m benchmarks.throughput.simulate            # full run, about 4 min
+    python -m benchmarks.throughput.simulate --quick    # under a minute
 """
+
 
 from __future__ import annotations
 
 import argparse
-import ctypes
-import datetime
 import json
 import os
-import platform
-import shutil
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
+from .. import _harness as h
+from ..reference import build_c, c_simulate
 
-HERE = Path(__file__).resolve().parent
-BUILD = HERE / "build"
-sys.path.insert(0, str(HERE))
 
 T_S = 125e-6
 T_RAMP, T_LOAD, TAU_LOAD = 0.1, 0.15, 1.0
 W_LO, W_HI = 0.2, 0.8  # w_final range, fraction of rated speed
-# XLA (jaxlib 0.10) parses --xla_cpu_multi_thread_eigen; "intra_op_parallelism_threads=1"
-# is not an XLA flag: XLA_FLAGS parsing stops at the first token without "--" (it is taken
-# for a file name) and silently drops every flag after it. The pinning (taskset) is what
-# restricts a run to one core.
-ONE_CORE_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
 BATCHES = (1, 64, 1024, 4096)
+# jaxlib 0.10 parses --xla_cpu_multi_thread_eigen; "intra_op_parallelism_threads=1" is not
+# an XLA flag: XLA_FLAGS parsing stops at the first token without "--" (it is taken for a
+# file name) and silently drops every flag after it. The pinning (taskset) is what
+# restricts a run to one core.
 
 # Steps per run: long enough that the timings are stable (>= 0.25 s of drive time).
 FULL = dict(jax_steps={1: 16000, 64: 8000, 1024: 2000, 4096: 2000},
@@ -77,6 +71,7 @@ QUICK = dict(jax_steps={1: 4000, 1024: 1000},
 # "one": one core (taskset -c 0, XLA single-threaded); "all": no pinning, XLA's default
 # threading, C with OpenMP over the drives; "sharded": no pinning, one XLA host device per
 # core (single-threaded each) and the batch split over them (pmsmjax only).
+MODULE = "benchmarks.throughput.simulate"
 
 
 # ---------------------------------------------------------------------------------------
@@ -119,7 +114,7 @@ def make_pmsmjax_run(dtype_name: str, n_steps: int, save_every: int | None = Non
                      params=None):
     """`f(w_final[B]) -> (ise_w, w_m, i_dq, status)` for a batch, not yet jitted.
 
-    `params(foc) -> foc` may replace controller fields (for the gradient)."""
+    `params(foc, gain) -> foc` may replace controller fields (for the gradient)."""
     import jax.numpy as jnp
 
     import pmsmjax as pj
@@ -143,53 +138,13 @@ def make_pmsmjax_run(dtype_name: str, n_steps: int, save_every: int | None = Non
     return one
 
 
-# ---------------------------------------------------------------------------------------
-# C reference: build and call through ctypes
-# ---------------------------------------------------------------------------------------
-
-class _CParams(ctypes.Structure):
-    _fields_ = [(n, ctypes.c_double) for n in (
-        "R_s", "L_d", "L_q", "psi_f", "n_p", "J", "B",
-        "cR_s", "cL_d", "cL_q", "cpsi_f", "alpha_c", "u_max", "J_over_np", "alpha_s",
-        "tau_max", "i_d_ref", "i_max", "k_tau",
-        "T_s", "t_ramp", "t_load", "tau_load", "i_bound", "w_bound")] + [
-        ("n_sub", ctypes.c_int)]
-
-
-C_BUILDS = {  # name: extra gcc flags
-    "float64": ["-DREAL=double"],
-    "float32": ["-DREAL=float"],
-    "float64_omp": ["-DREAL=double", "-fopenmp"],
-    "float32_omp": ["-DREAL=float", "-fopenmp"],
-}
-
-
-def build_c(verbose=True) -> dict:
-    """Compile ref_c.c into benchmarks/build/ (shared libraries for ctypes)."""
-    BUILD.mkdir(exist_ok=True)
-    src = HERE / "ref_c.c"
-    out = {}
-    for name, extra in C_BUILDS.items():
-        lib = BUILD / f"ref_c_{name}.so"
-        cmd = ["gcc", "-O3", "-march=native", "-shared", "-fPIC", *extra, str(src), "-o",
-               str(lib), "-lm"]
-        if not lib.exists() or lib.stat().st_mtime < src.stat().st_mtime:
-            if verbose:
-                print("  $", " ".join(cmd))
-            subprocess.run(cmd, check=True)
-        out[name] = str(lib)
-    return out
-
-
-def c_simulate(lib_path: str, p: dict, w_final: np.ndarray, n_steps: int):
-    dt = np.float32 if "float32" in lib_path else np.float64
-    lib = ctypes.CDLL(lib_path)
-    w = np.ascontiguousarray(w_final, dtype=dt)
-    out = np.zeros((w.shape[0], 6), dt)
-    lib.simulate_batch(ctypes.byref(_CParams(**p)), ctypes.c_int(w.shape[0]),
-                       ctypes.c_int(n_steps), w.ctypes.data_as(ctypes.c_void_p),
-                       out.ctypes.data_as(ctypes.c_void_p))
-    return out
+def c_rate(steps: int, dtype_name: str = "float64") -> float:
+    """Steps per second of one drive of the scalar C reference (best of five)."""
+    lib = build_c(verbose=False)[dtype_name]
+    drive, foc = drive_and_controller()
+    p, w = reference_params(drive, foc), w_finals(1)
+    c_simulate(lib, p, w, steps)
+    return h.steady(lambda: c_simulate(lib, p, w, steps), repeats=5).rate(steps)
 
 
 # ---------------------------------------------------------------------------------------
@@ -199,7 +154,8 @@ def c_simulate(lib_path: str, p: dict, w_final: np.ndarray, n_steps: int):
 def verify(libs: dict, n_steps=2000, B=4, verbose=True) -> dict:
     """Final (i_d, i_q, w_m) and ISE of pmsmjax, NumPy and C for a few drives."""
     import jax
-    import ref_numpy
+
+    from ..reference import closed_loop_numpy
 
     drive, foc = drive_and_controller()
     p = reference_params(drive, foc)
@@ -215,16 +171,14 @@ def verify(libs: dict, n_steps=2000, B=4, verbose=True) -> dict:
         ise, _, _, status = jax.jit(jax.vmap(one))(w)
         jx = np.stack([np.asarray(i_dq[:, -1, 0]), np.asarray(i_dq[:, -1, 1]),
                        np.asarray(w_m[:, -1]), np.asarray(ise)], -1).astype(np.float64)
-        np_out = ref_numpy.simulate(p, w, n_steps, dtype=dt)[:, [0, 1, 3, 4]]
+        np_out = closed_loop_numpy.simulate(p, w, n_steps, dtype=dt)[:, [0, 1, 3, 4]]
         c_out = c_simulate(libs[dtype_name], p, w, n_steps)[:, [0, 1, 3, 4]]
         scale = np.maximum(np.abs(jx), 1.0)
         err_np = float(np.max(np.abs(np_out - jx) / scale))
         err_c = float(np.max(np.abs(c_out - jx) / scale))
         res[dtype_name] = dict(
             n_steps=n_steps, batch=B, jax_dtype=str(w_m.dtype), ok=bool(np.all(status == 0)),
-            max_rel_err_numpy=err_np, max_rel_err_c=err_c,
-            pmsmjax_final=jx.tolist(),
-        )
+            max_rel_err_numpy=err_np, max_rel_err_c=err_c, pmsmjax_final=jx.tolist())
         if verbose:
             print(f"  {dtype_name}: pmsmjax output dtype {w_m.dtype}; max relative "
                   f"difference of final (i_d, i_q, w_m, ISE_w) over {B} drives after "
@@ -239,26 +193,18 @@ def verify(libs: dict, n_steps=2000, B=4, verbose=True) -> dict:
 
 
 # ---------------------------------------------------------------------------------------
-# Timing (inside a worker subprocess)
+# Workers (each in a fresh process)
 # ---------------------------------------------------------------------------------------
 
-def _timeit(fn, min_time, repeats):
-    """Call `fn` (already warm) at least `repeats` times and for at least `min_time` s;
-    return (best wall, median wall, best process-CPU) seconds."""
-    walls, cpus = [], []
-    t_start = time.perf_counter()
-    while len(walls) < repeats or (time.perf_counter() - t_start < min_time
-                                   and len(walls) < 50):
-        c0, t0 = time.process_time(), time.perf_counter()
-        fn()
-        walls.append(time.perf_counter() - t0)
-        cpus.append(time.process_time() - c0)
-    return min(walls), float(np.median(walls)), min(cpus), len(walls)
+def _timing(t: h.Timing, work: float) -> dict:
+    return dict(run_s=t.best_s, run_median_s=t.median_s, cpu_s=t.cpu_s, repeats=t.samples,
+                steps_per_s=t.rate(work), steps_per_cpu_s=t.cpu_rate(work))
 
 
 def worker_throughput(cfg: dict) -> dict:
     import jax
-    import ref_numpy
+
+    from ..reference import closed_loop_numpy
 
     dtype_name = cfg["dtype"]
     dt = np.float32 if dtype_name == "float32" else np.float64
@@ -266,6 +212,7 @@ def worker_throughput(cfg: dict) -> dict:
     p = reference_params(drive, foc)
     rows = []
     sharded = cfg.get("sharded", False)
+    reps = dict(repeats=cfg["repeats"], min_time=cfg["min_time"])
     for B in cfg["batches"]:
         row = dict(batch=B)
         w = w_finals(B, dt)
@@ -279,51 +226,35 @@ def worker_throughput(cfg: dict) -> dict:
             row["devices"] = len(devs)
         # --- pmsmjax
         N = cfg["jax_steps"][str(B)]
-        fn = jax.jit(jax.vmap(make_pmsmjax_run(dtype_name, N)))
-        t0 = time.perf_counter()
-        lowered = fn.lower(w)
-        t1 = time.perf_counter()
-        compiled = lowered.compile()
-        t2 = time.perf_counter()
-        out = jax.block_until_ready(compiled(w))
-        t3 = time.perf_counter()
+        stages, compiled = h.lower_compile(jax.jit(jax.vmap(make_pmsmjax_run(dtype_name, N))),
+                                           w)
+        first_s, out = h.first_call(lambda: compiled(w))
         assert str(out[1].dtype) == dtype_name, out[1].dtype
         assert bool(np.all(np.asarray(out[3]) == 0)), "a benchmark run diverged"
-        best, med, cpu, n = _timeit(lambda: jax.block_until_ready(compiled(w)),
-                                    cfg["min_time"], cfg["repeats"])
-        mem = compiled.memory_analysis()
-        row["pmsmjax"] = dict(
-            steps=N, save_every=N, trace_lower_s=t1 - t0, compile_s=t2 - t1,
-            first_run_s=t3 - t2, run_s=best, run_median_s=med, cpu_s=cpu, repeats=n,
-            steps_per_s=B * N / best, steps_per_cpu_s=B * N / cpu,
-            out_dtype=str(out[1].dtype),
-            temp_bytes=int(getattr(mem, "temp_size_in_bytes", -1)),
-        )
+        t = h.steady(lambda: compiled(w), **reps)
+        row["pmsmjax"] = dict(steps=N, save_every=N, first_run_s=first_s,
+                              out_dtype=str(out[1].dtype), **stages, **_timing(t, B * N))
         if sharded:
             rows.append(row)
             print(f"    B={B:5d}: pmsmjax {row['pmsmjax']['steps_per_s'] / 1e6:7.3f} M/s "
-                  f"on {row['devices']} devices", file=sys.stderr, flush=True)
+                  f"on {row['devices']} devices", flush=True)
             continue
         # --- NumPy
         Nn = cfg["numpy_steps"][str(B)]
-        ref_numpy.simulate(p, w, 2, dtype=dt)
-        best, med, cpu, n = _timeit(lambda: ref_numpy.simulate(p, w, Nn, dtype=dt),
-                                    cfg["min_time"], max(1, cfg["repeats"] // 2))
-        row["numpy"] = dict(steps=Nn, run_s=best, run_median_s=med, cpu_s=cpu, repeats=n,
-                            steps_per_s=B * Nn / best, steps_per_cpu_s=B * Nn / cpu)
+        closed_loop_numpy.simulate(p, w, 2, dtype=dt)
+        t = h.steady(lambda: closed_loop_numpy.simulate(p, w, Nn, dtype=dt),
+                     repeats=max(1, cfg["repeats"] // 2), min_time=cfg["min_time"])
+        row["numpy"] = dict(steps=Nn, **_timing(t, B * Nn))
         # --- C
         Nc = cfg["c_steps"][str(B)]
         lib = cfg["c_lib"]
         c_simulate(lib, p, w, 2)
-        best, med, cpu, n = _timeit(lambda: c_simulate(lib, p, w, Nc), cfg["min_time"],
-                                    cfg["repeats"])
-        row["c"] = dict(steps=Nc, run_s=best, run_median_s=med, cpu_s=cpu, repeats=n,
-                        steps_per_s=B * Nc / best, steps_per_cpu_s=B * Nc / cpu,
-                        lib=os.path.basename(lib))
+        t = h.steady(lambda: c_simulate(lib, p, w, Nc), **reps)
+        row["c"] = dict(steps=Nc, lib=os.path.basename(lib), **_timing(t, B * Nc))
         rows.append(row)
         print(f"    B={B:5d}: pmsmjax {row['pmsmjax']['steps_per_s'] / 1e6:7.3f} M/s, "
               f"NumPy {row['numpy']['steps_per_s'] / 1e6:7.3f} M/s, "
-              f"C {row['c']['steps_per_s'] / 1e6:7.3f} M/s", file=sys.stderr, flush=True)
+              f"C {row['c']['steps_per_s'] / 1e6:7.3f} M/s", flush=True)
     return dict(rows=rows)
 
 
@@ -362,15 +293,13 @@ def worker_grad(cfg: dict) -> dict:
             del fns["value_and_grad"]
         res = {}
         for name, fn in fns.items():
-            t0 = time.perf_counter()
-            compiled = jax.jit(fn).lower(a0, w).compile()
-            tc = time.perf_counter() - t0
-            val = jax.block_until_ready(compiled(a0, w))
-            best, med, cpu, n = _timeit(lambda: jax.block_until_ready(compiled(a0, w)),
-                                        cfg["min_time"], cfg["repeats"])
-            mem = compiled.memory_analysis()
-            res[name] = dict(compile_s=tc, run_s=best, run_median_s=med, cpu_s=cpu,
-                             repeats=n, temp_bytes=int(getattr(mem, "temp_size_in_bytes", -1)),
+            stages, compiled = h.lower_compile(jax.jit(fn), a0, w)
+            _, val = h.first_call(lambda: compiled(a0, w))
+            t = h.steady(lambda: compiled(a0, w), repeats=cfg["repeats"],
+                         min_time=cfg["min_time"])
+            res[name] = dict(compile_s=stages["trace_lower_s"] + stages["compile_s"],
+                             run_s=t.best_s, run_median_s=t.median_s, cpu_s=t.cpu_s,
+                             repeats=t.samples, temp_bytes=stages["temp_bytes"],
                              value=np.asarray(val).reshape(-1)[:2].tolist())
         for name in fns:
             if name != "forward":
@@ -381,7 +310,7 @@ def worker_grad(cfg: dict) -> dict:
         print(f"    grad B={B}: forward {res['forward']['cpu_s'] * 1e3:.1f} ms, grad "
               f"{res['grad']['cpu_s'] * 1e3:.1f} ms CPU time (x"
               f"{res['grad_over_forward_cpu']:.2f}; by wall time x"
-              f"{res['grad_over_forward']:.2f})", file=sys.stderr, flush=True)
+              f"{res['grad_over_forward']:.2f})", flush=True)
     return out
 
 
@@ -407,130 +336,113 @@ def worker_first_compile(cfg: dict) -> dict:
                 first_compile_s=(t3 - t2) - (t4 - t3))
 
 
-# ---------------------------------------------------------------------------------------
-# Driver
-# ---------------------------------------------------------------------------------------
+def worker_single(cfg: dict) -> dict:
+    """One drive's closed loop as a plain script runs it (`import pmsmjax`, `jax.jit`):
+    the first call and the best of five, in steps per second."""
+    import jax
 
-def run_worker(kind: str, cfg: dict, mode: str) -> dict:
-    env = dict(os.environ)
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", kind, json.dumps(cfg)]
-    if mode == "one":
-        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + ONE_CORE_XLA_FLAGS).strip()
-        env["OMP_NUM_THREADS"] = "1"
-        if shutil.which("taskset"):
-            cmd = ["taskset", "-c", "0", *cmd]
-    elif mode == "sharded":
-        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + ONE_CORE_XLA_FLAGS +
-                            f" --xla_force_host_platform_device_count={os.cpu_count()}"
-                            ).strip()
-    else:
-        env.pop("OMP_NUM_THREADS", None)
+    steps = cfg.get("steps", 8000)
+    run = jax.jit(make_pmsmjax_run("float64", steps))
+    w = float(w_finals(1)[0])
+    first_s, _ = h.first_call(lambda: run(w))
+    t = h.steady(lambda: run(w), repeats=5)
+    return dict(steps=steps, first_s=first_s, second_s=t.best_s, steps_per_s=t.rate(steps))
+
+
+WORKERS = dict(throughput=worker_throughput, grad=worker_grad,
+               first_compile=worker_first_compile, single=worker_single)
+
+
+def run_worker(kind: str, cfg: dict, mode: str = "one", env: dict | None = None) -> dict:
+    """Run worker `kind` with `cfg` in a fresh process under `mode` (`harness.MODES`; "one"
+    pins it to core 0), or with the environment `env` as given."""
+    env = h.mode_env(mode) if env is None else env
     load0 = os.getloadavg()[0]
-    proc = subprocess.run(cmd, env=env, stdout=subprocess.PIPE, text=True, check=True)
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
-    res["loadavg_before_after"] = [load0, os.getloadavg()[0]]
+    child = h.module_child(MODULE, "--worker", kind, json.dumps(cfg), env=env,
+                           pinned=mode == "one")
+    for line in child.stdout.splitlines()[:-1]:
+        print(line)
+    res = child.result
+    if isinstance(res, dict):
+        res["loadavg_before_after"] = [load0, os.getloadavg()[0]]
     return res
 
 
-def machine_info() -> dict:
-    import jax
-    import jaxlib
+# ---------------------------------------------------------------------------------------
+# Tables, targets, driver
+# ---------------------------------------------------------------------------------------
 
-    model = "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    gcc = subprocess.run(["gcc", "--version"], stdout=subprocess.PIPE, text=True)
-    return dict(
-        cpu_model=model, cpu_count=os.cpu_count(),
-        cpu_affinity=len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-        else None,
-        jax=jax.__version__, jaxlib=jaxlib.__version__, numpy=np.__version__,
-        python=platform.python_version(), platform=platform.platform(),
-        gcc=gcc.stdout.splitlines()[0] if gcc.stdout else "unknown",
-        date=datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-        loadavg=os.getloadavg(),
-    )
-
-
-MODE_NAMES = dict(one="one core", all="all cores (XLA default threading)",
-                  sharded="all cores (batch sharded over one XLA device per core)")
-
-
-def _fmt_rate(x):
+def _m(x):
     return f"{x / 1e6:.3f}"
 
 
-def print_table(results: dict) -> str:
-    thr = results["throughput"]
-    ncores = results["machine"]["cpu_count"]
-    lines = ["One core (pinned). Drive-steps per second from the process CPU time (best of "
-             "the repeats); wall-clock figures alongside.", ""]
-    hdr = ("| dtype | batch | pmsmjax M/s | NumPy M/s | C M/s | pmsmjax/NumPy | pmsmjax/C | "
-           "pmsmjax wall M/s | C wall M/s | compile s | temp MiB |")
-    lines += [hdr, "|" + "---|" * (hdr.count("|") - 1)]
-    for dtype_name in ("float64", "float32"):
-        for row in thr.get(f"{dtype_name}/one", {}).get("rows", []):
-            j, n, c = row["pmsmjax"], row["numpy"], row["c"]
-            lines.append(
-                f"| {dtype_name} | {row['batch']} | {_fmt_rate(j['steps_per_cpu_s'])} | "
-                f"{_fmt_rate(n['steps_per_cpu_s'])} | {_fmt_rate(c['steps_per_cpu_s'])} | "
-                f"{j['steps_per_cpu_s'] / n['steps_per_cpu_s']:.1f} | "
-                f"{j['steps_per_cpu_s'] / c['steps_per_cpu_s']:.2f} | "
-                f"{_fmt_rate(j['steps_per_s'])} | {_fmt_rate(c['steps_per_s'])} | "
-                f"{j['trace_lower_s'] + j['compile_s']:.2f} | {j['temp_bytes'] / 2**20:.1f} |")
-    if any(k.split("/")[1] != "one" for k in thr):
-        lines += ["", f"All {ncores} cores (no pinning). Drive-steps per second from the "
-                  "wall time (best of the repeats); C uses OpenMP over the drives, NumPy is "
-                  "single-threaded.", ""]
-        hdr = ("| dtype | pmsmjax mode | batch | pmsmjax M/s | per core | NumPy M/s | "
-               "C M/s | pmsmjax/NumPy | pmsmjax/C |")
-        lines += [hdr, "|" + "---|" * (hdr.count("|") - 1)]
-        for dtype_name in ("float64", "float32"):
-            refs = {r["batch"]: r for r in thr.get(f"{dtype_name}/all", {}).get("rows", [])}
-            for mode in ("all", "sharded"):
-                for row in thr.get(f"{dtype_name}/{mode}", {}).get("rows", []):
-                    j = row["pmsmjax"]
-                    ref = refs.get(row["batch"], {})
-                    nr = ref["numpy"]["steps_per_s"] if "numpy" in ref else float("nan")
-                    cr = ref["c"]["steps_per_s"] if "c" in ref else float("nan")
-                    name = "XLA threads" if mode == "all" else f"sharded x{row['devices']}"
-                    lines.append(
-                        f"| {dtype_name} | {name} | {row['batch']} | "
-                        f"{_fmt_rate(j['steps_per_s'])} | "
-                        f"{_fmt_rate(j['steps_per_s'] / ncores)} | {_fmt_rate(nr)} | "
-                        f"{_fmt_rate(cr)} | {j['steps_per_s'] / nr:.1f} | "
-                        f"{j['steps_per_s'] / cr:.2f} |")
-    g = results.get("grad")
-    if g:
-        lines += ["", "Gradient of the ISE of the speed error w.r.t. `alpha_s` (one core, "
-                  "float64), relative to the forward run of the same loss:", ""]
-        hdr = ("| batch | steps | forward ms (CPU) | grad ms (CPU) | grad/forward (CPU) | "
-               "grad/forward (wall) | value_and_grad/forward (CPU) | grad compile s | "
-               "grad temp MiB |")
-        lines += [hdr, "|" + "---|" * (hdr.count("|") - 1)]
-        for key, r in g.items():
-            if not key.startswith("batch_"):
-                continue
-            vg = r.get("value_and_grad_over_forward_cpu")
-            lines.append(
-                f"| {key.split('_')[1]} | {r['steps']} | {r['forward']['cpu_s'] * 1e3:.1f} | "
-                f"{r['grad']['cpu_s'] * 1e3:.1f} | {r['grad_over_forward_cpu']:.2f} | "
-                f"{r['grad_over_forward']:.2f} | "
-                f"{'-' if vg is None else f'{vg:.2f}'} | "
-                f"{r['grad']['compile_s']:.2f} | {r['grad']['temp_bytes'] / 2**20:.1f} |")
+def print_tables(results: dict) -> str:
+    thr, ncores = results["throughput"], os.cpu_count()
+    texts = []
+    rows = [dict(dtype=dt, **r) for dt in ("float64", "float32")
+            for r in thr.get(f"{dt}/one", {}).get("rows", [])]
+    texts.append(h.table(rows, [
+        ("dtype", "dtype", ""), ("batch", "batch", "d"),
+        ("pmsmjax M/s", lambda r: _m(r["pmsmjax"]["steps_per_cpu_s"]), ""),
+        ("NumPy M/s", lambda r: _m(r["numpy"]["steps_per_cpu_s"]), ""),
+        ("C M/s", lambda r: _m(r["c"]["steps_per_cpu_s"]), ""),
+        ("pmsmjax/NumPy", lambda r: r["pmsmjax"]["steps_per_cpu_s"]
+         / r["numpy"]["steps_per_cpu_s"], ".1f"),
+        ("pmsmjax/C", lambda r: r["pmsmjax"]["steps_per_cpu_s"]
+         / r["c"]["steps_per_cpu_s"], ".2f"),
+        ("pmsmjax wall M/s", lambda r: _m(r["pmsmjax"]["steps_per_s"]), ""),
+        ("C wall M/s", lambda r: _m(r["c"]["steps_per_s"]), ""),
+        ("compile s", lambda r: r["pmsmjax"]["trace_lower_s"] + r["pmsmjax"]["compile_s"],
+         ".2f"),
+        ("temp MiB", lambda r: r["pmsmjax"]["temp_bytes"] / 2**20, ".1f")],
+        title="One core (pinned): drive-steps per second from the process CPU time (best "
+              "of the repeats); wall time alongside."))
+    rows = []
+    for dt in ("float64", "float32"):
+        refs = {r["batch"]: r for r in thr.get(f"{dt}/all", {}).get("rows", [])}
+        for mode in ("all", "sharded"):
+            for r in thr.get(f"{dt}/{mode}", {}).get("rows", []):
+                ref = refs.get(r["batch"], {})
+                rows.append(dict(
+                    dtype=dt, batch=r["batch"], rate=r["pmsmjax"]["steps_per_s"],
+                    mode="XLA threads" if mode == "all" else f"sharded x{r['devices']}",
+                    numpy=ref.get("numpy", {}).get("steps_per_s"),
+                    c=ref.get("c", {}).get("steps_per_s")))
+    if rows:
+        print()
+        texts.append(h.table(rows, [
+            ("dtype", "dtype", ""), ("pmsmjax mode", "mode", ""), ("batch", "batch", "d"),
+            ("pmsmjax M/s", lambda r: _m(r["rate"]), ""),
+            ("per core", lambda r: _m(r["rate"] / ncores), ""),
+            ("NumPy M/s", lambda r: r["numpy"] and _m(r["numpy"]), ""),
+            ("C M/s", lambda r: r["c"] and _m(r["c"]), ""),
+            ("pmsmjax/NumPy", lambda r: r["numpy"] and r["rate"] / r["numpy"], ".1f"),
+            ("pmsmjax/C", lambda r: r["c"] and r["rate"] / r["c"], ".2f")],
+            title=f"All {ncores} cores (no pinning): wall time; C with OpenMP over the "
+                  f"drives, NumPy single-threaded."))
+    g = results.get("grad") or {}
+    rows = [dict(batch=k.split("_")[1], **r) for k, r in g.items() if k.startswith("batch_")]
+    if rows:
+        print()
+        texts.append(h.table(rows, [
+            ("batch", "batch", ""), ("steps", "steps", "d"),
+            ("forward ms (CPU)", lambda r: r["forward"]["cpu_s"] * 1e3, ".1f"),
+            ("grad ms (CPU)", lambda r: r["grad"]["cpu_s"] * 1e3, ".1f"),
+            ("grad/forward (CPU)", "grad_over_forward_cpu", ".2f"),
+            ("grad/forward (wall)", "grad_over_forward", ".2f"),
+            ("value_and_grad/forward (CPU)", "value_and_grad_over_forward_cpu", ".2f"),
+            ("grad compile s", lambda r: r["grad"]["compile_s"], ".2f"),
+            ("grad temp MiB", lambda r: r["grad"]["temp_bytes"] / 2**20, ".1f")],
+            title="Gradient of the ISE of the speed error w.r.t. `alpha_s` (one core, "
+                  "float64), against the forward run of the same loss:"))
     fc = results.get("first_compile")
     if fc:
-        lines += ["", f"First call of `simulate` in a fresh process (one core, 2000 steps, "
-                  f"save_every=1): {fc['first_call_s']:.2f} s, of which compile "
-                  f"{fc['first_compile_s']:.2f} s (import pmsmjax {fc['import_s']:.2f} s)."]
-    text = "\n".join(lines)
-    print(text)
-    return text
+        line = (f"First call of `simulate` in a fresh process (one core, 2000 steps, "
+                f"save_every=1): {fc['first_call_s']:.2f} s, of which compile "
+                f"{fc['first_compile_s']:.2f} s (import pmsmjax {fc['import_s']:.2f} s).")
+        print("\n" + line)
+        texts.append(line)
+    return "\n\n".join(texts)
 
 
 def targets(results: dict) -> dict:
@@ -546,10 +458,12 @@ def targets(results: dict) -> dict:
         batch=big, ratio=j["steps_per_cpu_s"] / c["steps_per_cpu_s"],
         ratio_wall=j["steps_per_s"] / c["steps_per_s"], target=1.0,
         met=j["steps_per_cpu_s"] >= c["steps_per_cpu_s"])
-    j1 = one64[1]["pmsmjax"]
+    j1, c1 = one64[1]["pmsmjax"], one64[1]["c"]
     out["single_run_steps_per_s"] = dict(value=j1["steps_per_cpu_s"],
                                          value_wall=j1["steps_per_s"], target=1e5,
                                          met=j1["steps_per_cpu_s"] >= 1e5)
+    out["single_run_vs_scalar_c"] = dict(ratio=j1["steps_per_cpu_s"] / c1["steps_per_cpu_s"],
+                                         ratio_wall=j1["steps_per_s"] / c1["steps_per_s"])
     for key, r in results["grad"].items():
         if key.startswith("batch_"):
             out[f"grad_over_forward_{key}"] = dict(
@@ -560,35 +474,25 @@ def targets(results: dict) -> dict:
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="short runs (< 1 min)")
-    ap.add_argument("--out", default=None, help="write the results as JSON here")
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE)
     ap.add_argument("--worker", nargs=2, metavar=("KIND", "CONFIG"), help=argparse.SUPPRESS)
-    args = ap.parse_args()
-
+    args = ap.parse_args(argv)
     if args.worker:
         kind, cfg = args.worker[0], json.loads(args.worker[1])
-        fn = dict(throughput=worker_throughput, grad=worker_grad,
-                  first_compile=worker_first_compile)[kind]
-        print(json.dumps(fn(cfg)))
-        return
+        h.worker_result(WORKERS[kind](cfg))
+        return 0
 
     t_start = time.perf_counter()
     plan = QUICK if args.quick else FULL
-    results = dict(machine=machine_info(), quick=args.quick,
-                   scenario=dict(preset="zhang750", T_s=T_S, t_ramp=T_RAMP, t_load=T_LOAD,
-                                 tau_load=TAU_LOAD, w_final_range_pu=[W_LO, W_HI],
-                                 solver="RK4", n_substeps=1, save_every="steps (1 sample)"))
-    m = results["machine"]
-    print(f"Machine: {m['cpu_model']}, {m['cpu_count']} cores; jax {m['jax']}, jaxlib "
-          f"{m['jaxlib']}, numpy {m['numpy']}, Python {m['python']}; {m['gcc']}")
-    print(f"Load average at start: {m['loadavg'][0]:.2f}")
+    print(h.machine_line())
     print("Building the C reference:")
     libs = build_c()
     print("Verifying the references against pmsmjax:")
-    results["verification"] = verify(libs)
-
+    results = dict(quick=args.quick, verification=verify(libs),
+                   scenario=dict(preset="zhang750", T_s=T_S, t_ramp=T_RAMP, t_load=T_LOAD,
+                                 tau_load=TAU_LOAD, w_final_range_pu=[W_LO, W_HI],
+                                 solver="RK4", n_substeps=1, save_every="steps (1 sample)"))
     base = dict(jax_steps={str(k): v for k, v in plan["jax_steps"].items()},
                 numpy_steps={str(k): v for k, v in plan["numpy_steps"].items()},
                 c_steps={str(k): v for k, v in plan["c_steps"].items()},
@@ -601,7 +505,7 @@ def main():
     results["throughput"] = {}
     for dtype_name in ("float64", "float32"):
         for mode in plan["modes"]:
-            print(f"Throughput {dtype_name}, {MODE_NAMES[mode]}:")
+            print(f"Throughput {dtype_name}, {h.MODES[mode]}:")
             cfg = dict(base, dtype=dtype_name, sharded=(mode == "sharded"),
                        c_lib=libs[dtype_name if mode == "one" else dtype_name + "_omp"])
             results["throughput"][f"{dtype_name}/{mode}"] = run_worker(
@@ -609,23 +513,20 @@ def main():
     print("Gradient (one core, float64):")
     results["grad"] = run_worker("grad", dict(base, dtype="float64"), "one")
     results["targets"] = targets(results)
-    results["machine"]["loadavg_end"] = os.getloadavg()
     results["total_s"] = time.perf_counter() - t_start
     print()
-    results["table"] = print_table(results)
-    print()
-    print("Targets (one core; judged on CPU time, wall time alongside):")
+    results["table"] = print_tables(results)
+    print("\nTargets (one core; judged on CPU time, wall time alongside):")
     for k, v in results["targets"].items():
-        print(f"  {'MET ' if v['met'] else 'MISS'} {k}: "
-              + ", ".join(f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}"
-                          for a, b in v.items() if a != "met"))
+        state = "" if "met" not in v else ("MET  " if v["met"] else "MISS ")
+        print(f"  {state}{k}: " + ", ".join(
+            f"{a}={b:.4g}" if isinstance(b, float) else f"{a}={b}"
+            for a, b in v.items() if a != "met"))
     print(f"Total benchmark time {results['total_s']:.0f} s; load average at the end "
-          f"{results['machine']['loadavg_end'][0]:.2f}.")
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(json.dumps(results, indent=1))
-        print(f"Wrote {args.out}")
+          f"{os.getloadavg()[0]:.2f}.")
+    h.write_report(args.json, results.pop("throughput"), benchmark=MODULE, **results)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

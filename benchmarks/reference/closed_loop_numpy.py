@@ -1,10 +1,10 @@
-"""Plain-NumPy reference of the closed-loop benchmark of bench_simulate.py.
+"""Plain-NumPy reference of the closed-loop benchmark (`benchmarks/throughput/simulate.py`).
 
 The same discrete algorithm as `pmsmjax.simulate` for sensored speed control of a
-three-phase PMSM without flux harmonics (and as benchmarks/ref_c.c): batched arrays over
-drives (shape (B,)) and a Python loop over the sampling instants. See ref_c.c for the
-step; `params` is the dict `bench_simulate.reference_params` builds from the drive and
-the controller.
+three-phase PMSM without flux harmonics (and as `closed_loop.c`): batched arrays over
+drives (shape (B,)) and a Python loop over the sampling instants. See `closed_loop.c` for
+the step; `params` is the dict `benchmarks.throughput.simulate.reference_params` builds
+from the drive and the controller.
 """
 
 from __future__ import annotations

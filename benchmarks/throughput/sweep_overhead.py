@@ -28,24 +28,20 @@ the runner's overhead `runner / work - 1`, both as medians of the ratios within 
 the calls are made in turn, `--repeats` rounds, so that the changing load of a shared
 machine falls on all of them alike.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_sweep_overhead.py [--quick] [--repeats N] [--out FILE.json]
+    python -m benchmarks.throughput.sweep_overhead [--quick] [--repeats N]
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import datetime
 import inspect
 import io
 import json
 import os
-import platform
 import re
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -54,9 +50,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from .. import _harness as h
 
-HERE = Path(__file__).resolve().parent
-OUT = HERE / "out"
+
+MODULE = "benchmarks.throughput.sweep_overhead"
 
 
 def _interleaved(fns: dict, repeats: int) -> dict:
@@ -78,6 +75,16 @@ def _interleaved(fns: dict, repeats: int) -> dict:
         out[f"ratio/{k}"] = statistics.median(
             a / b for a, b in zip(times[k], times[first]))
     return out
+
+
+def _in_memory(point, grid):
+    """The work alone: `jit(vmap(point))` over the whole `grid` in memory, fetched."""
+    flat = {k: jax.numpy.asarray(v) for k, v in grid.items()}
+    vpoint = jax.jit(jax.vmap(point))
+
+    def work():
+        jax.tree_util.tree_map(np.asarray, jax.block_until_ready(vpoint(flat)))
+    return work
 
 
 def feasibility(n_axis, repeats, tmp):
@@ -114,11 +121,7 @@ def feasibility(n_axis, repeats, tmp):
     (point, _method), = cf._POINT_FNS.values()
     w_r = float(drive.w_rated)
     grid = grid_product(w_m=np.array([0.5 * w_r]), x=z, y=r)
-    flat = {k: jax.numpy.asarray(v) for k, v in grid.items()}
-    vpoint = jax.jit(jax.vmap(point))
-
-    def work():
-        jax.tree_util.tree_map(np.asarray, jax.block_until_ready(vpoint(flat)))
+    work = _in_memory(point, grid)
 
     sweep_dir = os.path.join(tmp, "runner")
 
@@ -139,8 +142,7 @@ def feasibility(n_axis, repeats, tmp):
     # the command as a user runs it: a fresh process, the persistent compilation cache
     # warm (filled by a first run); its own printed time of the map ("classified N
     # designs in T s": tracing, loading the compiled code, the sweep) and its wall time
-    env = dict(os.environ, PMSMJAX_CACHE="1", PMSMJAX_CACHE_DIR=os.path.join(tmp, "cache"))
-    env["PYTHONPATH"] = str(HERE.parent) + os.pathsep + env.get("PYTHONPATH", "")
+    env = h.child_env(cache=os.path.join(tmp, "cache"))
     cmd = [sys.executable, "-m", "pmsmjax", "feasibility", *args, "--no-plot", "--restart",
            "--out", os.path.join(tmp, "fresh")]
     # the API as a script runs it: a fresh process, the same cache, the time of the first
@@ -149,18 +151,11 @@ def feasibility(n_axis, repeats, tmp):
     api_script = _FRESH_API.format(n_axis=n_axis)
     fresh, fresh_api = [], []
     for k in range(repeats + 1):
-        t0 = time.perf_counter()
-        p = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
-        wall = time.perf_counter() - t0
-        if p.returncode != 0:
-            raise RuntimeError(p.stdout[-2000:] + p.stderr[-3000:])
+        p = h.run_child(cmd, env, timeout=1800)
         t_map = float(re.search(r"classified \d+ designs in ([0-9.]+) s", p.stdout).group(1))
-        q = subprocess.run([sys.executable, "-c", api_script], env=env, capture_output=True,
-                           text=True, timeout=1800)
-        if q.returncode != 0:
-            raise RuntimeError(q.stdout[-2000:] + q.stderr[-3000:])
+        q = h.python_child(api_script, env=env, timeout=1800)
         if k:  # the first run fills the cache
-            fresh.append((t_map, wall))
+            fresh.append((t_map, p.wall_s))
             fresh_api.append(float(q.stdout.split()[-1]))
     t_fresh = statistics.median(t for t, _ in fresh)
     wall_fresh = statistics.median(w for _, w in fresh)
@@ -170,8 +165,9 @@ def feasibility(n_axis, repeats, tmp):
                 command_over_api=t["ratio/command"],
                 runner_over_work=t["ratio/runner"] / t["ratio/work"],
                 fresh_map_s=t_fresh, fresh_wall_s=wall_fresh, fresh_api_s=t_fresh_api,
-                fresh_command_over_api=fresh_ratio, work_s=t_work, runner_s=t_run, chunks=int(m.group(1)),
-                chunk_size=int(m.group(2)), compile_s=manifest.get("compile_seconds"),
+                fresh_command_over_api=fresh_ratio, work_s=t_work, runner_s=t_run,
+                chunks=int(m.group(1)), chunk_size=int(m.group(2)),
+                compile_s=manifest.get("compile_seconds"),
                 runner_files=len(files), runner_bytes=nbytes)
 
 
@@ -206,11 +202,7 @@ def simulation(runs, repeats, tmp):
     n = n0 * runs
     g.update({k: np.full(n, v) for k, v in cols.items()})
     grid = SweepGrid(g, shape=(n,), axes={"point": np.arange(n)})
-    flat = {k: jax.numpy.asarray(v) for k, v in grid.items()}
-    vpoint = jax.jit(jax.vmap(f_runs))
-
-    def work():
-        jax.tree_util.tree_map(np.asarray, jax.block_until_ready(vpoint(flat)))
+    work = _in_memory(f_runs, grid)
 
     sweep_dir = os.path.join(tmp, "sim")
     kw = dict(out_dir=sweep_dir, resume=False, progress=False)
@@ -237,16 +229,16 @@ def simulation(runs, repeats, tmp):
                                  for f in os.listdir(sweep_dir)))
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="501 x 501 designs, 60 runs")
-    ap.add_argument("--repeats", type=int, default=3, help="warm calls per median")
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="501 x 501 designs and 60 runs, two repeats")
+    ap.add_argument("--repeats", type=int, default=None,
+                    help="warm calls per median (default 3; --quick: 2)")
     ap.add_argument("--runs", type=int, default=8,
                     help="repetitions of the comparison's quick grid (60 runs each)")
     ap.add_argument("--workloads", default="feasibility,simulation")
     ap.add_argument("--label", default="", help="a name for this code state (e.g. before)")
-    ap.add_argument("--out", default=str(OUT / "bench_sweep_overhead.json"))
-    a = ap.parse_args()
+    a = ap.parse_args(argv)
+    a.repeats = a.repeats or (2 if a.quick else 3)
     import pmsmjax as pj
 
     pj.runtime.configure()  # the command's process settings (XLA flags), before any work
@@ -269,17 +261,33 @@ def main():
                 line += (f"; API {n / row['api_s']:9.3g} /s, command {n / row['command_s']:9.3g}"
                          f" /s, command/API rate {1 / row['command_over_api']:.2f}; fresh "
                          f"process (compile cache warm): map {n / row['fresh_map_s']:9.3g} /s "
-                         f"({row['fresh_map_s']:.2f} s, wall {row['fresh_wall_s']:.1f} s), API's first "
-                         f"call {n / row['fresh_api_s']:9.3g} /s ({row['fresh_api_s']:.2f} s), "
+                         f"({row['fresh_map_s']:.2f} s, wall {row['fresh_wall_s']:.1f} s), "
+                         f"API's first call {n / row['fresh_api_s']:9.3g} /s "
+                         f"({row['fresh_api_s']:.2f} s), "
                          f"command/API rate {row['fresh_command_over_api']:.2f}")
             print(line, flush=True)
-    meta = dict(date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                machine=platform.machine(), cpus=os.cpu_count(), python=platform.python_version(),
-                quick=a.quick, repeats=a.repeats, devices=jax.device_count())
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
-    print(f"wrote {a.out}")
+    print(h.machine_line())
+
+    def rate(key):
+        return lambda r: r["points"] / r[key] if r.get(key) else None
+
+    h.table(rows, [
+        ("workload", "workload", ""), ("points", "points", ",d"),
+        ("API (pt/s)", rate("api_s"), ".3g"),
+        ("command in process (pt/s)", rate("command_s"), ".3g"),
+        ("command / API", lambda r: r.get("command_over_api") and 1 / r["command_over_api"],
+         ".2f"),
+        ("fresh command: map (s)", "fresh_map_s", ".2f"),
+        ("fresh API: first call (s)", "fresh_api_s", ".2f"),
+        ("command / API, fresh", "fresh_command_over_api", ".2f"),
+        ("work (pt/s)", rate("work_s"), ".3g"), ("runner (pt/s)", rate("runner_s"), ".3g"),
+        ("runner overhead", lambda r: f"{r['runner_over_work'] - 1:+.1%}", ""),
+        ("chunks x size", lambda r: f"{r['chunks']} x {r['chunk_size']:,}", ""),
+        ("files, MB", lambda r: f"{r['runner_files']}, {r['runner_bytes'] / 1e6:.1f}", "")])
+    h.write_report(a.json, rows, benchmark=MODULE, quick=a.quick, repeats=a.repeats,
+                   devices=jax.device_count())
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -8,28 +8,28 @@ compilation and both Levenberg-Marquardt solves included) with the persistent
 compilation cache empty ("cold") or filled by the previous run ("warm"), and reports the
 wall time, the solver steps and the largest relative error of the fitted parameters.
 
-Usage:
+Usage (from the repository root):
 
-    .venv/bin/python benchmarks/bench_identify.py [--repeat N] [--out FILE.json]
+    python -m benchmarks.commands.identify [--repeat N] [--quick]
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
 import pmsmjax as pj
+
+from .. import _harness as h
+
+
+MODULE = "benchmarks.commands.identify"
 
 
 FIT = ("R_s", "L_d", "L_q", "psi_f", "J", "B", "u_dt")
@@ -62,40 +62,38 @@ def _make(folder: Path):
     return true
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=2, help="warm runs (default 2)")
-    ap.add_argument("--out", default=None, help="write the results as JSON")
-    args = ap.parse_args()
+def main(argv=None) -> int:
+    ap = h.parser(__doc__, MODULE, quick_help="one warm run")
+    ap.add_argument("--repeat", type=int, default=None, help="warm runs (default 2)")
+    args = ap.parse_args(argv)
+    repeat = args.repeat or (1 if args.quick else 2)
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         true = _make(tmp)
-        env = dict(os.environ, PMSMJAX_CACHE_DIR=str(tmp / "cache"))
+        env = h.child_env(cache=str(tmp / "cache"))
         cmd = [sys.executable, "-m", "pmsmjax", "identify", "--motor-file",
                str(tmp / "start.toml"), "--data", str(tmp / "rec.npz"), "--voltage",
                "commanded", "--fit", *FIT, "--no-plot", "--out", str(tmp / "id")]
         rows = []
-        for case in ["cold"] + ["warm"] * args.repeat:
+        for case in ["cold"] + ["warm"] * repeat:
             if case == "cold":
                 shutil.rmtree(tmp / "cache", ignore_errors=True)
-            t0 = time.perf_counter()
-            subprocess.run(cmd, env=env, check=True, capture_output=True)
-            wall = time.perf_counter() - t0
+            c = h.run_child(cmd, env)
             rep = json.loads((tmp / "id" / "identify.json").read_text())
             errs = {n: abs(p["value"] / _value(true, n) - 1) for n, p in
                     rep["parameters"].items()}
             worst = max(errs, key=errs.get)
-            rows.append({"case": case, "wall_s": wall, "solver_steps": rep["solver_steps"],
+            rows.append({"case": case, "wall_s": c.wall_s, "cpu_s": c.cpu_s,
+                         "solver_steps": rep["solver_steps"],
                          "max_rel_error_pct": 100 * errs[worst], "worst": worst})
-    print(f"{'case':6s} {'wall (s)':>9s} {'LM steps':>9s} {'max error %':>12s}")
-    for r in rows:
-        print(f"{r['case']:6s} {r['wall_s']:9.1f} {r['solver_steps']:9d} "
-              f"{r['max_rel_error_pct']:12.3f} ({r['worst']})")
-    if args.out:
-        Path(args.out).write_text(json.dumps({
-            "machine": f"{platform.machine()} {os.cpu_count()} cores, {platform.platform()}",
-            "jax": jax.__version__, "fit": FIT, "samples": 10000, "rows": rows}, indent=2))
+    print(h.machine_line())
+    h.table(rows, [("case", "case", ""), ("wall (s)", "wall_s", ".1f"),
+                   ("CPU (s)", "cpu_s", ".1f"), ("LM steps (both solves)", "solver_steps", "d"),
+                   ("largest parameter error",
+                    lambda r: f"{r['max_rel_error_pct']:.2f} % ({r['worst']})", "")])
+    h.write_report(args.json, rows, benchmark=MODULE, fit=FIT, samples=10000)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

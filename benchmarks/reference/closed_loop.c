@@ -1,4 +1,4 @@
-/* Scalar C reference of the closed-loop benchmark of bench_simulate.py.
+/* Scalar C reference of the closed-loop benchmark (benchmarks/throughput/simulate.py).
  *
  * The same discrete algorithm as pmsmjax.simulate for sensored speed control of a
  * three-phase PMSM without flux harmonics (pmsmjax/_sim/_simulate.py, _control/, _plant/_motor.py):
@@ -10,7 +10,7 @@
  * Scenario: speed reference ramp 0 -> w_final[b] over [0, t_ramp], then constant; load
  * torque steps from 0 to tau_load at t_load; inputs sampled at t_k = k T_s.
  *
- * Compiled twice by bench_simulate.py: with -DREAL=double and -DREAL=float (then the
+ * Compiled by benchmarks/reference/__init__.py: with -DREAL=double and -DREAL=float (then the
  * single-precision libm functions are used). Scalar loop over drives and time; with
  * -fopenmp the loop over drives is split over threads.
  */
