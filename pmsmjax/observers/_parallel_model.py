@@ -331,12 +331,15 @@ class ParallelModelObserver(AbstractObserver):
     def check_sampling(self, T_s) -> None:
         """`ValueError` unless T_s < 2 min(T_LP, T_w) (forward-Euler filters), for
         concrete values."""
-        if is_concrete((T_s, self.T_LP, self.T_w)) and \
-                not float(T_s) < 2.0 * float(min(self.T_LP, self.T_w)):
+        if not is_concrete((T_s, self.T_LP, self.T_w)):
+            return
+        # plain floats: a JAX comparison of concrete arrays would itself be traced under
+        # `jit` (the observer closed over after `pmsmjax.astype`)
+        bound = 2.0 * min(float(self.T_LP), float(self.T_w))
+        if not float(T_s) < bound:
             raise ValueError(
                 f"`ParallelModelObserver.step(T_s=...)` must be below 2 min(T_LP, T_w) = "
-                f"{2.0 * float(min(self.T_LP, self.T_w))!r} s (forward-Euler filters); got "
-                f"{T_s!r}.")
+                f"{bound!r} s (forward-Euler filters); got {T_s!r}.")
 
     def step(self, state: ParallelModelState, meas: Measurement, T_s):
         self.check_sampling(T_s)
