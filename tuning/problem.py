@@ -198,16 +198,17 @@ class TuningProblem:
             set_(k, tuple(tuple(x) if isinstance(x, list) else x for x in getattr(self, k)))
         set_("val_cases", tuple(tuple(float(v) for v in row) for row in self.val_cases))
         self.drive()  # a bad motor file or replacement is an error now, named
-        for k in ("T_s", "t_end", "val_t_end", "noise_unit_rad_s", "theta_unit_deg",
-                  "peak_unit_deg", "ramp_lag_deg", "w_T_s_max", "lock_deg"):
-            v = getattr(self, k)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                _bad(k, v, "a finite number > 0 is allowed")
-        for k in ("noise_std", "load_max_pu", "w_peak", "w_noise", "regression_tol",
-                  "w_constraint", "val_load_pu"):
-            v = getattr(self, k)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                _bad(k, v, "a finite number >= 0 is allowed")
+        for keys, ok, allowed in (
+                (("T_s", "t_end", "val_t_end", "noise_unit_rad_s", "theta_unit_deg",
+                  "peak_unit_deg", "ramp_lag_deg", "w_T_s_max", "lock_deg"),
+                 lambda v: v > 0, "a finite number > 0 is allowed"),
+                (("noise_std", "load_max_pu", "w_peak", "w_noise", "regression_tol",
+                  "w_constraint", "val_load_pu"),
+                 lambda v: v >= 0, "a finite number >= 0 is allowed")):
+            for k in keys:
+                v = getattr(self, k)
+                if not (isinstance(v, (int, float)) and math.isfinite(v) and ok(v)):
+                    _bad(k, v, allowed)
         for k in ("speed_range", "accel_range", "mismatch_range", "resistance_range",
                   "flux_range", "noise_range", "damping_range"):
             lo_hi = getattr(self, k)

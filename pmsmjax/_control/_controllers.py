@@ -8,7 +8,7 @@ import jax.numpy as jnp
 
 from .._plant._params import PMSMParams
 from .._validate import check_positive
-from ._limits import _limit_scale
+from ._limits import _limited_pi
 from ._startup import StartupState
 
 
@@ -52,11 +52,9 @@ class CurrentController(eqx.Module):
         psi_d, psi_q = m.L_d * i_d + m.psi_f, m.L_q * i_q
         u_d = Kp_d * e_d + x_d + w * -psi_q  # PI + decoupling w J psi
         u_q = Kp_q * e_q + x_q + w * psi_d
-        scale = _limit_scale(u_d * u_d + u_q * u_q, self.u_max)
-        u_d_lim, u_q_lim = u_d * scale, u_q * scale
-        x_I = jnp.stack([x_d + T_s * Ki * (e_d + (u_d_lim - u_d) / Kp_d),
-                         x_q + T_s * Ki * (e_q + (u_q_lim - u_q) / Kp_q)], -1)
-        return CurrentControllerState(x_I=x_I), jnp.stack([u_d_lim, u_q_lim], -1)
+        x_I, u_lim = _limited_pi((u_d, u_q), (x_d, x_q), (e_d, e_q), (Kp_d, Kp_q), Ki,
+                                 self.u_max, T_s)
+        return CurrentControllerState(x_I=x_I), jnp.stack(u_lim, -1)
 
 
 class SpeedControllerState(eqx.Module):

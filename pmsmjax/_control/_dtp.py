@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from .._validate import check_positive
 from ._controllers import FOCOutput, FOCState
-from ._limits import _limit_scale
+from ._limits import _limited_pi
 
 
 def _rot(c, s, x, y):
@@ -70,10 +70,8 @@ class XYCurrentController(eqx.Module):
         # PI + decoupling of the frame's rotation (-j w L_xy i) + harmonic terms
         u_x = Kp * e_x + state.x_I[..., 0] + w_hat * self.L_xy * i_y + hp[0] + hn[0]
         u_y = Kp * e_y + state.x_I[..., 1] - w_hat * self.L_xy * i_x + hp[1] + hn[1]
-        scale = _limit_scale(u_x * u_x + u_y * u_y, self.u_max)
-        ul_x, ul_y = u_x * scale, u_y * scale
-        x_I = jnp.stack([state.x_I[..., 0] + T_s * Ki * (e_x + (ul_x - u_x) / Kp),
-                         state.x_I[..., 1] + T_s * Ki * (e_y + (ul_y - u_y) / Kp)], -1)
+        x_I, (ul_x, ul_y) = _limited_pi((u_x, u_y), (state.x_I[..., 0], state.x_I[..., 1]),
+                                        (e_x, e_y), (Kp, Kp), Ki, self.u_max, T_s)
         x_h = jnp.stack([xp + T_s * Kr * jnp.stack(ep, -1),
                          xn + T_s * Kr * jnp.stack(en, -1)], -2)
         cu, su = jnp.cos(theta_u), jnp.sin(theta_u)

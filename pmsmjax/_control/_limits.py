@@ -29,6 +29,28 @@ def _limit_scale(n2, u_max):
     return jnp.where(n > u_max, u_max / n, 1.0)
 
 
+def _limited_pi(u, x, e, Kp, Ki, u_max, T_s):
+    r"""Limit the output `u = (u_1, u_2)` of a two-component PI controller onto the circle
+    `u_max` and advance its integrators `x = (x_1, x_2)` with back-calculation
+    anti-windup, $x \leftarrow x + T_s K_i (e + (u_{lim} - u) / K_p)$.
+
+    **Arguments:**
+
+    - `u`, `x`, `e`: pairs of the unlimited output (V), the integrator states (V) and the
+      current errors (A), one entry per component.
+    - `Kp`: pair of proportional gains (Ohm); `Ki`: the integral gain (Ohm/s).
+    - `u_max`: the voltage limit (V); `T_s`: the sampling period (s).
+
+    Returns `(x_I, u_lim)`: the integrators stacked on the last axis (V) and the pair of
+    limited outputs (V).
+    """
+    scale = _limit_scale(u[0] * u[0] + u[1] * u[1], u_max)
+    u_lim = (u[0] * scale, u[1] * scale)
+    x_I = jnp.stack([x[k] + T_s * Ki * (e[k] + (u_lim[k] - u[k]) / Kp[k]) for k in (0, 1)],
+                    -1)
+    return x_I, u_lim
+
+
 def mtpa_i_d(i_q, motor: PMSMParams):
     r"""d-current on the maximum-torque-per-ampere locus for a given q-current (A).
 

@@ -37,7 +37,16 @@ import jax.numpy as jnp
 
 from .._frames import park
 from ._inverter import dead_time_error_ab, dead_time_error_vsd
-from ._params import DualThreePhaseParams, EMFHarmonics, Inverter, Mechanics, PMSMParams
+from ._params import (
+    DualThreePhaseParams,
+    EMFHarmonics,
+    Inverter,
+    Mechanics,
+    PMSMParams,
+    _is_dual,
+    _three_phase,
+    _torque_factor,
+)
 
 
 @jax.custom_jvp
@@ -151,16 +160,16 @@ class PMSM(eqx.Module):
 
     @property
     def dual(self) -> bool:
-        return isinstance(self.motor, DualThreePhaseParams)
+        return _is_dual(self.motor)
 
     @property
     def _ab(self) -> PMSMParams:
-        return self.motor.ab if self.dual else self.motor
+        return _three_phase(self.motor)
 
     @property
     def k_tau(self):
         """Torque factor: 1.5 n_p (three-phase) or 3 n_p (dual three-phase)."""
-        return (3.0 if self.dual else 1.5) * self._ab.n_p
+        return _torque_factor(self.motor)
 
     # -- PM flux, split by subspace -----------------------------------------------------
     def _harmonics(self, xy: bool):

@@ -176,6 +176,21 @@ class DualThreePhaseParams(eqx.Module):
         return self.ab.n_p
 
 
+def _is_dual(motor) -> bool:
+    """True when `motor` is a dual three-phase machine (`DualThreePhaseParams`)."""
+    return isinstance(motor, DualThreePhaseParams)
+
+
+def _three_phase(motor) -> PMSMParams:
+    """The `PMSMParams` of the torque-producing (alpha-beta) subspace of `motor`."""
+    return motor.ab if _is_dual(motor) else motor
+
+
+def _torque_factor(motor):
+    """Torque per unit vector product psi x i: 1.5 n_p (3 n_p for two sets)."""
+    return (3.0 if _is_dual(motor) else 1.5) * motor.n_p
+
+
 class Mechanics(eqx.Module):
     r"""Rigid rotor: $J \dot w_M = \tau_M - B w_M - \tau_L$.
 
@@ -325,17 +340,17 @@ class Drive(eqx.Module):
     @property
     def dual(self) -> bool:
         """True for a dual three-phase machine."""
-        return isinstance(self.motor, DualThreePhaseParams)
+        return _is_dual(self.motor)
 
     @property
     def three_phase_motor(self) -> PMSMParams:
         """The `PMSMParams` that describe the torque-producing (alpha-beta) subspace."""
-        return self.motor.ab if self.dual else self.motor
+        return _three_phase(self.motor)
 
     @property
     def k_tau(self):
         """Torque per unit vector product psi x i: 1.5 n_p (3 n_p for two sets)."""
-        return (3.0 if self.dual else 1.5) * self.motor.n_p
+        return _torque_factor(self.motor)
 
 
 def replace_params(drive: Drive, **values) -> Drive:
