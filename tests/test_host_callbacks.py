@@ -6,7 +6,7 @@ Public reports of CPU programs that hang under asynchronous dispatch need a host
 that hung (the Lyapunov certificate, the generic equilibria) contain no host callback at
 all, and that the closed loop calls the host only outside its time loop, and only when
 asked to raise (`throw=True`). The check walks the jaxpr, so it covers the jitted and the
-eager (un-jitted `vmap`) call alike; benchmarks/stress_hang.py measures the hangs.
+eager (un-jitted `vmap`) call alike; benchmarks/reproducers/stress_hang.py measures the hangs.
 """
 
 import jax

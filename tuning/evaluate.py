@@ -18,7 +18,7 @@ set's size), the currency of the searches' equal budgets.
 compiled programs, with the scenario set, the reference and the noise weight as their
 arguments: one program per shape (number of runs, run length, batch of designs), not one
 per set. On the main job's quick problem this takes a third off the compile work of a
-whole tuning run (BENCHMARKS.md, "The tuner's compiled programs").
+whole tuning run (BENCHMARKS.md, "Closed-loop tuning").
 """
 
 from __future__ import annotations

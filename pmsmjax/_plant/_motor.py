@@ -100,7 +100,7 @@ class PlantInput(eqx.Module):
 # Component form: the same Modules with every 2-vector held as a tuple `(x, y)` of its
 # components. `simulate` carries the plant in this form, so that its step is element-wise
 # arithmetic without stacking and slicing, which XLA compiles to fewer and faster loops,
-# forward and reverse (see BENCHMARKS.md).
+# forward and reverse (measured when it was chosen: `git log -p BENCHMARKS.md`).
 
 def _pair(v):
     return None if v is None else (v[..., 0], v[..., 1])

@@ -408,7 +408,8 @@ def _simulate(arguments: dict) -> Trajectory:
         # step (a select). Against a first step of its own followed by an unrecorded
         # loop, this compiles a quarter to a third faster (a closed-loop gradient under
         # quick compiles: half the time) for up to 8 % more run time; a `lax.cond` in
-        # place of the select ran slower still (BENCHMARKS.md, "One step per chunk").
+        # place of the select ran slower still (measured when it was chosen: the section
+        # "One step per chunk" in `git log -p BENCHMARKS.md`).
         rec_shape = jax.eval_shape(lambda c: step(c, jnp.int32(0))[1](), carry0)
         slot0 = batched_like(
             jax.tree_util.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), rec_shape), arguments)

@@ -71,7 +71,7 @@ process (`vm.max_map_count`, 65,530 by default). A process that compiles thousan
 distinct programs and keeps them (JAX keeps every compiled program of every jitted
 function) reaches the limit, and then the next compilation fails inside LLVM ("LLVM
 compilation error: Cannot allocate memory") and the process dies with a segmentation
-fault in `backend_compile` (`benchmarks/map_limit.py` shows it). The test suite's
+fault in `backend_compile` (`benchmarks/reproducers/map_limit.py` shows it). The test suite's
 workers did this (about 30,000 mappings halfway through a run, a worker killed in the
 tuner's tests). `memory_maps()` tells where a process stands; `release_compiled()` drops
 every compiled program (`jax.clear_caches()`) once the mappings pass a fraction of the
