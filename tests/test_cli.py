@@ -10,7 +10,7 @@ import pmsmjax as pj
 from pmsmjax.cli.__main__ import COMMANDS, build_parser, main
 from pmsmjax.observers import make_observer
 
-from .helpers import read_npz
+from .helpers import lock_status_loop, read_npz
 
 
 T_END = 0.2  # s: short enough to be quick, long enough to reach speed and draw current
@@ -400,26 +400,69 @@ def test_bad_inputs_exit_2(argv, fragment, tmp_path, capsys):
     assert fragment in err
 
 
-def test_diverged_run_exits_1(tmp_path, monkeypatch, capsys):
-    """A run that diverges still writes its files, reports the status and exits with 1.
-    (The voltage limit keeps the current loop of a sensored drive bounded even with
-    absurd gains, so the divergence is injected into the returned status.)"""
-    import equinox as eqx
-
-    import pmsmjax.cli._simulate as cli
-
-    real = cli.compile_and_run
-
-    def diverging(fn, *args, **kwargs):
-        out, t_c, t_r = real(fn, *args, **kwargs)
-        return eqx.tree_at(lambda tr: tr.status, out, pj.RESULTS.diverged), t_c, t_r
-
-    monkeypatch.setattr(cli, "compile_and_run", diverging)
-    assert main(["simulate", "--t-end", "0.02", "--no-plot", "--out", str(tmp_path)]) == 1
+def test_a_runaway_rotor_diverges_and_exits_1(tmp_path, capsys):
+    """A real divergence, nothing injected: an overhauling load of 400 p.u. drives the
+    rotor past the simulator's bound of 20 x the rated speed within the run. The files
+    are still written, the summary and stderr say "diverged", the exit status is 1; the
+    recorded speed is the mechanical equation's (a trapezoid of the recorded torques, by
+    NumPy), frozen at the last good sample, from which the next step leaves the bound."""
+    assert main(["simulate", "--scenario", "load-step", "--load", "-400", "--t-end", "0.03",
+                 "--no-plot", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "pmsmjax simulate: the run diverged" in err and "20 w_rated" in err
     summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["status"] == "diverged"
-    assert "diverged" in summary["status_message"]
-    assert "diverged" in capsys.readouterr().err
+    assert summary["status"] == "diverged" and summary["lock"]["status"] == "diverged"
+    assert "diverged" in summary["status_message"] and summary["lock"]["lost"]
+    tr = read_npz(tmp_path / "trajectory.npz")
+    assert int(tr["status"]) != 0
+    assert pj.load_recording(tmp_path / "recording.npz").n == tr["t"].size
+    t, w = tr["t"], tr["w_m"]
+    T_s, w_r = t[1] - t[0], float(DRIVE.w_rated)
+    assert summary["lock"]["t_lost_s"] == pytest.approx(t[-1])  # diverged: lost at the end
+    frozen = np.flatnonzero(np.diff(w) == 0.0)
+    k0 = int(frozen[0])  # the last good sample; nothing moves after it
+    assert np.all(np.diff(w[k0:]) == 0.0) and np.all(np.diff(tr["i_dq"][k0:], axis=0) == 0)
+    m = DRIVE.mechanics
+    n_p, J, B = float(DRIVE.motor.n_p), float(m.J), float(m.B)
+    rate = n_p * (tr["tau_M"] - B * w / n_p - tr["tau_L"]) / J  # dw/dt (rad/s^2)
+    kl = int(np.flatnonzero(tr["tau_L"] < 0)[0])
+    gain = np.sum(0.5 * (rate[kl:k0] + rate[kl + 1:k0 + 1])) * T_s
+    # measured: 5e-4 (the trapezoid of the sampled torque against the solver's steps)
+    assert (w[k0] - w[kl]) / gain - 1 == pytest.approx(0.0, abs=1.5e-3)
+    assert w[k0] < 20 * w_r < w[k0] + T_s * rate[k0]
+
+
+def test_a_lost_lock_is_reported_with_its_time(tmp_path, capsys):
+    """A sensorless run that really loses lock: zhang2022's ESO with a model wrong in
+    every parameter (L_d x0.6, L_q x1.4, R_s x1.5, psi_f x0.7) through a slow reversal.
+    The summary's lock fields against the plain-loop reference of `lock_status` on the
+    angle error recomputed from the recorded angles, judged from the I/f handover (the
+    first sample at which the rotor and the reference have reached its speed); the run
+    itself succeeded (exit 0) and stderr says when lock was lost."""
+    assert main(["simulate", "--observer", "eso", "--mismatch", "L_d=0.6", "--mismatch",
+                 "L_q=1.4", "--mismatch", "R_s=1.5", "--mismatch", "psi_f=0.7",
+                 "--scenario", "reversal", "--speed", "0.2", "--t-end", "0.3", "--no-plot",
+                 "--out", str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    s = json.loads((tmp_path / "summary.json").read_text())
+    lock = s["lock"]
+    tr = read_npz(tmp_path / "trajectory.npz")
+    t = tr["t"]
+    e = np.asarray(pj.wrap_angle(tr["theta"] - tr["theta_hat"]))
+    w_hand = float(pj.IfStartup.from_drive(DRIVE).w_hand)
+    k = max(int(np.flatnonzero(np.abs(tr[x]) >= w_hand)[0]) for x in ("w_m", "w_m_ref"))
+    acq, t_acq, lost, t_lost = lock_status_loop(t[k:], e[k:])
+    assert lock["judged_from_s"] == t[k]
+    assert (lock["acquired"], lock["lost"]) == (acq, lost) == (True, True)
+    assert lock["t_acquired_s"] == pytest.approx(t_acq, abs=1e-12)
+    assert lock["t_lost_s"] == pytest.approx(t_lost, abs=1e-12)
+    assert s["status"] == lock["status"] == f"lost lock at t = {t_lost:.4g} s"
+    assert s["status_message"] == pj.RESULTS[pj.RESULTS.successful]
+    # after the reversal's zero crossing (0.1875 s), and out of lock by the definition
+    assert 0.1875 < t_lost < t[-1]
+    j = int(np.searchsorted(t, t_lost))
+    assert np.degrees(np.abs(e[j:j + 80]).mean()) > pj.LOCK_DEG  # 80 samples: 10 ms
+    assert f"the observer lost lock at t = {t_lost:.4g} s" in err
 
 
 def test_simulate_default_run(tmp_path, capsys):

@@ -238,6 +238,87 @@ def test_equilibria_no_equilibrium_is_its_own_status(capsys):
     assert report["observer"]["model"]["L_q_ratio"] == pytest.approx(1.5)
 
 
+def _expm(M):
+    """exp of a batch of small matrices by NumPy alone: scaling and squaring of a degree-24
+    Taylor polynomial (independent of the certificate's Pade approximant)."""
+    n1 = np.abs(M).sum(-2).max(-1)
+    s = np.maximum(0, np.ceil(np.log2(np.maximum(n1, 1e-300))) + 1).astype(int)
+    X = M / (2.0 ** s)[..., None, None]
+    eye = np.eye(M.shape[-1])
+    E = np.broadcast_to(eye, M.shape).copy()
+    for j in range(24, 0, -1):
+        E = eye + X @ E / j
+    for k in range(int(s.max())):
+        E = np.where((s > k)[..., None, None], E @ E, E)
+    return E
+
+
+def _certificate_by_scipy(obs, report):
+    """The bounds of a certificate report recomputed independently: the linearisation by
+    central differences of the observer's error dynamics (`error_rhs`), in the report's
+    per-unit scaling, on its speed grid; P by SciPy's Lyapunov solver, dP/dw by central
+    differences; k(gamma) = max sup_t ||exp(t (A + gamma I))|| on a geometric time grid
+    refined twice around each speed's peak, with gamma = alpha sigma for each alpha of
+    the report's resolution, the best bound taken; eps = c3 / c5 with the target
+    c3 = 1/2 and zhang2022 (64) c5 = k^4 b / (2 gamma^2), sharp: c5 = max ||dP/dw||.
+    Returns (eps, eps_sharp, {"sigma", "b", "k"})."""
+    import jax
+    import scipy.linalg
+
+    m = DRIVE.three_phase_motor
+    i0 = np.asarray(report["operating_point"]["i_dq_A"])
+    psi_b, w_b = float(DRIVE.base.psi_b), float(DRIVE.base.w_b)
+    d = np.array([1 / psi_b, 1 / psi_b, 1.0, 1 / w_b])
+    f = jax.jit(lambda x, w: obs.error_rhs(x, analysis.OperatingPoint(w, i0), m))
+
+    def A(w):
+        cols = []
+        for j in range(4):
+            e = np.zeros(4)
+            e[j] = 1e-7 / d[j]
+            cols.append((np.asarray(f(e, w)) - np.asarray(f(-e, w))) / (2 * e[j]))
+        return d[:, None] * np.stack(cols, 1) / d[None, :]
+
+    def P(a):
+        return scipy.linalg.solve_continuous_lyapunov(a.T, -np.eye(4))
+
+    lo, hi = report["speed_range"]["rad_s"]
+    ws = np.linspace(lo, hi, report["speed_range"]["n_speed"])
+    h = 1e-3 * w_b
+    As = np.stack([A(w) for w in ws])
+    b = max(np.linalg.norm((A(w + h) - A(w - h)) / (2 * h), 2) for w in ws)
+    c5_sharp = max(np.linalg.norm((P(A(w + h)) - P(A(w - h))) / (2 * h), 2) for w in ws)
+    sigma = min(-np.linalg.eigvals(a).real.max() for a in As)
+
+    def k_of(gam):
+        M = As + gam * np.eye(4)
+
+        def norms(ts):  # (speeds, times)
+            return np.linalg.norm(_expm(ts[..., None, None] * M[:, None]), 2, axis=(-2, -1))
+
+        ts = np.concatenate([[0.0], np.geomspace(1e-5, 60 / (sigma - gam), 400)])
+        v = norms(np.broadcast_to(ts, (len(ws), ts.size)))
+        j = np.argmax(v, 1)
+        a, z = ts[np.maximum(j - 1, 0)], ts[np.minimum(j + 1, ts.size - 1)]
+        best = v.max()
+        for _ in range(2):
+            tt = a[:, None] + (z - a)[:, None] * np.linspace(0, 1, 101)
+            vv = norms(tt)
+            best = max(best, vv.max())
+            j = np.argmax(vv, 1)
+            step = (z - a) / 100
+            a, z = tt[np.arange(len(ws)), j] - step, tt[np.arange(len(ws)), j] + step
+        return best
+
+    eps, kk = {}, {}
+    for alpha in report["resolution"]["alphas"]:
+        gam = alpha * sigma
+        kk[alpha] = k_of(gam)
+        eps[alpha] = 0.5 / (kk[alpha] ** 4 * b / (2 * gam ** 2))
+    alpha = max(eps, key=eps.get)
+    return eps[alpha], 0.5 / c5_sharp, {"sigma": sigma, "b": b, "k": kk[alpha]}
+
+
 def test_certify_matches_the_api(tmp_path, capsys):
     args = ["certify", "--observer", "leso", "--quick", "--speed-range", "0.3:1", "--i-q",
             "0.5"]
@@ -251,7 +332,15 @@ def test_certify_matches_the_api(tmp_path, capsys):
         DRIVE, pj.ESODesign.zhang38(DRIVE.w_rated), (0.3, 1.0), i_dq=(0.0, 0.5), **resolution)
     assert int(cert.status) == 0
     assert report["status"] == "ok"
-    assert report["dw_dt_bound_rad_s2"] > 0
+    # the bounds against SciPy/NumPy (measured: 2.2e-8 and 1.0e-5 relative, the central
+    # differences' error in b and dP/dw; sigma 1.4e-9, b 2.1e-8, k 4e-10)
+    eps, eps_sharp, c = _certificate_by_scipy(_leso(), report)
+    assert report["dw_dt_bound_rad_s2"] == pytest.approx(eps, rel=6e-8)
+    assert report["dw_dt_bound_sharp_rad_s2"] == pytest.approx(eps_sharp, rel=3e-5)
+    k = report["constants"]
+    assert (k["sigma"], k["b"], k["k"]) == pytest.approx((c["sigma"], c["b"], c["k"]),
+                                                         rel=6e-8)
+    assert f"certified |dw/dt| <= {eps:.4g} rad/s^2" in printed
     assert report["dw_dt_bound_rad_s2"] == pytest.approx(float(cert.eps), rel=1e-9)
     assert report["dw_dt_bound_sharp_rad_s2"] == pytest.approx(float(cert.eps_sharp),
                                                                rel=1e-9)
@@ -269,7 +358,10 @@ def test_certify_matches_the_api(tmp_path, capsys):
     report2 = _strict_json(captured.out)
     assert report2["design"]["schedule"] == "fixed_ratio"
     assert report2["design"]["zeta1"] == 2.0 and report2["design"]["ratio"] == 0.75
-    assert report2["dw_dt_bound_rad_s2"] > 0
+    eps2, eps2_sharp, _ = _certificate_by_scipy(_leso(zeta1=2.0, ratio=0.75), report2)
+    assert report2["dw_dt_bound_rad_s2"] == pytest.approx(eps2, rel=6e-8)
+    assert report2["dw_dt_bound_sharp_rad_s2"] == pytest.approx(eps2_sharp, rel=3e-5)
+    assert abs(eps2 / eps - 1) > 0.01  # another design, another bound
     assert "computing" in captured.err
 
 

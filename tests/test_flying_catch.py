@@ -2,9 +2,9 @@
 and speed unknown (2 rad off, zero speed). In the closed loop every registered observer,
 wrapped, acquires the lock within the catch window's time and keeps it at the static error
 its analysis predicts, at either sign of speed; zhang2022's ESO, LESO and AFO without it
-do not (they slip or sit in the false lock at 180 deg). The caught estimate is the flying start's (an
-independent route: a circular mean over the window against the wrapper's running sums),
-and a rotor at rest is left alone."""
+do not (they slip or sit in the false lock at 180 deg). The caught estimate is the flying
+start's (an independent route: a circular mean over the window against the wrapper's
+running sums), and a rotor at rest is left alone."""
 
 import math
 
@@ -23,9 +23,11 @@ W = float(DRIVE.w_rated)
 TAU = float(DRIVE.tau_rated)
 # rotor turning from the first sample at the set-point, a half-load step at 0.15 s
 LOAD = pj.Profile([0.0, 0.15, 0.16, 0.3], [0.0, 0.0, 0.5 * TAU, 0.5 * TAU])
-# allowance around the static error at the end (rad): ripple and what is left of the
-# load step's transient (measured: 0.2 deg or less, 1.2 deg for the parallel-model)
-TOL = math.radians(2.0)
+# largest |angle error - the static error| at the end (deg), measured at either sign of
+# speed: ripple and what is left of the load step's transient. The test allows three
+# times it, at most 2 deg.
+MEASURED_DEG = {"eso": 0.24, "leso": 0.24, "afo": 0.26, "parallel-model": 1.81,
+                "rotor-flux": 0.022, "c-leso": 0.24, "gi-leso": 0.19, "fa-leso": 0.16}
 
 
 def _closed_loop(obs, speed_pu):
@@ -43,14 +45,16 @@ def test_every_observer_is_caught_on_a_turning_rotor_in_the_closed_loop(name):
         t, err = np.asarray(tr.t), np.asarray(tr.theta_err)
         st = pj.lock_status(t, err)
         assert bool(st["acquired"]) and not bool(st["lost"]), (speed_pu, st)
-        # within the catch window (64 samples) and the lock's 10 ms window
-        assert float(st["t_acquired"]) < 64 * 125e-6 + 0.01
+        # at once: within the catch window (64 samples, 8 ms; measured: 5 ms or less)
+        assert float(st["t_acquired"]) < 64 * 125e-6
         end = t > 0.25
         op = analysis.OperatingPoint(speed_pu * W, np.asarray(tr.i_dq)[end].mean(0))
         design = float(inner.designed_error(op, DRIVE.three_phase_motor)[
             inner.coordinates.angle])
         dev = np.abs(np.asarray(pj.wrap_angle(err[end] - design)))
-        assert dev.max() < TOL, (speed_pu, math.degrees(dev.max()))
+        tol = math.radians(min(3 * MEASURED_DEG[name], 2.0))
+        assert dev.max() < tol, (speed_pu, math.degrees(dev.max()))
+        # the speed loop's set-point after the load step (measured: within 1.6 %)
         assert abs(float(tr.w_m[-1]) / (speed_pu * W) - 1.0) < 0.02
 
 
@@ -79,9 +83,11 @@ def test_the_caught_estimate_is_the_flying_starts():
     fs = pj.flying_start(DRIVE.three_phase_motor, tr.u_ab, tr.i_meas_ab, 125e-6, n=n)
     # the flying start's angle at t_0, advanced to t_n at its speed
     want = float(pj.wrap_angle(float(fs.theta0) + n * 125e-6 * float(fs.w0)))
+    # measured: 0.49 deg (the angle the estimate moved in its step after the window),
+    # the speeds equal, the flying start's speed within 0.26 % of the rotor's
     assert abs(float(pj.wrap_angle(float(est.theta_hat[n]) - want))) < math.radians(1.0)
-    assert float(est.w_hat[n]) == pytest.approx(float(fs.w0), rel=1e-2)
-    assert float(fs.w0) == pytest.approx(0.4 * W, rel=1e-2)
+    assert float(est.w_hat[n]) == pytest.approx(float(fs.w0), rel=1e-9)
+    assert float(fs.w0) == pytest.approx(0.4 * W, rel=8e-3)
 
 
 def test_a_rotor_at_rest_is_left_alone():

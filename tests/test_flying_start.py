@@ -27,19 +27,26 @@ def _recording(w):
                        w_m0=w, theta0=THETA0)
 
 
+# measured at each speed (p.u.): relative speed error, angle error (rad), the ESO's
+# largest angle error over the last 50 ms (deg). The test allows three times these, and
+# for the flying start's own errors at most the order of the hold error, (w T_s)^2.
+MEASURED = {0.5: (6.9e-4, 2.0e-3, 0.0176), -0.3: (1.13e-3, 1.57e-3, 0.0070)}
+
+
 @pytest.mark.parametrize("s", [0.5, -0.3])
 def test_flying_start_reads_the_angle_and_speed_and_starts_the_eso_locked(s):
     w = s * float(DRIVE.w_rated)
     tr = _recording(w)
     fs = pj.flying_start(DRIVE.motor, tr.u_ab, tr.i_meas_ab, T_S)
     hold = (w * T_S) ** 2  # the order of the current's hold error
-    assert float(fs.w0) == pytest.approx(w, rel=hold)
-    assert abs(float(pj.wrap_angle(THETA0 - fs.theta0))) < hold
+    m_w, m_theta, m_eso = MEASURED[s]
+    assert float(fs.w0) == pytest.approx(w, rel=min(hold, 3 * m_w))
+    assert abs(float(pj.wrap_angle(THETA0 - fs.theta0))) < min(hold, 3 * m_theta)
     assert float(fs.e_mag) > 0
     eso = make_observer("eso", DRIVE)
     th, _ = pj.replay(eso, tr, theta0=fs.theta0, w0=fs.w0)
     err = np.abs(np.asarray(pj.wrap_angle(tr.theta - th)))
-    assert err[-400:].max() < math.radians(0.5)
+    assert err[-400:].max() < math.radians(3 * m_eso)
     if s > 0:
         # what it is for: from zero speed the ESO is not locked by then (it slips, and
         # over a longer run ends in the false lock at pi)

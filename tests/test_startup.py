@@ -6,6 +6,7 @@ lock, the angle error stays at the static error the analysis predicts for the ob
 
 import math
 
+import jax
 import numpy as np
 import pytest
 
@@ -23,10 +24,14 @@ W = 0.5 * float(DRIVE.w_rated)
 SCENARIO = pj.Scenario(t_end=1.1, w_m_ref=pj.Profile([0.0, 0.05, 0.3, 0.5, 0.875],
                                                      [0.0, 0.0, W, W, -W]))
 THETA_HAT0 = 2.0  # rad: the drive does not know the rotor angle (true: 0)
-# Allowance for what is left of the transients and the current ripple around the static
-# error (rad); measured: 0.4 deg or less, 1.7 deg for the parallel-model observer.
-TOL = math.radians(2.5)
 SENSORLESS = [n for n in observer_names() if n != "sensored"]
+# Largest |angle error - the analysis' static error| (deg) at the set-point, measured:
+# (the reversal run, larger of its two holds; the run under load with current noise).
+# The tests allow three times these: what is left of the transients, the current ripple
+# and the noise around the static error.
+MEASURED_DEG = {"eso": (0.28, 0.17), "leso": (0.28, 0.17), "afo": (0.26, 0.19),
+                "parallel-model": (1.65, 0.28), "rotor-flux": (0.022, 0.49),
+                "c-leso": (0.25, 0.30), "gi-leso": (0.19, 0.34), "fa-leso": (0.19, 0.23)}
 
 
 def _run(name, startup=True):
@@ -36,12 +41,12 @@ def _run(name, startup=True):
     return obs, pj.simulate(DRIVE, ctrl, obs, SCENARIO, theta_hat0=THETA_HAT0, throw=False)
 
 
-def _deviation(obs, tr, t0, t1, w):
+def _deviation(obs, tr, t0, t1, w, drive=DRIVE):
     """Largest |angle error - the analysis' static error| over [t0, t1) (rad)."""
     t = np.asarray(tr.t)
     m = (t >= t0) & (t < t1)
     op = analysis.OperatingPoint(w, np.asarray(tr.i_dq)[m].mean(0))
-    design = float(obs.designed_error(op, DRIVE.three_phase_motor)[obs.coordinates.angle])
+    design = float(obs.designed_error(op, drive.three_phase_motor)[obs.coordinates.angle])
     dev = np.asarray(pj.wrap_angle(np.asarray(tr.theta_err)[m] - design))
     return np.abs(dev).max()
 
@@ -52,12 +57,59 @@ def test_start_from_standstill_and_reversal(name):
     assert bool(tr.ok)
     w_m = np.asarray(tr.w_m)
     t = np.asarray(tr.t)
-    # the forward set-point, locked at the static error
+    tol = math.radians(3 * MEASURED_DEG[name][0])
+    # the forward set-point (measured: within 0.2 %), locked at the static error
     assert abs(w_m[(t >= 0.49) & (t < 0.5)].mean() / W - 1.0) < 0.01
-    assert _deviation(obs, tr, 0.4, 0.5, W) < TOL
-    # through zero speed to the reverse set-point, locked again
+    assert _deviation(obs, tr, 0.4, 0.5, W) < tol
+    # through zero speed to the reverse set-point (within 0.5 %), locked again
     assert abs(w_m[t >= 1.0].mean() / W + 1.0) < 0.01
-    assert _deviation(obs, tr, 0.95, 1.1, -W) < TOL
+    assert _deviation(obs, tr, 0.95, 1.1, -W) < tol
+
+
+@pytest.mark.parametrize("name", SENSORLESS)
+def test_start_under_load_with_current_noise(name):
+    """The same start from an unknown angle against a load: viscous friction that takes
+    0.5 p.u. of torque at the set-point (present from the first turn, growing with the
+    speed, as a fan's or a pump's), and 0.05 A of noise on each current sample. The
+    drive reaches the set-point (measured: within 0.13 %) and carries the load: the mean
+    q current is the one whose torque balances the friction at the mean speed (closed
+    form, measured: within 0.05 %); lock is acquired after the I/f handover and kept
+    (`lock_status`, judged from the handover as `pmsmjax simulate` does), at the static
+    error within 3x the measured deviation. (The rotor-flux observer slips one turn in
+    the handover under this load and locks again: asserted as measured.)"""
+    n_p = float(DRIVE.motor.n_p)
+    B = 0.5 * float(DRIVE.tau_rated) / (W / n_p)  # N m s/rad: 0.5 p.u. at W
+    drive = pj.replace_params(DRIVE, B=B)
+    su = pj.IfStartup.from_drive(drive)
+    sc = pj.Scenario(t_end=0.6, w_m_ref=pj.Profile([0.0, 0.05, 0.3, 0.6], [0.0, 0.0, W, W]))
+    obs = make_observer(name, drive)
+    tr = pj.simulate(drive, pj.FOC.from_drive(drive, startup=su), obs, sc,
+                     theta_hat0=THETA_HAT0, sensing=pj.Sensing(noise_std=0.05),
+                     key=jax.random.PRNGKey(2))
+    t, w_m = np.asarray(tr.t), np.asarray(tr.w_m)
+    end = t >= 0.5
+    assert abs(w_m[end].mean() / W - 1.0) < 4e-3
+    # torque balance over the window: friction plus what still accelerates the rotor
+    m, J = DRIVE.motor, float(DRIVE.mechanics.J)
+    te, we = t[end], w_m[end]
+    tau = B * we.mean() / n_p + J / n_p * (we[-1] - we[0]) / (te[-1] - te[0])
+    i_d = np.asarray(tr.i_dq)[end, 0].mean()
+    i_q = tau / (1.5 * n_p * (float(m.psi_f) + (float(m.L_d) - float(m.L_q)) * i_d))
+    assert np.asarray(tr.i_dq)[end, 1].mean() == pytest.approx(i_q, rel=1.5e-3)
+    # judged from the first sample at which the rotor and the reference (which the
+    # open-loop frame follows) have both reached the handover speed
+    k = max(int(np.flatnonzero(np.abs(w) >= su.w_hand)[0])
+            for w in (w_m, np.asarray(tr.w_m_ref)))
+    st = pj.lock_status(t[k:], np.asarray(tr.theta_err)[k:])
+    assert bool(st["acquired"]), st
+    if name == "rotor-flux":
+        # measured (noise or not): under this load its estimate slips one turn during
+        # the handover (the error passes 180 deg at about 0.18 s), then locks for good
+        assert bool(st["lost"]) and 0.15 < float(st["t_lost"]) < 0.2, st
+        st = pj.lock_status(t[t >= 0.2], np.asarray(tr.theta_err)[t >= 0.2])
+        assert bool(st["acquired"]) and float(st["t_acquired"]) < 0.25, st
+    assert not bool(st["lost"]), st
+    assert _deviation(obs, tr, 0.5, 0.6, W, drive) < math.radians(3 * MEASURED_DEG[name][1])
 
 
 def test_without_the_startup_an_unknown_angle_stalls_the_eso():

@@ -16,6 +16,8 @@ import pmsmjax as pj
 import tuning as tg
 from tuning.objective import MARGIN
 
+from .helpers import lock_status_loop
+
 
 @pytest.fixture(scope="module")
 def small():
@@ -136,7 +138,56 @@ def test_run_metrics_against_numpy(small):
     peak = np.mean(np.abs(th) ** 8, -1) ** (1 / 8)
     assert np.allclose(m.peak_deg, peak, rtol=1e-5)
     assert np.all(np.asarray(m.peak_deg) <= np.abs(th).max(-1) * (1 + 1e-9))
-    assert np.array_equal(np.asarray(m.lost_lock), np.abs(th).max(-1) > p.lock_deg)
+    # lost lock: `pmsmjax.lock_status`'s definition, by the plain loop of tests/helpers.py
+    ok = np.asarray(m.ok)
+    ref = [lock_status_loop(np.asarray(traj.t[j]), np.asarray(traj.theta_err[j]),
+                            ok=bool(ok[j]), lock_deg=p.lock_deg)[2] for j in range(th.shape[0])]
+    assert np.array_equal(np.asarray(m.lost_lock), ref)
+
+
+def _set(rows, t_end):
+    """A `ScenarioSet` of the runs `rows` (dicts of the scenario table's fields)."""
+    f = lambda k: jnp.array([r[k] for r in rows])  # noqa: E731
+    return tg.ScenarioSet(s0=f("s0"), s1=f("s1"), t0=f("t0"), t1=f("t1"),
+                          t_load=f("t_load"), load_pu=f("load_pu"), k_d=f("k_d"),
+                          k_q=f("k_q"), k_R=f("k_R"), k_psi=f("k_psi"),
+                          k_noise=jnp.ones(len(rows)),
+                          keys=jax.random.split(jax.random.PRNGKey(5), len(rows)),
+                          kind=jnp.ones(len(rows), int), t_end=t_end)
+
+
+def test_lost_lock_is_lock_status_on_runs_that_cross_45_deg(small):
+    """Closed-loop runs of the paper's design that do cross 45 deg (shaped like the
+    fixture's set, so they share its compiled program): two fast reversals through zero
+    with a wrong model, locked for 50 ms and then slipping (lost), and a slower reversal
+    whose error passes 45 deg before the observer ever held lock for 50 ms (not lost:
+    an unknown start is no loss). The metric against the plain-loop reference of
+    `pmsmjax.lock_status`, and against the single-sample maximum, which it is not."""
+    p, space, ev = small
+    runs = [  # s0, s1 (p.u.), t0, t1 (s), observer model k_d, k_q, k_R, k_psi
+        (0.3, -0.3, 0.055, 0.065, 0.8, 1.2, 1.3, 0.95),
+        (0.1, -0.1, 0.055, 0.060, 0.6, 1.4, 1.5, 0.7),
+        (0.3, -0.3, 0.010, 0.050, 0.8, 1.2, 1.3, 0.95)]
+    rows = [dict(zip(("s0", "s1", "t0", "t1", "k_d", "k_q", "k_R", "k_psi"), r),
+                 t_load=0.07, load_pu=0.0) for r in runs]
+    sset = _set(rows, ev.sset.t_end)
+    assert sset.n == ev.sset.n
+    traj = tg.simulate_set(lambda m: space.observer(None, m), p.drive(), p.controller(),
+                           sset, T_s=p.T_s, noise_std=p.noise_std,
+                           save_every=p.save_every)
+    m = tg.run_metrics(traj, p)
+    assert np.all(np.asarray(m.ok))
+    th = np.rad2deg(np.abs(np.asarray(pj.wrap_angle(traj.theta_err))))
+    ref = [lock_status_loop(np.asarray(traj.t[j]), np.asarray(traj.theta_err[j]),
+                            lock_deg=p.lock_deg) for j in range(sset.n)]
+    lost = np.asarray(m.lost_lock)
+    assert lost.tolist() == [r[2] for r in ref] == [True, True, False], ref
+    # the first two acquired lock at the start and lost it in their reversal (from the
+    # 10 ms window that reaches into it on)
+    assert all(r[0] and 0.045 < r[3] < 0.07 for r in ref[:2]), ref
+    assert not ref[2][0]  # never held for 50 ms
+    # every run crosses 45 deg: a single-sample maximum would call all three lost
+    assert np.all(th.max(-1) > p.lock_deg), th.max(-1)
 
 
 def test_cvar_is_the_mean_of_the_worst_fraction():
