@@ -29,8 +29,8 @@ from .helpers import scheduled_gains_table
 def test_motor_file_round_trip(name, tmp_path, capsys):
     """`pmsmjax motor --export NAME` -> `load_motor_file` gives the identical `Drive`
     (every parameter bit for bit, name and notes)."""
-    path = tmp_path / f"{name}.toml"
-    assert main(["motor", "--export", name, "--out", str(path)]) == 0
+    path = tmp_path / name / "motor.toml"
+    assert main(["motor", "--export", name, "--out", str(path.parent)]) == 0
     assert f"wrote {path}" in capsys.readouterr().out
     back = pj.load_motor_file(path)
     assert bool(eqx.tree_equal(back, pj.preset(name)))
