@@ -84,6 +84,12 @@ from ._plant._inverter import (  # noqa: E402
     dead_time_error_ab as dead_time_error_ab,
     dead_time_fundamental as dead_time_fundamental,
 )
+from ._plant._magnetic import (  # noqa: E402
+    AbstractMagneticModel as AbstractMagneticModel,
+    AlgebraicSaturation as AlgebraicSaturation,
+    FluxMap as FluxMap,
+    constant_model as constant_model,
+)
 from ._plant._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
 from ._plant._motorfile import (  # noqa: E402
     MOTOR_FILE_SCHEMA as MOTOR_FILE_SCHEMA,
@@ -104,7 +110,11 @@ from ._plant._params import (  # noqa: E402
     replace_params as replace_params,
     scale_motor as scale_motor,
 )
-from ._plant._presets import PRESET_NAMES as PRESET_NAMES, preset as preset  # noqa: E402
+from ._plant._presets import (  # noqa: E402
+    PRESET_NAMES as PRESET_NAMES,
+    ipm3k5_saturation as ipm3k5_saturation,
+    preset as preset,
+)
 from ._sim._dtypes import astype as astype  # noqa: E402
 from ._sim._metrics import (  # noqa: E402
     LOCK_ACQUIRE_S as LOCK_ACQUIRE_S,

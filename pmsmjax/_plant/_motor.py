@@ -37,6 +37,7 @@ import jax.numpy as jnp
 
 from .._frames import park
 from ._inverter import dead_time_error_ab, dead_time_error_vsd
+from ._magnetic import solve2
 from ._params import (
     DualThreePhaseParams,
     EMFHarmonics,
@@ -209,10 +210,23 @@ class PMSM(eqx.Module):
         return d
 
     # -- algebraic outputs ---------------------------------------------------------------
+    def _flux(self, y: PlantState, p: PMSMParams):
+        """`(psi_d, psi_q, L_inc)` of `y` in component form: the flux linkage (V s) with its
+        PM harmonics, and the incremental inductances `(L_dd, L_dq, L_qd, L_qq)` (H) of a
+        saturated machine (`None` for constant inductances: diag(L_d, L_q))."""
+        i_d, i_q = y.i_dq
+        psi_pm = p.psi_pm_dq(y.theta)
+        if p.magnetic is None:
+            return p.L_d * i_d + psi_pm[..., 0], p.L_q * i_q + psi_pm[..., 1], None
+        psi_d, psi_q, *l_inc = p.magnetic.flux_and_inductance(i_d, i_q)
+        if p.harmonics is not None:  # the harmonics ride on the map's fundamental
+            psi_d, psi_q = psi_d + psi_pm[..., 0] - p.psi_f, psi_q + psi_pm[..., 1]
+        return psi_d, psi_q, tuple(l_inc)
+
     def flux_dq(self, y: PlantState):
-        p = self._ab
-        return jnp.stack([p.L_d * y.i_dq[..., 0], p.L_q * y.i_dq[..., 1]], -1) + \
-            self.psi_pm_dq(y.theta)
+        """Stator flux linkage in rotor coordinates (V s, (..., 2))."""
+        psi_d, psi_q, _ = self._flux(split_state(y), self._ab_params())
+        return jnp.stack([psi_d, psi_q], -1)
 
     def torque(self, y: PlantState):
         """Electromagnetic torque tau_M (N m)."""
@@ -264,14 +278,16 @@ class PMSM(eqx.Module):
                 du_a, du_b = dead_time_error_ab(inv.u_dt, inv.i_dt, i_a, i_b)
                 u_a, u_b = u_a - du_a, u_b - du_b
         u_d, u_q = c * u_a + s * u_b, c * u_b - s * u_a  # park(u_ab, theta)
-        psi_pm = p.psi_pm_dq(y.theta)
-        psi_d = p.L_d * i_d + psi_pm[..., 0]
-        psi_q = p.L_q * i_q + psi_pm[..., 1]
+        psi_d, psi_q, l_inc = self._flux(y, p)
         emf_d, emf_q = w * -psi_q, w * psi_d  # w J psi
         if p.harmonics is not None:
             dpsi = p.dpsi_pm_dq_dtheta(y.theta)
             emf_d, emf_q = emf_d + w * dpsi[..., 0], emf_q + w * dpsi[..., 1]
-        di_dq = ((u_d - p.R_s * i_d - emf_d) / p.L_d, (u_q - p.R_s * i_q - emf_q) / p.L_q)
+        v_d, v_q = u_d - p.R_s * i_d - emf_d, u_q - p.R_s * i_q - emf_q
+        if l_inc is None:
+            di_dq = (v_d / p.L_d, v_q / p.L_q)
+        else:  # L_inc di/dt = v: the flux-linkage equation by the chain rule
+            di_dq = solve2(*l_inc, v_d, v_q)
         tau_M = self._torque(y, psi_d, psi_q, p)
         dw = args.free * p.n_p * (tau_M - m.B * w / p.n_p - args.tau_L) / m.J
         if self.dual:
@@ -314,8 +330,13 @@ class PMSM(eqx.Module):
         u_dq = park(u_ab, y.theta)
         p_in = k * jnp.sum(u_dq * y.i_dq, -1)
         p_cu = k * p.R_s * jnp.sum(y.i_dq ** 2, -1)
-        dW = k * (p.L_d * y.i_dq[..., 0] * dy.i_dq[..., 0]
-                  + p.L_q * y.i_dq[..., 1] * dy.i_dq[..., 1])
+        _, _, l_inc = self._flux(split_state(y), p)
+        i_d, i_q, di_d, di_q = y.i_dq[..., 0], y.i_dq[..., 1], dy.i_dq[..., 0], dy.i_dq[..., 1]
+        if l_inc is None:
+            dW = k * (p.L_d * i_d * di_d + p.L_q * i_q * di_q)
+        else:  # i . dpsi/dt = i . L_inc di/dt: the rate of the field energy (reciprocal map)
+            l_dd, l_dq, l_qd, l_qq = l_inc
+            dW = k * (i_d * (l_dd * di_d + l_dq * di_q) + i_q * (l_qd * di_d + l_qq * di_q))
         if self.dual:
             p_in = p_in + k * jnp.sum(u_xy * y.i_xy, -1)
             p_cu = p_cu + k * p.R_s * jnp.sum(y.i_xy ** 2, -1)

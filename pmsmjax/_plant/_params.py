@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._validate import check_finite, check_positive, is_concrete
+from ._magnetic import AbstractMagneticModel
 
 
 class EMFHarmonics(eqx.Module):
@@ -75,6 +76,11 @@ class PMSMParams(eqx.Module):
     - `psi_f`: permanent-magnet flux linkage (V s), >= 0 (0 = synchronous reluctance).
     - `n_p`: number of pole pairs (-), > 0.
     - `harmonics`: optional `EMFHarmonics` of the PM flux (back-EMF spatial harmonics).
+    - `magnetic`: optional magnetic model of a saturated machine (`FluxMap`,
+      `AlgebraicSaturation`): the plant then takes its flux linkage from
+      `magnetic.flux_and_inductance(i_d, i_q)` instead of the constants, which remain the
+      machine model the controllers and observers deploy (see `constant_model`). `None`
+      (the default): constant inductances, at no extra cost.
     """
 
     R_s: float
@@ -83,6 +89,7 @@ class PMSMParams(eqx.Module):
     psi_f: float
     n_p: float
     harmonics: EMFHarmonics | None = None
+    magnetic: AbstractMagneticModel | None = None
 
     def __check_init__(self):
         owner = "PMSMParams"
@@ -104,6 +111,11 @@ class PMSMParams(eqx.Module):
         $\tfrac32 n_p \psi_{ex} i_q$. The one place every observer, controller and
         analysis reads it from."""
         return self.psi_f + (self.L_d - self.L_q) * i_d
+
+    @property
+    def saturated(self) -> bool:
+        """True when the machine has a magnetic model (`magnetic` is not `None`)."""
+        return self.magnetic is not None
 
     def psi_pm_dq(self, theta):
         """PM flux linkage in rotor coordinates at electrical angle `theta` (rad) -> (V s, 2)."""
