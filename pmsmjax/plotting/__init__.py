@@ -14,6 +14,7 @@ from ._analysis import (
     plot_response as plot_response,
     plot_static_error as plot_static_error,
 )
+from ._magnetic import plot_flux_map as plot_flux_map
 from ._gains import (
     plot_gains_vs_speed as plot_gains_vs_speed,
     plot_poles_vs_speed as plot_poles_vs_speed,
