@@ -90,6 +90,12 @@ from ._plant._magnetic import (  # noqa: E402
     FluxMap as FluxMap,
     constant_model as constant_model,
 )
+from ._plant._fluxmap_file import (  # noqa: E402
+    FluxMapError as FluxMapError,
+    FluxMapReport as FluxMapReport,
+    check_flux_map as check_flux_map,
+    read_flux_map as read_flux_map,
+)
 from ._plant._motor import PMSM as PMSM, PlantInput as PlantInput, PlantState as PlantState  # noqa: E402
 from ._plant._motorfile import (  # noqa: E402
     MOTOR_FILE_SCHEMA as MOTOR_FILE_SCHEMA,
