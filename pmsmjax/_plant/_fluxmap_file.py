@@ -21,6 +21,7 @@ import dataclasses
 import math
 import os
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -192,17 +193,28 @@ def _table_errors(i_d, i_q, psi_d, psi_q) -> list[str]:
 
 def _node_inductances(model: AbstractMagneticModel, i_d, i_q):
     dd, qq = np.meshgrid(np.asarray(i_d, float), np.asarray(i_q, float), indexing="ij")
-    _, _, l_dd, l_dq, l_qd, l_qq = model.flux_and_inductance(jnp.asarray(dd),
-                                                             jnp.asarray(qq))
-    return dd, qq, *(np.asarray(x) for x in (l_dd, l_dq, l_qd, l_qq))
+    nodes, _ = _evaluate(model, jnp.asarray(dd), jnp.asarray(qq), jnp.zeros((1, 2)))
+    return dd, qq, *(np.asarray(x) for x in nodes)
 
 
-def _inductance_errors(model: AbstractMagneticModel, i_d=None, i_q=None) -> list[str]:
+@eqx.filter_jit
+def _evaluate(model: AbstractMagneticModel, dd, qq, points):
+    """One compiled evaluation for `check_flux_map`: the incremental inductances at the
+    nodes `dd`, `qq` (A) and, at each of `points` (A, (n, 2)), the incremental inductances
+    `(n, 4)`, the apparent `(L_d, L_q)` `(n, 2)` and the PM flux `(n,)`."""
+    _, _, *nodes = model.flux_and_inductance(dd, qq)
+    _, _, *L = model.flux_and_inductance(points[:, 0], points[:, 1])
+    L_d, L_q, psi_f = model.apparent_inductance(points)
+    return tuple(nodes), (jnp.stack(L, -1), jnp.stack([L_d, L_q], -1), psi_f)
+
+
+def _inductance_errors(model: AbstractMagneticModel, i_d=None, i_q=None,
+                       nodes=None) -> list[str]:
     """The incremental inductance matrix (its symmetric part) must be positive definite
-    at every grid node."""
+    at every grid node (`nodes`: the node currents and inductances, when known)."""
     if i_d is None:
         i_d, i_q = model.i_d, model.i_q
-    dd, qq, l_dd, l_dq, l_qd, l_qq = _node_inductances(model, i_d, i_q)
+    dd, qq, l_dd, l_dq, l_qd, l_qq = nodes or _node_inductances(model, i_d, i_q)
     b = 0.5 * (l_dq + l_qd)
     bad = np.argwhere(~((l_dd > 0) & (l_dd * l_qq - b * b > 0)))
     if not bad.size:
@@ -368,20 +380,19 @@ def check_flux_map(flux_map: AbstractMagneticModel, i_max=None,
         i_d = i_q = np.linspace(-i_max, i_max, 21)
     else:
         i_d = i_q = np.zeros(1)
-    errors += _inductance_errors(model, i_d, i_q)
-
-    def at(x, y):
-        cur = jnp.asarray([x, y], float)
-        psi_d, _, *L = model.flux_and_inductance(cur[0], cur[1])
-        L_d, L_q, psi_f = model.apparent_inductance(cur)
-        return (tuple(float(v) for v in L), (float(L_d), float(L_q)), float(psi_f))
-
-    L_inc0, L_app0, psi_f0 = at(0.0, 0.0)
+    dd, qq = np.meshgrid(i_d, i_q, indexing="ij")
+    nodes, points = _evaluate(model, jnp.asarray(dd), jnp.asarray(qq),
+                              jnp.asarray([[0.0, 0.0], [0.0, i_max or 0.0]]))
+    l_dd, l_dq, l_qd, l_qq = (np.asarray(x) for x in nodes)
+    errors += _inductance_errors(model, i_d, i_q, (dd, qq, l_dd, l_dq, l_qd, l_qq))
+    L_inc, L_app, psi_f = (np.asarray(x) for x in points)
+    L_inc0, L_app0, psi_f0 = tuple(map(float, L_inc[0])), tuple(map(float, L_app[0])), \
+        float(psi_f[0])
     L_incr = L_appr = psi_fr = None
     if i_max is not None:
-        L_incr, L_appr, psi_fr = at(0.0, i_max)
+        L_incr, L_appr, psi_fr = tuple(map(float, L_inc[1])), tuple(map(float, L_app[1])), \
+            float(psi_f[1])
 
-    dd, qq, l_dd, l_dq, l_qd, l_qq = _node_inductances(model, i_d, i_q)
     asym = np.abs(l_dq - l_qd) / np.sqrt(np.abs(l_dd * l_qq))
     k = np.unravel_index(int(np.nanargmax(asym)), asym.shape)
     rec, rec_at = float(asym[k]), (float(dd[k]), float(qq[k]))
