@@ -38,6 +38,14 @@ I_b = 6.788...           # A peak
 w_b = 1256.63...         # rad/s electrical
 ```
 
+A saturated machine adds `[saturation]`: `flux_map = "map.csv"` (a CSV or NPZ file,
+`read_flux_map`, its path relative to the motor file) or `model = "algebraic"` with the
+`AlgebraicSaturation` parameters, and optionally `constants = "small-current" | "rated" |
+"fit"`: then `[motor]` `L_d`, `L_q`, `psi_f` (the constants the controllers and
+observers deploy) may be omitted and are derived with `constant_model`
+(`read_motor_file` returns the console note saying how). `save_motor_file` writes a
+`FluxMap` as a CSV beside the motor file.
+
 `MOTOR_FILE_SCHEMA` lists every section and field with its unit, allowed range and
 whether it is required; `docs/motor-file.md` is written from it. A malformed file
 raises `MotorFileError` (a `ValueError`) whose message names the file, the section and
