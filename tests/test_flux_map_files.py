@@ -141,6 +141,15 @@ def test_check_flux_map_report_reciprocity_and_coverage(tmp_path):
     assert "extended linearly with the incremental inductance of the grid's edge" in \
         r.warnings[0]
     assert any("covers the current limit i_max = 12 A: no" in s for s in r.lines())
+    # a map built in Python is not checked by FluxMap itself: the report's errors
+    k = 1.5 * np.sqrt(L_D * L_Q)
+    r = pj.check_flux_map(pj.FluxMap(I_D, I_Q, *_tables(k, k)), i_max=10.0)
+    assert len(r.errors) == 1 and "not positive definite at (i_d, i_q) = (-10, -10) A" in \
+        r.errors[0] and r.lines()[-1].startswith("error: incremental inductance matrix")
+    psi_d, psi_q = _tables()
+    r = pj.check_flux_map(pj.FluxMap(I_D, I_Q, psi_d[::-1], psi_q))
+    assert "psi_d does not increase with i_d (d psi_d/d i_d <= 0) between i_d -10 -> -7.5 A" \
+        in r.errors[0] and r.i_max is None and r.covers is None and r.L_inc_rated is None
     # the preset's map: the report at rated current is the model's it was sampled from
     drive = pj.preset("ipm3k5_sat")
     r = pj.check_flux_map(drive.motor.magnetic, drive.i_max)
@@ -240,6 +249,16 @@ def test_saturation_section_errors(section, fragment, tmp_path):
     path = _write_text(tmp_path / "s.toml", _with_saturation(_BASE, section))
     with pytest.raises(pj.MotorFileError, match=re.escape(fragment)):
         pj.load_motor_file(path)
+
+
+def test_motor_check_of_a_bad_map_exits_2(tmp_path, capsys):
+    _write(tmp_path / "bad.csv", _rows(0.0, 0.0)[1:])
+    path = _write_text(tmp_path / "s.toml", _with_saturation(_BASE, 'flux_map = "bad.csv"'))
+    assert main(["motor", "--check", "--motor-file", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "[saturation] flux_map = 'bad.csv': flux map" in err
+    assert "not a rectangular grid: 29 points on 5 i_d values x 6 i_q values, missing " \
+           "(i_d, i_q) = (-10, -10) A" in err
 
 
 def test_constants_required_without_saturation():
