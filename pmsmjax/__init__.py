@@ -80,6 +80,12 @@ from ._frames import (  # noqa: E402
     vsd_matrix as vsd_matrix,
     wrap_angle as wrap_angle,
 )
+from ._plant._fluxmap_file import (  # noqa: E402
+    FluxMapError as FluxMapError,
+    FluxMapReport as FluxMapReport,
+    check_flux_map as check_flux_map,
+    read_flux_map as read_flux_map,
+)
 from ._plant._inverter import (  # noqa: E402
     dead_time_error_ab as dead_time_error_ab,
     dead_time_fundamental as dead_time_fundamental,

@@ -293,9 +293,14 @@ def test_motor_file_page_lists_the_schema():
 
 @pytest.mark.parametrize("name", pj.PRESET_NAMES)
 def test_example_motor_files_are_current(name):
-    """docs/examples/NAME.toml is what `pmsmjax motor --export NAME` writes today."""
-    assert (DOCS / "examples" / f"{name}.toml").read_text() == pj.motor_file_text(
-        pj.preset(name))
+    """docs/examples/NAME.toml is what `pmsmjax motor --export NAME` writes today (with a
+    flux map: and NAME_flux_map.csv beside it)."""
+    drive, csv = pj.preset(name), f"{name}_flux_map.csv"
+    assert (DOCS / "examples" / f"{name}.toml").read_text() == pj.motor_file_text(drive, csv)
+    if isinstance(drive.three_phase_motor.magnetic, pj.FluxMap):  # sampled by this machine's XLA
+        fm, ref = pj.read_flux_map(DOCS / "examples" / csv), drive.three_phase_motor.magnetic
+        for k in ("i_d", "i_q", "psi_d", "psi_q"):
+            assert float(abs(getattr(fm, k) - getattr(ref, k)).max()) < 1e-12, k
 
 
 # Patterns that point outside the repository: the design folder of the project's

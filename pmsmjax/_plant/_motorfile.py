@@ -38,6 +38,14 @@ I_b = 6.788...           # A peak
 w_b = 1256.63...         # rad/s electrical
 ```
 
+A saturated machine adds `[saturation]`: `flux_map = "map.csv"` (a CSV or NPZ file,
+`read_flux_map`, its path relative to the motor file) or `model = "algebraic"` with the
+`AlgebraicSaturation` parameters, and optionally `constants = "small-current" | "rated" |
+"fit"`: then `[motor]` `L_d`, `L_q`, `psi_f` (the constants the controllers and
+observers deploy) may be omitted and are derived with `constant_model`
+(`read_motor_file` returns the console note saying how). `save_motor_file` writes a
+`FluxMap` as a CSV beside the motor file.
+
 `MOTOR_FILE_SCHEMA` lists every section and field with its unit, allowed range and
 whether it is required; `docs/motor-file.md` is written from it. A malformed file
 raises `MotorFileError` (a `ValueError`) whose message names the file, the section and
@@ -60,6 +68,8 @@ except ModuleNotFoundError:  # Python 3.10: the same parser as a package
     import tomli as tomllib
 
 from .._files import atomic_write
+from ._fluxmap_file import FluxMapError, flux_map_csv, read_flux_map
+from ._magnetic import AlgebraicSaturation, FluxMap, constant_model
 from ._params import (
     BaseValues,
     Drive,
@@ -74,6 +84,11 @@ from ._params import (
 FORMAT = "pmsmjax-motor"
 VERSION = 1
 MOTOR_TYPES = ("three-phase", "dual-three-phase")
+SATURATION_MODELS = ("algebraic",)
+CONSTANTS = ("small-current", "rated", "fit")
+_ALGEBRAIC = ("a_d0", "a_dd", "a_q0", "a_qq", "a_dq", "i_f", "S", "T", "U", "V")
+_ALGEBRAIC_REQUIRED = _ALGEBRAIC[:6]
+_CONSTANT_NAMES = ("L_d", "L_q", "psi_f")
 
 
 class MotorFileError(ValueError):
@@ -127,10 +142,13 @@ MOTOR_FILE_SCHEMA: dict[str, dict[str, Field]] = {
         "type": Field("", f"machine type: {' or '.join(MOTOR_TYPES)}", kind="string",
                       required=False),
         "R_s": Field("Ohm", "stator resistance", **_POS),
-        "L_d": Field("H", "d-axis inductance", **_POS),
-        "L_q": Field("H", "q-axis inductance", **_POS),
-        "psi_f": Field("V s", "permanent-magnet flux linkage (peak, per three-phase set)",
-                       **_NONNEG),
+        "L_d": Field("H", "d-axis inductance (with [saturation]: optional, the constant "
+                     "the controllers and observers deploy; derived when absent)",
+                     required=False, **_POS),
+        "L_q": Field("H", "q-axis inductance (with [saturation]: optional, as L_d)",
+                     required=False, **_POS),
+        "psi_f": Field("V s", "permanent-magnet flux linkage (peak, per three-phase set; "
+                       "with [saturation]: optional, as L_d)", required=False, **_NONNEG),
         "n_p": Field("-", "pole pairs", **_POS),
         "L_xy": Field("H", "x-y subspace inductance (dual three-phase only)",
                       required=False, **_POS),
@@ -144,6 +162,35 @@ MOTOR_FILE_SCHEMA: dict[str, dict[str, Field]] = {
                            "fundamental", kind="numbers"),
         "phase": Field("rad", "phase of each harmonic at theta = 0 (default zeros)",
                        kind="numbers", required=False),
+    },
+    "saturation": {
+        "flux_map": Field("", "flux-map file (CSV or NPZ, see read_flux_map), its path "
+                          "relative to the motor file (give this or model)", kind="string",
+                          required=False),
+        "model": Field("", f"analytical saturation model: {' or '.join(SATURATION_MODELS)} "
+                       "(AlgebraicSaturation; give this or flux_map)", kind="string",
+                       required=False),
+        "constants": Field("", "how the [motor] L_d, L_q, psi_f that are absent are derived "
+                           f"(constant_model): {', '.join(CONSTANTS)} (default "
+                           f"{CONSTANTS[0]})", kind="string", required=False),
+        "a_d0": Field("1/H", "algebraic: unsaturated d-axis inverse inductance",
+                      required=False, **_POS),
+        "a_dd": Field("A/(V s)^(S+1)", "algebraic: d-axis self-saturation", required=False,
+                      **_NONNEG),
+        "a_q0": Field("1/H", "algebraic: unsaturated q-axis inverse inductance",
+                      required=False, **_POS),
+        "a_qq": Field("A/(V s)^(T+1)", "algebraic: q-axis self-saturation", required=False,
+                      **_NONNEG),
+        "a_dq": Field("A/(V s)^(U+V+3)", "algebraic: cross-saturation", required=False,
+                      **_NONNEG),
+        "i_f": Field("A", "algebraic: equivalent magnet current (0: reluctance machine)",
+                     required=False, **_NONNEG),
+        "S": Field("-", "algebraic: exponent of a_dd (default 5)", required=False, **_NONNEG),
+        "T": Field("-", "algebraic: exponent of a_qq (default 1)", required=False, **_NONNEG),
+        "U": Field("-", "algebraic: d exponent of a_dq (default 1)", required=False,
+                   **_NONNEG),
+        "V": Field("-", "algebraic: q exponent of a_dq (default 0)", required=False,
+                   **_NONNEG),
     },
     "mechanics": {
         "J": Field("kg m^2", "total moment of inertia", **_POS),
@@ -256,9 +303,77 @@ class _Reader:
         return x
 
 
+def _saturation(r: _Reader, sat: dict | None, m: dict, i_max: float):
+    """The magnetic model of `[saturation]` (or `None`) and the console notes on how the
+    absent `[motor]` constants were derived (they are filled into `m`)."""
+    absent = [k for k in _CONSTANT_NAMES if k not in m]
+    if sat is None:
+        if absent:
+            f = MOTOR_FILE_SCHEMA["motor"][absent[0]]
+            r.fail(f"missing field [motor] {absent[0]} ({f.unit}; {f.allowed()}; optional "
+                   f"only with a [saturation] section, which it is then derived from)")
+        return None, []
+    if ("flux_map" in sat) == ("model" in sat):
+        r.fail('[saturation]: give exactly one of flux_map = "FILE" (a flux-map CSV or NPZ, '
+               f'path relative to the motor file) and model = "{SATURATION_MODELS[0]}"')
+    params = [k for k in _ALGEBRAIC if k in sat]
+    if "flux_map" in sat:
+        if params:
+            r.fail(f"[saturation] {params[0]}: a parameter of model = \"algebraic\"; with "
+                   "flux_map the map is the model (remove it)")
+        rel = sat["flux_map"]
+        path = rel if os.path.isabs(rel) else os.path.join(os.path.dirname(r.source), rel)
+        try:
+            model = read_flux_map(path)
+        except FluxMapError as e:
+            r.fail(f"[saturation] flux_map = {rel!r}: {e}")
+        except OSError as e:
+            r.fail(f"[saturation] flux_map = {rel!r}: cannot read {path} ({e.strerror}); "
+                   "the path is relative to the motor file")
+        what = "the flux map's"
+    else:
+        if sat["model"] not in SATURATION_MODELS:
+            r.fail(f"[saturation] model = {sat['model']!r}: must be one of "
+                   f"{', '.join(map(repr, SATURATION_MODELS))}")
+        for k in _ALGEBRAIC_REQUIRED:
+            if k not in sat:
+                f = MOTOR_FILE_SCHEMA["saturation"][k]
+                r.fail(f"missing field [saturation] {k} ({f.doc.removeprefix('algebraic: ')}"
+                       f"; {f.allowed()}, {f.unit}) of model = \"algebraic\"")
+        try:
+            model = AlgebraicSaturation(**{k: sat[k] for k in params})
+        except ValueError as e:
+            r.fail(f"[saturation]: {e}")
+        what = "the algebraic model's"
+    how = sat.get("constants")
+    if how is not None and how not in CONSTANTS:
+        r.fail(f"[saturation] constants = {how!r}: must be one of "
+               f"{', '.join(map(repr, CONSTANTS))}")
+    if how is not None and not absent:
+        r.fail(f"[saturation] constants = {how!r}: [motor] gives L_d, L_q and psi_f, so "
+               "nothing is derived; remove constants, or the [motor] values to derive")
+    if not absent:
+        return model, []
+    how = how or CONSTANTS[0]
+    values = dict(zip(_CONSTANT_NAMES, constant_model(model, how, i_max)))
+    m.update({k: values[k] for k in absent})
+    shown = {"L_d": lambda v: f"L_d {1e3 * v:.5g} mH", "L_q": lambda v: f"L_q {1e3 * v:.5g} mH",
+             "psi_f": lambda v: f"psi_f {v:.5g} V s"}
+    given = [k for k in _CONSTANT_NAMES if k not in absent]
+    return model, [f"{', '.join(absent)} from {what} {how} values (constant_model"
+                   f"{'' if how == CONSTANTS[0] else f', i_max {i_max:g} A'}): "
+                   + ", ".join(shown[k](values[k]) for k in absent)
+                   + (f"; {', '.join(given)} as given in [motor]" if given else "")]
+
+
 def parse_motor_file(text: str, source: str = "<text>") -> Drive:
     """The `Drive` described by the motor-file text `text` (`source` names it in
-    errors). Raises `MotorFileError` naming the field for any malformed input."""
+    errors; a `[saturation] flux_map` path is relative to its folder). Raises
+    `MotorFileError` naming the field for any malformed input."""
+    return _parse(text, source)[0]
+
+
+def _parse(text: str, source: str) -> tuple[Drive, list[str]]:
     r = _Reader(source)
     try:
         data = tomllib.loads(text)
@@ -276,6 +391,7 @@ def parse_motor_file(text: str, source: str = "<text>") -> Drive:
     inv = r.section(data, "inverter", True)
     rat = r.section(data, "ratings", True)
     base = r.section(data, "base", False) or {}
+    sat = r.section(data, "saturation", False)
     for s in data:
         if s not in MOTOR_FILE_SCHEMA[""] and s not in MOTOR_FILE_SCHEMA:
             r.fail(f"unknown section or field {s!r}; allowed sections: "
@@ -311,9 +427,10 @@ def parse_motor_file(text: str, source: str = "<text>") -> Drive:
         harmonics = build("motor.harmonics", lambda: EMFHarmonics(
             order=harm["order"], amplitude=np.asarray(harm["amplitude"]),
             phase=None if "phase" not in harm else np.asarray(harm["phase"])))
+    magnetic, notes = _saturation(r, sat, m, rat["i_max"])
     ab = build("motor", lambda: PMSMParams(R_s=m["R_s"], L_d=m["L_d"], L_q=m["L_q"],
                                            psi_f=m["psi_f"], n_p=m["n_p"],
-                                           harmonics=harmonics))
+                                           harmonics=harmonics, magnetic=magnetic))
     motor = ab
     if dual:
         motor = build("motor", lambda: DualThreePhaseParams(
@@ -343,19 +460,26 @@ def parse_motor_file(text: str, source: str = "<text>") -> Drive:
     return build("ratings", lambda: Drive(
         motor=motor, mechanics=mechanics, inverter=inverter, base=bases, w_rated=w_rated,
         tau_rated=rat["tau_rated"], i_max=rat["i_max"], name=name,
-        notes=top.get("notes", "")))
+        notes=top.get("notes", ""))), notes
 
 
 def load_motor_file(path) -> Drive:
-    """The `Drive` of the motor file at `path` (TOML, schema `MOTOR_FILE_SCHEMA`).
+    """The `Drive` of the motor file at `path` (TOML, schema `MOTOR_FILE_SCHEMA`; a
+    `[saturation] flux_map` is read from its path relative to the motor file).
 
     Raises `MotorFileError` (a `ValueError`) naming the file, the section and field, the
-    value and the allowed range for a malformed file, and `OSError` if it cannot be
-    read.
+    value and the allowed range for a malformed file (and, for a bad flux map, what
+    `read_flux_map` found), and `OSError` if it cannot be read.
     """
+    return read_motor_file(path)[0]
+
+
+def read_motor_file(path) -> tuple[Drive, list[str]]:
+    """`load_motor_file(path)` and the notes a console shows with it: how the `[motor]`
+    constants absent from a saturated motor file were derived (empty otherwise)."""
     with open(path, encoding="utf-8") as f:
         text = f.read()
-    return parse_motor_file(text, str(path))
+    return _parse(text, os.fspath(path))
 
 
 def _num(x) -> str:
@@ -373,10 +497,19 @@ def _line(key: str, value: str, comment: str) -> str:
     return f"{key} = {value}".ljust(34) + f"  # {comment}" if comment else f"{key} = {value}"
 
 
-def motor_file_text(drive: Drive) -> str:
+#: The flux-map file a motor file references when none is named (`motor_file_text`).
+FLUX_MAP_FILE = "flux_map.csv"
+
+
+def motor_file_text(drive: Drive, flux_map_file: str = FLUX_MAP_FILE) -> str:
     """The motor file (TOML text) of `drive`; `parse_motor_file` of it gives back a
     `Drive` equal to `drive` (every number is written exactly). Values must be concrete
-    (not traced)."""
+    (not traced).
+
+    A saturated drive gets a `[saturation]` section: an `AlgebraicSaturation` as
+    `model = "algebraic"` with its parameters, a `FluxMap` as `flux_map =
+    flux_map_file` (a path relative to the motor file; `save_motor_file` writes the map
+    there). Other magnetic models raise `ValueError` (sample them into a `FluxMap`)."""
     S = MOTOR_FILE_SCHEMA
 
     def row(section, key, value, text=None):
@@ -402,6 +535,7 @@ def motor_file_text(drive: Drive) -> str:
                   _line("order", "[" + ", ".join(str(int(o)) for o in h.order) + "]", ""),
                   _line("amplitude", arr(h.amplitude), "relative to the fundamental"),
                   _line("phase", arr(h.phase), "rad")]
+    lines += _saturation_lines(ab.magnetic, flux_map_file, row)
     inv = drive.inverter
     lines += ["", "[mechanics]", row("mechanics", "J", drive.mechanics.J),
               row("mechanics", "B", drive.mechanics.B),
@@ -420,7 +554,35 @@ def motor_file_text(drive: Drive) -> str:
     return "\n".join(lines) + "\n"
 
 
-def save_motor_file(drive: Drive, path) -> None:
+def _saturation_lines(model, flux_map_file: str, row) -> list[str]:
+    if model is None:
+        return []
+    if isinstance(model, FluxMap):
+        return ["", "[saturation]",
+                _line("flux_map", _str(flux_map_file), "i_d,i_q,psi_d,psi_q (A, A, V s, V s), "
+                      "relative to this file")]
+    if isinstance(model, AlgebraicSaturation):
+        if model.newton_steps != AlgebraicSaturation.newton_steps:
+            raise ValueError(f"a motor file holds AlgebraicSaturation with the default "
+                             f"newton_steps = {AlgebraicSaturation.newton_steps}; got "
+                             f"{model.newton_steps}")
+        return ["", "[saturation]", _line("model", _str("algebraic"), "AlgebraicSaturation")
+                ] + [row("saturation", k, getattr(model, k)) for k in _ALGEBRAIC]
+    raise ValueError(f"a motor file holds a FluxMap or an AlgebraicSaturation as the "
+                     f"magnetic model; got {type(model).__name__} (sample it into a FluxMap: "
+                     f"model.sample(i_d, i_q))")
+
+
+def save_motor_file(drive: Drive, path, flux_map_file: str | None = None) -> None:
     """Write the motor file of `drive` to `path` (`motor_file_text`), atomically: an
-    interrupted write leaves the previous file."""
-    atomic_write(path, motor_file_text(drive))
+    interrupted write leaves the previous file. A drive with a `FluxMap` also gets its
+    map as a CSV beside the motor file, `flux_map_file` (default: the motor file's name
+    with `_flux_map.csv` for `.toml`), referenced from `[saturation] flux_map`."""
+    path = os.fspath(path)
+    magnetic = drive.three_phase_motor.magnetic
+    if isinstance(magnetic, FluxMap):
+        if flux_map_file is None:
+            flux_map_file = os.path.splitext(os.path.basename(path))[0] + "_flux_map.csv"
+        atomic_write(os.path.join(os.path.dirname(path), flux_map_file),
+                     flux_map_csv(magnetic))
+    atomic_write(path, motor_file_text(drive, flux_map_file or FLUX_MAP_FILE))

@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 
 import pmsmjax as pj
+from pmsmjax._plant._motorfile import read_motor_file
 
 from ._values import CLIError, finite_float, name_value
 
@@ -51,10 +53,12 @@ def drive_from_args(args: argparse.Namespace) -> pj.Drive:
             raise CLIError(f"--motor {args.motor} and --motor-file {motor_file}: give one "
                            f"of the two")
         try:
-            drive = pj.load_motor_file(motor_file)
+            drive, notes = read_motor_file(motor_file)
         except OSError as e:
             raise CLIError(f"--motor-file {motor_file}: cannot read it ({e.strerror})"
                            ) from None
+        for note in notes:  # how the constants of a saturated machine were derived
+            print(f"motor file {motor_file}: {note}", file=sys.stderr)
     else:
         drive = pj.preset(DEFAULT_MOTOR if args.motor is None else args.motor)
     values = dict(args.set_params)

@@ -31,7 +31,9 @@ def _motor_arguments(p: argparse.ArgumentParser) -> None:
                         "on stdout)")
     g.add_argument("--check", action="store_true",
                    help="only validate the drive (--motor-file FILE) and print a summary: "
-                        "parameters, per-unit bases and derived ratings")
+                        "parameters, per-unit bases and derived ratings, and for a "
+                        "saturated machine the check of its flux map (pmsmjax."
+                        "check_flux_map; exit status 2 on an unusable map)")
 
 
 def _summary(drive: pj.Drive) -> list[str]:
@@ -67,16 +69,27 @@ def motor_command(args: argparse.Namespace) -> int:
                            f"(--export NAME is --motor NAME)")
         args.motor = args.export
     drive = drive_from_args(args)
+    magnetic = drive.three_phase_motor.magnetic
     if args.check:
         print("\n".join(_summary(drive)))
+        if magnetic is not None:
+            report = pj.check_flux_map(magnetic, i_max=float(drive.i_max))
+            print("\n".join(report.lines()))
+            if report.errors:
+                raise CLIError(f"the magnetic model is not usable: {report.errors[0]}")
         print("valid")
         return 0
     if args.out_dir is None:
+        if isinstance(magnetic, pj.FluxMap):
+            raise CLIError(f"drive {drive.name} has a flux map, written as a CSV file beside "
+                           "the motor file: give --out DIR (stdout holds one file)")
         sys.stdout.write(pj.motor_file_text(drive))
         return 0
     path = os.path.join(prepare_out_dir(args.out_dir), MOTOR_FILE)
     pj.save_motor_file(drive, path)
     print("\n".join(_summary(drive)))
+    if isinstance(magnetic, pj.FluxMap):
+        print(f"wrote {os.path.splitext(path)[0]}_flux_map.csv (the flux map)")
     print(f"wrote {path}")
     return 0
 
@@ -89,7 +102,11 @@ COMMAND = Command(
         "after the --set replacements, as a motor file (TOML, SI units) to --out "
         "DIR/motor.toml or stdout; every command (tune and compare too) accepts it with "
         "--motor-file. With --check, only validate it and print its parameters, bases "
-        "and rated back-EMF. "
+        "and rated back-EMF, and for a saturated machine what its flux map or model holds "
+        "(grid, current range, PM flux, incremental and apparent inductances at zero and "
+        "rated current, reciprocity, whether the grid covers the current limit). A drive "
+        "with a flux map is written with the map as a CSV file beside the motor file "
+        "(needs --out). "
         "A malformed file ends with exit status 2 and a message that names the field and "
         "the allowed range."
     ),
