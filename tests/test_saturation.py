@@ -18,6 +18,7 @@ import scipy.optimize
 
 import pmsmjax as pj
 
+
 I_MAX = 7.5 * math.sqrt(2.0)
 
 
