@@ -229,3 +229,28 @@ def test_flux_map_structure_errors():
         pj.FluxMap([0, 1, 2, 3], [0, 1, 2, 3], np.zeros((4, 3)), np.zeros((4, 4)))
     with pytest.raises(ValueError, match="strictly increasing"):
         pj.FluxMap([0, 1, 1, 3], [0, 1, 2, 3], np.zeros((4, 4)), np.zeros((4, 4)))
+
+
+def test_spline_is_scipys_not_a_knot_spline():
+    """The map's interpolant along each axis is SciPy's not-a-knot cubic spline through
+    the same values (on a non-uniform grid), for the flux and its derivative, and the
+    traced (jax.numpy) construction equals the numpy one."""
+    from scipy.interpolate import CubicSpline
+
+    from pmsmjax._plant._magnetic import _bicubic_cells
+
+    rng = np.random.default_rng(3)
+    i_d = np.cumsum(rng.uniform(0.5, 1.5, 7)) - 8.0
+    i_q = np.cumsum(rng.uniform(0.5, 1.5, 6)) - 3.0
+    psi_d = rng.normal(size=(7, 6))
+    psi_q = rng.normal(size=(7, 6))
+    fm = pj.FluxMap(i_d, i_q, psi_d, psi_q)
+    q0 = i_q[2]  # on a grid line in q the 2-D spline is the 1-D spline in d
+    x = np.linspace(i_d[0], i_d[-1], 23)
+    ref = CubicSpline(i_d, psi_d[:, 2], bc_type="not-a-knot")
+    psi_d_hat, _, l_dd, *_ = fm.flux_and_inductance(jnp.asarray(x), jnp.full(23, q0))
+    np.testing.assert_allclose(psi_d_hat, ref(x), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(l_dd, ref(x, 1), rtol=0, atol=1e-11)
+    f = np.stack([psi_d, psi_q], -1)
+    traced = jax.jit(_bicubic_cells)(jnp.asarray(i_d), jnp.asarray(i_q), jnp.asarray(f))
+    np.testing.assert_allclose(traced, _bicubic_cells(i_d, i_q, f), rtol=1e-12, atol=1e-12)

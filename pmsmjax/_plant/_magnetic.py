@@ -6,9 +6,9 @@ currents) and a PM flux that drops under load. Two sources are provided, both
 `AbstractMagneticModel`s:
 
 - `FluxMap`: a table `psi_d(i_d, i_q)`, `psi_q(i_d, i_q)` on a rectangular current grid
-  (from a finite-element tool or a measurement), interpolated by a tensor-product C2
-  cubic spline (interpax's `cubic2`: fourth-order accurate, twice differentiable, so
-  gradients flow through it for tuning and identification). Outside the grid the flux is
+  (from a finite-element tool or a measurement), interpolated by a tensor-product
+  not-a-knot C2 cubic spline (fourth-order accurate, twice differentiable, so gradients
+  flow through it for tuning and identification). Outside the grid the flux is
   extended linearly with the incremental inductance of the nearest grid point (the
   saturated slope carries on).
 - `AlgebraicSaturation`: the algebraic saturation model of Hinkkanen et al. (2017),
@@ -114,8 +114,8 @@ def _secant(dpsi, di, limit):
 class FluxMap(AbstractMagneticModel):
     r"""Tabulated flux map: $\psi_d$, $\psi_q$ (V s) on a rectangular grid of `i_d` x `i_q` (A).
 
-    Interpolated by a tensor-product C2 cubic spline (interpax `cubic2`, error $O(h^4)$ in
-    the flux, $O(h^3)$ in the inductances); extended linearly outside the grid with the
+    Interpolated by a tensor-product not-a-knot C2 cubic spline (error $O(h^4)$ in the
+    flux, $O(h^3)$ in the inductances); extended linearly outside the grid with the
     incremental inductances of the nearest grid point. Files: `read_flux_map` (CSV with
     the header `i_d,i_q,psi_d,psi_q`, any row order, or an NPZ with the same arrays).
 
@@ -193,38 +193,68 @@ _HERMITE = np.array([[1.0, 0.0, -3.0, 2.0],
                      [0.0, 0.0, -1.0, 1.0]])
 
 
+def _spline_slopes(x, f, xp):
+    """Knot slopes of the not-a-knot C2 cubic spline through `f` (n, ...) at the knots `x`
+    (n,), along axis 0 (the conditions of de Boor's "A Practical Guide to Splines", ch.
+    IV, as SciPy's `CubicSpline(bc_type="not-a-knot")` uses them; tested against it).
+    `xp` is numpy (a map from a file: no compilation) or jax.numpy (a traced map)."""
+    n = x.shape[0]
+    h = xp.diff(x)
+    d = (f[1:] - f[:-1]) / h.reshape((-1,) + (1,) * (f.ndim - 1))
+    A = xp.zeros((n, n), dtype=f.dtype)
+    rows = xp.arange(1, n - 1)
+    hh = h.reshape((-1,) + (1,) * (f.ndim - 1))
+    interior = 3.0 * (hh[1:] * d[:-1] + hh[:-1] * d[1:])
+    if xp is np:
+        A[rows, rows - 1] = h[1:]
+        A[rows, rows] = 2.0 * (h[:-1] + h[1:])
+        A[rows, rows + 1] = h[:-1]
+        A[0, 0], A[0, 1] = h[1], h[0] + h[1]
+        A[-1, -2], A[-1, -1] = h[-1] + h[-2], h[-2]
+    else:
+        A = A.at[rows, rows - 1].set(h[1:]).at[rows, rows].set(2.0 * (h[:-1] + h[1:]))
+        A = A.at[rows, rows + 1].set(h[:-1])
+        A = A.at[0, 0].set(h[1]).at[0, 1].set(h[0] + h[1])
+        A = A.at[-1, -2].set(h[-1] + h[-2]).at[-1, -1].set(h[-2])
+    first = ((h[0] + 2.0 * (h[0] + h[1])) * h[1] * d[0] + h[0] ** 2 * d[1]) / (h[0] + h[1])
+    last = (h[-1] ** 2 * d[-2] + (2.0 * (h[-2] + h[-1]) + h[-1]) * h[-2] * d[-1]) \
+        / (h[-2] + h[-1])
+    rhs = xp.concatenate([first[None], interior, last[None]], 0)
+    flat = rhs.reshape(n, -1)
+    return xp.linalg.solve(A, flat).reshape(f.shape)
+
+
 def _bicubic_cells(x, y, f):
-    """Per-cell polynomial coefficients `(nx-1, ny-1, m, 4, 4)` of the tensor-product C2
-    cubic spline through `f` `(nx, ny, m)` on the grid `x` x `y`.
+    """Per-cell polynomial coefficients `(nx-1, ny-1, m, 4, 4)` of the tensor-product
+    not-a-knot C2 cubic spline through `f` `(nx, ny, m)` on the grid `x` x `y`.
 
-    The spline itself (its node derivatives f_x, f_y, f_xy, from the C2 conditions) is
-    interpax's `cubic2`; on each cell it is the bicubic Hermite polynomial of those node
-    values, stored here so that an evaluation is one gather and a few multiplications (a
-    closed-loop step evaluates the map four times per sampling period)."""
-    import interpax  # here, so that `import pmsmjax` does not load it
-
-    spline = interpax.Interpolator2D(x, y, f, method="cubic2")
-    xx, yy = jnp.meshgrid(x, y, indexing="ij")
-    xx, yy = xx.ravel(), yy.ravel()
-    shape = f.shape
-    fx, fy, fxy = (spline(xx, yy, dx=a, dy=b).reshape(shape)
-                   for a, b in ((1, 0), (0, 1), (1, 1)))
-    hx, hy = jnp.diff(x)[:, None, None], jnp.diff(y)[None, :, None]
+    The node derivatives f_x, f_y, f_xy come from the spline conditions along each axis
+    (`_spline_slopes`); on each cell the spline is the bicubic Hermite polynomial of those
+    node values, stored so that an evaluation is one gather and a few multiplications (a
+    closed-loop step evaluates the map four times per sampling period). Written here
+    rather than taken from an interpolation library because building such a spline there
+    took seconds of compilation for every map, and a preset builds one each time it is
+    loaded; the dense solves here take microseconds (numpy) for a map from a file."""
+    concrete = not any(isinstance(v, jax.core.Tracer) for v in (x, y, f))
+    xp = np if concrete else jnp
+    x, y, f = (xp.asarray(v, dtype=float) if concrete else v for v in (x, y, f))
+    fx = _spline_slopes(x, f, xp)
+    fy = xp.moveaxis(_spline_slopes(y, xp.moveaxis(f, 1, 0), xp), 0, 1)
+    fxy = xp.moveaxis(_spline_slopes(y, xp.moveaxis(fx, 1, 0), xp), 0, 1)
+    hx, hy = xp.diff(x)[:, None, None], xp.diff(y)[None, :, None]
 
     def corners(g):  # (nx-1, ny-1, m, 2, 2): g at the cell's corners [a, b]
-        return jnp.stack([jnp.stack([g[:-1, :-1], g[:-1, 1:]], -1),
-                          jnp.stack([g[1:, :-1], g[1:, 1:]], -1)], -2)
+        return xp.stack([xp.stack([g[:-1, :-1], g[:-1, 1:]], -1),
+                         xp.stack([g[1:, :-1], g[1:, 1:]], -1)], -2)
 
     # Hermite data G[a, b]: rows (f(0), f(1), h_x f_x(0), h_x f_x(1)) x columns likewise
     # in y, per output.
-    G = jnp.zeros(f[:-1, :-1].shape + (4, 4), f.dtype)
-    G = G.at[..., :2, :2].set(corners(f))
-    G = G.at[..., 2:, :2].set(corners(fx) * hx[..., None, None])
-    G = G.at[..., :2, 2:].set(corners(fy) * hy[..., None, None])
-    G = G.at[..., 2:, 2:].set(corners(fxy) * (hx * hy)[..., None, None])
-    H = jnp.asarray(_HERMITE, f.dtype)
+    G = xp.concatenate([
+        xp.concatenate([corners(f), corners(fy) * hy[..., None, None]], -1),
+        xp.concatenate([corners(fx) * hx[..., None, None],
+                        corners(fxy) * (hx * hy)[..., None, None]], -1)], -2)
     # coefficient c_ij of t^i u^j = sum_ab H[a, i] G[a, b] H[b, j]
-    return jnp.einsum("ai,...ab,bj->...ij", H, G, H)
+    return jnp.asarray(xp.einsum("ai,...ab,bj->...ij", _HERMITE, G, _HERMITE))
 
 
 class AlgebraicSaturation(AbstractMagneticModel):
@@ -295,7 +325,7 @@ class AlgebraicSaturation(AbstractMagneticModel):
     def current(self, psi_d, psi_q):
         """Current `(i_d, i_q)` (A) at the flux linkage `(psi_d, psi_q)` (V s): the model's
         explicit direction."""
-        ad, aq = jnp.abs(psi_d), jnp.abs(psi_q)
+        ad, aq = abs(psi_d), abs(psi_q)
         k_d = (self.a_d0 + self.a_dd * ad ** self.S
                + self.a_dq / (self.V + 2) * ad ** self.U * aq ** (self.V + 2))
         k_q = (self.a_q0 + self.a_qq * aq ** self.T
@@ -305,7 +335,7 @@ class AlgebraicSaturation(AbstractMagneticModel):
     def energy(self, psi_d, psi_q):
         """Magnetic energy W(psi) (J per unit of the amplitude-invariant scaling, i.e.
         A V s) whose gradient is `current`."""
-        ad, aq = jnp.abs(psi_d), jnp.abs(psi_q)
+        ad, aq = abs(psi_d), abs(psi_q)
         S, T, U, V = self.S, self.T, self.U, self.V
         return (0.5 * self.a_d0 * psi_d ** 2 + self.a_dd / (S + 2) * ad ** (S + 2)
                 + 0.5 * self.a_q0 * psi_q ** 2 + self.a_qq / (T + 2) * aq ** (T + 2)
@@ -314,7 +344,7 @@ class AlgebraicSaturation(AbstractMagneticModel):
 
     def _hessian(self, psi_d, psi_q):
         """d i / d psi (1/H) as (g_dd, g_dq, g_qq): the Hessian of the energy."""
-        ad, aq = jnp.abs(psi_d), jnp.abs(psi_q)
+        ad, aq = abs(psi_d), abs(psi_q)
         S, T, U, V = self.S, self.T, self.U, self.V
         g_dd = (self.a_d0 + (S + 1) * self.a_dd * ad ** S
                 + self.a_dq * (U + 1) / (V + 2) * ad ** U * aq ** (V + 2))
@@ -324,9 +354,12 @@ class AlgebraicSaturation(AbstractMagneticModel):
         return g_dd, g_dq, g_qq
 
     def flux_and_inductance(self, i_d, i_q):
-        i_d, i_q = jnp.asarray(i_d, float), jnp.asarray(i_q, float)
-        i_d, i_q = jnp.broadcast_arrays(i_d, i_q)
-
+        # Concrete inputs (sampling a map, a report) run in numpy: a Python loop of a few
+        # dozen vector operations, where the compiled loop would first take seconds to build.
+        concrete = not any(isinstance(v, jax.core.Tracer)
+                           for v in jax.tree_util.tree_leaves((self, i_d, i_q)))
+        xp = np if concrete else jnp
+        i_d, i_q = xp.broadcast_arrays(xp.asarray(i_d, float), xp.asarray(i_q, float))
         n_path = self.newton_steps // 2
 
         def newton(k, psi):
@@ -334,7 +367,7 @@ class AlgebraicSaturation(AbstractMagneticModel):
             # (i_d, i_q) over the first half of the iterations (one Newton step each), so
             # the iterate follows the solution path from zero flux; the second half are
             # plain Newton steps on the final target (quadratic convergence).
-            s = jnp.minimum((k + 1) / n_path, 1.0)
+            s = xp.minimum((k + 1) / n_path, 1.0)
             t_d, t_q = (1.0 - s) * -self.i_f + s * i_d, s * i_q
             psi_d, psi_q = psi
             r_d, r_q = self.current(psi_d, psi_q)
@@ -342,8 +375,13 @@ class AlgebraicSaturation(AbstractMagneticModel):
             s_d, s_q = solve2(g_dd, g_dq, g_dq, g_qq, r_d - t_d, r_q - t_q)
             return psi_d - s_d, psi_q - s_q
 
-        zero = jnp.zeros_like(i_d)
-        psi_d, psi_q = jax.lax.fori_loop(0, self.newton_steps, newton, (zero, zero))
+        psi = (xp.zeros_like(i_d), xp.zeros_like(i_d))
+        if concrete:
+            for k in range(self.newton_steps):
+                psi = newton(k, psi)
+            psi_d, psi_q = psi
+        else:
+            psi_d, psi_q = jax.lax.fori_loop(0, self.newton_steps, newton, psi)
         g_dd, g_dq, g_qq = self._hessian(psi_d, psi_q)
         det = g_dd * g_qq - g_dq * g_dq
         return psi_d, psi_q, g_qq / det, -g_dq / det, -g_dq / det, g_dd / det
