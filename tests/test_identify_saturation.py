@@ -143,23 +143,29 @@ def test_recovers_the_saturation_model(fitted):
         res.saturation["model"])
 
 
-def test_warns_on_a_recording_that_excites_only_i_q(start):
-    """i_d held at zero: an `ExcitationWarning` names the d axis, the range recorded and
-    the range needed, and the coefficients it leaves undetermined; the fit's standard
-    deviations name a_dd as weakly determined; the q axis is not blamed."""
+def test_warns_on_a_recording_that_excites_only_i_q(start, fitted):
+    """i_d held at zero (it moves by -1.5..0.8 A in the i_q steps' transients: 14 % of
+    the range): an `ExcitationWarning` names the d axis, the range recorded and the
+    range needed, and the coefficients it leaves undetermined, and only it (the q axis
+    is covered); the fit's standard deviations name a_dd as weakly determined, its
+    relative standard deviation 24 times that of the recording with i_d steps
+    (measured: 2.3 % against 0.094 %)."""
     rec = _recording(only_q=True, key=2)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = pj.identify(start[1], rec, ["saturation"], max_steps=MAX_STEPS)
-    print(res.warnings, res.parameters, res.condition)
     msgs = [str(w.message) for w in caught if issubclass(w.category, pj.ExcitationWarning)]
     assert len(msgs) == 1, msgs
     i_max = float(start[1].i_max)
     assert "d-axis" in msgs[0] and "a_dd" in msgs[0] and f"{-i_max:.3g}..0 A" in msgs[0]
-    assert res.saturation["currents"]["coverage_d"] < 0.1
+    assert "q-axis" not in msgs[0]
+    assert res.saturation["currents"]["coverage_d"] < 0.2
+    assert res.saturation["currents"]["coverage_q"] > 0.9
     weak = [m for m in res.warnings if "weakly determined" in m]
     assert any(m.startswith("a_dd") for m in weak), res.warnings
-    assert res.parameters["a_dd"]["std"] / res.parameters["a_dd"]["value"] > 0.1
+    rel = [r.parameters["a_dd"]["std"] / r.parameters["a_dd"]["value"]
+           for r in (res, fitted[1])]
+    assert rel[0] > 8 * rel[1], rel
 
 
 def test_cli_writes_saturation_table_and_flux_map(fitted, start, tmp_path):

@@ -36,7 +36,8 @@ from ._identifiable import IDENTIFIABLE, SATURATION_FIT
 DEFAULT_EXPONENTS = (4.0, 2.0, 2.0, 2.0)
 
 #: What each axis's range determines (for the excitation warnings).
-_NEEDS = {"d": ("a_dd", "a_d0 and i_f apart from a_dd"), "q": ("a_qq", "a_dq")}
+_NEEDS = {"d": "a_dd (d-axis saturation; without it a_d0, a_dd and i_f act alike)",
+          "q": "a_qq and a_dq (q-axis self- and cross-saturation)"}
 
 
 def expand(names) -> tuple:
@@ -149,17 +150,17 @@ def coverage(recs, i_max: float, min_coverage: float) -> tuple[dict, list[str]]:
         msgs.append(
             f"the recorded d-axis current spans {lo_d:.3g}..{hi_d:.3g} A, "
             f"{100 * max(frac_d, 0.0):.0f} % of the range {-i_max:.3g}..0 A a saturation "
-            f"model needs (at least {100 * min_coverage:.0f} %): {_NEEDS['d'][0]} "
-            f"({IDENTIFIABLE['a_dd'][0]}) and {_NEEDS['d'][1]} are not identifiable from "
-            f"it (the flux outside the recorded currents is extrapolated); record i_d steps "
+            f"model needs (at least {100 * min_coverage:.0f} %): {_NEEDS['d']} is not "
+            f"identifiable from it (the flux outside the recorded currents is "
+            f"extrapolated); record i_d steps "
             f"down to {-min_coverage * i_max:.3g} A or below, at speed.")
     if frac_q < min_coverage:
         msgs.append(
             f"the recorded q-axis current reaches |i_q| = {q_abs:.3g} A, "
             f"{100 * frac_q:.0f} % of the current limit {i_max:.3g} A a saturation model "
-            f"needs (at least {100 * min_coverage:.0f} %): {_NEEDS['q'][0]} "
-            f"({IDENTIFIABLE['a_qq'][0]}) and {_NEEDS['q'][1]} "
-            f"({IDENTIFIABLE['a_dq'][0]}) are not identifiable from it; record i_q steps "
+            f"needs (at least {100 * min_coverage:.0f} %): {_NEEDS['q']} are not "
+            f"identifiable from it (the flux outside the recorded currents is "
+            f"extrapolated); record i_q steps "
             f"up to {min_coverage * i_max:.3g} A or beyond, at speed.")
     return info, msgs
 
