@@ -204,3 +204,25 @@ def test_cli_writes_saturation_table_and_flux_map(fitted, start, tmp_path):
     assert rows[:, 1].max() == pytest.approx(info["i_q_A"][1])
     psi = np.asarray(model.flux_dq(jnp.asarray(rows[:, :2])))
     np.testing.assert_allclose(rows[:, 2:], psi, rtol=0, atol=1e-9)
+
+
+def test_bad_saturation_fits_are_named(start):
+    """Each wrong request names the argument, the value and what is allowed, before any
+    fit runs."""
+    d = start[1]
+    n = 50
+    rec = pj.RecordedData(t=np.arange(n) * 1e-4, u_ab=np.zeros((n, 2)),
+                          i_ab=np.zeros((n, 2)), theta=np.zeros(n))
+    cases = [
+        (dict(fit=["saturation", "L_q"]), "L_q"),
+        (dict(fit=["saturation"], min_coverage=1.5), "min_coverage"),
+        (dict(fit=["saturation"], exponents=(4, 2, 2)), "exponents"),
+        (dict(fit=["saturation"], saturation=d.motor), "saturation"),
+        (dict(fit=["saturatoin"]), "saturatoin"),
+    ]
+    for kwargs, word in cases:
+        with pytest.raises(pj.IdentifyError, match=word):
+            pj.identify(d, rec, **kwargs)
+    harm = pj.preset("morawiec_ipm3k5", trapezoid=0.02)
+    with pytest.raises(pj.IdentifyError, match="harmonics"):
+        pj.identify(harm, rec, ["saturation"])

@@ -40,6 +40,16 @@ excitation it needs; one that is only weakly determined (relative standard devia
 above `warn_rel_std`) or nearly collinear with another (correlation above 0.995) gives an
 `IdentifiabilityWarning` with the same explanation, and the result lists it in
 `warnings`. Parameters are fitted in log space (positive), `u_dt` linearly (it may be 0).
+
+**Saturation.** `fit` with `"saturation"` (or some of `a_d0, a_dd, a_q0, a_qq, a_dq,
+i_f`) fits an `AlgebraicSaturation` with its exponents held: the plant's
+`PMSMParams.magnetic` is that model, built from the traced coefficients. The segments
+are integrated in the plant's flux-linkage form (`_identify_saturation.flux_rates`:
+the model's current is explicit in the flux, so no Newton inversion per evaluation;
+tested equal to `PMSM` with the model to fourth order in the step): each segment starts
+from the flux of its measured current (the model's Newton inversion, differentiated
+through). The recordings' current ranges are checked (`ExcitationWarning`) and the
+flux uncertainty over them is reported (`_identify_saturation`).
 """
 
 from __future__ import annotations
@@ -333,6 +343,12 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
             f"with a saturation model the plant's flux comes from the model, and L_d, L_q, "
             f"psi_f are only the constants the drive deploys (the fitted drive takes the "
             f"model's small-current values); leave them out of fit.")
+    if sat_fit and drive.three_phase_motor.harmonics is not None:
+        raise IdentifyError(
+            f"`identify(fit=...)` with saturation coefficients models a sinusoidal "
+            f"machine; {drive.name!r} has back-EMF harmonics (orders "
+            f"{tuple(drive.three_phase_motor.harmonics.order)}): remove them from the "
+            f"motor file (the [motor.harmonics] table) for the saturation fit.")
     if not 0.0 <= min_coverage <= 1.0:
         raise IdentifyError(f"`identify(min_coverage=...)` (-) must lie in [0, 1]; got "
                             f"{min_coverage!r}.")
