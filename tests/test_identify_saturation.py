@@ -9,20 +9,19 @@ through +-0.25..1 i_max with alternating sign, i_d stepping to -0.3, -0.9, -0.6,
 i_max (or held at 0), 0.02 A current noise, 0.15 s at 10 kHz. One recording length and
 one starting drive throughout, so every fit runs the same compiled programs."""
 
-import math
-import tomllib
 import warnings
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import tomllib
 
 import pmsmjax as pj
 from pmsmjax._data import _identify_saturation as isat
 from pmsmjax._data._identify import _cut, _simulate_segments
 from pmsmjax.cli.__main__ import main as cli_main
+
 
 T_REC = 0.15
 NOISE = 0.005

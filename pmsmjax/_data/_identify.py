@@ -68,8 +68,7 @@ from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
 from .._plant._params import Drive, Inverter
 from .._sim._integrate import RK4, check_drive_step, integrate
 from . import _identify_saturation as _sat
-from ._identifiable import IDENTIFIABLE as IDENTIFIABLE
-from ._identifiable import SATURATION_FIT
+from ._identifiable import IDENTIFIABLE as IDENTIFIABLE, SATURATION_FIT
 from ._recording import RecordedData
 
 

@@ -31,6 +31,7 @@ from .._plant._magnetic import AlgebraicSaturation, constant_model
 from .._plant._params import Drive
 from ._identifiable import IDENTIFIABLE, SATURATION_FIT
 
+
 #: Default exponents (S, T, U, V) of a fitted `AlgebraicSaturation` (those of the
 #: `ipm3k5_sat` preset's model: even, so the model is smooth at zero flux).
 DEFAULT_EXPONENTS = (4.0, 2.0, 2.0, 2.0)

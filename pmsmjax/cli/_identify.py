@@ -168,13 +168,12 @@ COMMAND = Command(
         "dead-time error u_dt acts and can be fitted). Writes to --out: identify.json "
         "(parameters.NAME.{value, initial, std} in SI units, the residual, the condition of "
         "the problem, the correlations), identified.toml (a motor file with the fitted "
-        "values, for --motor-file; with --fit saturation, a [saturation] table with "
-        "model = \"algebraic\" and its coefficients, and flux_map.csv: the fitted flux "
-        "map sampled over the recorded currents) and identify.png (measured against model currents and "
+        "values, for --motor-file; with --fit saturation, a [saturation] table with model = "
+        "\"algebraic\" and its coefficients, and flux_map.csv: the fitted flux map sampled "
+        "over the recorded currents) and identify.png (measured against model currents and "
         "speed). A parameter the recordings cannot determine ends the command with a message "
         "that names it and the excitation it needs; a weakly determined one, or recorded "
-        "currents that cover too little of the range a saturation model needs, is a "
-        "warning."
+        "currents that cover too little of the range a saturation model needs, is a warning."
     ),
     add_arguments=_identify_arguments,
     run=identify_command,
