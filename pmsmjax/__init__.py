@@ -162,6 +162,7 @@ from .observers import (  # noqa: E402
 if TYPE_CHECKING:
     from . import papers as papers
     from ._data._identify import (
+        ExcitationWarning as ExcitationWarning,
         IdentifiabilityWarning as IdentifiabilityWarning,
         IdentifyError as IdentifyError,
         IdentifyResult as IdentifyResult,

@@ -40,6 +40,16 @@ excitation it needs; one that is only weakly determined (relative standard devia
 above `warn_rel_std`) or nearly collinear with another (correlation above 0.995) gives an
 `IdentifiabilityWarning` with the same explanation, and the result lists it in
 `warnings`. Parameters are fitted in log space (positive), `u_dt` linearly (it may be 0).
+
+**Saturation.** `fit` with `"saturation"` (or some of `a_d0, a_dd, a_q0, a_qq, a_dq,
+i_f`) fits an `AlgebraicSaturation` with its exponents held: the plant's
+`PMSMParams.magnetic` is that model, built from the traced coefficients. The segments
+are integrated in the plant's flux-linkage form (`_identify_saturation.flux_rates`:
+the model's current is explicit in the flux, so no Newton inversion per evaluation;
+tested equal to `PMSM` with the model to fourth order in the step): each segment starts
+from the flux of its measured current (the model's Newton inversion, differentiated
+through). The recordings' current ranges are checked (`ExcitationWarning`) and the
+flux uncertainty over them is reported (`_identify_saturation`).
 """
 
 from __future__ import annotations
@@ -57,7 +67,8 @@ import optimistix as optx
 from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
 from .._plant._params import Drive, Inverter
 from .._sim._integrate import RK4, check_drive_step, integrate
-from ._identifiable import IDENTIFIABLE as IDENTIFIABLE
+from . import _identify_saturation as _sat
+from ._identifiable import IDENTIFIABLE as IDENTIFIABLE, SATURATION_FIT
 from ._recording import RecordedData
 
 
@@ -73,6 +84,13 @@ class IdentifiabilityWarning(UserWarning):
     """A fitted parameter is only weakly determined by the recording(s)."""
 
 
+class ExcitationWarning(IdentifiabilityWarning):
+    """The recordings do not excite the currents a saturation model needs: the recorded
+    d- or q-axis current covers too little of the drive's current range (the message
+    names the axis, the range recorded and the range needed, and the coefficients left
+    to extrapolation)."""
+
+
 class IdentifyResult(eqx.Module):
     """Result of `identify`.
 
@@ -85,7 +103,13 @@ class IdentifyResult(eqx.Module):
     - `correlation`: the parameters' correlation matrix (`names` order).
     - `names`: the fitted parameters, in order.
     - `n_residuals`, `n_segments`, `segment_s`, `steps`: problem size and solver steps.
-    - `warnings`: the identifiability warnings (also issued as `IdentifiabilityWarning`).
+    - `warnings`: the identifiability warnings (also issued as `IdentifiabilityWarning`,
+      or `ExcitationWarning` for a recording that does not excite a saturation model).
+    - `saturation`: `None` unless a saturation model was fitted; then `{"model"`: the
+      fitted `AlgebraicSaturation` (also `drive`'s magnetic model), `"currents"`: the
+      recorded current ranges (A) and the fractions of the needed ranges they cover,
+      `"flux_std"`: the 1-sigma flux uncertainty over those currents (V s, and relative
+      to the PM flux)`}`.
     - `traces`: per recording, `{"t", "i_ab", "i_model", "w_m", "w_model"}` (NumPy): the
       measured signals and the segment-wise model response at the fitted parameters
       (segment starts reset the model to the measurement).
@@ -104,6 +128,7 @@ class IdentifyResult(eqx.Module):
     steps: int
     warnings: tuple
     traces: list
+    saturation: dict | None = None
 
 
 def _recordings(data) -> list[RecordedData]:
@@ -164,6 +189,8 @@ def _with_values(drive: Drive, values: dict) -> Drive:
             drive = eqx.tree_at(lambda d, n=name: getattr(d.motor, n), drive, v)
         elif name in _MECH:
             drive = eqx.tree_at(lambda d, n=name: getattr(d.mechanics, n), drive, v)
+        elif name in SATURATION_FIT:
+            continue  # set on the magnetic model (`_Problem.plant`)
         else:
             inv = drive.inverter
             drive = eqx.tree_at(lambda d: d.inverter, drive, Inverter(
@@ -197,18 +224,28 @@ class _Problem(eqx.Module):
     lin_scale: jnp.ndarray  # scale of the linear (u_dt) parameters, 0 for log ones
     commanded: bool = eqx.field(static=True)
     n_substeps: int = eqx.field(static=True)
+    saturation: object = None  # the starting AlgebraicSaturation of a saturation fit
 
     def values(self, x):
         vals = jnp.where(self.lin_scale > 0, self.p0 + self.lin_scale * x,
                          self.p0 * jnp.exp(x))
         return dict(zip(self.names, [vals[k] for k in range(len(self.names))]))
 
+    def magnetic(self, x):
+        """The `AlgebraicSaturation` at `x` (traced: derivatives flow through it)."""
+        return _sat.with_values(self.saturation, self.values(x))
+
     def plant(self, x) -> PMSM:
         d = _with_values(self.drive, self.values(x))
+        if self.saturation is not None:
+            d = _sat.set_magnetic(d, self.magnetic(x))
         return PMSM(d.motor, d.mechanics, d.inverter if self.commanded else None)
 
     def model(self, x, segs):
         plant = self.plant(x)
+        if self.saturation is not None:  # the flux-linkage form of the same plant
+            mag = plant.motor.magnetic
+            return [_sat.simulate_segments(plant, mag, s, self.n_substeps) for s in segs]
         return [_simulate_segments(plant, s, self.n_substeps) for s in segs]
 
     def residuals(self, x, args):
@@ -247,7 +284,8 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
              fit: Sequence[str] = ("R_s", "L_d", "L_q", "psi_f"), *,
              voltage: str = "applied", segment: float = 0.02, n_substeps: int = 1,
              max_steps: int = 100, rtol: float = 1e-10, atol: float = 1e-10,
-             warn_rel_std: float = 0.01) -> IdentifyResult:
+             warn_rel_std: float = 0.01, saturation=None, exponents=None,
+             min_coverage: float = 0.5) -> IdentifyResult:
     """Fit the parameters `fit` of `drive` to one or more recordings (module docstring).
 
     **Arguments:**
@@ -258,7 +296,12 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
       `theta` (rad, electrical), and `w_m` (rad/s; else derived from `theta`) and
       `tau_L` (N m; else zero) where recorded.
     - `fit`: names among `IDENTIFIABLE`: R_s (Ohm), L_d, L_q (H), psi_f (V s), J
-      (kg m^2), B (N m s/rad), u_dt (V).
+      (kg m^2), B (N m s/rad), u_dt (V), and the coefficients of an `AlgebraicSaturation`
+      (a_d0, a_dd, a_q0, a_qq, a_dq, i_f; `"saturation"` stands for all six): the plant
+      then saturates (`PMSMParams.magnetic`), L_d, L_q, psi_f cannot be fitted with them
+      (they are then only the deployed constants: the fitted drive takes the model's
+      small-current values), and the recordings' current ranges are checked
+      (`min_coverage`).
     - `voltage`: `"applied"` (the recorded `u_ab` reached the windings) or `"commanded"`
       (the controller's voltage: the plant applies the inverter's dead-time error,
       `drive.inverter.u_dt`, fitted when `u_dt` is in `fit`).
@@ -267,6 +310,14 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt limits and tolerances.
     - `warn_rel_std`: relative standard deviation above which a parameter is reported as
       weakly determined.
+    - `saturation`: the starting `AlgebraicSaturation` of a saturation fit; default: the
+      drive's magnetic model if it is one, else one whose small-current values are the
+      drive's L_d, L_q, psi_f (`_identify_saturation.default_start`).
+    - `exponents`: `(S, T, U, V)` (-, held) of the fitted model; default: the starting
+      model's, or 4, 2, 2, 2.
+    - `min_coverage`: the fraction of the current range (i_d over [-i_max, 0], |i_q| up
+      to i_max) the recordings must cover in each axis for a saturation fit; below it an
+      `ExcitationWarning` names the axis and the coefficients left undetermined.
 
     **Returns:** an `IdentifyResult`. Raises `IdentifyError` (a `ValueError`) for unusable
     data or a parameter the data cannot determine.
@@ -277,12 +328,33 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     if drive.dual:
         raise IdentifyError(f"`identify` fits three-phase drives; {drive.name!r} is dual "
                             f"three-phase.")
-    names = tuple(dict.fromkeys(fit))
+    names = _sat.expand([fit] if isinstance(fit, str) else fit)
     bad = [n for n in names if n not in IDENTIFIABLE]
     if not names or bad:
         raise IdentifyError(f"`identify(fit=...)`: {', '.join(map(repr, bad)) or 'nothing'} "
                             f"is not a parameter it can fit; choose among "
-                            f"{', '.join(IDENTIFIABLE)}.")
+                            f"{', '.join(IDENTIFIABLE)} or 'saturation'.")
+    sat_fit = any(n in SATURATION_FIT for n in names)
+    constants = [n for n in names if n in ("L_d", "L_q", "psi_f")]
+    if sat_fit and constants:
+        raise IdentifyError(
+            f"`identify(fit=...)` has {', '.join(constants)} with saturation coefficients: "
+            f"with a saturation model the plant's flux comes from the model, and L_d, L_q, "
+            f"psi_f are only the constants the drive deploys (the fitted drive takes the "
+            f"model's small-current values); leave them out of fit.")
+    if sat_fit and drive.three_phase_motor.harmonics is not None:
+        raise IdentifyError(
+            f"`identify(fit=...)` with saturation coefficients models a sinusoidal "
+            f"machine; {drive.name!r} has back-EMF harmonics (orders "
+            f"{tuple(drive.three_phase_motor.harmonics.order)}): remove them from the "
+            f"motor file (the [motor.harmonics] table) for the saturation fit.")
+    if not 0.0 <= min_coverage <= 1.0:
+        raise IdentifyError(f"`identify(min_coverage=...)` (-) must lie in [0, 1]; got "
+                            f"{min_coverage!r}.")
+    try:
+        start_sat = _sat.start_model(drive, saturation, exponents) if sat_fit else None
+    except ValueError as e:
+        raise IdentifyError(str(e)) from None
     if voltage not in ("applied", "commanded"):
         raise IdentifyError(f"`identify(voltage=...)` must be 'applied' or 'commanded'; got "
                             f"{voltage!r}.")
@@ -306,10 +378,17 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
                 f"a shorter `segment`).")
         segs.append(_cut(r, m))
 
+    sat_info, excite = None, []
+    if sat_fit:
+        sat_info, excite = _sat.coverage(recs, float(drive.i_max), min_coverage)
+        for msg in excite:
+            warnings.warn(msg, ExcitationWarning, stacklevel=2)
     p0 = []
     lin = []
     for n in names:
-        if n in _MOTOR:
+        if n in SATURATION_FIT:
+            v = getattr(start_sat, n)
+        elif n in _MOTOR:
             v = getattr(drive.motor, n)
         elif n in _MECH:
             v = getattr(drive.mechanics, n)
@@ -323,7 +402,8 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         p0.append(v)
         lin.append(max(v, 1.0) if n == "u_dt" else 0.0)
     problem = _Problem(drive=drive, names=names, p0=jnp.asarray(p0), lin_scale=jnp.asarray(lin),
-                       commanded=voltage == "commanded", n_substeps=n_substeps)
+                       commanded=voltage == "commanded", n_substeps=n_substeps,
+                       saturation=start_sat)
     x = jnp.zeros(len(names))
     sig_i = 1e-3 * float(drive.i_max)
     sig_w = 1e-3 * float(drive.w_rated)
@@ -394,7 +474,13 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
                     f"{IDENTIFIABLE[names[b]][1]}.")
     for msg in warn_list:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
-    fitted = _fitted_drive(drive, vals)
+    fitted = _fitted_drive(drive, {n: v for n, v in vals.items() if n not in SATURATION_FIT})
+    if sat_fit:
+        fitted = _sat.fitted_drive(fitted, _sat.with_values(start_sat, vals))
+        sat_info = {"model": fitted.three_phase_motor.magnetic, "currents": sat_info,
+                    "flux_std": _sat.flux_uncertainty(
+                        problem.magnetic, x, cov_x, sat_info,
+                        float(fitted.three_phase_motor.psi_f))}
     traces = []
     for rec, s, (i_m, w_m) in zip(recs, segs, model):  # at the final x (stage 1)
         n_seg, m = s.w_meas.shape
@@ -406,7 +492,8 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         drive=fitted, parameters=params, residual_rms={"i_A": rms_i, "w_rad_s": rms_w},
         cost=s2, condition=condition, correlation=corr, names=names,
         n_residuals=int(r.size), n_segments=int(sum(s.w0.shape[0] for s in segs)),
-        segment_s=float(segment), steps=steps, warnings=tuple(warn_list), traces=traces)
+        segment_s=float(segment), steps=steps, warnings=tuple(excite + warn_list), traces=traces,
+        saturation=sat_info)
 
 
 def _fitted_drive(drive: Drive, vals: dict) -> Drive:

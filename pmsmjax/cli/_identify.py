@@ -9,7 +9,8 @@ import warnings
 
 import pmsmjax as pj
 
-from .._files import write_json
+from .._data._identify_saturation import flux_map_rows, saturation_table, write_flux_map
+from .._files import atomic_write, write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, drive_info
 from ._output import add_output_options, prepare_out_dir
@@ -17,15 +18,29 @@ from ._values import CLIError, positive_float, positive_int
 
 
 def _names(values: list[str]) -> list[str]:
-    """`--fit R_s L_q` or `--fit R_s,L_q`: the names, in order, once each."""
+    """`--fit R_s L_q` or `--fit R_s,L_q`: the names, in order, once each (`saturation`
+    stands for the six coefficients of the saturation model)."""
     out = []
     for v in values:
         out += [s.strip() for s in v.split(",") if s.strip()]
-    bad = [n for n in out if n not in pj.IDENTIFIABLE]
+    bad = [n for n in out if n not in pj.IDENTIFIABLE and n != "saturation"]
     if bad or not out:
         raise CLIError(f"--fit {' '.join(values)}: {', '.join(bad) or 'no name'} is not a "
-                       f"parameter identify can fit; allowed: {', '.join(pj.IDENTIFIABLE)}")
+                       f"parameter identify can fit; allowed: {', '.join(pj.IDENTIFIABLE)} "
+                       f"or saturation")
     return list(dict.fromkeys(out))
+
+
+def _exponents(text: str) -> tuple:
+    """`--saturation-exponents 4,2,2,2`: S, T, U, V (>= 0)."""
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        vals = ()
+    if len(vals) != 4 or not all(v >= 0 and v < float("inf") for v in vals):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: four comma-separated numbers S,T,U,V >= 0 (e.g. 4,2,2,2)")
+    return vals
 
 
 def _identify_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,8 +58,20 @@ def _identify_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fit", required=True, nargs="+", metavar="NAME",
                    help=f"the parameters to fit, space- or comma-separated, among "
                         f"{', '.join(f'{n} ({u})' for n, (u, _) in pj.IDENTIFIABLE.items())}; "
-                        f"the others keep the drive's values, and the drive's values are "
-                        f"the starting point")
+                        f"'saturation' stands for the six coefficients a_d0 .. i_f of an "
+                        f"algebraic saturation model (the plant then saturates; not with "
+                        f"L_d, L_q, psi_f, which become the fitted model's small-current "
+                        f"values); the others keep the drive's values, and the drive's "
+                        f"values are the starting point")
+    g.add_argument("--saturation-exponents", type=_exponents, default=None,
+                   metavar="S,T,U,V",
+                   help="the saturation model's exponents, held in the fit (default: the "
+                        "motor file's algebraic model's, else 4,2,2,2)")
+    g.add_argument("--min-coverage", type=float, default=0.5, metavar="F",
+                   help="with --fit saturation: the fraction of the current range (i_d "
+                        "over -i_max..0, |i_q| up to i_max) the recordings must cover per "
+                        "axis; less gives a warning naming the axis and the coefficients it "
+                        "leaves undetermined (default: %(default)s)")
     g.add_argument("--segment", type=positive_float, default=0.02, metavar="S",
                    help="multiple-shooting segment length (s, default: %(default)s): each "
                         "segment restarts the model from the measured state")
@@ -64,13 +91,21 @@ def identify_command(args: argparse.Namespace) -> int:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", pj.IdentifiabilityWarning)
         res = pj.identify(drive, recs, fit, voltage=args.voltage, segment=args.segment,
-                          max_steps=args.max_steps)
+                          max_steps=args.max_steps, exponents=args.saturation_exponents,
+                          min_coverage=args.min_coverage)
     for w in caught:
         if not issubclass(w.category, pj.IdentifiabilityWarning):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     files = {"result": os.path.join(out, "identify.json"),
              "motor_file": os.path.join(out, "identified.toml")}
-    pj.save_motor_file(res.drive, files["motor_file"])
+    text = pj.motor_file_text(res.drive)
+    sat = res.saturation
+    if sat is not None:
+        files["flux_map"] = os.path.join(out, "flux_map.csv")
+        write_flux_map(files["flux_map"], flux_map_rows(sat["model"], sat["currents"]))
+        if "[saturation]" not in text:
+            text += "\n" + saturation_table(sat["model"])
+    atomic_write(files["motor_file"], text)
     if not args.no_plot:
         from pmsmjax.plotting import plot_identification
 
@@ -95,6 +130,12 @@ def identify_command(args: argparse.Namespace) -> int:
         "n_segments": res.n_segments,
         "solver_steps": res.steps,
         "warnings": list(res.warnings),
+        **({} if sat is None else {"saturation": {
+            "model": "algebraic", **{k: float(getattr(sat["model"], k))
+                                     for k in ("S", "T", "U", "V")},
+            "currents": sat["currents"], "flux_std": sat["flux_std"],
+            "deployed_constants": "L_d, L_q, psi_f of identified.toml are the fitted "
+                                  "model's small-current values"}}),
         "wall_time_s": time.perf_counter() - t0,
         "files": {k: os.path.basename(v) for k, v in files.items()},
     }
@@ -103,6 +144,12 @@ def identify_command(args: argparse.Namespace) -> int:
         print(f"  {n:6s} {p['value']:.6g} {p['unit']} +- {p['std']:.2g} (from {p['initial']:.6g})")
     print(f"residual RMS {res.residual_rms['i_A']:.3g} A, {res.residual_rms['w_rad_s']:.3g} "
           f"rad/s; condition {res.condition:.3g}")
+    if sat is not None:
+        c, f = sat["currents"], sat["flux_std"]
+        print(f"saturation: recorded i_d {c['i_d_A'][0]:.3g}..{c['i_d_A'][1]:.3g} A, i_q "
+              f"{c['i_q_A'][0]:.3g}..{c['i_q_A'][1]:.3g} A (coverage d {c['coverage_d']:.0%}, "
+              f"q {c['coverage_q']:.0%}); flux 1-sigma over them {f['psi_d_std_Vs']:.2g} / "
+              f"{f['psi_q_std_Vs']:.2g} V s (d / q)")
     for msg in res.warnings:
         print(f"warning: {msg}")
     print(f"wrote {', '.join(files.values())}")
@@ -111,7 +158,8 @@ def identify_command(args: argparse.Namespace) -> int:
 
 COMMAND = Command(
     name="identify",
-    help="fit a drive's parameters (R_s, L_d, L_q, psi_f, J, B, u_dt) to recordings",
+    help="fit a drive's parameters (R_s, L_d, L_q, psi_f, J, B, u_dt, a saturation "
+         "model) to recordings",
     description=(
         "Fit the parameters --fit of the drive (--motor or --motor-file, after --set; its "
         "values are the starting point) to one or more recordings --data by least squares "
@@ -120,9 +168,12 @@ COMMAND = Command(
         "dead-time error u_dt acts and can be fitted). Writes to --out: identify.json "
         "(parameters.NAME.{value, initial, std} in SI units, the residual, the condition of "
         "the problem, the correlations), identified.toml (a motor file with the fitted "
-        "values, for --motor-file) and identify.png (measured against model currents and "
+        "values, for --motor-file; with --fit saturation, a [saturation] table with model = "
+        "\"algebraic\" and its coefficients, and flux_map.csv: the fitted flux map sampled "
+        "over the recorded currents) and identify.png (measured against model currents and "
         "speed). A parameter the recordings cannot determine ends the command with a message "
-        "that names it and the excitation it needs; a weakly determined one is a warning."
+        "that names it and the excitation it needs; a weakly determined one, or recorded "
+        "currents that cover too little of the range a saturation model needs, is a warning."
     ),
     add_arguments=_identify_arguments,
     run=identify_command,
