@@ -188,10 +188,13 @@ def test_cli_writes_saturation_table_and_flux_map(fitted, start, tmp_path):
     model = res.saturation["model"]
     for k in list(sat)[1:]:
         assert sat[k] == pytest.approx(float(getattr(model, k)), rel=1e-9), k
-    # the rest is an ordinary motor file (its loader reads [saturation] once the motor
-    # file supports it); its constants are the model's small-current values
-    drive = pj.parse_motor_file(text[:text.index("[saturation]")])
+    # the whole file is a motor file of the saturated machine; its constants are the
+    # model's small-current values
+    drive = pj.load_motor_file(out / "identified.toml")
     m = drive.three_phase_motor
+    assert isinstance(m.magnetic, pj.AlgebraicSaturation)
+    for k in list(sat)[1:]:
+        assert float(getattr(m.magnetic, k)) == pytest.approx(sat[k], rel=1e-12), k
     assert (float(m.L_d), float(m.L_q), float(m.psi_f)) == pytest.approx(
         pj.constant_model(model), rel=1e-9)
     lines = (out / "flux_map.csv").read_text().splitlines()
