@@ -57,6 +57,17 @@ equilibrium is $\varepsilon_1 = s = 0$, $\tilde\omega = 0$ and $\tilde\theta$ eq
 observer's phase lag at the fundamental plus the parameter-mismatch offset
 (`designed_error`): zero for the FA-LESO with a matched model, $-\arg G(j\omega)$
 otherwise.
+**Saturated machines** (`with_magnetic`, docs/observers.md). The model is $\hat L_q$ in
+the current dynamics and the extended flux $\hat\psi_f + (\hat L_d - \hat L_q)\hat i_d$
+of the PLL's speed feed; the LESO gains ($\omega_0$, $K_r$, ... ) are fixed at
+construction and kept. The scheduled model takes the map's apparent $L_d$, $L_q$,
+$\psi_f$ at the measured current in the previous estimate's frame: with the apparent
+$L_q$ ($\psi_q = L_q i_q$ exactly) the steady-state back-EMF $u - R_s i - L_q\,di/dt$ is
+$\omega J e^{\theta J}[\psi_d(i) - L_q i_d, 0]$, along the q axis, so the model's
+extended back-EMF is the map's and the static error from saturation vanishes (a
+designed phase lag, the C-LESO's and GI-LESO's, stays). The $L_q\,di/dt$ term uses the
+apparent, not the incremental, inductance: right in steady state, approximate in
+transients.
 """
 
 from __future__ import annotations
@@ -277,6 +288,7 @@ class AbstractBackEMFLESO(AbstractObserver):
         return jax.vmap(lambda v: self._transition(w_hat, T_s, v), out_axes=1)(eye)
 
     def step(self, state: LESOState, meas: Measurement, T_s):
+        self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)
         # the hold and the transition on complex scalars (space vectors), with the
         # coefficients written directly, so that XLA fuses the step into few kernels
         m = self.motor

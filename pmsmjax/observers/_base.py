@@ -39,7 +39,8 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._frames import wrap_angle
+from .._frames import park, wrap_angle
+from .._plant._magnetic import AbstractMagneticModel
 from .._plant._params import PMSMParams
 from .._plant._recheck import recheck
 
@@ -148,6 +149,10 @@ class AbstractObserver(eqx.Module):
     """
 
     motor: eqx.AbstractVar[PMSMParams]
+    #: The current-scheduled model (`with_magnetic`): None (default) runs the constant
+    #: model `motor`; a magnetic model makes every step use the apparent inductances and
+    #: PM flux of that model at the measured current (see `scheduled_at`).
+    magnetic: AbstractMagneticModel | None = eqx.field(default=None, kw_only=True)
     #: Error coordinates of `error_rhs` (names, units, angle index).
     coordinates: ClassVar[ErrorCoordinates]
     #: Design parameters: name -> unit and meaning.
@@ -166,6 +171,56 @@ class AbstractObserver(eqx.Module):
     #: invariant, and the angle-resolved analyses (`analysis.harmonic_ripple`,
     #: `analysis.input_matrix`) evaluate them at one angle.
     angle_dependent: ClassVar[bool] = False
+
+    def __check_init__(self):
+        if self.magnetic is not None and not isinstance(self.magnetic,
+                                                        AbstractMagneticModel):
+            raise ValueError(
+                f"`{type(self).__name__}(magnetic=...)` must be None (the constant model) "
+                f"or an `AbstractMagneticModel` (e.g. `pj.FluxMap`); got "
+                f"{type(self.magnetic).__name__}.")
+
+    # --- the current-scheduled model ----------------------------------------------
+    def with_magnetic(self, magnetic: AbstractMagneticModel | None):
+        r"""A copy that schedules its machine model on the measured current: at every
+        step its `motor`'s $L_d$, $L_q$, $\psi_f$ become `magnetic`'s apparent values
+        (`AbstractMagneticModel.apparent_inductance`) at the current measured in the
+        observer's estimated frame, so that its model flux $\psi_f + L_d i_d$,
+        $L_q i_q$ equals the map's $\psi_{dq}(i)$ at that current. `None` returns to the
+        constant model (the default). $R_s$, the design and the gains fixed at
+        construction are kept. See docs/observers.md for what each observer's equations
+        make of it."""
+        if magnetic is not None and not isinstance(magnetic, AbstractMagneticModel):
+            raise ValueError(
+                f"`{type(self).__name__}.with_magnetic(magnetic=...)` must be None (the "
+                f"constant model) or an `AbstractMagneticModel` (e.g. `pj.FluxMap`); got "
+                f"{type(magnetic).__name__}.")
+        return eqx.tree_at(lambda o: o.magnetic, self, magnetic,
+                           is_leaf=lambda x: x is None)
+
+    def scheduled_at(self, i_dq):
+        """This observer with its `motor`'s `L_d`, `L_q`, `psi_f` replaced by the apparent
+        values of `magnetic` at the current `i_dq` (A, `(2,)`, estimated frame); itself
+        when `magnetic` is None."""
+        if self.magnetic is None:
+            return self
+        L_d, L_q, psi_f = self.magnetic.apparent_inductance(jnp.asarray(i_dq))
+        return eqx.tree_at(lambda o: (o.motor.L_d, o.motor.L_q, o.motor.psi_f), self,
+                           (L_d, L_q, psi_f))
+
+    def _schedule_current(self, state, meas):
+        """The current (A, estimated frame) the scheduled model is evaluated at in a step
+        from `state` with `meas`: by default the measured current in the frame of the
+        state's angle estimate. Observers whose model error is formed at another sample
+        override it."""
+        return park(jnp.asarray(meas.i_ab), state.theta)
+
+    def _scheduled(self, state, meas):
+        """The observer whose model a step from `state` with `meas` uses (itself for the
+        constant model: the default step is unchanged)."""
+        if self.magnetic is None:
+            return self
+        return self.scheduled_at(self._schedule_current(state, meas))
 
     # --- running ------------------------------------------------------------------
     @abc.abstractmethod

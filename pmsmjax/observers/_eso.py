@@ -45,6 +45,15 @@ The estimate returned at $t_k$ is the state after this update. At the first samp
 ($k = 0$) nothing is integrated: the flux is initialised from the observer's model at the
 initial angle and the measured current, $\hat\psi_{ab} = e^{\hat\theta_0 J}
 (\hat L\, i_0 + \hat\psi_f)$, so that $e_0 = 0$ (the observer trusts its initial angle).
+
+**Saturated machines** (`with_magnetic`, docs/observers.md). The model enters only as
+the flux $\hat L i + \hat\psi_f$ of the error signal (10d) and in the gains, which (38),
+(17) and (25) compute at every step from the model at the measured current. The
+scheduled model evaluates the map's apparent $L_d$, $L_q$, $\psi_f$ at $i_{k-1}$ in the
+estimator frame, the current at which (10d) is formed, so that its model flux *is* the
+map's $\psi_{dq}(i_{k-1})$: the three observers become flux-map observers (exact in
+steady state), and their gains follow the scheduled model (its active flux
+$\psi_f + (L_d - L_q) i_d$ from the apparent values).
 """
 
 from __future__ import annotations
@@ -289,7 +298,14 @@ class _AbstractFluxObserver(AbstractObserver):
     def _w_hat(self, psi_ab, theta, w, i_ab):
         """The speed estimate at t_k."""
 
+    def _schedule_current(self, state, meas):
+        # the error signal (10d) of this step is formed at i_{k-1} (the first sample
+        # initialises the flux at i_0): the scheduled model flux is the map's there
+        i_ab = jnp.where(state.started, state.i_prev, jnp.asarray(meas.i_ab))
+        return park(i_ab, state.theta)
+
     def step(self, state: FluxObserverState, meas: Measurement, T_s):
+        self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)
         psi, theta, w = self._advance(state, meas, T_s)
         psi0 = _flux_init(self.motor, state.theta, meas.i_ab).astype(psi.dtype)
         go = state.started
@@ -400,9 +416,11 @@ class ESOObserver(_AbstractESO):
     a: float
     eta: float
 
-    def __init__(self, motor: PMSMParams, design: AbstractGainSchedule, a=0.5, eta=None):
+    def __init__(self, motor: PMSMParams, design: AbstractGainSchedule, a=0.5, eta=None, *,
+                 magnetic=None):
         _check_observer_args("ESOObserver", motor, design)
         self.motor = motor
+        self.magnetic = magnetic
         self.design = design
         self.a = a
         self.eta = 0.05 * motor.psi_f if eta is None else eta
@@ -440,9 +458,10 @@ class LESOObserver(_AbstractESO):
     motor: PMSMParams
     design: AbstractGainSchedule
 
-    def __init__(self, motor: PMSMParams, design: AbstractGainSchedule):
+    def __init__(self, motor: PMSMParams, design: AbstractGainSchedule, *, magnetic=None):
         _check_observer_args("LESOObserver", motor, design)
         self.motor = motor
+        self.magnetic = magnetic
         self.design = design
 
 
@@ -493,9 +512,10 @@ class AFOObserver(_AbstractFluxObserver):
     # the PI law (53) has no null-space components n2, n3
     speed_scheduled: ClassVar[tuple[str, ...]] = ("zeta1", "ratio", "zeta2", "w2")
 
-    def __init__(self, motor: PMSMParams, design: AbstractGainSchedule):
+    def __init__(self, motor: PMSMParams, design: AbstractGainSchedule, *, magnetic=None):
         _check_observer_args("AFOObserver", motor, design)
         self.motor = motor
+        self.magnetic = magnetic
         self.design = design
 
 

@@ -112,10 +112,10 @@ class CLESOObserver(AbstractBackEMFLESO):
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
         "w0": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
 
-    def __init__(self, motor: PMSMParams, w0, pll: QuadraturePLL):
+    def __init__(self, motor: PMSMParams, w0, pll: QuadraturePLL, *, magnetic=None):
         _check_motor("CLESOObserver", motor)
         _check_pll("CLESOObserver", pll)
-        self.motor, self.w0, self.pll = motor, w0, pll
+        self.motor, self.w0, self.pll, self.magnetic = motor, w0, pll, magnetic
 
     def __check_init__(self):
         check_positive("CLESOObserver", "w0", self.w0, "rad/s")
@@ -190,13 +190,14 @@ class GILESOObserver(AbstractBackEMFLESO):
         "w0": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
 
     def __init__(self, motor: PMSMParams, w0, K_r, w_c, w_r, pll: QuadraturePLL,
-                 resonance: str = "estimated"):
+                 resonance: str = "estimated", *, magnetic=None):
         _check_motor("GILESOObserver", motor)
         _check_pll("GILESOObserver", pll)
         if resonance not in ("estimated", "fixed"):
             raise ValueError(f"`GILESOObserver(resonance=...)` must be 'estimated' or "
                              f"'fixed'; got {resonance!r}.")
         self.motor, self.w0, self.K_r, self.w_c, self.w_r = motor, w0, K_r, w_c, w_r
+        self.magnetic = magnetic
         self.pll, self.resonance = pll, resonance
 
     def __check_init__(self):
@@ -331,10 +332,10 @@ class FALESOObserver(AbstractBackEMFLESO):
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
         "k1": (0.1, 10.0), "k2": (0.3, 3.0), "w_pll": (0.25, 4.0), "zeta_pll": (0.5, 2.0)}
 
-    def __init__(self, motor: PMSMParams, k1, k2, pll: QuadraturePLL):
+    def __init__(self, motor: PMSMParams, k1, k2, pll: QuadraturePLL, *, magnetic=None):
         _check_motor("FALESOObserver", motor)
         _check_pll("FALESOObserver", pll)
-        self.motor, self.k1, self.k2, self.pll = motor, k1, k2, pll
+        self.motor, self.k1, self.k2, self.pll, self.magnetic = motor, k1, k2, pll, magnetic
 
     def __check_init__(self):
         check_positive("FALESOObserver", "k1", self.k1, "1/s^2")

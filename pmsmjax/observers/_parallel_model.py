@@ -37,6 +37,14 @@ and the closed-form offsets `parallel_model_offset`):
   the current along the estimated d axis. The paper's single $L = 7$ mH is
   `from_drive(drive, L_hat=7e-3)` (an isotropic model).
 
+**Saturated machines** (`with_magnetic`, docs/observers.md): the scheduled model takes
+the map's apparent $L_d$, $L_q$, $\psi_f$ at the measured current in the previous
+estimate's frame. With the apparent $\hat L = L_q$ ($\psi_q = L_q i_q$ exactly) the
+argument above holds for the saturated machine: the steady-state extended back-EMF is
+$\omega(\psi_d(i) - L_q i_d)$ along the q axis, and the speed (18) divides by that same
+extended flux. The $\hat L\dot\rho$ term uses the apparent, not the incremental,
+inductance (right in steady state). The filter gains are kept.
+
 **Near $\rho = 0$** (the transform (5)-(6) is undefined at zero current): below
 $\rho_{min}$ = `RHO_MIN` (1e-9 A) the current angle $\phi$ is held at its last value (its
 increment is zero) and $\rho = 0$; both are computed with the double-`where` pattern, so
@@ -238,11 +246,12 @@ class ParallelModelObserver(AbstractObserver):
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
         "v1": (0.1, 10.0), "v2": (0.2, 5.0), "T_LP": (0.5, 4.0)}
 
-    def __init__(self, motor: PMSMParams, v1=16000.0, v2=253.0, T_LP=0.5e-3, T_w=2e-3):
+    def __init__(self, motor: PMSMParams, v1=16000.0, v2=253.0, T_LP=0.5e-3, T_w=2e-3, *,
+                 magnetic=None):
         if not isinstance(motor, PMSMParams):
             raise ValueError(f"`ParallelModelObserver(motor=...)` must be a `PMSMParams` "
                              f"(the observer's machine model); got {type(motor).__name__}.")
-        self.motor = motor
+        self.motor, self.magnetic = motor, magnetic
         self.v1, self.v2, self.T_LP, self.T_w = v1, v2, T_LP, T_w
 
     def __check_init__(self):
@@ -343,6 +352,7 @@ class ParallelModelObserver(AbstractObserver):
 
     def step(self, state: ParallelModelState, meas: Measurement, T_s):
         self.check_sampling(T_s)
+        self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)
         dtype = state.theta.dtype
         i_ab = jnp.asarray(meas.i_ab).astype(dtype)
         u_ab = jnp.asarray(meas.u_ab).astype(dtype)

@@ -8,6 +8,7 @@ preset. `make_observer(name, drive, ...)` is the one place a name becomes an obs
 
 from __future__ import annotations
 
+from .._plant._magnetic import AbstractMagneticModel
 from .._plant._params import Drive, PMSMParams
 from ._base import AbstractObserver
 
@@ -42,6 +43,7 @@ def observer_class(name: str) -> type[AbstractObserver]:
 
 
 def make_observer(name: str, drive: Drive, *, motor: PMSMParams | None = None,
+                  magnetic: AbstractMagneticModel | None = None,
                   **design) -> AbstractObserver:
     """The observer registered as `name` with its default design for `drive`.
 
@@ -51,9 +53,13 @@ def make_observer(name: str, drive: Drive, *, motor: PMSMParams | None = None,
     - `drive`: the `Drive` whose machine the observer models.
     - `motor`: the observer's machine model, replacing the drive's (observer-model
       mismatch); SI `PMSMParams`.
+    - `magnetic`: a magnetic model (e.g. the drive's own map, `drive.motor.magnetic`) on
+      which the observer schedules its model at the measured current
+      (`AbstractObserver.with_magnetic`); default None: the constant model `motor`.
     - `design`: design parameters by name (the class's `design_units`), e.g. `w2=300.0`.
     """
     if not isinstance(drive, Drive):
         raise ValueError(f"`make_observer(drive=...)` must be a `Drive` (e.g. "
                          f"`pj.preset('zhang750')`); got {type(drive).__name__}.")
-    return observer_class(name).from_drive(drive, motor=motor, **design)
+    obs = observer_class(name).from_drive(drive, motor=motor, **design)
+    return obs if magnetic is None else obs.with_magnetic(magnetic)

@@ -91,6 +91,13 @@ angle information there). The region of attraction is small: with a matched mode
 0.2 p.u. and 0.35 p.u. load (and gamma 2.0 p.u.) the generic analysis finds an unstable
 equilibrium at 0.082 rad.
 
+**Saturated machines** (`with_magnetic`, docs/observers.md): the scheduled model takes
+the map's apparent $L_d$, $L_q$, $\psi_f$ at the measured current (previous estimate's
+frame) into the flux $L_{ab}(\theta) i + \psi_f e^{\theta J}[1, 0]^T$, its inverse,
+$\lambda$ and every $1/L_d$: the flux-current relation is the map's at that current (the
+$L_{ab}^{-1}$ of the current dynamics is apparent, not incremental: exact in steady
+state). The gains are kept.
+
 **Discretisation.** In flux form the rotation terms of (7)-(8) cancel exactly: with
 $\hat\psi = L_{ab}(\hat\theta)\hat i + \psi_f e^{\hat\theta J}[1,0]^T$,
 $d\hat\psi/dt = u - R_s\hat i + L_{ab}(\hat\theta) v + v_\theta\,\partial\hat\psi/
@@ -484,6 +491,7 @@ class RotorFluxObserver(AbstractObserver):
         return self._flux_correction(th, i_hat, i_meas, v_ab, v_th), w + v_th, dw
 
     def step(self, state: RotorFluxState, meas: Measurement, T_s):
+        self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)
         m = self.motor
         th, w, psi = state.theta, state.w, state.psi_ab
         i_k = jnp.asarray(meas.i_ab).astype(state.i_prev.dtype)
