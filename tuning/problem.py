@@ -28,7 +28,7 @@ FAMILY_MOTOR = {"eso": "zhang750", "leso": "zhang750", "afo": "zhang750",
                 "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}
 #: Sampling period of each preset's paper drive (s).
 MOTOR_T_S = {"zhang750": 125e-6, "stumper_mt5": 62.5e-6, "morawiec_ipm3k5": 1 / 6600,
-             "li_dtp": 1e-4}
+             "li_dtp": 1e-4, "ipm3k5_sat": 1 / 6600}
 #: The search strategies (`tuning.search`).
 SEARCHES = ("hybrid", "gradient", "cmaes", "random", "local")
 
@@ -88,7 +88,8 @@ class TuningProblem:
     **Scenarios** (`tuning.scenarios`): closed-loop sensorless runs, speed controlled on
     the estimate, nothing imposed.
 
-    - `t_end` (s): length of a training / held-out run; `n_train`, `n_heldout`: runs.
+    - `t_end` (s): length of a training / held-out run (this and `val_t_end` are rounded
+      to whole saved samples, `save_every` sampling periods); `n_train`, `n_heldout`: runs.
     - `speed_range` (p.u.): |speed| of the runs; `accel_range`: ramp acceleration as a
       fraction of what the drive's torque limit gives the unloaded rotor.
     - `load_max_pu`: largest load step (p.u. of rated torque).
@@ -234,6 +235,11 @@ class TuningProblem:
         if not (0 < self.val_start_frac < 1):
             _bad("val_start_frac", self.val_start_frac, "0 < fraction < 1")
         for k in ("t_end", "val_t_end"):
+            # whole saved samples (a run keeps every save_every-th of round(t / T_s)
+            # steps): rounded to the nearest, at most save_every T_s / 2 away
+            block = self.T_s * self.save_every
+            if abs(getattr(self, k) / block - round(getattr(self, k) / block)) > 1e-9:
+                set_(k, max(1, round(getattr(self, k) / block)) * block)
             if getattr(self, k) < 40 * self.T_s * self.save_every:
                 _bad(k, getattr(self, k), f"runs of at least 40 saved samples "
                                           f"(>= {40 * self.T_s * self.save_every:g} s)")
@@ -260,8 +266,15 @@ class TuningProblem:
         return dataclasses.replace(self, **changes)
 
     def to_dict(self) -> dict:
-        """The fields as plain data (for `summary.json`)."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        """The fields as plain data (for `summary.json`), and the plant's magnetic model:
+        `"saturation"` is None for constant inductances, else the model's class and the
+        constants the observer deploys (its L_d, L_q, psi_f)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        m = self.drive().three_phase_motor
+        out["saturation"] = None if m.magnetic is None else {
+            "model": type(m.magnetic).__name__,
+            "deployed": {"L_d": float(m.L_d), "L_q": float(m.L_q), "psi_f": float(m.psi_f)}}
+        return out
 
     @classmethod
     def quick(cls, **changes) -> TuningProblem:
