@@ -56,7 +56,7 @@ def test_static_error_against_closed_loop(setup):
     # the simulated current against the predicted rotor current
     idq = np.asarray(traj.i_dq)[:, -400:].mean(1)
     np.testing.assert_allclose(idq, np.asarray(pts.i_dq), atol=0.02)
-    print("predicted - simulated (deg):", pred - sim)
+    print("predicted (deg):", pred, "simulated (deg):", sim)
     np.testing.assert_allclose(pred, sim, atol=0.15)
     # the errors are large: a constant-inductance analysis (no saturation) predicts ~0
     assert np.max(np.abs(sim)) > 10.0
