@@ -13,6 +13,7 @@ import time
 import jax
 import matplotlib
 
+
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
@@ -20,6 +21,7 @@ import numpy as np  # noqa: E402
 import pmsmjax as pj  # noqa: E402
 from pmsmjax.analysis import saturated_map  # noqa: E402
 from pmsmjax.plotting import plot_saturated_map  # noqa: E402
+
 
 jax.config.update("jax_enable_x64", True)
 HERE = os.path.dirname(os.path.abspath(__file__))

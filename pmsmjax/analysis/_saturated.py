@@ -41,10 +41,20 @@ $\partial i/\partial\tilde\theta = -J i^*$: that is the *incremental* inductance
 $L_{inc}(i^*) = \partial\psi/\partial i$ (a 2 x 2 matrix with cross-saturation), not the
 apparent one. A constant machine cannot carry a full $L_{inc}$ (its $\psi_q$ has no
 $i_d$ term), so the stability reported here is that of the apparent machine, which is
-exact for the rest point and approximate for its Jacobian; `incremental` reports
-$L_{inc}$ and `incremental_plant` the diagonal incremental machine through the same
-flux on the d axis, to judge how far the two are apart. The verdicts were checked
-against closed-loop simulation (tests/test_saturated_analysis.py, docs/analysis page).
+exact for the rest point and approximate for its Jacobian. Measured for the ESO on
+`ipm3k5_sat` against its error dynamics written on the map itself: the eigenvalues of
+the apparent machine's Jacobian are within 0.3 % of the map's at 0.5 and 1.0 p.u. speed
+and 0.5 p.u. load (slowest pair -105.0 against -104.9 1/s at 0.5 p.u.), while the
+diagonal incremental machine (`incremental_plant`: $L_{dd}$, $L_{qq}$, no cross terms,
+$\psi_q$ not matched) puts the slowest eigenvalue at -6.5 1/s: the apparent machine is
+the better constant stand-in for both. `incremental` reports $L_{inc}$ itself.
+
+**Checked against closed-loop simulation** (tests/test_saturated_analysis.py): the
+static angle error within 0.05 deg where the drive settles. Not covered: the speed loop
+closes through the torque on the map, which falls as the angle error grows; this
+analysis holds the current constant, so an oscillation or a loss of lock of the coupled
+loop near the load limit, or a jump off a fold of the designed branch during a load
+ramp, is not predicted (docs, "The analysis" in the observers guide).
 """
 
 from __future__ import annotations

@@ -17,8 +17,11 @@ from .._files import json_safe, json_text
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, motor_text
 from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args
-from ._operating_point import (add_operating_point_options, current_from_args,
-                               saturated_operating_point_from_args)
+from ._operating_point import (
+    add_operating_point_options,
+    current_from_args,
+    saturated_operating_point_from_args,
+)
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._sweep_options import (
     add_sweep_options,

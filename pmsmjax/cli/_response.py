@@ -16,8 +16,11 @@ from .._files import write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, header, motor_text
 from ._observer_options import add_observer_options, observer_from_args
-from ._operating_point import (add_operating_point_options, current_from_args,
-                               saturated_operating_point_from_args)
+from ._operating_point import (
+    add_operating_point_options,
+    current_from_args,
+    saturated_operating_point_from_args,
+)
 from ._output import add_json_option, add_output_options, first_line, prepare_out_dir, print_json
 from ._values import CLIError, ListOption, positive_float
 
