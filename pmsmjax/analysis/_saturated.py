@@ -51,8 +51,8 @@ the better constant stand-in for both. `incremental` reports $L_{inc}$ itself.
 
 **Checked against closed-loop simulation** (tests/test_saturated_analysis.py): the
 static angle error of the ESO within 0.05 deg where the drive settles (the
-parallel-model estimator's prediction disagrees with its runs by several degrees:
-open). Not covered: the speed loop
+parallel-model estimator's closed-loop runs on the saturated preset do not settle:
+unconfirmed). Not covered: the speed loop
 closes through the torque on the map, which falls as the angle error grows; this
 analysis holds the current constant, so an oscillation or a loss of lock of the coupled
 loop near the load limit, or a jump off a fold of the designed branch during a load
