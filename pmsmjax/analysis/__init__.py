@@ -69,6 +69,14 @@ from ._quartic import (
     quartic_t_coefficients as quartic_t_coefficients,
     trig_poly as trig_poly,
 )
+from ._saturated import (
+    VERDICTS as VERDICTS,
+    SaturatedPoint as SaturatedPoint,
+    apparent_plant as apparent_plant,
+    incremental_plant as incremental_plant,
+    saturated_map as saturated_map,
+    saturated_operating_point as saturated_operating_point,
+)
 from ._sweep import ChunkInfo as ChunkInfo, run_sweep as run_sweep
 from ._sweep_grid import SweepGrid as SweepGrid, grid_product as grid_product
 

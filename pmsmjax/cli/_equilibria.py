@@ -15,7 +15,12 @@ from .._files import write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, header, motor_text
 from ._observer_options import add_observer_options, observer_from_args
-from ._operating_point import add_operating_point_options, check_operating_point, current_from_args
+from ._operating_point import (
+    add_operating_point_options,
+    check_operating_point,
+    current_from_args,
+    saturated_operating_point_from_args,
+)
 from ._output import add_json_option, add_output_options, first_line, prepare_out_dir, print_json
 from ._values import CLIError
 
@@ -110,17 +115,23 @@ def equilibria_report(choice, drive, speed_pu: float, i_pu) -> dict:
 def equilibria_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
     choice = observer_from_args(args, drive)
+    choice, saturated = saturated_operating_point_from_args(args, drive, choice,
+                                                            float(args.speed))
     i_pu, _ = current_from_args(args, drive)
     check_operating_point(choice.observer, drive, i_pu, speed_pu=float(args.speed))
     if not args.json:  # (stdout holds the JSON and nothing else)
         print(first_line("equilibria", motor_text(drive, args), choice.describe(),
-                         f"i_dq = ({i_pu[0]:g}, {i_pu[1]:g}) p.u. of "
+                         f"i_dq = ({i_pu[0]:.4g}, {i_pu[1]:.4g}) p.u. of "
                          f"{float(drive.base.I_b):.4g} A"), flush=True)
+        if saturated:
+            print(saturated, flush=True)
     try:
         report = equilibria_report(choice, drive, float(args.speed), i_pu)
     except ValueError as e:
         raise CLIError(f"{choice.describe()}: {e}") from None
     report = {**header("equilibria", drive, args), **report}
+    if saturated:
+        report["saturated"] = saturated
     if args.out:
         path = os.path.join(prepare_out_dir(args.out), "equilibria.json")
         write_json(path, report)

@@ -17,7 +17,11 @@ from .._files import json_safe, json_text
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, motor_text
 from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args
-from ._operating_point import add_operating_point_options, current_from_args
+from ._operating_point import (
+    add_operating_point_options,
+    current_from_args,
+    saturated_operating_point_from_args,
+)
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._sweep_options import (
     add_sweep_options,
@@ -297,8 +301,10 @@ def feasibility_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
     choice = observer_from_args(args, drive, skip=("zeta1", "ratio"))
     (xn, x), (yn, y) = _axes(args, choice)
-    i_pu, _ = current_from_args(args, drive)
     speeds = [s for group in (args.speed or [[0.5]]) for s in group]
+    # a saturated motor: the mismatch from the map at the first speed's operating point
+    choice, saturated = saturated_operating_point_from_args(args, drive, choice, speeds[0])
+    i_pu, _ = current_from_args(args, drive)
     writer = is_writer()
     out = prepare_out_dir(args.out) if writer else args.out
     S, NX, NY = len(speeds), len(x), len(y)
@@ -307,6 +313,9 @@ def feasibility_command(args: argparse.Namespace) -> int:
                          f"i_dq = ({i_pu[0]:g}, {i_pu[1]:g}) p.u.",
                          f"{NX} x {NY} designs ({xn} x {yn}) at {S} "
                          f"speed{'s' if S > 1 else ''}"), flush=True)
+        if saturated:
+            print(saturated + (f" (at the first speed, {speeds[0]:g} p.u.)" if S > 1 else ""),
+                  flush=True)
     t0 = time.perf_counter()
     try:
         fm, infos = _map(choice, drive, speeds, (xn, x), (yn, y), i_pu, settings)

@@ -53,6 +53,14 @@ def add_operating_point_options(parser: argparse.ArgumentParser, *, speed: str) 
     g.add_argument("--i-q", type=finite_float, default=0.0, metavar="PU",
                    help="q-axis operating current, p.u. of Drive.base.I_b, estimator frame "
                         "(default: %(default)s)")
+    g.add_argument("--load", type=finite_float, default=None, metavar="PU",
+                   help="saturated motors only ([saturation] in the motor file, or a "
+                        "saturated preset such as ipm3k5_sat): the load torque (p.u. of "
+                        "the rated torque) of the operating point; the current and the "
+                        "observer-model mismatch then follow from the flux map at the "
+                        "drive's steady state (pmsmjax.analysis.saturated_operating_point), "
+                        "replacing --i-d/--i-q. Default on a saturated motor: the mismatch "
+                        "at the --i-d/--i-q current")
 
 
 def current_from_args(args, drive: pj.Drive) -> tuple[tuple[float, float], np.ndarray]:
@@ -85,3 +93,58 @@ def check_operating_point(observer, drive: pj.Drive, i_pu, *, speed_pu=None) -> 
             "--speed 0: at standstill w1 = ratio |w0| = 0 and the equilibria of zhang2022 "
             "(11) form a continuum (det(w0 J + G1) = w1^2 = 0), so they cannot be listed; "
             "allowed: any finite nonzero speed (p.u.), or the fixed_w1 schedule")
+
+
+def saturated_operating_point_from_args(args, drive: pj.Drive, choice, speed_pu: float):
+    """On a saturated drive, the plant the analysis runs against and the current: the
+    apparent constant machine of the flux map at the operating point (the observer keeps
+    its constant model, so the mismatch follows from the map). With `--load` the point
+    is the drive's steady state at `speed_pu` and that load (current, angle error:
+    `pmsmjax.analysis.saturated_operating_point`), and `args.i_d`/`args.i_q` are set to
+    its controller-frame current; without it, the map at the `--i-d/--i-q` current.
+    Returns `(choice, line)`: the choice with that plant and the console line saying
+    which mismatch follows from the map (None for a constant-inductance drive)."""
+    import dataclasses
+
+    from pmsmjax.analysis import apparent_plant, saturated_operating_point
+    from pmsmjax.analysis._saturated import describe_mismatch
+
+    if drive.three_phase_motor.magnetic is None:
+        if getattr(args, "load", None) is not None:
+            raise CLIError(f"--load: {drive.name!r} has constant inductances (no [saturation] "
+                           "in the motor file); --load sets the operating point of a "
+                           "saturated motor only. Give the current with --i-d/--i-q")
+        return choice, None
+    I_b = float(drive.base.I_b)
+    if args.load is not None:
+        if speed_pu == 0.0:
+            raise CLIError("--load on a saturated motor needs a nonzero --speed (the steady "
+                           "state of the drive at standstill is not an operating point of "
+                           "the observer)")
+        p = saturated_operating_point(choice.observer, drive, speed_pu * float(drive.w_rated),
+                                      float(args.load) * float(drive.tau_rated))
+        if not bool(p.converged):
+            raise CLIError(
+                f"--speed {speed_pu:g} --load {args.load:g}: the drive has no steady state "
+                f"with this observer on the saturated machine (verdict 'cannot hold': the "
+                f"controller cannot deliver the load torque within its limits at the angle "
+                f"error the observer settles to); allowed: a smaller load")
+        args.i_d, args.i_q = (float(v) / I_b for v in p.i_ref)
+        line = (f"{describe_mismatch(choice.observer, p)}; operating point: the drive's steady "
+                f"state at {speed_pu:g} p.u. speed and {args.load:g} p.u. load, controller "
+                f"current ({args.i_d:.4g}, {args.i_q:.4g}) p.u.")
+        plant = apparent_plant(drive.three_phase_motor, p.i_dq)
+    else:
+        i = np.array([args.i_d, args.i_q]) * I_b
+        plant = apparent_plant(drive.three_phase_motor, i)
+        m = choice.observer.motor
+        line = (f"saturated plant: mismatch from the map at i_dq = ({i[0]:.3g}, {i[1]:.3g}) A "
+                f"(--i-d/--i-q, angle error neglected; --load PU for the drive's steady "
+                f"state): apparent L_d {float(plant.L_d) * 1e3:.4g} mH, L_q "
+                f"{float(plant.L_q) * 1e3:.4g} mH, psi_f {float(plant.psi_f):.4g} V s "
+                f"(observer {float(m.L_d) * 1e3:.4g} mH, {float(m.L_q) * 1e3:.4g} mH, "
+                f"{float(m.psi_f):.4g} V s)")
+    plant = pj.PMSMParams(R_s=float(plant.R_s), L_d=float(plant.L_d), L_q=float(plant.L_q),
+                          psi_f=float(plant.psi_f), n_p=float(plant.n_p),
+                          harmonics=plant.harmonics)
+    return dataclasses.replace(choice, plant=plant), line

@@ -16,7 +16,11 @@ from .._files import write_json
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, header, motor_text
 from ._observer_options import add_observer_options, observer_from_args
-from ._operating_point import add_operating_point_options, current_from_args
+from ._operating_point import (
+    add_operating_point_options,
+    current_from_args,
+    saturated_operating_point_from_args,
+)
 from ._output import add_json_option, add_output_options, first_line, prepare_out_dir, print_json
 from ._values import CLIError, ListOption, positive_float
 
@@ -146,6 +150,8 @@ def response_curves(choice, drive, speed_pu: float, i_pu, orders, T_s: float) ->
 def response_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
     choice = observer_from_args(args, drive)
+    choice, saturated = saturated_operating_point_from_args(args, drive, choice,
+                                                            float(args.speed))
     i_pu, _ = current_from_args(args, drive)
     if args.plot and not args.out:
         raise CLIError("--plot writes DIR/response.png: give --out DIR")
@@ -154,6 +160,8 @@ def response_command(args: argparse.Namespace) -> int:
         print(first_line("response", motor_text(drive, args), choice.describe(),
                          f"speed {args.speed:g} p.u. ({w / (2 * math.pi):.4g} Hz)",
                          f"T_s = {args.T_s:g} s"), flush=True)
+        if saturated:
+            print(saturated, flush=True)
     try:
         report = response_report(choice, drive, float(args.speed), i_pu, args.orders,
                                  float(args.T_s))

@@ -12,6 +12,7 @@ from ._analysis import (
     plot_lock_basin as plot_lock_basin,
     plot_ramp_runs as plot_ramp_runs,
     plot_response as plot_response,
+    plot_saturated_map as plot_saturated_map,
     plot_static_error as plot_static_error,
 )
 from ._magnetic import plot_flux_map as plot_flux_map

@@ -179,3 +179,52 @@ def plot_lock_basin(basin, *, ax=None, title=None, t_max=None):
     ax.set_title(title or f"lock basin ({basin.mode}), {100 * basin.fraction_locked:.0f} % "
                           f"locked", fontsize=10)
     return ax
+
+
+def plot_saturated_map(point, *, w_base=1.0, tau_base=1.0, axes=None, title=None):
+    """Maps over (speed, load) of a saturated machine with a constant-model observer
+    (`pmsmjax.analysis.saturated_map`): the static angle error (deg, colour, with
+    contours) on the left and the verdict per point on the right (feasible,
+    infeasible, no equilibrium, degenerate, cannot hold).
+
+    **Arguments:** `point`: the `SaturatedPoint` of `saturated_map` (arrays of shape
+    `(n_speeds, n_loads)`); `w_base` (rad/s) and `tau_base` (N m): the axes' units
+    (e.g. the drive's `w_rated` and `tau_rated` for p.u.; default SI); `axes`: two axes
+    to draw into; `title`: the figure's title. Returns the figure.
+    """
+    from matplotlib.colors import BoundaryNorm, ListedColormap
+
+    w = np.asarray(point.w_m)[:, 0] / w_base
+    t = np.asarray(point.tau_L)[0, :] / tau_base
+    th = np.degrees(np.asarray(point.theta))
+    verdict = np.asarray(point.verdict)
+    if axes is None:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    else:
+        fig = axes[0].figure
+    ax0, ax1 = axes
+    unit_w = "p.u." if w_base != 1.0 else "rad/s el."
+    unit_t = "p.u." if tau_base != 1.0 else "N m"
+    m = ax0.pcolormesh(t, w, th, shading="nearest", cmap="viridis")
+    if np.isfinite(th).sum() > 3 and th.shape[0] > 1 and th.shape[1] > 1:
+        cs = ax0.contour(t, w, np.where(np.isfinite(th), th, np.nan), colors="w",
+                         linewidths=0.7, levels=[1, 2, 5, 10, 20, 30])
+        ax0.clabel(cs, fmt="%g", fontsize=7)
+    fig.colorbar(m, ax=ax0, label="static angle error (deg, true - estimate)")
+    ax0.set_xlabel(f"load torque ({unit_t})")
+    ax0.set_ylabel(f"speed ({unit_w})")
+    ax0.set_title("static angle error (blank: no steady state)")
+    codes = [-1, 0, 1, 2, 3]
+    names = ["degenerate", "feasible", "infeasible", "no equilibrium", "cannot hold"]
+    colours = ["0.6", "tab:green", "tab:orange", "tab:purple", "tab:red"]
+    cmap = ListedColormap(colours)
+    norm = BoundaryNorm(np.arange(-1.5, 4.0, 1.0), cmap.N)
+    ax1.pcolormesh(t, w, verdict, shading="nearest", cmap=cmap, norm=norm)
+    ax1.legend(handles=[Patch(color=c, label=n) for c, n, k in zip(colours, names, codes)
+                        if np.any(verdict == k)], loc="upper right", fontsize=8)
+    ax1.set_xlabel(f"load torque ({unit_t})")
+    ax1.set_ylabel(f"speed ({unit_w})")
+    ax1.set_title("verdict at the steady state")
+    if title:
+        fig.suptitle(title)
+    return fig
