@@ -18,7 +18,7 @@ class CurrentControllerState(eqx.Module):
 
 
 class CurrentController(eqx.Module):
-    """PI current controller with decoupling and anti-windup (see module docstring).
+    r"""PI current controller with decoupling and anti-windup (see module docstring).
 
     **Arguments:**
 
