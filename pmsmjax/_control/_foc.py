@@ -60,6 +60,14 @@ class FOC(eqx.Module):
       sample).
 
     Use `FOC.from_drive(drive, ...)` for the usual bandwidth-based design.
+
+    On a saturated machine: when the controller's machine model `current.motor` carries
+    a magnetic model (`motor.magnetic`, a static decision; `from_drive` keeps the drive's
+    unless `use_map=False`), the references come from the map's torque (`CurrentRefs`,
+    an `MTPATable` for MTPA), the current controller's gain from the incremental
+    inductance at the measured current and its decoupling and the field weakening from
+    the map's flux. Otherwise the constants `L_d`, `L_q`, `psi_f`, exactly as without a
+    map.
     """
 
     current: CurrentController
