@@ -10,7 +10,7 @@ model), `FOC.from_drive(drive)` (i_d = 0), speed reference ramping from 0 to w_f
 torque at 0.15 s; only the integrals and one sample kept (`save_every` = steps).
 Reported: drive-steps per second (batch x steps / best time after compilation; also
 per second of process CPU time, which a shared machine disturbs less), the saturated
-rate over the constant one (issue 45's target: at least 0.5), the compile
+rate over the constant one (the target: at least 0.5), the compile
 time, and whether every run ended finite without divergence (float32 included).
 
 Usage (from the repository root):
