@@ -37,6 +37,7 @@ import jax.numpy as jnp
 from .._plant._magnetic import AbstractMagneticModel, solve2
 from .._validate import check_positive
 
+
 #: Newton steps on the map's torque for the q-current at a fixed d-current ("id_const").
 #: From the constants' guess (up to 8 % off in torque on the `"ipm3k5_sat"` map) two steps
 #: leave below 4e-7 of the rated torque up to the rated torque (tests/test_saturated_control.py).
