@@ -390,7 +390,7 @@ def table(rows: Sequence[dict], columns: Sequence[tuple[str, object, str]], *,
 def write_report(path: str | Path, rows, **meta) -> Path:
     """Write `{"meta": machine_info() + meta, "rows": rows}` to `path` (folders made) as
     strict JSON and say where."""
-    from pmsmjax._data._files import write_json
+    from pmsmjax._files import write_json
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -40,6 +40,7 @@ from ._control._limits import (  # noqa: E402
     limit_vector as limit_vector,
     mtpa_i_d as mtpa_i_d,
 )
+from ._control._saturated import MTPATable as MTPATable  # noqa: E402
 from ._control._startup import IfStartup as IfStartup  # noqa: E402
 from ._data._flying_start import (  # noqa: E402
     FlyingStart as FlyingStart,

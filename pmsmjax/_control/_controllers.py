@@ -9,6 +9,7 @@ import jax.numpy as jnp
 from .._plant._params import PMSMParams
 from .._validate import check_positive
 from ._limits import _limited_pi
+from ._saturated import current_control_map
 from ._startup import StartupState
 
 
@@ -17,11 +18,14 @@ class CurrentControllerState(eqx.Module):
 
 
 class CurrentController(eqx.Module):
-    """PI current controller with decoupling and anti-windup (see module docstring).
+    r"""PI current controller with decoupling and anti-windup (see module docstring).
 
     **Arguments:**
 
     - `motor`: the controller's machine model (`PMSMParams`; may differ from the plant).
+      With a magnetic model (`motor.magnetic`, a static decision) the gain is
+      $\alpha_c L_{inc}(i)$ and the decoupling $\omega J\psi(i)$ from the map at the
+      measured current (`pmsmjax._control._saturated`); otherwise the constants.
     - `alpha_c`: closed-loop current bandwidth (rad/s), > 0.
     - `u_max`: voltage-vector limit (V, peak phase), > 0.
     """
@@ -37,13 +41,30 @@ class CurrentController(eqx.Module):
     def init(self) -> CurrentControllerState:
         return CurrentControllerState(x_I=jnp.zeros(2))
 
+    def gains(self, i_dq):
+        r"""The PI gains at the current `i_dq` (A, (..., 2)): `(K_p, K_i)`, the proportional
+        gain matrix $\alpha_c L$ (Ohm, (..., 2, 2)) with $L$ the incremental inductance
+        of the magnetic model at `i_dq` (or diag(L_d, L_q)), and $K_i = \alpha_c R_s$
+        (Ohm/s)."""
+        m = self.motor
+        i_dq = jnp.asarray(i_dq)
+        if getattr(m, "magnetic", None) is not None:
+            L = m.magnetic.incremental_inductance(i_dq)
+        else:
+            L = jnp.broadcast_to(m.L_dq, i_dq.shape[:-1] + (2, 2))
+        return self.alpha_c * L, self.alpha_c * m.R_s
+
     def step(self, state: CurrentControllerState, i_ref, i, w, T_s):
         """One step: refs `i_ref`, measured `i` (A, controller frame), speed `w` (rad/s).
 
         Returns `(state, u)` with `u` the limited voltage reference (V, controller frame).
         """
-        # Per component (d, q), which XLA fuses into plain element-wise loops.
         m = self.motor
+        if getattr(m, "magnetic", None) is not None:
+            x_I, u_lim = current_control_map(m.magnetic, self.alpha_c, m.R_s, self.u_max,
+                                             i_ref, i, state.x_I, w, T_s)
+            return CurrentControllerState(x_I=x_I), jnp.stack(u_lim, -1)
+        # Per component (d, q), which XLA fuses into plain element-wise loops.
         i_d, i_q = i[..., 0], i[..., 1]
         Kp_d, Kp_q = self.alpha_c * m.L_d, self.alpha_c * m.L_q
         Ki = self.alpha_c * m.R_s

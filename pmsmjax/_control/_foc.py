@@ -21,6 +21,7 @@ $k_i = \alpha_s^2 J/n_p$ (critically damped for the rigid rotor $J/n_p\,\dot\ome
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -35,6 +36,7 @@ from ._controllers import (
 )
 from ._dtp import DualCurrentControl, XYCurrentController
 from ._limits import CurrentRefs
+from ._saturated import MTPATable, map_torque
 from ._startup import IfStartup
 
 
@@ -58,6 +60,14 @@ class FOC(eqx.Module):
       sample).
 
     Use `FOC.from_drive(drive, ...)` for the usual bandwidth-based design.
+
+    On a saturated machine: when the controller's machine model `current.motor` carries
+    a magnetic model (`motor.magnetic`, a static decision; `from_drive` keeps the drive's
+    unless `use_map=False`), the references come from the map's torque (`CurrentRefs`,
+    an `MTPATable` for MTPA), the current controller's gain from the incremental
+    inductance at the measured current and its decoupling and the field weakening from
+    the map's flux. Otherwise the constants `L_d`, `L_q`, `psi_f`, exactly as without a
+    map.
     """
 
     current: CurrentController
@@ -75,9 +85,9 @@ class FOC(eqx.Module):
                    motor: PMSMParams | None = None, angle_advance: bool = True,
                    dual: str | None = None, alpha_xy: float | None = None,
                    alpha_r: float | None = None, i_xy_ref=(0.0, 0.0),
-                   startup: IfStartup | None = None) -> FOC:
+                   startup: IfStartup | None = None, use_map: bool = True) -> FOC:
         """Design from a `Drive`: bandwidths `alpha_c`, `alpha_s` (rad/s), d-current
-        `strategy` ("id_const" with `i_d` in A, or "mtpa"), torque limit `tau_max` (N m;
+        `strategy` ("id_const" with `i_d` in A, "mtpa" or "mtpa_fw"), torque limit `tau_max` (N m;
         default 2x rated torque), controller machine model `motor` (default the drive's).
 
         Dual three-phase drives: `dual="vsd"` regulates the x-y currents to `i_xy_ref`
@@ -89,6 +99,14 @@ class FOC(eqx.Module):
         bandwidth, several times higher).
 
         `startup`: an `IfStartup` (e.g. `IfStartup.from_drive(drive)`), or None.
+
+        Saturated machines: the controller model (`motor`, by default the drive's)
+        keeps its magnetic model, and with `use_map=True` (the default) the controller
+        uses it: current references from the map's torque (and its `MTPATable` for
+        "mtpa"/"mtpa_fw"), gains from the incremental inductance, decoupling and field
+        weakening from the map's flux (`pmsmjax._control._saturated`). `use_map=False`
+        drops it: the controller deploys the constants `L_d`, `L_q`, `psi_f` only, as a
+        drive without a map would. Without a magnetic model nothing changes.
         """
         dual_ctrl = None
         if dual is not None:
@@ -113,13 +131,18 @@ class FOC(eqx.Module):
                                          alpha_r=a_r, u_max=drive.inverter.u_lim)
                 dual_ctrl = DualCurrentControl("vsd", xy=xy, i_xy_ref=i_xy_ref)
         motor = drive.three_phase_motor if motor is None else motor
+        if not use_map and getattr(motor, "magnetic", None) is not None:
+            motor = dataclasses.replace(motor, magnetic=None)
         tau_max = 2.0 * drive.tau_rated if tau_max is None else tau_max
+        table = None
+        if getattr(motor, "magnetic", None) is not None and strategy in ("mtpa", "mtpa_fw"):
+            table = MTPATable.from_model(motor.magnetic, drive.k_tau, drive.i_max)
         return cls(
             current=CurrentController(motor=motor, alpha_c=alpha_c,
                                       u_max=drive.inverter.u_lim),
             speed=SpeedController(J_over_np=drive.mechanics.J / drive.motor.n_p,
                                   alpha_s=alpha_s, tau_max=tau_max),
-            refs=CurrentRefs(strategy=strategy, i_d=i_d, i_max=drive.i_max),
+            refs=CurrentRefs(strategy=strategy, i_d=i_d, i_max=drive.i_max, mtpa=table),
             k_tau=drive.k_tau,
             angle_advance=angle_advance,
             dual=dual_ctrl,
@@ -153,7 +176,11 @@ class FOC(eqx.Module):
             s_state = state.speed
             i_ref = i_ref_override
             m = self.current.motor
-            tau_ref = self.k_tau * (m.extended_flux(i_ref[..., 0]) * i_ref[..., 1])
+            if getattr(m, "magnetic", None) is not None:
+                tau_ref = map_torque(m.magnetic, self.k_tau, i_ref[..., 0],
+                                     i_ref[..., 1])[0]
+            else:
+                tau_ref = self.k_tau * (m.extended_flux(i_ref[..., 0]) * i_ref[..., 1])
         return s_state, i_ref, tau_ref
 
     def step(self, state: FOCState, i_dq, w_hat, w_ref, T_s, *, i_ref_override=None,

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 
 from .._plant._params import PMSMParams
 from .._validate import check_positive
+from ._saturated import MTPATable, field_weakening_map, q_current_for_torque
 
 
 def limit_vector(u, u_max):
@@ -75,12 +76,21 @@ class CurrentRefs(eqx.Module):
     - `u_margin`: for `"mtpa_fw"`, the fraction of the voltage limit the steady-state
       flux may use (-, default 0.9: headroom for the resistive drop and the current
       controller).
+    - `mtpa`: the `MTPATable` of the controller model's magnetic model, needed by
+      `"mtpa"` and `"mtpa_fw"` when that model is saturated (`FOC.from_drive` builds it);
+      default None.
+
+    With a controller model that carries a magnetic model (`motor.magnetic`, a static
+    decision) the references come from the map, not the constants
+    (`pmsmjax._control._saturated`): the q-current of the map's torque at the constant
+    d-current, the tabulated MTPA, and field weakening on the map's flux.
     """
 
     strategy: str = eqx.field(static=True)
     i_d: float
     i_max: float
     u_margin: float = 0.9
+    mtpa: MTPATable | None = None
 
     def __check_init__(self):
         if self.strategy not in ("id_const", "mtpa", "mtpa_fw"):
@@ -98,10 +108,15 @@ class CurrentRefs(eqx.Module):
             if w is None or u_max is None:
                 raise ValueError("`CurrentRefs(strategy='mtpa_fw')` needs the speed `w` "
                                  "(rad/s) and the voltage limit `u_max` (V).")
-            mtpa = CurrentRefs("mtpa", self.i_d, self.i_max, self.u_margin)
+            mtpa = CurrentRefs("mtpa", self.i_d, self.i_max, self.u_margin, self.mtpa)
             i_mtpa = mtpa(tau_ref, motor, k_tau)
+            if getattr(motor, "magnetic", None) is not None:
+                return field_weakening_map(i_mtpa, motor.magnetic, w,
+                                           self.u_margin * u_max)
             return field_weakening(i_mtpa, tau_ref, motor, k_tau, w,
                                    self.u_margin * u_max, self.i_max)
+        if getattr(motor, "magnetic", None) is not None:
+            return self._saturated(tau_ref, motor, k_tau)
         dL = motor.L_d - motor.L_q
         if self.strategy == "id_const":
             i_d = self.i_d + 0.0 * tau_ref
@@ -120,6 +135,22 @@ class CurrentRefs(eqx.Module):
                 df = k_tau * (psi_ex + dL * i_q * did)
                 i_q = i_q - f / df
             i_d = mtpa_i_d(i_q, motor)
+        i_q_max = jnp.sqrt(jnp.maximum(self.i_max ** 2 - i_d ** 2, 0.0))
+        i_q = jnp.clip(i_q, -i_q_max, i_q_max)
+        return jnp.stack([i_d, i_q], -1)
+
+    def _saturated(self, tau_ref, motor: PMSMParams, k_tau):
+        """`"id_const"` and `"mtpa"` on the controller model's magnetic model."""
+        if self.strategy == "id_const":
+            i_d = self.i_d + 0.0 * tau_ref
+            i_q = q_current_for_torque(tau_ref, i_d, motor, k_tau)
+        else:
+            if self.mtpa is None:
+                raise ValueError(
+                    f"`CurrentRefs(strategy={self.strategy!r})` on a saturated controller "
+                    f"model needs `mtpa=MTPATable.from_model(motor.magnetic, k_tau, i_max)` "
+                    f"(`FOC.from_drive` builds it); got mtpa=None.")
+            i_d, i_q = self.mtpa.currents(tau_ref, motor.magnetic, k_tau)
         i_q_max = jnp.sqrt(jnp.maximum(self.i_max ** 2 - i_d ** 2, 0.0))
         i_q = jnp.clip(i_q, -i_q_max, i_q_max)
         return jnp.stack([i_d, i_q], -1)
