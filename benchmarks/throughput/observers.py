@@ -116,7 +116,8 @@ def replay_row(name, drive, T_s, data, dtype, reps) -> dict:
 
 
 def loop_row(name, drive, T_s, batch, steps, dtype, reps) -> dict:
-    """Compile and time `batch` vmapped sensorless closed loops of `steps` steps."""
+    """Compile and time `batch` vmapped sensorless closed loops of `steps` steps (the
+    runs count as finished when none diverged and their results are finite)."""
     import jax
     import jax.numpy as jnp
 
@@ -134,15 +135,17 @@ def loop_row(name, drive, T_s, batch, steps, dtype, reps) -> dict:
                          w_m_ref=pj.astype(pj.Profile.ramp(0.0, 0.1, 0.0, w), dtype),
                          tau_L=pj.astype(pj.Profile.steps([0.15], [load]), dtype))
         tr = pj.simulate(plant, foc, obs, sc, T_s=T_s, save_every=steps, throw=False)
-        return tr.ise_theta, tr.status._value
+        return tr.ise_theta, tr.status._value, tr.w_m[-1]
 
     run = jax.jit(jax.vmap(one))
     compile_s, out = h.first_call(lambda: run(w_final))
     assert out[0].dtype == jnp.dtype(dtype), (name, out[0].dtype)
     t = h.steady(lambda: run(w_final), **reps)
+    ok = (np.asarray(out[1]) == 0) & np.isfinite(np.asarray(out[0])) & np.isfinite(
+        np.asarray(out[2]))
     return dict(kind="closed loop", unit="drive-steps/s", observer=name, batch=batch,
-                steps=steps, rate=t.rate(batch * steps), time_s=t.best_s,
-                compile_s=compile_s, finished=float(np.mean(np.asarray(out[1]) == 0)))
+                steps=steps, rate=t.rate(batch * steps), cpu_rate=t.cpu_rate(batch * steps),
+                time_s=t.best_s, compile_s=compile_s, finished=float(np.mean(ok)))
 
 
 def measure(cfg: dict) -> list[dict]:

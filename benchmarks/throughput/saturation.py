@@ -21,49 +21,26 @@ Usage (from the repository root):
 
 from __future__ import annotations
 
-import numpy as np
-
 from .. import _harness as h
+from . import observers
 
 
 MODULE = "benchmarks.throughput.saturation"
 DRIVES = ("morawiec_ipm3k5", "ipm3k5_sat")
-LOAD_PU = 1 / 3
 
 
 def loop_row(preset, batch, steps, dtype, reps) -> dict:
-    """Compile and time `batch` vmapped sensorless closed loops of `steps` steps."""
-    import jax
+    """The closed-loop row of the per-observer benchmark (the same runs), for the ESO on
+    `preset` at the morawiec drive's sampling period."""
     import jax.numpy as jnp
 
     import pmsmjax as pj
 
-    drive = pj.preset(preset)
     T_s = h.sampling_period("morawiec_ipm3k5")
-    cast = (lambda t: t) if jnp.dtype(dtype) == jnp.float64 else (
-        lambda t: pj.astype(t, dtype))
-    foc, obs, plant = (cast(pj.FOC.from_drive(drive)), cast(pj.ESOObserver.from_drive(drive)),
-                       cast(drive))
-    w_final = jnp.asarray(np.linspace(0.2, 0.8, batch) * float(drive.w_rated), dtype)
-    load = LOAD_PU * float(drive.tau_rated)
-
-    def one(w):
-        sc = pj.Scenario(t_end=steps * T_s,
-                         w_m_ref=pj.astype(pj.Profile.ramp(0.0, 0.1, 0.0, w), dtype),
-                         tau_L=pj.astype(pj.Profile.steps([0.15], [load]), dtype))
-        tr = pj.simulate(plant, foc, obs, sc, T_s=T_s, save_every=steps, throw=False)
-        return tr.ise_theta, tr.status._value, tr.w_m[-1]
-
-    run = jax.jit(jax.vmap(one))
-    compile_s, out = h.first_call(lambda: run(w_final))
-    assert out[0].dtype == jnp.dtype(dtype), (preset, out[0].dtype)
-    t = h.steady(lambda: run(w_final), **reps)
-    ok = (np.asarray(out[1]) == 0) & np.isfinite(np.asarray(out[0])) & np.isfinite(
-        np.asarray(out[2]))
+    row = observers.loop_row("eso", pj.preset(preset), T_s, batch, steps, dtype, reps)
     return dict(drive=preset, dtype=jnp.dtype(dtype).name, batch=batch, steps=steps,
-                T_s=T_s, rate=t.rate(batch * steps), cpu_rate=t.cpu_rate(batch * steps),
-                time_s=t.best_s, compile_s=compile_s,
-                finished=float(np.mean(ok)))
+                T_s=T_s, **{k: row[k] for k in ("rate", "cpu_rate", "time_s", "compile_s",
+                                                "finished")})
 
 
 def main(argv=None) -> int:
