@@ -273,7 +273,7 @@ def test_cli_replay_on_every_preset(preset, tmp_path):
     with np.load(out / "replay.npz", allow_pickle=False) as f:
         np.testing.assert_array_equal(f["theta_hat"], np.asarray(est.theta_hat))
         assert set(type(make_observer("parallel-model", drive)).extras) <= set(f.files)
-    if drive.motor.saturated:
+    if drive.three_phase_motor.saturated:
         # a saturated plant: the constant model carries the saturation's static error
         # (2.9 deg here); the current-scheduled model (docs/observers.md) settles
         est = pj.replay_estimates(make_observer("parallel-model", drive,
