@@ -187,6 +187,11 @@ class DualThreePhaseParams(eqx.Module):
     def n_p(self):
         return self.ab.n_p
 
+    @property
+    def saturated(self) -> bool:
+        """True when the alpha-beta subspace has a magnetic model (`ab.magnetic`)."""
+        return self.ab.saturated
+
 
 def _is_dual(motor) -> bool:
     """True when `motor` is a dual three-phase machine (`DualThreePhaseParams`)."""
