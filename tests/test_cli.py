@@ -309,11 +309,11 @@ def test_a_command_is_its_module_and_one_line():
 
 
 @pytest.mark.parametrize("command, argv, observer, work", [
-    ("equilibria", ["--zeta1", "0.5", "--ratio", "0.5"], "leso, zeta1 = 0.5",
+    ("equilibria", ["--zeta1", "0.5", "--ratio", "0.5"], "eso, zeta1 = 0.5",
      "equilibria_report"),
-    ("feasibility", ["--zeta1", "0:5:3", "--ratio", "0:2:3"], "leso", "_map"),
+    ("feasibility", ["--zeta1", "0:5:3", "--ratio", "0:2:3"], "eso", "_map"),
     ("certify", ["--quick"], "eso", "certificate_report"),  # the ESO, as everywhere
-    ("response", [], "fa-leso", "response_report"),
+    ("response", [], "eso", "response_report"),
     ("gains", ["--design", "TABLE"], "eso of the gains table", "gains_check"),
 ])
 def test_an_analysis_names_its_observer_and_motor_first(command, argv, observer, work,

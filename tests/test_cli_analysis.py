@@ -58,8 +58,8 @@ def test_help(command, capsys):
 
 def test_feasibility_file_matches_the_api(tmp_path, capsys):
     out = tmp_path / "map"
-    assert main(["feasibility", *SALIENT, "--i-q", "2", "--zeta1", "0:5:11",
-                 "--ratio", "0:2:9", "--speed", "0.5", "--out", str(out)]) == 0
+    assert main(["feasibility", "--observer", "leso", *SALIENT, "--i-q", "2", "--zeta1",
+                 "0:5:11", "--ratio", "0:2:9", "--speed", "0.5", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert (out / "feasibility.png").stat().st_size > 0
     with np.load(out / "feasibility.npz", allow_pickle=False) as f:
@@ -101,7 +101,7 @@ def test_feasibility_file_matches_the_api(tmp_path, capsys):
 
 
 def test_feasibility_several_speeds_and_standstill(tmp_path):
-    assert main(["feasibility", *SALIENT, "--i-q", "2", "--zeta1", "0.5:2:4",
+    assert main(["feasibility", "--observer", "leso", *SALIENT, "--i-q", "2", "--zeta1", "0.5:2:4",
                  "--ratio", "0.5:2:3", "--speeds", "0.2", "1", "--speed", "0",
                  "--no-plot", "--out", str(tmp_path)]) == 0
     assert not (tmp_path / "feasibility.png").exists()
@@ -120,7 +120,7 @@ def test_feasibility_several_speeds_and_standstill(tmp_path):
 
 
 def test_feasibility_with_inductance_mismatch(tmp_path, capsys):
-    assert main(["feasibility", "--i-q", "1", "--mismatch", "L_d=0.7", "--mismatch",
+    assert main(["feasibility", "--observer", "leso", "--i-q", "1", "--mismatch", "L_d=0.7", "--mismatch",
                  "L_q=1.5", "--zeta1", "0.5:2:2", "--ratio", "0.5:1:2", "--speed", "0.05",
                  "--no-plot", "--out", str(tmp_path)]) == 0
     assert "(general)" in capsys.readouterr().out
@@ -142,8 +142,8 @@ def _leso(**kw):
 
 
 def test_equilibria_json_fig9_design(capsys):
-    assert main(["equilibria", "--zeta1", "0.5", "--ratio", "0.5", "--speed", "0.5",
-                 "--json"]) == 0
+    assert main(["equilibria", "--observer", "leso", "--zeta1", "0.5", "--ratio", "0.5",
+                 "--speed", "0.5", "--json"]) == 0
     captured = capsys.readouterr()
     report = _strict_json(captured.out)  # stdout holds the JSON and nothing else
     assert captured.err == ""
@@ -225,7 +225,7 @@ def test_equilibria_mismatch_json_schema(capsys):
 def test_equilibria_no_equilibrium_is_its_own_status(capsys):
     """A mismatch without any equilibrium: status 'no equilibrium' (code 2) in the text and
     the JSON, exit 0; --observer-set gives the same observer model as --mismatch L_q=RATIO."""
-    base = ["equilibria", "--i-q", "2", "--speed", "0.02", "--zeta1", "0.5", "--ratio", "0.25"]
+    base = ["equilibria", "--observer", "leso", "--i-q", "2", "--speed", "0.02", "--zeta1", "0.5", "--ratio", "0.25"]
     assert main([*base, "--mismatch", "L_q=1.5"]) == 0
     out = capsys.readouterr().out
     assert "0 equilibria; status no equilibrium; design no equilibrium" in out
@@ -429,7 +429,8 @@ def test_certify_with_mismatch_matches_the_api(capsys):
 def test_feasibility_any_two_design_parameters(tmp_path, capsys):
     """--x/--y over any two design parameters: the map of `analysis.design_map`."""
     x, y = np.linspace(200, 400, 3), np.linspace(0.7, 1.3, 2)
-    assert main(["feasibility", *SALIENT, "--i-q", "2", "--x", "w2=200:400:3", "--y",
+    assert main(["feasibility", "--observer", "leso", *SALIENT, "--i-q", "2", "--x",
+                 "w2=200:400:3", "--y",
                  "zeta2=0.7:1.3:2", "--gain", "zeta1=0.5",
                  "--gain", "ratio=0.5", "--speed", "0.5", "--out", str(tmp_path)]) == 0
     printed = capsys.readouterr().out
@@ -492,7 +493,7 @@ def _psi_a0_zero_current():
     # observers from the registry: --observer, --gain, --observer-set, --mismatch
     (["equilibria", "--observer", "kalman"],
      ["--observer", "invalid choice: 'kalman'", "'eso', 'leso', 'afo'"]),
-    (["equilibria", "--gain", "foo=1"],
+    (["equilibria", "--observer", "leso", "--gain", "foo=1"],
      ["--gain foo=1", "the leso observer has no design parameter 'foo'", "allowed: w2,"]),
     (["feasibility", "--observer", "afo", "--gain", "a=0.5"],
      ["--gain a=0.5", "the afo observer has no design parameter 'a'", "allowed: w2,"]),
@@ -520,7 +521,7 @@ def _psi_a0_zero_current():
     (["feasibility", "--x", "zeta1"], ["--x", "'zeta1'", "NAME=LO:HI:N"]),
     (["feasibility", "--x", "zeta1=0:5"], ["--x", "'0:5'", "LO:HI:N"]),
     (["feasibility", "--y", "ratio=2:1:5"], ["--y", "LO <= HI"]),
-    (["feasibility", "--x", "foo=0:1:3", "--y", "ratio=0:2:3"],
+    (["feasibility", "--observer", "leso", "--x", "foo=0:1:3", "--y", "ratio=0:2:3"],
      ["--x foo=0:1:3", "the leso observer has no design parameter 'foo'", "allowed: w2,"]),
     (["feasibility", "--x", "w2=100:200:3"], ["--x needs --y", "w2, zeta2"]),
     (["feasibility", "--x", "w2=100:200:3", "--y", "w2=1:2:2"], ["different", "allowed"]),

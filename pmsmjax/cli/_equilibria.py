@@ -34,9 +34,9 @@ FEASIBILITY = {0: "feasible", 1: "infeasible", 2: "no equilibrium", -1: "degener
 def _equilibria_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     add_operating_point_options(p, speed="one")
-    add_observer_options(p, default="leso", mismatch=True,
-                         default_note=": the linear-feedback ESO that zhang2022 §III-IV "
-                                      "analyses")
+    add_observer_options(p, default="eso", mismatch=True,
+                         default_note=": zhang2022's nonlinear ESO, the default of every command; any "
+                                      "registered observer")
     g = add_output_options(p, None, plot=False,
                            out_help="also write the JSON to DIR/equilibria.json (created "
                                     "if missing)")
@@ -168,8 +168,8 @@ COMMAND = Command(
     help="every equilibrium of any observer's error dynamics at one operating point",
     description=(
         "List every equilibrium of the error dynamics of the observer (--observer, any of "
-        "the registry; default leso, the linear-feedback ESO of zhang2022 (11) with the "
-        "flux gain (17)) at constant speed and current: its angle error (deg), its state in "
+        "the registry; default eso, zhang2022's nonlinear ESO with its design (38)/(25), "
+        "the default of every command) at constant speed and current: its angle error (deg), its state in "
         "the observer's error coordinates, whether it is stable, and the eigenvalues of its "
         "Jacobian (1/s), computed by pmsmjax.analysis.equilibria. The status is 'ok', 'no "
         "equilibrium' (possible with observer-model mismatch: --observer-set or --mismatch "
