@@ -40,6 +40,20 @@ def solve2(a, b, c, d, r0, r1):
     return (d * r0 - b * r1) / det, (a * r1 - c * r0) / det
 
 
+def apparent_model(model, magnetic: "AbstractMagneticModel", i_dq):
+    """The constant machine model `model` (any module with `L_d`, `L_q` (H) and `psi_f`
+    (V s) fields: `PMSMParams`, an observer's machine model) with those three replaced by
+    the apparent values of `magnetic` at the current `i_dq` (A, `(2,)`): the constant
+    machine whose flux equals `magnetic`'s at that current. A `magnetic` field of `model`
+    itself is dropped (set to None), so the result is a constant-inductance machine. The
+    one construction behind `observer.scheduled_at` and `analysis.apparent_plant`."""
+    L_d, L_q, psi_f = magnetic.apparent_inductance(jnp.asarray(i_dq))
+    out = eqx.tree_at(lambda m: (m.L_d, m.L_q, m.psi_f), model, (L_d, L_q, psi_f))
+    if getattr(out, "magnetic", None) is not None:
+        out = eqx.tree_at(lambda m: m.magnetic, out, None)
+    return out
+
+
 class AbstractMagneticModel(eqx.Module):
     r"""A machine's stator flux linkage $\psi_{dq}(i_{dq})$ in rotor coordinates.
 

@@ -67,6 +67,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._plant._magnetic import apparent_model
 from .._plant._params import Drive, PMSMParams
 from ..observers._base import AbstractObserver, OperatingPoint
 from ._args import as_arrays, check_observer
@@ -138,8 +139,7 @@ def constant_plant(plant: PMSMParams, L_d, L_q, psi_f) -> PMSMParams:
 def apparent_plant(plant: PMSMParams, i_dq) -> PMSMParams:
     """The constant machine with the apparent inductances and PM flux of the saturated
     `plant` at the rotor current `i_dq` (A, `(2,)`): the same flux as the map there."""
-    L_d, L_q, psi_f = plant.magnetic.apparent_inductance(jnp.asarray(i_dq))
-    return constant_plant(plant, L_d, L_q, psi_f)
+    return apparent_model(plant, plant.magnetic, i_dq)
 
 
 def incremental_plant(plant: PMSMParams, i_dq) -> PMSMParams:
@@ -239,8 +239,7 @@ def _saturated_point(obs, plant, ctrl, mech, w_m, tau_L, n_outer, n_bisect, opti
         tau_ref, hold = balance(th)
         i_ref = refs(tau_ref)
         i_dq = _rot(i_ref, -th)
-        L_d, L_q, psi_f = mag.apparent_inductance(i_dq)
-        eq = equilibria_traced(obs, constant_plant(plant, L_d, L_q, psi_f),
+        eq = equilibria_traced(obs, apparent_model(plant, mag, i_dq),
                                OperatingPoint(w_m, i_ref), **options)
         return eq, tau_ref, hold, i_ref, i_dq
 

@@ -40,7 +40,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._frames import park, wrap_angle
-from .._plant._magnetic import AbstractMagneticModel
+from .._plant._magnetic import AbstractMagneticModel, apparent_model
 from .._plant._params import PMSMParams
 from .._plant._recheck import recheck
 
@@ -204,9 +204,8 @@ class AbstractObserver(eqx.Module):
         when `magnetic` is None."""
         if self.magnetic is None:
             return self
-        L_d, L_q, psi_f = self.magnetic.apparent_inductance(jnp.asarray(i_dq))
-        return eqx.tree_at(lambda o: (o.motor.L_d, o.motor.L_q, o.motor.psi_f), self,
-                           (L_d, L_q, psi_f))
+        return eqx.tree_at(lambda o: o.motor, self,
+                           apparent_model(self.motor, self.magnetic, i_dq))
 
     def _schedule_current(self, state, meas):
         """The current (A, estimated frame) the scheduled model is evaluated at in a step
