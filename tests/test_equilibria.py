@@ -340,3 +340,61 @@ def test_fal_reduction_solve_and_its_derivative():
     # dr/dtheta against central differences
     np.testing.assert_allclose(np.asarray(g), np.asarray(fd), rtol=1e-6,
                                atol=1e-6 * float(jnp.max(jnp.abs(fd))))
+
+
+def _scipy_equilibria(obs, plant, w, i0, n_theta=72):
+    """Every equilibrium of `obs`'s error dynamics that SciPy's root finder (MINPACK
+    hybrj, its own Newton-type iteration) reaches from a grid of angles, each with three
+    starts for the other coordinates: the angles (rad, sorted) and whether each is stable
+    by NumPy's eigenvalues of a central-difference Jacobian."""
+    from scipy.optimize import fsolve
+
+    from pmsmjax.observers._base import OperatingPoint
+
+    op = OperatingPoint(jnp.asarray(w), jnp.asarray(i0))
+    sc = np.asarray(obs.error_scale(op, plant))
+    a = obs.coordinates.angle
+    f = jax.jit(lambda z: obs.error_rhs(z * sc, op, plant) / sc / w)
+
+    def jac(z, h=1e-6):
+        cols = [(np.asarray(f(z + h * e)) - np.asarray(f(z - h * e))) / (2 * h)
+                for e in np.eye(z.size)]
+        return np.stack(cols, 1)
+
+    found = []
+    for th in np.linspace(-np.pi, np.pi, n_theta, endpoint=False):
+        for y0 in (-1.0, 0.0, 1.0):
+            z0 = np.full(sc.size, y0)
+            z0[a] = th
+            z, _, ier, _ = fsolve(lambda v: np.asarray(f(v)), z0, full_output=True,
+                                  xtol=1e-13)
+            if ier != 1 or np.max(np.abs(np.asarray(f(z)))) > 1e-10:
+                continue
+            t = (z[a] + np.pi) % (2 * np.pi) - np.pi
+            if all(abs(t - q) > 1e-6 for q, _ in found):
+                found.append((t, bool(np.all(np.linalg.eigvals(jac(z)).real < 0))))
+    found.sort()
+    return np.array([t for t, _ in found]), np.array([s for _, s in found])
+
+
+@pytest.mark.parametrize("ratio", [0.9, 1.25])
+def test_generic_route_finds_the_equilibria_off_its_branch(ratio):
+    """The rotor-flux observer with its L_q off by `ratio` (morawiec_ipm3k5, 0.5 p.u.,
+    i_q = 0.3 p.u.): the inner problem of the generic route has two branches and its
+    residual jumps between them (the point was reported degenerate; with the jump taken
+    for a zero, one equilibrium was missing and the designed one with it at 1.25). Every
+    equilibrium against SciPy's root finder from 216 starts, stability against NumPy's
+    eigenvalues."""
+    drive = pj.preset("morawiec_ipm3k5")
+    obs = pj.observers.make_observer("rotor-flux", drive)
+    obs = obs.with_motor(pj.scale_motor(obs.motor, {"L_q": ratio}))
+    w = 0.5 * float(drive.w_rated)
+    i0 = np.array([0.0, 0.3 * float(drive.base.I_b)])
+    eq = analysis.equilibria(obs, drive.three_phase_motor, w, i0)
+    assert int(eq.status) == 0
+    valid = np.asarray(eq.valid)
+    theta, stable = np.asarray(eq.theta)[valid], np.asarray(eq.stable)[valid]
+    ref_theta, ref_stable = _scipy_equilibria(obs, drive.three_phase_motor, w, i0)
+    assert len(ref_theta) == 2  # the designed one near 0 and one far from it
+    np.testing.assert_allclose(theta, ref_theta, atol=1e-9)
+    np.testing.assert_array_equal(stable, ref_stable)

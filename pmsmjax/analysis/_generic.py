@@ -24,11 +24,22 @@ columns of $J_y$) and continuous in $\tilde\theta$ while $J_y$ keeps full rank: 
 are exactly the equilibria. Zeros are bracketed by sign changes on a periodic grid offset
 by half a step (so $\tilde\theta = 0, \pi$ are never grid points), refined by the Illinois
 method, and polished by Newton steps on the full square system $F(z) = 0$; a slot counts
-only if the polished residual is below tolerance. Two zeros inside one grid cell leave no
-sign change but a local minimum of $|r|$ close to 0: such cells are searched by Newton
-steps from both cell ends (`n_crit` slots). All shapes are static, so the route jits
-and vmaps over operating points, designs and mismatches; failures are reported in
-`status` (0 ok, 2 no equilibrium, -1 degenerate), never raised.
+only if the polished residual is below tolerance. Where the inner problem has two
+branches of solutions and the least-squares solution changes branch between neighbouring
+grid points, $r$ jumps and changes sign without a zero; the refinement then closes in on
+the jump with $|r|$ staying large (`JUMP_RATIO`) and its Newton polish does not converge:
+such a bracket is dropped, while any other bracket that does not polish makes the point
+degenerate. An equilibrium on the branch the continuation does not follow leaves no sign
+change, so wherever a jump or an unsettled grid point shows two branches, Newton steps on
+the full system also start from every grid point (its angle and the continuation's other
+coordinates there), and every start that converges is an equilibrium (duplicates
+dropped). The rotor-flux observer with inductance mismatch is the case met: checked
+against SciPy's root finder started from a grid of angles (tests/test_equilibria.py).
+Two zeros inside one grid cell leave no sign change but a local minimum of $|r|$ close
+to 0: such cells are searched by Newton steps from both cell ends (`n_crit` slots). All
+shapes are static, so the route jits and vmaps over operating points, designs and
+mismatches; failures are reported in `status` (0 ok, 2 no equilibrium, -1 degenerate),
+never raised.
 
 **Stability** of each equilibrium: the exact Routh-Hurwitz test on the characteristic
 polynomial (Faddeev-LeVerrier) of the scaled Jacobian (forward-mode Jacobian of
@@ -62,6 +73,12 @@ from ._scaled import _make_scaled, _Scaled
 
 #: `Equilibria.status` / `DesignClass.status` codes.
 STATUS_OK, STATUS_NONE, STATUS_DEGENERATE = 0, 2, -1
+
+#: |r| left at the end of a bracket's refinement, relative to the larger |r| at its ends,
+#: above which the sign change is a jump of r, not a zero (module docstring). At a zero
+#: the Illinois steps leave |r| at rounding level (1e-11 relative and below); at the
+#: jumps met (the rotor-flux observer with inductance mismatch) it stays 0.1 to 1.
+JUMP_RATIO = 1e-3
 
 
 # ---------------------------------------------------------------------------------------
@@ -321,7 +338,7 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
         c0 = (a, b, fa, fb, ya, yb, jnp.asarray(0))
         (a, b, fa, fb, ya, yb, _), _ = jax.lax.scan(body, c0, None, length=n_refine)
         t = jnp.where(jnp.abs(fa) < jnp.abs(fb), 0.0, 1.0)
-        return a + t * (b - a), ya + t * (yb - ya)
+        return a + t * (b - a), ya + t * (yb - ya), jnp.minimum(jnp.abs(fa), jnp.abs(fb))
 
     blo, bhi, flo, fhi = lo_t[idx], hi_t[idx], rv[lo_i[idx]], rv[nxt[idx]]
     ylo, yhi = ys[lo_i[idx]], ys[nxt[idx]]
@@ -388,14 +405,24 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
         yhi = jnp.concatenate([yhi, yc, ys[kp]])
         bvalid = jnp.concatenate([bvalid, split, split])
 
-    th_all, y_all = jax.vmap(refine)(blo, bhi, flo, fhi, ylo, yhi)
-    cand = bvalid
-    z = jax.vmap(sys.insert)(th_all, y_all)
+    th_all, y_all, f_end = jax.vmap(refine)(blo, bhi, flo, fhi, ylo, yhi)
+    n_br = th_all.shape[0]
+    # Newton from the refined brackets and, where the continuation left grid points
+    # unsettled or r jumps (two branches of the inner problem, module docstring), also
+    # from every grid point: one batch through the same Newton call (traced once)
+    jump = f_end > JUMP_RATIO * jnp.maximum(jnp.abs(flo), jnp.abs(fhi))
+    z = jax.vmap(sys.insert)(jnp.concatenate([th_all, grid]),
+                             jnp.concatenate([y_all, ys]))
     z, Fz, A = jax.vmap(lambda v: sys.newton(v, n_newton))(z)
     res = jnp.max(jnp.abs(Fz), -1)
     conv = jnp.isfinite(res) & (res < tol)
+    branches = jnp.any(~settled) | jnp.any(bvalid & jump)
+    cand = jnp.concatenate([bvalid, jnp.broadcast_to(branches, (n_grid,))])
     valid = cand & conv
-    failed = jnp.any(cand & ~conv)  # a bracket whose zero does not polish
+    # A sign change that the refinement closes in on without |r| falling is a jump of r,
+    # not a zero: a bracket whose zero does not polish fails the point only when it is
+    # not such a jump.
+    failed = jnp.any(bvalid & ~conv[:n_br] & ~jump)
     # duplicates (two starts converging to one equilibrium)
     K = z.shape[0]
     theta = z[:, sys.angle]
