@@ -120,7 +120,8 @@ def test_feasibility_several_speeds_and_standstill(tmp_path):
 
 
 def test_feasibility_with_inductance_mismatch(tmp_path, capsys):
-    assert main(["feasibility", "--observer", "leso", "--i-q", "1", "--mismatch", "L_d=0.7", "--mismatch",
+    assert main(["feasibility", "--observer", "leso", "--i-q", "1", "--mismatch",
+                 "L_d=0.7", "--mismatch",
                  "L_q=1.5", "--zeta1", "0.5:2:2", "--ratio", "0.5:1:2", "--speed", "0.05",
                  "--no-plot", "--out", str(tmp_path)]) == 0
     assert "(general)" in capsys.readouterr().out
@@ -225,7 +226,8 @@ def test_equilibria_mismatch_json_schema(capsys):
 def test_equilibria_no_equilibrium_is_its_own_status(capsys):
     """A mismatch without any equilibrium: status 'no equilibrium' (code 2) in the text and
     the JSON, exit 0; --observer-set gives the same observer model as --mismatch L_q=RATIO."""
-    base = ["equilibria", "--observer", "leso", "--i-q", "2", "--speed", "0.02", "--zeta1", "0.5", "--ratio", "0.25"]
+    base = ["equilibria", "--observer", "leso", "--i-q", "2", "--speed", "0.02", "--zeta1",
+            "0.5", "--ratio", "0.25"]
     assert main([*base, "--mismatch", "L_q=1.5"]) == 0
     out = capsys.readouterr().out
     assert "0 equilibria; status no equilibrium; design no equilibrium" in out

@@ -40,7 +40,7 @@ def solve2(a, b, c, d, r0, r1):
     return (d * r0 - b * r1) / det, (a * r1 - c * r0) / det
 
 
-def apparent_model(model, magnetic: "AbstractMagneticModel", i_dq):
+def apparent_model(model, magnetic: AbstractMagneticModel, i_dq):
     """The constant machine model `model` (any module with `L_d`, `L_q` (H) and `psi_f`
     (V s) fields: `PMSMParams`, an observer's machine model) with those three replaced by
     the apparent values of `magnetic` at the current `i_dq` (A, `(2,)`): the constant

@@ -35,8 +35,8 @@ def _equilibria_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     add_operating_point_options(p, speed="one")
     add_observer_options(p, default="eso", mismatch=True,
-                         default_note=": zhang2022's nonlinear ESO, the default of every command; any "
-                                      "registered observer")
+                         default_note=": zhang2022's nonlinear ESO, the default of "
+                                      "every command; any registered observer")
     g = add_output_options(p, None, plot=False,
                            out_help="also write the JSON to DIR/equilibria.json (created "
                                     "if missing)")
@@ -168,9 +168,10 @@ COMMAND = Command(
     help="every equilibrium of any observer's error dynamics at one operating point",
     description=(
         "List every equilibrium of the error dynamics of the observer (--observer, any of "
-        "the registry; default eso, zhang2022's nonlinear ESO with its design (38)/(25), "
-        "the default of every command) at constant speed and current: its angle error (deg), its state in "
-        "the observer's error coordinates, whether it is stable, and the eigenvalues of its "
+        "the registry; default eso, zhang2022's nonlinear ESO with its design "
+        "(38)/(25), the default of every command) at constant speed and current: its "
+        "angle error (deg), its state in the observer's error coordinates, whether it is "
+        "stable, and the eigenvalues of its "
         "Jacobian (1/s), computed by pmsmjax.analysis.equilibria. The status is 'ok', 'no "
         "equilibrium' (possible with observer-model mismatch: --observer-set or --mismatch "
         "NAME=RATIO) "

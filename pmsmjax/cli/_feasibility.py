@@ -43,8 +43,8 @@ def _feasibility_arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     add_operating_point_options(p, speed="list")
     add_observer_options(p, default="eso", mismatch=True, flux="grid", fixed_at=False,
-                         default_note=": zhang2022's nonlinear ESO, the default of every command; any "
-                                      "registered observer")
+                         default_note=": zhang2022's nonlinear ESO, the default of "
+                                      "every command; any registered observer")
     g = p.add_argument_group("design axes")
     g.add_argument("--x", type=named_grid, default=None, metavar="NAME=LO:HI:N",
                    help="first axis of the map: a design parameter of the observer (a name "

@@ -42,8 +42,8 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     add_drive_options(p)
     add_operating_point_options(p, speed="one")
     add_observer_options(p, default="eso", mismatch=True, flux=None, fixed_at=False,
-                         default_note=": zhang2022's nonlinear ESO, the default of every command; any "
-                                      "registered observer")
+                         default_note=": zhang2022's nonlinear ESO, the default of "
+                                      "every command; any registered observer")
     p.add_argument("--orders", action=ListOption, item=_order, default=[1, -5, 7],
                    metavar="H",
                    help="signed harmonic orders of the electrical frequency, separated by "

@@ -15,11 +15,11 @@ from ._analysis import (
     plot_saturated_map as plot_saturated_map,
     plot_static_error as plot_static_error,
 )
-from ._magnetic import plot_flux_map as plot_flux_map
 from ._gains import (
     plot_gains_vs_speed as plot_gains_vs_speed,
     plot_poles_vs_speed as plot_poles_vs_speed,
 )
+from ._magnetic import plot_flux_map as plot_flux_map
 from ._trajectory import (
     plot_identification as plot_identification,
     plot_plant_trace as plot_plant_trace,
