@@ -321,7 +321,7 @@ def module_child(module: str, *args: str, env: dict | None = None,
 
 def worker_result(payload: object) -> None:
     """A worker's answer to `run_child`: one JSON line, last."""
-    from pmsmjax._data._files import json_text
+    from pmsmjax._files import json_text
 
     print(json_text(payload, indent=None), flush=True)
 

@@ -138,3 +138,47 @@ def test_the_cycle_check_sees_a_cycle(tmp_path, monkeypatch):
     assert _top_level_imports("pmsmjax._cycle_a") == {"pmsmjax._cycle_b"}
     with pytest.raises(pytest.fail.Exception, match="import cycle"):
         test_the_module_level_imports_have_no_cycle()
+
+
+def _project_imports(path: Path):
+    """Every `from pmsmjax... import name` / `from tuning... import name` in `path`, at any
+    depth (inside functions too: the benchmarks import late), as (module, name)."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and not node.level and node.module \
+                and node.module.split(".")[0] in PACKAGES:
+            for a in node.names:
+                yield node.module, a.name
+
+
+def _resolves(module: str, name: str) -> bool:
+    import importlib
+
+    try:
+        m = importlib.import_module(module)
+    except ImportError:
+        return False
+    if name == "*" or hasattr(m, name):
+        return True
+    try:
+        importlib.import_module(f"{module}.{name}")
+    except ImportError:
+        return False
+    return True
+
+
+def test_the_scripts_import_what_exists():
+    """Every name the benchmarks, the tuner and the docs' scripts import from the library
+    exists there, late imports inside functions included (a moved private module broke
+    the benchmarks' JSON output unnoticed: `pmsmjax._data._files`)."""
+    files = [p for d in ("benchmarks", "tuning", "docs") for p in sorted((ROOT / d).rglob("*.py"))]
+    assert len(files) > 30
+    missing = [(str(p.relative_to(ROOT)), m, n) for p in files for m, n in _project_imports(p)
+               if not _resolves(m, n)]
+    assert not missing, missing
+
+
+def test_the_import_check_sees_a_missing_name(tmp_path):
+    script = tmp_path / "s.py"
+    script.write_text("def f():\n    from pmsmjax._data._files import json_text\n")
+    assert [(m, n) for m, n in _project_imports(script) if not _resolves(m, n)] == [
+        ("pmsmjax._data._files", "json_text")]

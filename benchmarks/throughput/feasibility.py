@@ -88,7 +88,7 @@ def worker(impl, dtype, n, repeats, min_time, status_file, sharded=False):
         args = [jnp.asarray(pts[k], dt) for k in ("w0", "zeta1", "ratio")]
         i_dq = jnp.stack([jnp.asarray(pts["i_d"], dt), jnp.asarray(pts["i_q"], dt)], -1)
         if method == "closed_form":
-            from pmsmjax.analysis._feasibility import _closed_form_classify
+            from pmsmjax.analysis._closed_form import _closed_form_classify
 
             cargs = [args[0], i_dq[:, 0], i_dq[:, 1], args[1], args[2],
                      jnp.asarray(1.0, dt), jnp.asarray(W2, dt)] + [
