@@ -26,6 +26,8 @@ measured values.
 """
 
 
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -215,3 +217,40 @@ def test_closed_loop_eso_holds_lock_at_high_load_only_when_scheduled(drive):
     assert out["constant"][0] and out["constant"][1] > 0.1
     assert not out["scheduled"][0]
     assert abs(out["scheduled"][2]) < 0.02
+
+
+def test_cli_scheduled_simulate_and_replay(drive, tmp_path, capsys):
+    """`--scheduled` on `simulate` and `replay`: the sensorless drive of the lost-lock case
+    above (load 0.8 p.u.) holds its lock, the first line and the JSON say that the model
+    is scheduled, and the replay of its recording is the API's replay of
+    `observer.with_magnetic(map)` from the same start; a constant motor and the encoder
+    are one-line errors."""
+    from pmsmjax.cli import main
+
+    sim = tmp_path / "sim"
+    assert main(["simulate", "--motor", "ipm3k5_sat", "--observer", "eso", "--scheduled",
+                 "--load", "0.8", "--no-plot", "--out", str(sim)]) == 0
+    out = capsys.readouterr().out
+    assert "observer eso, model scheduled on the flux map" in out.splitlines()[0]
+    summary = json.loads((sim / "summary.json").read_text())
+    assert summary["observer_details"]["scheduled"] is True
+    assert summary["lock"]["acquired"] and not summary["lock"]["lost"]
+    rep = tmp_path / "rep"
+    assert main(["replay", "--motor", "ipm3k5_sat", "--observer", "eso", "--scheduled",
+                 "--data", str(sim / "recording.npz"), "--theta0", "0", "--speed0", "0",
+                 "--no-plot", "--out", str(rep)]) == 0
+    capsys.readouterr()
+    with np.load(rep / "replay.npz", allow_pickle=False) as f:
+        theta_hat = f["theta_hat"]
+    data = pj.load_recording(sim / "recording.npz")
+    obs = make_observer("eso", drive, magnetic=drive.motor.magnetic)
+    ref, _ = pj.replay(obs, data, theta0=0.0, w0=0.0)
+    np.testing.assert_allclose(theta_hat, np.asarray(ref), rtol=0, atol=1e-12)
+    for argv, words in ((["simulate", "--observer", "eso", "--scheduled"],
+                         ["--scheduled", "'zhang750' has no magnetic model", "[saturation]"]),
+                        (["simulate", "--motor", "ipm3k5_sat", "--scheduled"],
+                         ["--scheduled", "sensored observer", "sensorless --observer"])):
+        assert main([*argv, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        for w in words:
+            assert w in err, (w, err)

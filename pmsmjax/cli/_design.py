@@ -16,7 +16,7 @@ import sys
 
 import pmsmjax as pj
 
-from ._observer_options import ObserverChoice, observer_from_args
+from ._observer_options import ObserverChoice, observer_from_args, scheduled_observer
 from ._values import CLIError
 
 
@@ -47,7 +47,7 @@ def observer_with_design(args, drive: pj.Drive, *, default: str) -> ObserverChoi
     if choice.gains:
         raise CLIError(f"--design {args.design} sets the whole design; the design options "
                        f"({', '.join(choice.gains)}) are not allowed with it")
-    observer = pj.apply_gains_table(table, choice.observer)
+    observer = scheduled_observer(args, pj.apply_gains_table(table, choice.observer), drive)
     warning = pj.verdict_warning(table)
     if warning is not None:
         print(f"warning: --design {args.design}: {warning}", file=sys.stderr)

@@ -53,11 +53,11 @@ def _design_list(classes: dict) -> str:
 def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                          sensored: bool = False, mismatch: bool = False,
                          flux: str | None = "one", fixed_at: bool = True,
-                         default_note: str = "") -> None:
+                         scheduled: bool = False, default_note: str = "") -> None:
     """`--observer` (choices: the registry, plus `sensored` with `sensored=True`),
     `--observer-set`, `--gain`, with `mismatch` the `--mismatch NAME=RATIO` ratios, and the
-    zhang2022 shorthands. `flux`: `"one"` (`--schedule`, `--zeta1`, `--ratio`, `--w1`, `--w-min` as
-    single values), `"grid"` (the caller adds `--zeta1`/`--ratio` as map axes) or None."""
+    zhang2022 shorthands; with `scheduled` also `--scheduled`. `flux`: `"one"` (`--schedule`,
+    `--zeta1`, `--ratio`, `--w1`, `--w-min` as single values), `"grid"` (the caller adds `--zeta1`/`--ratio` as map axes) or None."""
     classes = _observer_classes(sensored)
     g = parser.add_argument_group(
         "observer (any observer of the registry pmsmjax.observers; design and machine model)")
@@ -77,6 +77,15 @@ def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
                    help="set a design parameter of the observer (SI units, as its class's "
                         "design_units), repeatable. Names by observer: "
                         + _design_list(classes))
+    if scheduled:
+        g.add_argument("--scheduled", action="store_true",
+                       help="schedule the observer's machine model on the motor's magnetic "
+                            "model (a saturated motor: its motor file's [saturation] or a "
+                            "preset such as ipm3k5_sat): at every step its L_d, L_q and "
+                            "psi_f are the apparent values at the measured current "
+                            "(AbstractObserver.with_magnetic), replacing those of "
+                            "--observer-set/--mismatch; its gains stay those of its constant "
+                            "model. Default: the constant model, as a drive deploys it")
     if mismatch:
         g.add_argument("--mismatch", action="append", default=[], type=name_value,
                        metavar="NAME=RATIO",
@@ -184,11 +193,14 @@ class ObserverChoice:
         if design:
             out["design"] = self.design()
         return out | {"model": self.model(), "mismatch": self.mismatched,
+                      "scheduled": self.observer.magnetic is not None,
                       "extras": dict(self.cls.extras)}
 
     def describe(self) -> str:
         """One line for the text output."""
         parts = [f"observer {self.name}"]
+        if self.observer.magnetic is not None:
+            parts.append("model scheduled on the flux map")
         if self.gains:
             parts.append(", ".join(f"{k} = {v:g}" for k, v in self.gains.items()))
         if self.fixed_at is not None:
@@ -315,5 +327,21 @@ def observer_from_args(args, drive: pj.Drive, *, skip=()) -> ObserverChoice:
             observer = make_observer(name, drive, motor=motor, **gains, **kw)
     except ValueError as e:
         raise CLIError(f"{spelled}: {e}") from None
-    return ObserverChoice(name=name, observer=observer, plant=plant, gains=gains,
-                          fixed_at=fixed_at)
+    return ObserverChoice(name=name, observer=scheduled_observer(args, observer, drive),
+                          plant=plant, gains=gains, fixed_at=fixed_at)
+
+
+def scheduled_observer(args, observer: pj.AbstractObserver, drive: pj.Drive):
+    """`observer` scheduled on the drive's magnetic model with `--scheduled`, else itself;
+    a one-line error when the motor has none or the observer is the encoder."""
+    if not getattr(args, "scheduled", False):
+        return observer
+    magnetic = drive.three_phase_motor.magnetic
+    if magnetic is None:
+        raise CLIError(f"--scheduled: the motor {drive.name!r} has no magnetic model to "
+                       "schedule the observer on; allowed with a saturated motor: a motor "
+                       "file with a [saturation] section, or a preset such as ipm3k5_sat")
+    if isinstance(observer, SensoredObserver):
+        raise CLIError("--scheduled: the sensored observer (the encoder) has no machine "
+                       "model; give a sensorless --observer")
+    return observer.with_magnetic(magnetic)

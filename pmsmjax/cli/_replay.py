@@ -52,7 +52,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--t-settle", type=nonneg_float, default=None, metavar="S",
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
-    add_observer_options(p, default="eso", mismatch=True)
+    add_observer_options(p, default="eso", mismatch=True, scheduled=True)
     add_design_option(p)
     add_output_options(p, None)
 

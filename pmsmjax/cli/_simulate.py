@@ -110,7 +110,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--speed-hat0", type=finite_float, default=None, metavar="PU",
                    help="the observer's initial speed estimate (p.u. of the rated speed; "
                         "default: the rotor's initial speed, i.e. known)")
-    add_observer_options(p, default="sensored", sensored=True, mismatch=True,
+    add_observer_options(p, default="sensored", sensored=True, mismatch=True, scheduled=True,
                          default_note=": the encoder angle and speed")
     add_design_option(p)
     add_output_options(p, "results")
