@@ -10,10 +10,12 @@ import os
 import jax
 import matplotlib
 
+
 matplotlib.use("Agg")
 
 import pmsmjax as pj  # noqa: E402
 from pmsmjax.plotting import plot_flux_map  # noqa: E402
+
 
 jax.config.update("jax_enable_x64", True)
 HERE = os.path.dirname(os.path.abspath(__file__))

@@ -57,7 +57,8 @@ def add_observer_options(parser: argparse.ArgumentParser, *, default: str,
     """`--observer` (choices: the registry, plus `sensored` with `sensored=True`),
     `--observer-set`, `--gain`, with `mismatch` the `--mismatch NAME=RATIO` ratios, and the
     zhang2022 shorthands; with `scheduled` also `--scheduled`. `flux`: `"one"` (`--schedule`,
-    `--zeta1`, `--ratio`, `--w1`, `--w-min` as single values), `"grid"` (the caller adds `--zeta1`/`--ratio` as map axes) or None."""
+    `--zeta1`, `--ratio`, `--w1`, `--w-min` as single values), `"grid"` (the caller adds
+    `--zeta1`/`--ratio` as map axes) or None."""
     classes = _observer_classes(sensored)
     g = parser.add_argument_group(
         "observer (any observer of the registry pmsmjax.observers; design and machine model)")
