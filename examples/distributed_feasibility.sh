@@ -21,7 +21,7 @@ export JAX_PLATFORMS=cpu  # one CPU device per process
 
 pids=""
 for ID in 0 1; do
-    $PMSMJAX feasibility --set L_d=1e-3 --set L_q=4.9e-3 --i-q 2 \
+    $PMSMJAX feasibility --observer leso --set L_d=1e-3 --set L_q=4.9e-3 --i-q 2 \
         --zeta1 0:5:51 --ratio 0:2:41 --speed 0.5 --chunk-size 512 --batch-size 64 \
         --coordinator "localhost:$PORT" --num-processes 2 --process-id "$ID" \
         --out "$OUT" "$@" &

@@ -17,7 +17,7 @@ from pmsmjax.cli import main
 
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SALIENT = ["--set", "L_d=1e-3", "--set", "L_q=4.9e-3", "--i-q", "2"]
+SALIENT = ["--observer", "leso", "--set", "L_d=1e-3", "--set", "L_q=4.9e-3", "--i-q", "2"]
 # 2 speeds x 11 x 9 = 198 designs: 5 chunks of 40 (the last one 38)
 MAP = [*SALIENT, "--zeta1", "0:5:11", "--ratio", "0:2:9", "--speeds", "0.5", "1",
        "--chunk-size", "40"]

@@ -173,8 +173,8 @@ def test_auto_resume_without_manifest(tmp_path, small_auto, monkeypatch):
     assert_bitwise_equal(out, ref)
 
 
-FEAS = ["--set", "L_d=1e-3", "--set", "L_q=4.9e-3", "--i-q", "2", "--zeta1", "0:5:11",
-        "--ratio", "0:2:9", "--speeds", "0.5", "1", "--no-plot"]
+FEAS = ["--observer", "leso", "--set", "L_d=1e-3", "--set", "L_q=4.9e-3", "--i-q", "2",
+        "--zeta1", "0:5:11", "--ratio", "0:2:9", "--speeds", "0.5", "1", "--no-plot"]
 
 
 def test_feasibility_default_chunks(tmp_path, capsys):

@@ -31,9 +31,12 @@ the jump with $|r|$ staying large (`JUMP_RATIO`) and its Newton polish does not 
 such a bracket is dropped, while any other bracket that does not polish makes the point
 degenerate. An equilibrium on the branch the continuation does not follow leaves no sign
 change, so wherever a jump or an unsettled grid point shows two branches, Newton steps on
-the full system also start from every grid point (its angle and the continuation's other
-coordinates there), and every start that converges is an equilibrium (duplicates
-dropped). The rotor-flux observer with inductance mismatch is the case met: checked
+the full system also start from `n_starts` grid points (their angles and the
+continuation's other coordinates there), and every start that converges is an
+equilibrium (duplicates dropped). `equilibria` starts from every grid point; a vmapped
+map (`equilibria_traced`'s default `n_starts=0`) would pay for the starts at every point,
+so there a jump that does not polish leaves the point degenerate, as any unpolished
+bracket does. The rotor-flux observer with inductance mismatch is the case met: checked
 against SciPy's root finder started from a grid of angles (tests/test_equilibria.py).
 Two zeros inside one grid cell leave no sign change but a local minimum of $|r|$ close
 to 0: such cells are searched by Newton steps from both cell ends (`n_crit` slots). All
@@ -178,7 +181,8 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
                method: str = "auto", n_grid: int = 64, max_roots: int = 6, n_crit: int = 2,
                n_golden: int = 16,
                angle_weight: float = 1000.0, n_gauss_newton: int = 3, n_refine: int = 10,
-               n_newton: int = 8, tol: float | None = None) -> Equilibria:
+               n_newton: int = 8, tol: float | None = None,
+               n_starts: int | None = None) -> Equilibria:
     r"""Every equilibrium of `observer`'s error dynamics at one operating point.
 
     **Arguments:**
@@ -191,6 +195,9 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     - `angle_weight`, `n_gauss_newton`, `n_refine`, `n_newton`: the inner solve, the
       Illinois refinement and the final Newton polish (module docstring).
     - `tol`: accepted scaled residual (default eps^0.6: about 4e-10 in float64).
+    - `n_starts`: Newton starts on the full system from evenly spaced grid points, used
+      where the inner problem shows two branches (module docstring); default `n_grid`;
+      0 reports such a point degenerate when a bracket does not polish (static).
     - `method`: `"auto"` uses the family's own route where it declares one
       (`observer.fast_equilibria`: zhang2022's reduction for fal feedback), else the
       generic route; `"generic"` forces the generic route.
@@ -201,7 +208,8 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     observer, plant, op, options = _equilibria_args(
         observer, plant, w_m, i_dq, method=method, n_grid=n_grid, max_roots=max_roots,
         n_crit=n_crit, n_golden=n_golden, angle_weight=angle_weight,
-        n_gauss_newton=n_gauss_newton, n_refine=n_refine, n_newton=n_newton, tol=tol)
+        n_gauss_newton=n_gauss_newton, n_refine=n_refine, n_newton=n_newton, tol=tol,
+        n_starts=n_starts)
     if method == "auto" and (type(observer).fast_equilibria
                              is not AbstractObserver.fast_equilibria):
         fast = _fast_equilibria(observer, plant, op)
@@ -219,13 +227,15 @@ def _fast_equilibria(observer, plant, op):
 
 
 def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n_crit,
-                     n_golden, angle_weight, n_gauss_newton, n_refine, n_newton, tol):
+                     n_golden, angle_weight, n_gauss_newton, n_refine, n_newton, tol,
+                     n_starts=None):
     """`equilibria`'s argument checks and conversions: (observer, plant, op, options of
     the generic route)."""
     check_observer("equilibria", observer)
     check_plant("equilibria", plant)
+    n_starts = n_grid if n_starts is None else n_starts
     for name, v, lo in (("n_grid", n_grid, 8), ("max_roots", max_roots, 1),
-                        ("n_crit", n_crit, 0)):
+                        ("n_crit", n_crit, 0), ("n_starts", n_starts, 0)):
         if not isinstance(v, int) or v < lo:
             raise ValueError(f"`equilibria({name}=...)` must be an int >= {lo}; got {v!r}.")
     if method not in ("auto", "generic"):
@@ -238,7 +248,7 @@ def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n
     return observer, plant, op, dict(
         method="generic", n_grid=n_grid, max_roots=max_roots, n_crit=n_crit, n_golden=n_golden,
         angle_weight=angle_weight, n_gauss_newton=n_gauss_newton, n_refine=n_refine,
-        n_newton=n_newton, tol=tol)
+        n_newton=n_newton, tol=tol, n_starts=n_starts)
 
 
 def equilibria_stored(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0),
@@ -282,9 +292,13 @@ def _equilibria(observer, plant, op, options):
 
 def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_grid=64,
                       max_roots=6, n_crit=2, n_golden=16, angle_weight=1000.0,
-                      n_gauss_newton=3, n_refine=10, n_newton=8, tol=1e-9) -> Equilibria:
+                      n_gauss_newton=3, n_refine=10, n_newton=8, tol=1e-9,
+                      n_starts=0) -> Equilibria:
     """`equilibria` without argument checks or jit, for use inside a jitted/vmapped
-    function (e.g. a feasibility map or a tuning penalty)."""
+    function (e.g. a feasibility map or a tuning penalty). Its `n_starts` defaults to 0:
+    under `vmap` every point would pay for the extra Newton starts (1.8x the time of a
+    generic map with 64), so a map reports a point whose inner problem shows two branches
+    and an unpolished bracket as degenerate, as before; pass `n_starts` to search it."""
     if method == "auto":
         fast = observer.fast_equilibria(plant, op)
         if fast is not None:
@@ -411,18 +425,22 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
     # unsettled or r jumps (two branches of the inner problem, module docstring), also
     # from every grid point: one batch through the same Newton call (traced once)
     jump = f_end > JUMP_RATIO * jnp.maximum(jnp.abs(flo), jnp.abs(fhi))
-    z = jax.vmap(sys.insert)(jnp.concatenate([th_all, grid]),
-                             jnp.concatenate([y_all, ys]))
+    # `n_starts` grid points, evenly spaced (static; 0: none)
+    sidx = (jnp.arange(n_starts) * n_grid) // max(n_starts, 1)
+    z = jax.vmap(sys.insert)(jnp.concatenate([th_all, grid[sidx]]),
+                             jnp.concatenate([y_all, ys[sidx]]))
     z, Fz, A = jax.vmap(lambda v: sys.newton(v, n_newton))(z)
     res = jnp.max(jnp.abs(Fz), -1)
     conv = jnp.isfinite(res) & (res < tol)
     branches = jnp.any(~settled) | jnp.any(bvalid & jump)
-    cand = jnp.concatenate([bvalid, jnp.broadcast_to(branches, (n_grid,))])
+    cand = jnp.concatenate([bvalid, jnp.broadcast_to(branches, (n_starts,))])
     valid = cand & conv
     # A sign change that the refinement closes in on without |r| falling is a jump of r,
-    # not a zero: a bracket whose zero does not polish fails the point only when it is
-    # not such a jump.
-    failed = jnp.any(bvalid & ~conv[:n_br] & ~jump)
+    # not a zero: with the grid's Newton starts, a bracket whose zero does not polish
+    # fails the point only when it is not such a jump; without them, as before, any does
+    # (an equilibrium off the followed branch could be missing).
+    unpolished = bvalid & ~conv[:n_br]
+    failed = jnp.any(unpolished & ~jump) if n_starts else jnp.any(unpolished)
     # duplicates (two starts converging to one equilibrium)
     K = z.shape[0]
     theta = z[:, sys.angle]

@@ -205,6 +205,9 @@ def saturated_operating_point(observer: AbstractObserver, drive: Drive, w_m, tau
 
 def _saturated_point(obs, plant, ctrl, mech, w_m, tau_L, n_outer, n_bisect, options):
     mag = plant.magnetic
+    # the generic route's Newton starts where two branches show, as `equilibria` (a point
+    # of the steady-state analysis is one equilibria call per outer iteration)
+    starts = {"n_starts": options.get("n_grid", 64), **options}
     tau_need = tau_L + mech.B * w_m / plant.n_p
     tau_max = ctrl.speed.tau_max
     k_tau = 1.5 * plant.n_p
@@ -240,7 +243,7 @@ def _saturated_point(obs, plant, ctrl, mech, w_m, tau_L, n_outer, n_bisect, opti
         i_ref = refs(tau_ref)
         i_dq = _rot(i_ref, -th)
         eq = equilibria_traced(obs, apparent_model(plant, mag, i_dq),
-                               OperatingPoint(w_m, i_ref), **options)
+                               OperatingPoint(w_m, i_ref), **starts)
         return eq, tau_ref, hold, i_ref, i_dq
 
     def step(c, _):
