@@ -217,8 +217,9 @@ def test_equilibria_mismatch_json_schema(capsys):
     designed = [e for e in report["equilibria"] if e["designed"]]
     assert len(designed) == 1 and abs(designed[0]["theta_deg"]) > 1  # static error
     m_hat = pj.replace_params(DRIVE, L_q=1.5 * float(DRIVE.motor.L_q)).motor
+    # the command's call (with the grid's Newton starts, n_starts = 64)
     eq = analysis.equilibria(_leso(motor=m_hat), DRIVE.motor, 0.5 * float(DRIVE.w_rated),
-                             np.array([0.0, 1.0]) * float(DRIVE.base.I_b))
+                             np.array([0.0, 1.0]) * float(DRIVE.base.I_b), n_starts=64)
     np.testing.assert_array_equal([e["theta_rad"] for e in report["equilibria"]],
                                   np.asarray(eq.theta)[np.asarray(eq.valid)])
 

@@ -55,7 +55,9 @@ def equilibria_report(choice, drive, speed_pu: float, i_pu) -> dict:
     i0 = np.asarray(i_pu) * float(drive.base.I_b)
     # the analysis as one stored program (`pmsmjax.runtime.stored_call`: a repeated
     # command skips the tracing), then everything else on host (NumPy) arrays
-    eq = jax.device_get(equilibria_stored(obs, choice.plant, w0, i0))
+    # Newton starts from every grid point where the inner problem shows two branches
+    # (`pmsmjax.analysis.equilibria`, n_starts): one point, so their cost does not matter
+    eq = jax.device_get(equilibria_stored(obs, choice.plant, w0, i0, n_starts=64))
     coords = obs.coordinates
     valid = np.asarray(eq.valid)
     stable = np.asarray(eq.stable)
