@@ -423,9 +423,9 @@ def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_g
     n_br = th_all.shape[0]
     # Newton from the refined brackets and, where the continuation left grid points
     # unsettled or r jumps (two branches of the inner problem, module docstring), also
-    # from every grid point: one batch through the same Newton call (traced once)
+    # from `n_starts` evenly spaced grid points (static; 0: none): one batch through the
+    # same Newton call (traced once)
     jump = f_end > JUMP_RATIO * jnp.maximum(jnp.abs(flo), jnp.abs(fhi))
-    # `n_starts` grid points, evenly spaced (static; 0: none)
     sidx = (jnp.arange(n_starts) * n_grid) // max(n_starts, 1)
     z = jax.vmap(sys.insert)(jnp.concatenate([th_all, grid[sidx]]),
                              jnp.concatenate([y_all, ys[sidx]]))
