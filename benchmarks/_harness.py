@@ -363,6 +363,11 @@ def sampling_period(preset: str) -> float:
 
 # ------------------------------------------------------------------------------ output
 
+def ints(text: str) -> list[int]:
+    """A comma-separated list of whole numbers (an option such as `--batches 1,64`)."""
+    return [int(x) for x in text.split(",") if x]
+
+
 def fmt(value, spec: str = ".3g", missing: str = "-") -> str:
     """`value` formatted with `spec`, or `missing` for None (a timeout, a case not run)."""
     return missing if value is None else format(value, spec)

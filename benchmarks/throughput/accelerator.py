@@ -38,10 +38,6 @@ from . import observers
 MODULE = "benchmarks.throughput.accelerator"
 
 
-def _ints(text: str) -> list[int]:
-    return [int(x) for x in text.split(",") if x]
-
-
 def _guard(rows: list, kind: str, fn, **labels) -> None:
     t0 = time.perf_counter()
     try:
@@ -116,9 +112,9 @@ def main(argv=None) -> int:
                     help="N of the general route's N x N map")
     ap.add_argument("--sat-map", default="64,64", help="speeds,loads of the saturated map")
     args = ap.parse_args(argv)
-    batches, sat_batches = _ints(args.batches), _ints(args.sat_batches)
+    batches, sat_batches = h.ints(args.batches), h.ints(args.sat_batches)
     steps, N, NG = args.steps, args.map, args.general_map
-    n_speed, n_load = _ints(args.sat_map)
+    n_speed, n_load = h.ints(args.sat_map)
     reps = dict(repeats=3, per_sample=0.0)
     if args.quick:
         batches, sat_batches, steps, N, NG = [1, 16], [1, 16], 1000, 64, 16

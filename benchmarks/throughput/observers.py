@@ -46,10 +46,6 @@ REFERENCE = "eso"
 LOAD_PU = 1 / 3  # load step of the closed loop (fraction of the rated torque)
 
 
-def _ints(text: str) -> list[int]:
-    return [int(x) for x in text.split(",") if x]
-
-
 def recording(drive, T_s: float, steps: int, batch: int, speed_pu: float, dtype):
     """(u_ab [steps, 2], i_ab [batch, steps, 2], w) of a sensored run of `drive` at an
     imposed `speed_pu`, i_q = 0.5 p.u., with current noise, `batch` noisy copies."""
@@ -224,8 +220,8 @@ def main(argv=None) -> int:
         h.worker_result(measure(json.loads(args.worker)))
         return 0
     cfg = dict(observers=h.observer_names(args.observers), drive=args.drive,
-               speed=args.speed, batches=_ints(args.batches), steps=args.steps,
-               dtypes=args.dtypes.split(","), loop_batches=_ints(args.loop_batches),
+               speed=args.speed, batches=h.ints(args.batches), steps=args.steps,
+               dtypes=args.dtypes.split(","), loop_batches=h.ints(args.loop_batches),
                loop_steps=args.loop_steps, repeats=5, per_sample=0.2)
     if args.quick:
         cfg.update(batches=[1], loop_batches=[], repeats=3, per_sample=0.05)

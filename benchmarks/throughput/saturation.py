@@ -51,7 +51,7 @@ def main(argv=None) -> int:
                     help="steps at batch 1 (a quarter at larger batches)")
     ap.add_argument("--dtypes", default="float64,float32", help="float64 and/or float32")
     args = ap.parse_args(argv)
-    batches = [int(b) for b in args.batches.split(",") if b]
+    batches = h.ints(args.batches)
     steps, reps = args.steps, dict(repeats=5, per_sample=0.2)
     if args.quick:
         batches, steps, reps = [1, 8], 2000, dict(repeats=3, per_sample=0.05)
