@@ -142,12 +142,25 @@ def test_the_cycle_check_sees_a_cycle(tmp_path, monkeypatch):
 
 def _project_imports(path: Path):
     """Every `from pmsmjax... import name` / `from tuning... import name` in `path`, at any
-    depth (inside functions too: the benchmarks import late), as (module, name)."""
-    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+    depth (inside functions too: the benchmarks import late), and in string constants
+    that are Python code (the scripts the benchmarks run in child processes), as
+    (module, name)."""
+    yield from _imports_in(ast.parse(path.read_text(encoding="utf-8")))
+
+
+def _imports_in(tree):
+    for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom) and not node.level and node.module \
                 and node.module.split(".")[0] in PACKAGES:
             for a in node.names:
                 yield node.module, a.name
+        elif isinstance(node, ast.Constant) and isinstance(node.value, str) \
+                and "import " in node.value and "\n" in node.value:
+            try:
+                inner = ast.parse(node.value)
+            except SyntaxError:  # prose, or a template that is not Python as it stands
+                continue
+            yield from _imports_in(inner)
 
 
 def _resolves(module: str, name: str) -> bool:
@@ -179,6 +192,7 @@ def test_the_scripts_import_what_exists():
 
 def test_the_import_check_sees_a_missing_name(tmp_path):
     script = tmp_path / "s.py"
-    script.write_text("def f():\n    from pmsmjax._data._files import json_text\n")
+    child = 'CHILD = """\nimport sys\nfrom pmsmjax.cli._options import drive_from_args\n"""\n'
+    script.write_text("def f():\n    from pmsmjax._data._files import json_text\n" + child)
     assert [(m, n) for m, n in _project_imports(script) if not _resolves(m, n)] == [
-        ("pmsmjax._data._files", "json_text")]
+        ("pmsmjax._data._files", "json_text"), ("pmsmjax.cli._options", "drive_from_args")]

@@ -54,7 +54,9 @@ import jax
 import pmsmjax as pj
 pj.runtime.configure()
 from pmsmjax.cli.__main__ import build_parser
-from pmsmjax.cli._options import current_from_args, drive_from_args, observer_from_args
+from pmsmjax.cli._drive_options import drive_from_args
+from pmsmjax.cli._observer_options import observer_from_args
+from pmsmjax.cli._operating_point import current_from_args
 from pmsmjax.analysis import equilibria
 
 name, method = sys.argv[1], sys.argv[2]
