@@ -25,6 +25,18 @@ Why this formulation:
   errors-in-variables bias, since each segment starts from a noisy measured current; it
   shrinks with the segment length and vanishes without noise.
 
+**Mechanics: measured or integrated** (`mechanics`). When neither J nor B is fitted
+(`"auto"` then picks `"measured"`), the electrical model runs on the recorded rotor
+motion, as is usual for electrical parameters: at every sample the model's angle is the
+recorded one, its speed the recorded one, and over the sampling period the speed moves
+linearly to the next recorded speed (a constant acceleration, integrated exactly by the
+RK4 step); only the currents are residuals. This
+holds whatever moves the rotor: a dyno that holds the speed, a load that is not logged.
+With J or B fitted (`"integrated"`), each segment integrates the mechanics from its
+measured start, driven by the recorded load torque (zero where none is recorded: a
+warning says so, since a load the log does not hold runs the model's speed away from the
+measured one and biases every parameter), and the speed is a residual too.
+
 **Weights.** A first solve weights the currents by $10^{-3} i_{max}$ and the speed by
 $10^{-3}\omega_{rated}$; a second solve, from the first solution, weights each channel
 by the RMS of its residual (feasible generalised least squares), so a noisy channel does
@@ -113,6 +125,8 @@ class IdentifyResult(eqx.Module):
     - `traces`: per recording, `{"t", "i_ab", "i_model", "w_m", "w_model"}` (NumPy): the
       measured signals and the segment-wise model response at the fitted parameters
       (segment starts reset the model to the measurement).
+    - `mechanics`: `"measured"` (the model ran on the recorded angle and speed; the speed
+      residual is not part of the fit and reported as 0) or `"integrated"`.
     """
 
     drive: Drive
@@ -129,6 +143,7 @@ class IdentifyResult(eqx.Module):
     warnings: tuple
     traces: list
     saturation: dict | None = None
+    mechanics: str = "integrated"
 
 
 def _recordings(data) -> list[RecordedData]:
@@ -166,6 +181,9 @@ class _Segments(eqx.Module):
     tau_L: jnp.ndarray  # (n, m)
     i_meas: jnp.ndarray  # (n, m, 2) measured current after each step
     w_meas: jnp.ndarray  # (n, m)
+    th: jnp.ndarray  # (n, m) measured angle at each step's start
+    w: jnp.ndarray  # (n, m) measured speed at each step's start
+    acc: jnp.ndarray  # (n, m) measured speed change over each step / T_s
     T_s: float = eqx.field(static=True)
 
 
@@ -179,7 +197,8 @@ def _cut(r: RecordedData, m: int) -> _Segments:
         i0_ab=jnp.asarray(r.i_ab[idx]), th0=jnp.asarray(np.asarray(r.theta)[idx]),
         w0=jnp.asarray(w[idx]), u=jnp.asarray(r.u_ab[steps]), tau_L=jnp.asarray(tau[steps]),
         i_meas=jnp.asarray(r.i_ab[steps + 1]), w_meas=jnp.asarray(w[steps + 1]),
-        T_s=float(r.T_s))
+        th=jnp.asarray(np.asarray(r.theta, float)[steps]), w=jnp.asarray(w[steps]),
+        acc=jnp.asarray((w[steps + 1] - w[steps]) / r.T_s), T_s=float(r.T_s))
 
 
 def _with_values(drive: Drive, values: dict) -> Drive:
@@ -198,23 +217,42 @@ def _with_values(drive: Drive, values: dict) -> Drive:
     return drive
 
 
-def _simulate_segments(plant: PMSM, seg: _Segments, n_substeps: int):
-    """Model current (n, m, 2) and speed (n, m) after each step of each segment."""
+def _simulate_segments(plant: PMSM, seg: _Segments, n_substeps: int, measured: bool):
+    """Model current (n, m, 2) and speed (n, m) after each step of each segment;
+    `measured`: the rotor moves as recorded (module docstring), else its mechanics are
+    integrated."""
 
-    def one(i0, th0, w0, u, tau):
+    def one(i0, th0, w0, u, tau, th, w, acc):
         c, s = cos_sin(th0)
         y0 = PlantState(i_dq=jnp.stack([c * i0[0] + s * i0[1], c * i0[1] - s * i0[0]]),
                         theta=th0, w_m=w0)
 
         def step(y, x):
-            uk, tk = x
-            y = integrate(plant.vector_field, y, PlantInput(u_ab=uk, tau_L=tk), seg.T_s,
-                          solver=RK4(), n_substeps=n_substeps)
+            uk, tk, thk, wk, ak = x
+            y, field, args = motion_step(plant.vector_field, y, PlantInput(u_ab=uk, tau_L=tk),
+                                         thk, wk, ak, measured)
+            y = integrate(field, y, args, seg.T_s, solver=RK4(), n_substeps=n_substeps)
             return y, (plant.i_ab(y), y.w_m)
 
-        return jax.lax.scan(step, y0, (u, tau))[1]
+        return jax.lax.scan(step, y0, (u, tau, th, w, acc))[1]
 
-    return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L)
+    return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L, seg.th, seg.w, seg.acc)
+
+
+def motion_step(field, y, args, theta, w_m, acc, measured: bool):
+    """One step's `(state, vector field, its args)`: unchanged when the rotor's
+    mechanics are integrated; when it moves as `measured`, the state (any module with
+    `theta`, `w_m`) takes the recorded angle (rad) and speed (rad/s) and the field turns
+    it at the constant acceleration `acc` (rad/s^2) instead of the mechanical equation."""
+    if not measured:
+        return y, field, args
+
+    def moved(t, v, a):
+        rates = field(t, v, a)
+        return eqx.tree_at(lambda r: r.w_m, rates, acc + 0.0 * rates.w_m)
+
+    y = eqx.tree_at(lambda v: (v.theta, v.w_m), y, (theta, w_m))
+    return y, moved, eqx.tree_at(lambda a: a.free, args, 0.0)
 
 
 class _Problem(eqx.Module):
@@ -225,6 +263,7 @@ class _Problem(eqx.Module):
     commanded: bool = eqx.field(static=True)
     n_substeps: int = eqx.field(static=True)
     saturation: object = None  # the starting AlgebraicSaturation of a saturation fit
+    measured: bool = eqx.field(static=True, default=False)  # the rotor moves as recorded
 
     def values(self, x):
         vals = jnp.where(self.lin_scale > 0, self.p0 + self.lin_scale * x,
@@ -245,14 +284,17 @@ class _Problem(eqx.Module):
         plant = self.plant(x)
         if self.saturation is not None:  # the flux-linkage form of the same plant
             mag = plant.motor.magnetic
-            return [_sat.simulate_segments(plant, mag, s, self.n_substeps) for s in segs]
-        return [_simulate_segments(plant, s, self.n_substeps) for s in segs]
+            return [_sat.simulate_segments(plant, mag, s, self.n_substeps, self.measured)
+                    for s in segs]
+        return [_simulate_segments(plant, s, self.n_substeps, self.measured) for s in segs]
 
     def residuals(self, x, args):
         segs, sig_i, sig_w = args
         out = []
         for s, (i_m, w_m) in zip(segs, self.model(x, segs)):
-            out += [((i_m - s.i_meas) / sig_i).ravel(), ((w_m - s.w_meas) / sig_w).ravel()]
+            out.append(((i_m - s.i_meas) / sig_i).ravel())
+            if not self.measured:  # a recorded speed is an input, not a residual
+                out.append(((w_m - s.w_meas) / sig_w).ravel())
         return jnp.concatenate(out)
 
 
@@ -277,7 +319,8 @@ def _channel_rms(problem, x, segs):
     for s, (i_m, w_m) in zip(segs, model):
         sq_i, n_i = sq_i + jnp.sum((i_m - s.i_meas) ** 2), n_i + i_m.size
         sq_w, n_w = sq_w + jnp.sum((w_m - s.w_meas) ** 2), n_w + w_m.size
-    return jnp.sqrt(sq_i / n_i), jnp.sqrt(sq_w / n_w), model
+    rms_w = 0.0 * sq_w if problem.measured else jnp.sqrt(sq_w / n_w)
+    return jnp.sqrt(sq_i / n_i), rms_w, model
 
 
 def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
@@ -285,7 +328,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
              voltage: str = "applied", segment: float = 0.02, n_substeps: int = 1,
              max_steps: int = 100, rtol: float = 1e-10, atol: float = 1e-10,
              warn_rel_std: float = 0.01, saturation=None, exponents=None,
-             min_coverage: float = 0.5) -> IdentifyResult:
+             min_coverage: float = 0.5, mechanics: str = "auto") -> IdentifyResult:
     """Fit the parameters `fit` of `drive` to one or more recordings (module docstring).
 
     **Arguments:**
@@ -315,6 +358,11 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
       drive's L_d, L_q, psi_f (`_identify_saturation.default_start`).
     - `exponents`: `(S, T, U, V)` (-, held) of the fitted model; default: the starting
       model's, or 4, 2, 2, 2.
+    - `mechanics`: `"measured"` (the model runs on the recorded angle and speed: any
+      speed profile, a dyno's included, and no load torque needed), `"integrated"` (the
+      mechanics integrated over each segment with the recorded load torque; needed to
+      fit J or B), or `"auto"` (default): `"integrated"` when J or B is fitted, else
+      `"measured"` (module docstring).
     - `min_coverage`: the fraction of the current range (i_d over [-i_max, 0], |i_q| up
       to i_max) the recordings must cover in each axis for a saturation fit; below it an
       `ExcitationWarning` names the axis and the coefficients left undetermined.
@@ -363,6 +411,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
             "u_dt (V): with voltage='applied' the recorded voltage already reached the "
             "windings, so the inverter error cannot act on the model; fit u_dt from "
             "commanded voltages (voltage='commanded').")
+    mechanics = mechanics_mode(names, mechanics)
     if not (segment > 0 and math.isfinite(segment)):
         raise IdentifyError(f"`identify(segment=...)` (s) must be > 0; got {segment!r}.")
     recs = _recordings(data)
@@ -377,6 +426,14 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
                 f"({segment:g} s); it needs at least two segments (record longer or pass "
                 f"a shorter `segment`).")
         segs.append(_cut(r, m))
+        if mechanics == "integrated" and r.tau_L is None:
+            warnings.warn(
+                f"recording {k}{' (' + r.source + ')' if r.source else ''} has no load "
+                f"torque: with mechanics='integrated' (J or B fitted) the model's rotor "
+                f"runs with none, so under a load or on a dyno its speed leaves the "
+                f"recorded one and every parameter is biased. Log the load torque, or fit "
+                f"the electrical parameters alone (mechanics='measured').",
+                IdentifiabilityWarning, stacklevel=2)
 
     sat_info, excite = None, []
     if sat_fit:
@@ -403,7 +460,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         lin.append(max(v, 1.0) if n == "u_dt" else 0.0)
     problem = _Problem(drive=drive, names=names, p0=jnp.asarray(p0), lin_scale=jnp.asarray(lin),
                        commanded=voltage == "commanded", n_substeps=n_substeps,
-                       saturation=start_sat)
+                       saturation=start_sat, measured=mechanics == "measured")
     x = jnp.zeros(len(names))
     sig_i = 1e-3 * float(drive.i_max)
     sig_w = 1e-3 * float(drive.w_rated)
@@ -474,7 +531,16 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
                     f"{IDENTIFIABLE[names[b]][1]}.")
     for msg in warn_list:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
-    fitted = _fitted_drive(drive, {n: v for n, v in vals.items() if n not in SATURATION_FIT})
+    try:
+        fitted = _fitted_drive(drive, {n: v for n, v in vals.items() if n not in SATURATION_FIT})
+    except ValueError as e:  # a value no drive can have: the model does not fit the data
+        raise IdentifyError(
+            f"the fit ended at values no drive can have ({e}): the model does not fit the "
+            f"recording(s) (residual RMS {rms_i:.3g} A"
+            + ("" if mechanics == "measured" else f", {rms_w:.3g} rad/s")
+            + "). Check what the log holds: commanded or applied voltages (voltage=), a "
+            "load torque that is not logged (fit the electrical parameters alone, "
+            "mechanics='measured'), the sampling period and the angle's offset.") from None
     if sat_fit:
         fitted = _sat.fitted_drive(fitted, _sat.with_values(start_sat, vals))
         sat_info = {"model": fitted.three_phase_motor.magnetic, "currents": sat_info,
@@ -493,7 +559,24 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         cost=s2, condition=condition, correlation=corr, names=names,
         n_residuals=int(r.size), n_segments=int(sum(s.w0.shape[0] for s in segs)),
         segment_s=float(segment), steps=steps, warnings=tuple(excite + warn_list), traces=traces,
-        saturation=sat_info)
+        saturation=sat_info, mechanics=mechanics)
+
+
+def mechanics_mode(names: Sequence[str], mechanics: str = "auto") -> str:
+    """The rotor motion `identify` uses for the fitted `names`: `"measured"` or
+    `"integrated"` (`mechanics` "auto": integrated when J or B is fitted)."""
+    mech_fit = [n for n in names if n in _MECH]
+    if mechanics not in ("auto", "measured", "integrated"):
+        raise IdentifyError(f"`identify(mechanics=...)` must be 'auto', 'measured' or "
+                            f"'integrated'; got {mechanics!r}.")
+    if mechanics == "measured" and mech_fit:
+        raise IdentifyError(
+            f"`identify(mechanics='measured')` runs the model on the recorded speed, so "
+            f"{', '.join(mech_fit)} cannot act on it; fit them with "
+            f"mechanics='integrated' (or 'auto') and a logged load torque.")
+    if mechanics == "auto":
+        return "integrated" if mech_fit else "measured"
+    return mechanics
 
 
 def _fitted_drive(drive: Drive, vals: dict) -> Drive:

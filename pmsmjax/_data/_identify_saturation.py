@@ -259,31 +259,35 @@ def flux_rates(plant, model: AlgebraicSaturation, y: FluxState, args) -> FluxSta
     return FluxState(psi_d=dpsi_d, psi_q=dpsi_q, theta=w, w_m=dw)
 
 
-def simulate_segments(plant, model: AlgebraicSaturation, seg, n_substeps: int):
+def simulate_segments(plant, model: AlgebraicSaturation, seg, n_substeps: int,
+                      measured: bool = False):
     """Model current (n, m, 2) and speed (n, m) after each step of each segment, on the
     flux-linkage plant (`flux_rates`): each segment starts from the flux of its measured
-    current (the model's Newton inversion, derivatives flowing through it)."""
+    current (the model's Newton inversion, derivatives flowing through it); `measured`:
+    the rotor moves as recorded (`_identify.motion_step`)."""
     from .._plant._motor import PlantInput, cos_sin
     from .._sim._integrate import RK4, integrate
+    from ._identify import motion_step
 
     def field(t, y, args):
         del t
         return flux_rates(plant, model, y, args)
 
-    def one(i0, th0, w0, u, tau):
+    def one(i0, th0, w0, u, tau, th, w, acc):
         c, s = cos_sin(th0)
         psi_d, psi_q, *_ = model.flux_and_inductance(c * i0[0] + s * i0[1],
                                                      c * i0[1] - s * i0[0])
         y0 = FluxState(psi_d=psi_d, psi_q=psi_q, theta=th0, w_m=w0)
 
         def step(y, x):
-            uk, tk = x
-            y = integrate(field, y, PlantInput(u_ab=uk, tau_L=tk), seg.T_s, solver=RK4(),
-                          n_substeps=n_substeps)
+            uk, tk, thk, wk, ak = x
+            y, f, args = motion_step(field, y, PlantInput(u_ab=uk, tau_L=tk), thk, wk, ak,
+                                     measured)
+            y = integrate(f, y, args, seg.T_s, solver=RK4(), n_substeps=n_substeps)
             i_d, i_q = model.current(y.psi_d, y.psi_q)
             c, s = cos_sin(y.theta)
             return y, (jnp.stack([c * i_d - s * i_q, s * i_d + c * i_q]), y.w_m)
 
-        return jax.lax.scan(step, y0, (u, tau))[1]
+        return jax.lax.scan(step, y0, (u, tau, th, w, acc))[1]
 
-    return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L)
+    return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L, seg.th, seg.w, seg.acc)

@@ -9,6 +9,7 @@ import warnings
 
 import pmsmjax as pj
 
+from .._data._identify import mechanics_mode
 from .._data._identify_saturation import flux_map_rows, saturation_table, write_flux_map
 from .._files import atomic_write, write_json
 from ._command import Command
@@ -72,6 +73,12 @@ def _identify_arguments(p: argparse.ArgumentParser) -> None:
                         "over -i_max..0, |i_q| up to i_max) the recordings must cover per "
                         "axis; less gives a warning naming the axis and the coefficients it "
                         "leaves undetermined (default: %(default)s)")
+    g.add_argument("--mechanics", choices=("auto", "measured", "integrated"), default="auto",
+                   help="the rotor's motion in the model: 'measured' runs it on the "
+                        "recorded angle and speed (any speed profile, a dyno's included; "
+                        "no load torque needed), 'integrated' integrates the mechanics "
+                        "with the recorded load torque (needed for J, B); 'auto' "
+                        "(default): integrated when J or B is fitted, else measured")
     g.add_argument("--segment", type=positive_float, default=0.02, metavar="S",
                    help="multiple-shooting segment length (s, default: %(default)s): each "
                         "segment restarts the model from the measured state")
@@ -86,13 +93,19 @@ def identify_command(args: argparse.Namespace) -> int:
     fit = _names(args.fit)
     recs = [pj.load_recording(f, require=("t", "u_ab", "i_ab", "theta")) for f in args.data]
     out = prepare_out_dir(args.out)
+    mech = mechanics_mode(fit, args.mechanics)
     print(f"pmsmjax identify: {drive.name}, fitting {', '.join(fit)} to {len(recs)} "
           f"recording(s) ({sum(r.n for r in recs)} samples, {args.voltage} voltages)")
+    print("mechanics: " + (
+        "measured (the model runs on the recorded angle and speed; the speed is not a "
+        "residual)" if mech == "measured" else
+        "integrated over each segment from its measured start, with the recorded load "
+        "torque (zero where none is logged); the speed is a residual"))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", pj.IdentifiabilityWarning)
         res = pj.identify(drive, recs, fit, voltage=args.voltage, segment=args.segment,
                           max_steps=args.max_steps, exponents=args.saturation_exponents,
-                          min_coverage=args.min_coverage)
+                          min_coverage=args.min_coverage, mechanics=mech)
     for w in caught:
         if not issubclass(w.category, pj.IdentifiabilityWarning):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
@@ -117,9 +130,11 @@ def identify_command(args: argparse.Namespace) -> int:
         **drive_info(drive, args),
         "data": list(args.data),
         "voltage": args.voltage,
+        "mechanics": res.mechanics,
         "formulation": "multiple shooting: each segment restarts the plant from the measured "
-                       "state; residuals = model - measured current (A) and speed (rad/s), "
-                       "each channel divided by its residual RMS; Levenberg-Marquardt",
+                       "state; residuals = model - measured current (A) and, with the "
+                       "mechanics integrated, speed (rad/s), each channel divided by its "
+                       "residual RMS; Levenberg-Marquardt",
         "segment_s": res.segment_s,
         "parameters": res.parameters,
         "residual_rms": res.residual_rms,
@@ -142,8 +157,10 @@ def identify_command(args: argparse.Namespace) -> int:
     write_json(files["result"], report)
     for n, p in res.parameters.items():
         print(f"  {n:6s} {p['value']:.6g} {p['unit']} +- {p['std']:.2g} (from {p['initial']:.6g})")
-    print(f"residual RMS {res.residual_rms['i_A']:.3g} A, {res.residual_rms['w_rad_s']:.3g} "
-          f"rad/s; condition {res.condition:.3g}")
+    speed = ("speed measured" if res.mechanics == "measured"
+             else f"{res.residual_rms['w_rad_s']:.3g} rad/s")
+    print(f"residual RMS {res.residual_rms['i_A']:.3g} A, {speed}; condition "
+          f"{res.condition:.3g}")
     if sat is not None:
         c, f = sat["currents"], sat["flux_std"]
         print(f"saturation: recorded i_d {c['i_d_A'][0]:.3g}..{c['i_d_A'][1]:.3g} A, i_q "
