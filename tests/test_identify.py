@@ -285,7 +285,9 @@ def test_a_dyno_log_runs_on_the_recorded_speed():
     times those). Integrating the mechanics instead (what identification did before)
     runs the model's speed away from the dyno's without the load torque: it warns that
     none is logged; fitting u_dt too it ends at a negative dead time, a named error; with
-    the true u_dt held, every electrical parameter is off by more than 5 %."""
+    the true u_dt held, every electrical parameter is off by more than 5 % and a warning
+    says that the model does not fit (its residual against the noise the log shows; the
+    matched fit raises no warning: the suite turns warnings into errors)."""
     d = pj.replace_params(pj.preset("zhang750"), u_dt=3.0)
     rec = _solve_ivp_recording(d, 0.3, noise=0.01, u_dt=3.0, dyno=(0.1, 0.3, 0.1, 0.25))
     w = np.asarray(rec.w_m) / float(d.w_rated)
@@ -304,10 +306,20 @@ def test_a_dyno_log_runs_on_the_recorded_speed():
             pj.identify(start, rec, names, voltage="commanded", mechanics="integrated")
     assert any("no load torque" in str(w.message) for w in caught), caught
     start4 = _start(d, dict(R_s=1.4, L_d=0.6, L_q=1.3, psi_f=0.7))  # u_dt the true 3 V
-    with warnings.catch_warnings(record=True):
+    with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         wrong = pj.identify(start4, rec, names[:4], voltage="commanded",
                             mechanics="integrated")
+    # ... and says that its model does not fit, against the noise the log shows
+    assert any("does not fit" in str(w.message) and "load torque" in str(w.message)
+               for w in caught), [str(w.message) for w in caught]
+    # the noise the log shows: 0.0124 A for 0.01 A of sensor noise (the current loop
+    # passes part of it into the current itself); the matched fit's residual at it (1.1
+    # times the sensor noise: each segment starts from a noisy sample), the wrong one's
+    # 150 times it
+    assert abs(res.noise["i_A"] / 0.01 - 1) < 0.5, res.noise
+    assert res.residual_rms["i_A"] < 1.5 * res.noise["i_A"]
+    assert wrong.residual_rms["i_A"] > 50 * res.noise["i_A"]
     # measured: R_s +57 %, L_d +30 %, L_q +29 %, psi_f -9.4 %
     for n in names[:4]:
         assert abs(wrong.parameters[n]["value"] / _true(d, n) - 1) > 0.05, wrong.parameters

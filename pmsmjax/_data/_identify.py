@@ -37,6 +37,14 @@ measured start, driven by the recorded load torque (zero where none is recorded:
 warning says so, since a load the log does not hold runs the model's speed away from the
 measured one and biases every parameter), and the speed is a residual too.
 
+**A model that does not fit.** The current noise the recordings imply is estimated from
+the measured currents themselves (`current_noise`: the scaled median absolute second
+difference of the currents in rotor coordinates, which a smooth current barely moves and
+white noise of standard deviation sigma moves by sqrt(6) sigma), at least a 12-bit
+converter's quantisation over +-i_max; a final current residual more than
+`max_noise_ratio` (default 3) times it gives an `IdentifiabilityWarning` that says the
+values and their standard deviations are not to be trusted and names the usual causes.
+
 **Weights.** A first solve weights the currents by $10^{-3} i_{max}$ and the speed by
 $10^{-3}\omega_{rated}$; a second solve, from the first solution, weights each channel
 by the RMS of its residual (feasible generalised least squares), so a noisy channel does
@@ -127,6 +135,7 @@ class IdentifyResult(eqx.Module):
       (segment starts reset the model to the measurement).
     - `mechanics`: `"measured"` (the model ran on the recorded angle and speed; the speed
       residual is not part of the fit and reported as 0) or `"integrated"`.
+    - `noise`: `{"i_A": ...}`, the current noise the recordings imply (`current_noise`).
     """
 
     drive: Drive
@@ -144,6 +153,7 @@ class IdentifyResult(eqx.Module):
     traces: list
     saturation: dict | None = None
     mechanics: str = "integrated"
+    noise: dict | None = None
 
 
 def _recordings(data) -> list[RecordedData]:
@@ -162,6 +172,23 @@ def _recordings(data) -> list[RecordedData]:
                 f"the rotor angle (an encoder or resolver log); it has "
                 f"{', '.join(r.names)}.")
     return recs
+
+
+def current_noise(recs: Sequence[RecordedData]) -> float:
+    """The current noise (A, one standard deviation per component) the recordings imply:
+    1.4826 x the median absolute second difference of the measured currents in rotor
+    coordinates (recorded angle), over sqrt(6). White noise of standard deviation sigma
+    gives sigma; a current that is smooth over three samples adds little, and steps are
+    outliers the median ignores."""
+    d2 = []
+    for r in recs:
+        th = np.asarray(r.theta, float)
+        i_ab = np.asarray(r.i_ab, float)
+        c, s = np.cos(th), np.sin(th)
+        i_dq = np.stack([c * i_ab[:, 0] + s * i_ab[:, 1], c * i_ab[:, 1] - s * i_ab[:, 0]], -1)
+        d2.append((i_dq[2:] - 2.0 * i_dq[1:-1] + i_dq[:-2]).ravel())
+    d2 = np.concatenate(d2)
+    return float(1.4826 * np.median(np.abs(d2)) / math.sqrt(6.0))
 
 
 def _speed(r: RecordedData) -> np.ndarray:
@@ -328,7 +355,8 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
              voltage: str = "applied", segment: float = 0.02, n_substeps: int = 1,
              max_steps: int = 100, rtol: float = 1e-10, atol: float = 1e-10,
              warn_rel_std: float = 0.01, saturation=None, exponents=None,
-             min_coverage: float = 0.5, mechanics: str = "auto") -> IdentifyResult:
+             min_coverage: float = 0.5, mechanics: str = "auto",
+             max_noise_ratio: float = 3.0) -> IdentifyResult:
     """Fit the parameters `fit` of `drive` to one or more recordings (module docstring).
 
     **Arguments:**
@@ -363,6 +391,8 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
       mechanics integrated over each segment with the recorded load torque; needed to
       fit J or B), or `"auto"` (default): `"integrated"` when J or B is fitted, else
       `"measured"` (module docstring).
+    - `max_noise_ratio`: the final current residual above this multiple of the current
+      noise the recordings imply gives a warning that the model does not fit them.
     - `min_coverage`: the fraction of the current range (i_d over [-i_max, 0], |i_q| up
       to i_max) the recordings must cover in each axis for a saturation fit; below it an
       `ExcitationWarning` names the axis and the coefficients left undetermined.
@@ -412,6 +442,9 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
             "windings, so the inverter error cannot act on the model; fit u_dt from "
             "commanded voltages (voltage='commanded').")
     mechanics = mechanics_mode(names, mechanics)
+    if not max_noise_ratio > 0:
+        raise IdentifyError(f"`identify(max_noise_ratio=...)` (-) must be > 0; got "
+                            f"{max_noise_ratio!r}.")
     if not (segment > 0 and math.isfinite(segment)):
         raise IdentifyError(f"`identify(segment=...)` (s) must be > 0; got {segment!r}.")
     recs = _recordings(data)
@@ -529,6 +562,23 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
                     f"(correlation {corr[a, b]:+.4f}): their individual values are uncertain; "
                     f"{names[a]} needs {IDENTIFIABLE[names[a]][1]}, {names[b]} needs "
                     f"{IDENTIFIABLE[names[b]][1]}.")
+    noise_i = current_noise(recs)
+    # no real drive's current is cleaner than a 12-bit converter over +-i_max quantises it
+    floor_i = 2.0 * float(drive.i_max) / 4096 / math.sqrt(12.0)
+    if rms_i > max_noise_ratio * max(noise_i, floor_i):
+        causes = (["a load torque the log does not hold (fit without J and B to run the "
+                   "model on the recorded speed, or log tau_L)"] if mechanics == "integrated"
+                  else [])
+        if voltage == "applied":
+            causes.append("commanded voltages taken as applied (voltage='commanded')")
+        causes += ["a delay between the logged voltage and current",
+                   "a wrong sampling period or angle offset"]
+        warn_list.append(
+            f"the model does not fit the recording(s): the current residual ({rms_i:.3g} A "
+            f"RMS) is {rms_i / max(noise_i, floor_i):.3g} times the current noise they show "
+            f"({noise_i:.3g} A, from the sample-to-sample variation; at least {floor_i:.2g} "
+            f"A, a 12-bit converter's over +-i_max), so the values and their standard "
+            f"deviations are not to be trusted. Usual causes: " + "; ".join(causes) + ".")
     for msg in warn_list:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
     try:
@@ -559,7 +609,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         cost=s2, condition=condition, correlation=corr, names=names,
         n_residuals=int(r.size), n_segments=int(sum(s.w0.shape[0] for s in segs)),
         segment_s=float(segment), steps=steps, warnings=tuple(excite + warn_list), traces=traces,
-        saturation=sat_info, mechanics=mechanics)
+        saturation=sat_info, mechanics=mechanics, noise={"i_A": noise_i})
 
 
 def mechanics_mode(names: Sequence[str], mechanics: str = "auto") -> str:

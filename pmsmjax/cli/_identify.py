@@ -138,6 +138,7 @@ def identify_command(args: argparse.Namespace) -> int:
         "segment_s": res.segment_s,
         "parameters": res.parameters,
         "residual_rms": res.residual_rms,
+        "noise_estimate": res.noise,
         "cost_per_dof": res.cost,
         "condition": res.condition,
         "correlation": {"names": list(res.names), "matrix": res.correlation},
@@ -159,8 +160,8 @@ def identify_command(args: argparse.Namespace) -> int:
         print(f"  {n:6s} {p['value']:.6g} {p['unit']} +- {p['std']:.2g} (from {p['initial']:.6g})")
     speed = ("speed measured" if res.mechanics == "measured"
              else f"{res.residual_rms['w_rad_s']:.3g} rad/s")
-    print(f"residual RMS {res.residual_rms['i_A']:.3g} A, {speed}; condition "
-          f"{res.condition:.3g}")
+    print(f"residual RMS {res.residual_rms['i_A']:.3g} A (the log's current noise about "
+          f"{res.noise['i_A']:.3g} A), {speed}; condition {res.condition:.3g}")
     if sat is not None:
         c, f = sat["currents"], sat["flux_std"]
         print(f"saturation: recorded i_d {c['i_d_A'][0]:.3g}..{c['i_d_A'][1]:.3g} A, i_q "
