@@ -89,15 +89,12 @@ from .._plant._params import Drive, Inverter
 from .._sim._integrate import RK4, check_drive_step, integrate
 from . import _identify_saturation as _sat
 from ._identifiable import IDENTIFIABLE as IDENTIFIABLE, SATURATION_FIT
+from ._identify_motion import IdentifyError, current_noise, mechanics_mode, motion_step
 from ._recording import RecordedData
 
 
 _MOTOR = ("R_s", "L_d", "L_q", "psi_f")
 _MECH = ("J", "B")
-
-
-class IdentifyError(ValueError):
-    """A fitted parameter the recording(s) cannot determine, or unusable data."""
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -174,23 +171,6 @@ def _recordings(data) -> list[RecordedData]:
     return recs
 
 
-def current_noise(recs: Sequence[RecordedData]) -> float:
-    """The current noise (A, one standard deviation per component) the recordings imply:
-    1.4826 x the median absolute second difference of the measured currents in rotor
-    coordinates (recorded angle), over sqrt(6). White noise of standard deviation sigma
-    gives sigma; a current that is smooth over three samples adds little, and steps are
-    outliers the median ignores."""
-    d2 = []
-    for r in recs:
-        th = np.asarray(r.theta, float)
-        i_ab = np.asarray(r.i_ab, float)
-        c, s = np.cos(th), np.sin(th)
-        i_dq = np.stack([c * i_ab[:, 0] + s * i_ab[:, 1], c * i_ab[:, 1] - s * i_ab[:, 0]], -1)
-        d2.append((i_dq[2:] - 2.0 * i_dq[1:-1] + i_dq[:-2]).ravel())
-    d2 = np.concatenate(d2)
-    return float(1.4826 * np.median(np.abs(d2)) / math.sqrt(6.0))
-
-
 def _speed(r: RecordedData) -> np.ndarray:
     """The recorded speed, or the centred derivative of the unwrapped angle."""
     if r.w_m is not None:
@@ -264,22 +244,6 @@ def _simulate_segments(plant: PMSM, seg: _Segments, n_substeps: int, measured: b
         return jax.lax.scan(step, y0, (u, tau, th, w, acc))[1]
 
     return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L, seg.th, seg.w, seg.acc)
-
-
-def motion_step(field, y, args, theta, w_m, acc, measured: bool):
-    """One step's `(state, vector field, its args)`: unchanged when the rotor's
-    mechanics are integrated; when it moves as `measured`, the state (any module with
-    `theta`, `w_m`) takes the recorded angle (rad) and speed (rad/s) and the field turns
-    it at the constant acceleration `acc` (rad/s^2) instead of the mechanical equation."""
-    if not measured:
-        return y, field, args
-
-    def moved(t, v, a):
-        rates = field(t, v, a)
-        return eqx.tree_at(lambda r: r.w_m, rates, acc + 0.0 * rates.w_m)
-
-    y = eqx.tree_at(lambda v: (v.theta, v.w_m), y, (theta, w_m))
-    return y, moved, eqx.tree_at(lambda a: a.free, args, 0.0)
 
 
 class _Problem(eqx.Module):
@@ -610,23 +574,6 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         n_residuals=int(r.size), n_segments=int(sum(s.w0.shape[0] for s in segs)),
         segment_s=float(segment), steps=steps, warnings=tuple(excite + warn_list), traces=traces,
         saturation=sat_info, mechanics=mechanics, noise={"i_A": noise_i})
-
-
-def mechanics_mode(names: Sequence[str], mechanics: str = "auto") -> str:
-    """The rotor motion `identify` uses for the fitted `names`: `"measured"` or
-    `"integrated"` (`mechanics` "auto": integrated when J or B is fitted)."""
-    mech_fit = [n for n in names if n in _MECH]
-    if mechanics not in ("auto", "measured", "integrated"):
-        raise IdentifyError(f"`identify(mechanics=...)` must be 'auto', 'measured' or "
-                            f"'integrated'; got {mechanics!r}.")
-    if mechanics == "measured" and mech_fit:
-        raise IdentifyError(
-            f"`identify(mechanics='measured')` runs the model on the recorded speed, so "
-            f"{', '.join(mech_fit)} cannot act on it; fit them with "
-            f"mechanics='integrated' (or 'auto') and a logged load torque.")
-    if mechanics == "auto":
-        return "integrated" if mech_fit else "measured"
-    return mechanics
 
 
 def _fitted_drive(drive: Drive, vals: dict) -> Drive:

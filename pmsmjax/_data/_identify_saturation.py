@@ -267,7 +267,7 @@ def simulate_segments(plant, model: AlgebraicSaturation, seg, n_substeps: int,
     the rotor moves as recorded (`_identify.motion_step`)."""
     from .._plant._motor import PlantInput, cos_sin
     from .._sim._integrate import RK4, integrate
-    from ._identify import motion_step
+    from ._identify_motion import motion_step
 
     def field(t, y, args):
         del t

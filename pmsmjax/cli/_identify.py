@@ -9,7 +9,7 @@ import warnings
 
 import pmsmjax as pj
 
-from .._data._identify import mechanics_mode
+from .._data._identify_motion import mechanics_mode
 from .._data._identify_saturation import flux_map_rows, saturation_table, write_flux_map
 from .._files import atomic_write, write_json
 from ._command import Command
