@@ -346,19 +346,18 @@ def observer_names(selection: str | Sequence[str] | None = None) -> list[str]:
 
 
 def paper_drive(name: str) -> str:
-    """The motor preset of observer `name`'s paper: the drive the tuner uses for it
-    (`tuning.FAMILY_MOTOR`), zhang750 for an observer it does not know."""
-    from tuning.problem import FAMILY_MOTOR
+    """The motor preset of observer `name`'s paper (its class's `paper_motor`:
+    `pmsmjax.observers.paper_drive`), the drive the tuner uses for it."""
+    from pmsmjax.observers import paper_drive as drive_of
 
-    return FAMILY_MOTOR.get(name, "zhang750")
+    return drive_of(name)[0]
 
 
 def sampling_period(preset: str) -> float:
-    """The sampling period (s) of the paper drive of motor `preset` (`tuning`'s), 125 us
-    for one it does not know."""
-    from tuning.problem import MOTOR_T_S
+    """The sampling period (s) of motor `preset`'s drive (`tuning.sampling_period`)."""
+    from tuning import sampling_period as period
 
-    return MOTOR_T_S.get(preset, 125e-6)
+    return period(preset)
 
 
 # ------------------------------------------------------------------------------ output

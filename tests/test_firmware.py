@@ -21,8 +21,8 @@ import numpy as np
 import pytest
 
 import pmsmjax as pj
-from pmsmjax.firmware import SUPPORTED, export_c
-from pmsmjax.observers import make_observer
+from pmsmjax.firmware import export_c, supported_observers
+from pmsmjax.observers import ESOObserver, make_observer, paper_drive
 
 
 T_S = 125e-6
@@ -145,10 +145,9 @@ def _check_against(ref, case, theta_ref, w_ref, c64, c32):
 def _case(case):
     """(drive, observer) of a test case: the registered observers with their default
     design (rotor-flux and parallel-model on their papers' machines), and other gain schedules."""
-    drive = pj.preset({"rotor-flux": "morawiec_ipm3k5", "parallel-model": "stumper_mt5",
-                       "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}
-                      .get(case, "zhang750"))
-    if case in SUPPORTED:
+    drive = pj.preset(paper_drive(case)[0] if case in supported_observers()
+                      else "zhang750")
+    if case in supported_observers():
         return drive, make_observer(case, drive)
     return drive, {
         "eso-fixed": lambda: make_observer("eso", drive, fixed_at=0.2),
@@ -159,7 +158,7 @@ def _case(case):
     }[case]()
 
 
-@pytest.mark.parametrize("case", [*SUPPORTED, "eso-fixed", "afo-fixed_w1",
+@pytest.mark.parametrize("case", [*supported_observers(), "eso-fixed", "afo-fixed_w1",
                                   "leso-fixed_ratio"])
 def test_c_observer_equals_replay(case, tmp_path_factory):
     drive, obs = _case(case)
@@ -176,7 +175,7 @@ def test_c_observer_equals_replay(case, tmp_path_factory):
     _check_against("synthetic", case, theta_py, w_py, c64, c32)
 
 
-@pytest.mark.parametrize("case", SUPPORTED)
+@pytest.mark.parametrize("case", supported_observers())
 def test_c_observer_equals_the_closed_loop_on_a_noisy_run(case, tmp_path_factory):
     """The C code fed the measurements of a closed-loop sensorless run of 0.4 s (3200
     samples; the observer in the loop, current noise 0.02 A, a speed ramp from 0.2 to
@@ -250,3 +249,24 @@ def test_cli_export_c_refuses_unstable_sampling(tmp_path, capsys):
     assert main(["export-c", "--motor", "stumper_mt5", "--observer", "parallel-model",
                  "--T-s", "2e-3", "--out", str(tmp_path / "c")]) == 2
     assert "2 min(T_LP, T_w)" in capsys.readouterr().err
+
+
+def test_an_observer_without_its_own_emitter_is_refused_by_name():
+    """A class that declares no `c_emitter` of its own (here a subclass of the ESO, which
+    may change the step) gets `UnsupportedObserverError` naming it, never its parent's
+    code; the supported list is the registered classes that declare one."""
+    from pmsmjax.firmware import UnsupportedObserverError, emitter_for, render
+    from pmsmjax.observers import observer_class, observer_names
+
+    class ShiftedESO(ESOObserver):
+        pass
+
+    drive = pj.preset("zhang750")
+    eso = make_observer("eso", drive)
+    shifted = ShiftedESO(eso.motor, eso.design)
+    assert emitter_for(ESOObserver) is not None and emitter_for(ShiftedESO) is None
+    with pytest.raises(UnsupportedObserverError, match="ShiftedESO.*no `c_emitter`"):
+        render(shifted, T_S)
+    assert set(supported_observers()) == {
+        n for n in observer_names() if "c_emitter" in vars(observer_class(n))}
+    assert "pmsm_obs_step" in render(eso, T_S)["pmsm_observer.c"]

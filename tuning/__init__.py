@@ -37,10 +37,10 @@ from .objective import (
 )
 from .pipeline import TuningReport as TuningReport, tune as tune
 from .problem import (
-    FAMILY_MOTOR as FAMILY_MOTOR,
     SEARCHES as SEARCHES,
     VALIDATION_CASES as VALIDATION_CASES,
     TuningProblem as TuningProblem,
+    sampling_period as sampling_period,
 )
 from .report import (
     REQUIRED_KEYS as REQUIRED_KEYS,

@@ -65,27 +65,23 @@ class Coordinate:
     paper: float
 
 
-#: Per family: the tunable coordinates and how they map to the observer's design.
-#: Each entry: coordinate name -> (kind, unit). Families not listed use the contract's
-#: `tunable` names directly ("tracking"/"damping"/"estimator" where recognised).
 #: Where the paper's design lies outside the derived bounds, they are widened to hold it
 #: with this factor of room (the search must be able to return the baseline).
 PAPER_MARGIN = 1.25
 #: Bounds of zhang2022's flux loop (fixed-ratio schedule): damping and w1/|w0|.
 FLUX_DAMPING = (0.5, 4.0)
 FLUX_RATIO = (0.2, 2.0)
-_TRACKING = {"w2", "w_pll"}
-_DAMPING = {"zeta2", "zeta_pll"}
-_ESTIMATOR = {"w0"}
-_TIME = {"T_LP"}
+#: The kinds of coordinate whose bounds derive from the drive (the observer class's
+#: `tunable_kinds`); any other tunable name is a "contract" coordinate.
+KINDS = ("tracking", "damping", "estimator", "time")
 
 
-def _kind(name: str) -> str:
-    for kind, names in (("tracking", _TRACKING), ("damping", _DAMPING),
-                        ("estimator", _ESTIMATOR), ("time", _TIME)):
-        if name in names:
-            return kind
-    return "contract"
+def _kind(cls, name: str) -> str:
+    kind = cls.tunable_kinds.get(name, "contract")
+    if kind not in (*KINDS, "contract"):
+        raise ValueError(f"`{cls.__name__}.tunable_kinds[{name!r}]` is {kind!r}; choose "
+                         f"one of {', '.join(KINDS)}.")
+    return kind
 
 
 class DesignSpace:
@@ -132,7 +128,7 @@ class DesignSpace:
                                      "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6", 0.75))
         for name, box in tunable.items():
             unit = cls.design_units[name].split(",")[0]
-            coords.append(self._coord(name, unit, _kind(name), self.paper_design[name],
+            coords.append(self._coord(name, unit, _kind(cls, name), self.paper_design[name],
                                       problem, box))
         self.coordinates = tuple(coords)
 

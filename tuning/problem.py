@@ -7,8 +7,9 @@ search budget) and hands its own result to the next stage:
 
     problem -> scenarios -> design space -> objective -> search -> report
 
-Defaults follow the observer's paper: the family's own motor (`FAMILY_MOTOR`) and that
-motor's sampling period (`MOTOR_T_S`), unless `motor` / `motor_file` / `T_s` are given.
+Defaults follow the observer's paper: the drive its class names (`paper_motor`,
+`pmsmjax.observers.paper_drive`) and that motor's sampling period (`sampling_period`),
+unless `motor` / `motor_file` / `T_s` are given.
 """
 
 from __future__ import annotations
@@ -19,16 +20,29 @@ import math
 import os
 
 import pmsmjax as pj
-from pmsmjax.observers import observer_class, observer_names
+from pmsmjax.observers import (
+    DEFAULT_PAPER_DRIVE,
+    observer_class,
+    observer_names,
+    paper_drive,
+)
 
 
-#: The motor of each observer's paper (its default drive for tuning).
-FAMILY_MOTOR = {"eso": "zhang750", "leso": "zhang750", "afo": "zhang750",
-                "parallel-model": "stumper_mt5", "rotor-flux": "morawiec_ipm3k5",
-                "c-leso": "li_dtp", "gi-leso": "li_dtp", "fa-leso": "li_dtp"}
-#: Sampling period of each preset's paper drive (s).
-MOTOR_T_S = {"zhang750": 125e-6, "stumper_mt5": 62.5e-6, "morawiec_ipm3k5": 1 / 6600,
-             "li_dtp": 1e-4, "ipm3k5_sat": 1 / 6600}
+#: Sampling period (s) of the presets that are no registered observer's paper drive: the
+#: saturated 3.5 kW IPMSM runs on morawiec2023's drive.
+OTHER_T_S = {"ipm3k5_sat": 1 / 6600}
+
+
+def sampling_period(motor: str) -> float:
+    """The sampling period (s) of preset `motor`'s drive: that of the registered observer
+    whose paper drive it is (its class's `paper_T_s`), else `OTHER_T_S`, else 125 us."""
+    for name in observer_names():
+        preset, T_s = paper_drive(name)
+        if preset == motor and observer_class(name).paper_motor is not None:
+            return T_s
+    return OTHER_T_S.get(motor, DEFAULT_PAPER_DRIVE[1])
+
+
 #: The search strategies (`tuning.search`).
 SEARCHES = ("hybrid", "gradient", "cmaes", "random", "local")
 
@@ -79,9 +93,10 @@ class TuningProblem:
 
     - `observer`: a registered observer with a tunable design
       (`pmsmjax.observers.observer_names()`; its class's `tunable`).
-    - `motor`: preset name; default (None) the observer's paper motor (`FAMILY_MOTOR`).
+    - `motor`: preset name; default (None) the observer's paper motor
+      (`pmsmjax.observers.paper_drive`).
       `motor_file`: a motor file (TOML) instead. `set_params`: `((name, SI value), ...)`.
-    - `T_s`: sampling period (s); default the motor's paper drive's (`MOTOR_T_S`, else
+    - `T_s`: sampling period (s); default the motor's paper drive's (`sampling_period`, else
       125 us).
     - `noise_std`: current-sensor noise per component (A).
 
@@ -186,13 +201,13 @@ class TuningProblem:
             if not os.path.isfile(self.motor_file):
                 _bad("motor_file", self.motor_file, "no such file")
         elif self.motor is None:
-            set_("motor", FAMILY_MOTOR.get(self.observer, "zhang750"))
+            set_("motor", paper_drive(self.observer)[0])
         if self.motor_file is None and self.motor not in pj.PRESET_NAMES:
             _bad("motor", self.motor, f"choose one of {', '.join(pj.PRESET_NAMES)} or give "
                                       f"`motor_file`")
         if self.T_s is None:
-            set_("T_s", MOTOR_T_S.get(self.motor, 125e-6) if self.motor_file is None
-                 else 125e-6)
+            set_("T_s", sampling_period(self.motor) if self.motor_file is None
+                 else DEFAULT_PAPER_DRIVE[1])
         for k in ("set_params", "speed_range", "accel_range", "mismatch_range",
                   "resistance_range", "flux_range", "noise_range", "val_speeds_pu",
                   "damping_range"):
@@ -286,4 +301,4 @@ class TuningProblem:
         return cls(**kw)
 
 
-__all__ = ["FAMILY_MOTOR", "MOTOR_T_S", "SEARCHES", "TuningProblem", "VALIDATION_CASES"]
+__all__ = ["OTHER_T_S", "SEARCHES", "TuningProblem", "VALIDATION_CASES", "sampling_period"]

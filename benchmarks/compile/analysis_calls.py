@@ -44,7 +44,7 @@ pj.runtime.configure(cache=False)
 import jax, jax.numpy as jnp
 import jax.monitoring as mon
 from pmsmjax import analysis
-from pmsmjax.observers import OperatingPoint, make_observer
+from pmsmjax.observers import OperatingPoint, make_observer, paper_drive
 
 n_comp = [0]
 mon.register_event_duration_secs_listener(
@@ -52,8 +52,7 @@ mon.register_event_duration_secs_listener(
     if e == "/jax/core/compile/backend_compile_duration" else None)
 case = sys.argv[1]
 fn_name, obs_name = case.split("/")
-preset = {"parallel-model": "stumper_mt5", "c-leso": "li_dtp",
-          "rotor-flux": "morawiec_ipm3k5", "leso": "zhang750", "eso": "zhang750"}[obs_name]
+preset = paper_drive(obs_name)[0]
 drive = pj.preset(preset)
 if obs_name == "eso":
     drive = pj.replace_params(drive, L_d=1.5e-3, L_q=6.0e-3)

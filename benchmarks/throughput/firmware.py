@@ -1,7 +1,7 @@
 """Cost of one step of the generated C observers (`pmsmjax export-c`).
 
 For every observer of the registry that the C export supports
-(`pmsmjax.firmware.SUPPORTED`), on its paper's motor with its default design at
+(`pmsmjax.firmware.supported_observers()`), on its paper's motor with its default design at
 T_s = 125 us: generate the code (double and float), compile it with `gcc -std=c99 -O2`
 together with a small driver that feeds a rotating current and voltage (held in memory,
 no I/O; the driver's own two `sin`/`cos` per step are included) to `pmsm_obs_step` N
@@ -68,10 +68,10 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     steps = args.steps or (20_000 if args.quick else 200_000)
     import pmsmjax as pj
-    from pmsmjax.firmware import SUPPORTED, export_c
+    from pmsmjax.firmware import export_c, supported_observers
     from pmsmjax.observers import make_observer
 
-    names = [n for n in h.observer_names(args.observers) if n in SUPPORTED]
+    names = [n for n in h.observer_names(args.observers) if n in supported_observers()]
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in names:

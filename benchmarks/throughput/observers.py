@@ -2,7 +2,7 @@
 loop, each on its paper's drive, side by side with zhang2022's ESO on the same drive.
 
 1. **Replay** (`pmsmjax.replay_estimates`, a `lax.scan` of `observer.step`) of a recording
-   of the drive (its paper's motor and sampling period, `tuning.FAMILY_MOTOR`; `--drive`
+   of the drive (its paper's motor and sampling period, `pmsmjax.observers.paper_drive`; `--drive`
    puts every observer on one): sensored current control at `--speed` p.u. (default 1.0,
    imposed), i_d = 0, i_q = 0.5 p.u., 0.02 A current noise; each observer with its default
    design for the drive (`make_observer`), started at the true angle and speed. Batch B

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from pmsmjax.firmware import SUPPORTED, export_c
+from pmsmjax.firmware import export_c, supported_observers
 
 from ._command import Command
 from ._design import add_design_option, observer_with_design
@@ -28,9 +28,9 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 
 
 def export_c_command(args: argparse.Namespace) -> int:
-    if args.observer not in SUPPORTED:
-        raise CLIError(f"--observer {args.observer}: export-c supports "
-                       f"{', '.join(SUPPORTED)} today")
+    if args.observer not in supported_observers():
+        raise CLIError(f"--observer {args.observer}: export-c has no C code for it; it "
+                       f"supports {', '.join(supported_observers())}")
     drive = drive_from_args(args)
     choice = observer_with_design(args, drive, default="eso")
     try:
@@ -55,7 +55,7 @@ COMMAND = Command(
         "pmsm_observer.c (pmsm_obs_init, pmsm_obs_step) and replay_main.c, which reads a "
         "CSV recording t,u_a,u_b,i_a,i_b (one header line, SI units, stationary "
         "alpha-beta frame) on standard input and prints theta_hat,w_hat per sample. "
-        f"Observers: {', '.join(SUPPORTED)}. See docs/firmware.md."
+        f"Observers: {', '.join(supported_observers())}. See docs/firmware.md."
     ),
     add_arguments=_arguments,
     run=export_c_command,

@@ -1,51 +1,40 @@
 """The generic part of the C emitter: the number type, libm names, the files, and the
-replay program, and the one table (`_EMITTERS`) from an observer class to its family's
-emitter. Each family (`_zhang2022`, `_morawiec2023`, `_stumper`, `_li`) supplies a
-`CObserver` (`_c`): the state struct's fields, the `init` body, the `step` body and its
-helper functions."""
+replay program, and the lookup of an observer class's own emitter (its `c_emitter`
+attribute). Each family's module (`_zhang2022`, `_morawiec2023`, `_stumper`, `_li`, ...)
+supplies `emit(observer, T_s) -> CObserver` (`_c`): the state struct's fields, the `init`
+body, the `step` body and its helper functions."""
 
 from __future__ import annotations
 
+import importlib
 import pathlib
 from collections.abc import Callable
 
 from .._validate import check_positive
-from ..observers import (
-    AFOObserver,
-    CLESOObserver,
-    ESOObserver,
-    FALESOObserver,
-    GILESOObserver,
-    LESOObserver,
-    ParallelModelObserver,
-    RotorFluxObserver,
-)
-from . import _li, _morawiec2023, _stumper, _zhang2022
+from ..observers import observer_class, observer_names
 from ._c import CObserver
-
-
-#: registered observer names the emitter supports (the others raise
-#: `UnsupportedObserverError`)
-SUPPORTED = ("eso", "leso", "afo", "rotor-flux", "parallel-model", "c-leso", "gi-leso",
-             "fa-leso")
 
 
 class UnsupportedObserverError(ValueError):
     """`export_c` / `render` got an observer whose class has no C emitter."""
 
 
-#: observer class -> its family's emitter `(observer, T_s) -> CObserver`; looked up by
-#: the exact class (a subclass may change the step, so it needs its own entry)
-_EMITTERS: dict[type, Callable[[object, float], CObserver]] = {
-    ESOObserver: lambda o, T_s: _zhang2022.emit(o),
-    LESOObserver: lambda o, T_s: _zhang2022.emit(o),
-    AFOObserver: lambda o, T_s: _zhang2022.emit(o),
-    RotorFluxObserver: lambda o, T_s: _morawiec2023.emit(o),
-    ParallelModelObserver: _stumper.emit,
-    CLESOObserver: lambda o, T_s: _li.emit(o),
-    GILESOObserver: lambda o, T_s: _li.emit(o),
-    FALESOObserver: lambda o, T_s: _li.emit(o),
-}
+def emitter_for(observer_type: type) -> Callable[[object, float], CObserver] | None:
+    """The C emitter `(observer, T_s) -> CObserver` the class `observer_type` declares
+    itself (`AbstractObserver.c_emitter`, `"module:function"` in `pmsmjax.firmware`), or
+    None. Never inherited: a subclass may change the step, so it declares its own."""
+    spec = vars(observer_type).get("c_emitter")
+    if spec is None:
+        return None
+    module, _, function = spec.partition(":")
+    return getattr(importlib.import_module(f"{__package__}.{module}"), function)
+
+
+def supported_observers() -> tuple[str, ...]:
+    """The registered observer names (`pmsmjax.observers.observer_names()`) whose class has
+    a C emitter; the others raise `UnsupportedObserverError`."""
+    return tuple(n for n in observer_names()
+                 if vars(observer_class(n)).get("c_emitter") is not None)
 
 
 def _math_macros(float32: bool) -> str:
@@ -223,15 +212,15 @@ int main(int argc, char **argv)
 
 
 def render(observer, T_s: float, *, float32: bool = False) -> dict[str, str]:
-    """The generated files `{name: text}` for `observer` (a registered observer of
-    `SUPPORTED`) at sampling period `T_s` (s)."""
+    """The generated files `{name: text}` for `observer` (an observer whose class has a C
+    emitter, `supported_observers()`) at sampling period `T_s` (s)."""
     check_positive("export_c", "T_s", T_s, "s")
-    emitter = _EMITTERS.get(type(observer))
+    emitter = emitter_for(type(observer))
     if emitter is None:
         raise UnsupportedObserverError(
-            f"export-c has no C emitter for {type(observer).__name__}; it supports "
-            f"{', '.join(c.__name__ for c in _EMITTERS)} (the observers "
-            f"{', '.join(SUPPORTED)}).")
+            f"export-c has no C emitter for {type(observer).__name__} (its class declares "
+            f"no `c_emitter`); the observers with one are "
+            f"{', '.join(supported_observers())}.")
     obs = emitter(observer, float(T_s))
     return {"pmsm_observer.h": _header(obs, float(T_s), float32),
             "pmsm_observer.c": _source(obs),

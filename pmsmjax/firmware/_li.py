@@ -66,7 +66,10 @@ def _mat_c(name, coef) -> list[str]:
     return lines
 
 
-def emit(observer: AbstractBackEMFLESO) -> CObserver:
+def emit(observer: AbstractBackEMFLESO, T_s: float) -> CObserver:
+    """The `CObserver` of a C-, GI- or FA-LESO (the ZOH matrices are computed in C at
+    `PMSM_OBS_T_S`)."""
+    del T_s
     m = observer.motor
     p = observer.pll
     w_pll, zeta_pll, w_min = _f(p.w_pll), _f(p.zeta_pll), _f(p.w_min)

@@ -22,7 +22,9 @@ _FIELDS = (
     ("int started", "0 until the first sample has been seen"),
 )
 
-def emit(observer: RotorFluxObserver) -> CObserver:
+def emit(observer: RotorFluxObserver, T_s: float) -> CObserver:
+    """The `CObserver` of the rotor-flux observer (the gains do not depend on `T_s`)."""
+    del T_s
     m = observer.motor
     c_alpha, c_lambda, k_c = _f(observer.c_alpha), _f(observer.c_lambda), _f(observer.k_c)
     c_theta, gamma = _f(observer.c_theta), _f(observer.gamma)

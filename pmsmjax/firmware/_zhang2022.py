@@ -162,8 +162,9 @@ _STORE_STATE = [
 ]
 
 
-def emit(observer) -> CObserver:
-    """The `CObserver` of an ESO, LESO or AFO."""
+def emit(observer, T_s: float) -> CObserver:
+    """The `CObserver` of an ESO, LESO or AFO (the gains do not depend on `T_s`)."""
+    del T_s
     if type(observer) not in (ESOObserver, LESOObserver, AFOObserver):
         raise ValueError(f"export-c supports the observers eso, leso, afo; got "
                          f"{type(observer).__name__}.")

@@ -62,9 +62,11 @@ from ._parallel_model_sensitivity import (
 )
 from ._pll import QuadraturePLL as QuadraturePLL
 from ._registry import (
+    DEFAULT_PAPER_DRIVE as DEFAULT_PAPER_DRIVE,
     make_observer as make_observer,
     observer_class as observer_class,
     observer_names as observer_names,
+    paper_drive as paper_drive,
     register_observer as register_observer,
 )
 from ._rotor_flux import (
@@ -81,3 +83,5 @@ register_observer("rotor-flux", RotorFluxObserver)
 register_observer("c-leso", CLESOObserver)
 register_observer("gi-leso", GILESOObserver)
 register_observer("fa-leso", FALESOObserver)
+from ._reduced_order import ReducedOrderObserver as ReducedOrderObserver, ReducedOrderState as ReducedOrderState  # noqa: E402
+register_observer("reduced-order", ReducedOrderObserver)

@@ -163,6 +163,8 @@ class AbstractBackEMFLESO(AbstractObserver):
     motor: eqx.AbstractVar[PMSMParams]
     pll: eqx.AbstractVar[QuadraturePLL]
     n_s: ClassVar[int] = 2
+    tunable_kinds: ClassVar[dict[str, str]] = {"w0": "estimator", "w_pll": "tracking",
+                                               "zeta_pll": "damping"}
     extras: ClassVar[dict[str, str]] = _EXTRAS
 
     # --- the model --------------------------------------------------------------------

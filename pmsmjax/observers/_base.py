@@ -163,6 +163,12 @@ class AbstractObserver(eqx.Module):
     #: bounds as factors on its value in `from_drive`'s design (0 < lo < 1 < hi; the
     #: value must be > 0). Empty: the observer declares no tunable design.
     tunable: ClassVar[dict[str, tuple[float, float]]] = {}
+    #: How the tuner derives the bounds of a `tunable` parameter from the drive
+    #: (`tuning.DesignSpace`): name -> `"tracking"` (a type-2 angle-tracking bandwidth,
+    #: rad/s), `"damping"` (its damping ratio), `"estimator"` (an estimator bandwidth,
+    #: rad/s) or `"time"` (a filter time constant, s). A tunable name not listed keeps the
+    #: `tunable` factor box around its default.
+    tunable_kinds: ClassVar[dict[str, str]] = {}
     #: Design parameters that may vary with the observer's own speed estimate (a gain
     #: schedule in its `design` field, zhang2022 Sec. III). Empty: constants only.
     speed_scheduled: ClassVar[tuple[str, ...]] = ()
@@ -171,6 +177,17 @@ class AbstractObserver(eqx.Module):
     #: invariant, and the angle-resolved analyses (`analysis.harmonic_ripple`,
     #: `analysis.input_matrix`) evaluate them at one angle.
     angle_dependent: ClassVar[bool] = False
+    #: The preset of the observer's paper's drive (`pmsmjax.preset` name): the machine
+    #: the tuner, the benchmarks and the docs figures run it on by default. None: no
+    #: paper drive (e.g. the sensored pass-through); such an observer runs on `zhang750`.
+    paper_motor: ClassVar[str | None] = None
+    #: The sampling period (s) of that paper drive; None: the preset's own default.
+    paper_T_s: ClassVar[float | None] = None
+    #: Its C emitter, `"module:function"` inside `pmsmjax.firmware` (e.g.
+    #: `"_stumper:emit"`), a function `(observer, T_s) -> CObserver` that writes this
+    #: class's step in C. Read from the class itself, never inherited (a subclass may
+    #: change the step): a class without its own has no C code, and `export_c` says so.
+    c_emitter: ClassVar[str | None] = None
 
     def __check_init__(self):
         if self.magnetic is not None and not isinstance(self.magnetic,

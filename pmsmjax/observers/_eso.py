@@ -159,6 +159,9 @@ def _true_flux_ab(plant: PMSMParams, truth: PlantPoint):
 
 
 class _AbstractFluxObserver(AbstractObserver):
+    paper_motor: ClassVar[str | None] = "zhang750"
+    paper_T_s: ClassVar[float | None] = 125e-6
+    tunable_kinds: ClassVar[dict[str, str]] = {"w2": "tracking", "zeta2": "damping"}
     motor: eqx.AbstractVar[PMSMParams]
     design: eqx.AbstractVar[AbstractGainSchedule]
 
@@ -411,6 +414,7 @@ class ESOObserver(_AbstractESO):
       error signal).
     """
 
+    c_emitter: ClassVar[str | None] = "_zhang2022:emit"
     motor: PMSMParams
     design: AbstractGainSchedule
     a: float
@@ -455,6 +459,7 @@ class LESOObserver(_AbstractESO):
     **Arguments:** `motor`, `design` as for `ESOObserver`.
     """
 
+    c_emitter: ClassVar[str | None] = "_zhang2022:emit"
     motor: PMSMParams
     design: AbstractGainSchedule
 
@@ -503,6 +508,7 @@ class AFOObserver(_AbstractFluxObserver):
       `zeta2`) or `FixedGains`.
     """
 
+    c_emitter: ClassVar[str | None] = "_zhang2022:emit"
     #: the PI speed law (53) has no null-space components (n2, n3 do not apply)
     design_units: ClassVar[dict[str, str]] = {
         k: v for k, v in _DESIGN_UNITS.items() if k not in ("n2", "n3")}

@@ -99,6 +99,9 @@ class CLESOObserver(AbstractBackEMFLESO):
     - `pll`: `QuadraturePLL`.
     """
 
+    paper_motor: ClassVar[str | None] = "li_dtp"
+    paper_T_s: ClassVar[float | None] = 1e-4
+    c_emitter: ClassVar[str | None] = "_li:emit"
     motor: PMSMParams
     w0: float
     pll: QuadraturePLL
@@ -165,6 +168,9 @@ class GILESOObserver(AbstractBackEMFLESO):
       the integrator stays a damped band-pass at standstill.
     """
 
+    paper_motor: ClassVar[str | None] = "li_dtp"
+    paper_T_s: ClassVar[float | None] = 1e-4
+    c_emitter: ClassVar[str | None] = "_li:emit"
     motor: PMSMParams
     w0: float
     K_r: float
@@ -317,6 +323,9 @@ class FALESOObserver(AbstractBackEMFLESO):
     - `k1` (1/s^2), `k2` (1/s): the gains of (25), > 0.
     """
 
+    paper_motor: ClassVar[str | None] = "li_dtp"
+    paper_T_s: ClassVar[float | None] = 1e-4
+    c_emitter: ClassVar[str | None] = "_li:emit"
     motor: PMSMParams
     k1: float
     k2: float

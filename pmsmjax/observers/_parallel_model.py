@@ -227,6 +227,10 @@ class ParallelModelObserver(AbstractObserver):
     - `T_w`: speed low-pass time constant (s), default 2 ms (stumper Sec. IV-D).
     """
 
+    paper_motor: ClassVar[str | None] = "stumper_mt5"
+    paper_T_s: ClassVar[float | None] = 62.5e-6
+    tunable_kinds: ClassVar[dict[str, str]] = {"T_LP": "time"}
+    c_emitter: ClassVar[str | None] = "_stumper:emit"
     motor: PMSMParams
     v1: float
     v2: float

@@ -42,6 +42,24 @@ def observer_class(name: str) -> type[AbstractObserver]:
     return _REGISTRY[key]
 
 
+#: The drive an observer without a paper drive (`paper_motor` None) runs on, and its
+#: sampling period (s): zhang2022's 750 W drive.
+DEFAULT_PAPER_DRIVE = ("zhang750", 125e-6)
+
+
+def paper_drive(name: str) -> tuple[str, float]:
+    """`(preset name, T_s in s)` of the drive the observer registered as `name` is
+    demonstrated on: its class's `paper_motor` and `paper_T_s` (`DEFAULT_PAPER_DRIVE` for
+    what it leaves None). The tuner, the benchmarks, the tests and the docs figures ask
+    this, so that a new observer states its drive once, in its class."""
+    cls = observer_class(name)
+    motor, T_s = DEFAULT_PAPER_DRIVE
+    if cls.paper_motor is not None:
+        motor = cls.paper_motor
+        T_s = cls.paper_T_s if cls.paper_T_s is not None else T_s
+    return motor, float(T_s)
+
+
 def make_observer(name: str, drive: Drive, *, motor: PMSMParams | None = None,
                   magnetic: AbstractMagneticModel | None = None,
                   **design) -> AbstractObserver:

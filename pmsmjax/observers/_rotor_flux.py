@@ -180,8 +180,8 @@ N_AVERAGE = 8
 #: docstring, "Choice of gamma", gives the spectra and simulations behind it).
 PAPER_GAINS_PU = {"c_alpha": 3.0, "c_lambda": 0.001, "k_c": 0.1, "c_theta": 0.15,
                   "gamma": 1.0}
-#: The test machine's $(\psi_f / L_d)^2$ in p.u. (morawiec2023 Table I: psi_f = 0.89 p.u.,
-#: L_d = 0.28 p.u.), the machine on which gamma = 1.0 p.u. was chosen.
+#: $(\psi_f / L_d)^2$ (p.u.) of the machine gamma = 1.0 p.u. was chosen on
+#: (morawiec2023 Table I: psi_f = 0.89 p.u., L_d = 0.28 p.u.).
 PAPER_PSI_OVER_LD_PU2 = (0.89 / 0.28) ** 2
 
 
@@ -199,8 +199,7 @@ def gamma_pu_for(drive: Drive) -> float:
     is 1.008 at 62.5 us and 1.06 at 125 us: a replay from the true state runs away after
     0.1 s); with this rule (0.166 p.u.) it is 0.999 and 0.998 (`test_rotor_flux.py`).
     On the paper's machine the rule gives the paper's 1.0 p.u. exactly."""
-    b = drive.base
-    m = drive.three_phase_motor
+    b, m = drive.base, drive.three_phase_motor
     L_b = float(b.U_b) / (float(b.w_b) * float(b.I_b))
     ratio = (float(m.psi_f) / (L_b * float(b.I_b)) / (float(m.L_d) / L_b)) ** 2
     factor = PAPER_PSI_OVER_LD_PU2 / ratio
@@ -358,6 +357,9 @@ class RotorFluxObserver(AbstractObserver):
       as printed, unstable; kept for comparison).
     """
 
+    paper_motor: ClassVar[str | None] = "morawiec_ipm3k5"
+    paper_T_s: ClassVar[float | None] = 1 / 6600
+    c_emitter: ClassVar[str | None] = "_morawiec2023:emit"
     motor: PMSMParams
     c_alpha: float
     c_lambda: float
@@ -378,8 +380,7 @@ class RotorFluxObserver(AbstractObserver):
         "theta_lambda": "rad, flux angle deviation morawiec2023 (30)-(31)",
     }
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
-        "c_alpha": (0.2, 5.0), "c_theta": (0.2, 5.0), "gamma": (0.1, 10.0),
-        "k_c": (0.1, 10.0)}
+        "c_alpha": (0.2, 5.0), "c_theta": (0.2, 5.0), "gamma": (0.1, 10.0), "k_c": (0.1, 10.)}
 
     def __check_init__(self):
         if not isinstance(self.motor, PMSMParams):
@@ -393,8 +394,7 @@ class RotorFluxObserver(AbstractObserver):
             check_positive("RotorFluxObserver", name, getattr(self, name),
                            _DESIGN_UNITS[name].split(",")[0], allow_zero=True)
 
-    # --- design -----------------------------------------------------------------------
-    @classmethod
+    @classmethod  # --- design ---------------------------------------------------------
     def from_drive(cls, drive: Drive, *, motor: PMSMParams | None = None,
                    speed_sign: str = "derived", theta_sign: str = "derived", **design):
         """morawiec2023's gains (c_alpha 3.0, c_lambda 0.001, k_c 0.1, c_theta 0.15 p.u.)
