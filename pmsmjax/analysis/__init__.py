@@ -6,7 +6,7 @@ zhang2022's closed forms (the quartic (34)-(36)) are fast paths next to the gene
 from typing import TYPE_CHECKING
 
 from .._lazy import lazy_exports
-from ..observers._base import OperatingPoint as OperatingPoint
+from ..observers import OperatingPoint as OperatingPoint
 from ._classify import DesignClass as DesignClass, classify as classify
 from ._dead_time import (
     dead_time_angle_error as dead_time_angle_error,

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._plant._params import PMSMParams
-from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers import AbstractObserver, OperatingPoint
 
 
 def check_observer(owner: str, observer) -> None:

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from .._frames import rotate
 from .._plant._params import PMSMParams
-from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
+from ..observers import AbstractObserver, Measurement, OperatingPoint, PlantPoint
 from ._args import _program_inputs, check_observer, check_plant
 
 

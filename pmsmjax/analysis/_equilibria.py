@@ -67,7 +67,7 @@ import jax.numpy as jnp
 
 from .._frames import jmul, wrap_angle
 from .._plant._params import PMSMParams
-from ..observers._eso_design import ESOGains, error_signal, psi_a
+from ..observers import ESOGains, error_signal, psi_a
 from ._args import as_arrays
 from ._linearize import charpoly, check_frame, eso_rhs, routh_hurwitz
 

@@ -46,8 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._plant._params import Drive, PMSMParams
-from ..observers._base import OperatingPoint
-from ..observers._eso_design import eso_gains, psi_a, zhang38
+from ..observers import OperatingPoint, eso_gains, psi_a, zhang38
 from ._args import as_arrays, check_observer
 from ._classify import DesignClass, _class_from_equilibria, _resolve_classify
 from ._closed_form import _closed_form_jit

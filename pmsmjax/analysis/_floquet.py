@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from .._plant._params import PMSMParams
-from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers import AbstractObserver, OperatingPoint
 from ._args import _program_inputs, check_observer, check_plant
 
 

@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from ..observers._base import AbstractObserver, Measurement
+from ..observers import AbstractObserver, Measurement
 from ._args import as_arrays
 
 

@@ -68,7 +68,7 @@ import jax.numpy as jnp
 
 from .._frames import wrap_angle
 from .._plant._params import PMSMParams
-from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers import AbstractObserver, OperatingPoint
 from ._args import _op, as_arrays, check_observer, check_plant
 from ._equilibria import Equilibria
 from ._linearize import charpoly, routh_hurwitz

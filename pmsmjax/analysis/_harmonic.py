@@ -89,7 +89,7 @@ import jax.numpy as jnp
 from .._frames import rotate
 from .._plant._params import Drive
 from .._sim._batching import values_as_arrays
-from ..observers._base import AbstractObserver, Measurement, OperatingPoint, PlantPoint
+from ..observers import AbstractObserver, Measurement, OperatingPoint, PlantPoint
 from ._args import check_observer
 from ._discrete import _true_flux_ab
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 
 from .._frames import jmul
 from .._plant._params import PMSMParams
-from ..observers._eso_design import ESOGains, error_dynamics, error_signal, fal
+from ..observers import ESOGains, error_dynamics, error_signal, fal
 
 
 FRAMES = ("observer", "paper")

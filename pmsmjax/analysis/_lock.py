@@ -40,7 +40,7 @@ import numpy as np
 from .._frames import wrap_angle
 from .._plant._params import Drive
 from .._validate import check_positive, check_range
-from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers import AbstractObserver, OperatingPoint
 
 
 class LockBasin(eqx.Module):
@@ -128,7 +128,7 @@ def lock_basin(observer: AbstractObserver, drive: Drive, *, w_m=None, i_q=None,
     from .._data._replay import _scan
     from .._sim._scenario import Profile, Scenario
     from .._sim._simulate import simulate
-    from ..observers._base import SensoredObserver
+    from ..observers import SensoredObserver
 
     if not isinstance(observer, AbstractObserver) or isinstance(observer, SensoredObserver):
         raise ValueError(f"`lock_basin(observer=...)` must be a sensorless observer; got "

@@ -63,9 +63,14 @@ import optimistix as optx
 
 from .._plant._params import Drive, PMSMParams
 from .._sim._batching import values_as_arrays
-from ..observers._base import AbstractObserver, OperatingPoint
-from ..observers._eso import ESOObserver, LESOObserver, _AbstractFluxObserver
-from ..observers._eso_schedules import AbstractGainSchedule
+from ..observers import (
+    AbstractFluxObserver,
+    AbstractGainSchedule,
+    AbstractObserver,
+    ESOObserver,
+    LESOObserver,
+    OperatingPoint,
+)
 from ._args import as_arrays
 from ._linearize import check_frame, eso_rhs
 
@@ -269,7 +274,7 @@ def _check(owner, drive, design, speed_range, scale, frame, c3):
     if scale not in SCALES:
         raise ValueError(f"`{owner}(scale=...)` must be one of {SCALES}; got {scale!r}.")
     check_frame(owner, frame)
-    if frame == "paper" and not isinstance(design, _AbstractFluxObserver):
+    if frame == "paper" and not isinstance(design, AbstractFluxObserver):
         raise ValueError(f"`{owner}(frame='paper')` is the zhang2022 ESO/LESO/AFO's printed "
                          f"error dynamics (11); {type(design).__name__} has its own.")
     if not 0 < c3 < 1:

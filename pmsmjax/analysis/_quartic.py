@@ -31,7 +31,7 @@ import equinox as eqx
 import jax.numpy as jnp
 
 from .._plant._params import PMSMParams
-from ..observers._eso_design import ESOGains, psi_a
+from ..observers import ESOGains, psi_a
 from ._args import as_arrays
 from ._equilibria import Equilibria, _finish, _make_reduction
 from ._linearize import check_frame

@@ -19,7 +19,7 @@ import numpy as np
 from .._frames import wrap_angle
 from .._plant._params import Drive
 from .._sim._batching import values_as_arrays
-from ..observers._eso import _AbstractFluxObserver
+from ..observers import AbstractFluxObserver
 from ._linearize import check_frame, eso_rhs
 from ._lyapunov import _as_observer, _ScaledDynamics, _state_scale
 
@@ -116,7 +116,7 @@ def simulate_ramp(drive: Drive, design, speeds=(0.2, 1.0), rate=1.0,
     dtype = jnp.float64
     i0 = jnp.asarray(i_dq, dtype) * drive.base.I_b
     observer = _as_observer("simulate_ramp", drive, design, a, eta)
-    if not isinstance(observer, _AbstractFluxObserver):
+    if not isinstance(observer, AbstractFluxObserver):
         raise ValueError("`simulate_ramp` simulates the zhang2022 ESO/LESO error dynamics "
                          f"(11)/(40); got {type(observer).__name__}.")
     dyn = _ScaledDynamics(observer=values_as_arrays(observer, dtype),

@@ -69,7 +69,7 @@ import jax.numpy as jnp
 
 from .._plant._magnetic import apparent_model
 from .._plant._params import Drive, PMSMParams
-from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers import AbstractObserver, OperatingPoint
 from ._args import as_arrays, check_observer
 from ._equilibria import Equilibria
 from ._generic import STATUS_DEGENERATE, STATUS_NONE, equilibria_traced

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from .._frames import wrap_angle
 from .._plant._params import PMSMParams
-from ..observers._base import AbstractObserver, OperatingPoint
+from ..observers import AbstractObserver, OperatingPoint
 
 
 # ---------------------------------------------------------------------------------------

@@ -2,7 +2,7 @@ r"""C emitter of the zhang2022 flux observers: `ESOObserver` (fal feedback),
 `LESOObserver` (linear feedback) and `AFOObserver` (PI speed law (53)), with the gains of
 their `design` (`ESODesign` schedules, `FixedGains`, tuned `TabulatedDesign`).
 
-The C step is `_AbstractFluxObserver.step` line by line (`observers/_eso.py`): at the
+The C step is `AbstractFluxObserver.step` line by line (`observers/_eso.py`): at the
 first sample the flux is initialised from the model, afterwards the error (10d) at
 $t_{k-1}$, the gains (17)/(25) (or (53)) scheduled at the speed state, the flux update
 (exact ZOH voltage, trapezoidal resistive drop, rotating-frame exact correction

@@ -19,6 +19,7 @@ from ._base import (
 )
 from ._catch import CatchState as CatchState, FlyingCatch as FlyingCatch
 from ._eso import (
+    AbstractFluxObserver as AbstractFluxObserver,
     AFOObserver as AFOObserver,
     ESOObserver as ESOObserver,
     FluxObserverState as FluxObserverState,

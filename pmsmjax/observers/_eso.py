@@ -158,7 +158,13 @@ def _true_flux_ab(plant: PMSMParams, truth: PlantPoint):
     return rotate(_model_flux(plant, i_dq), truth.theta)
 
 
-class _AbstractFluxObserver(AbstractObserver):
+class AbstractFluxObserver(AbstractObserver):
+    """The common base of zhang2022's stator-flux observers (`ESOObserver`,
+    `LESOObserver`, `AFOObserver`): the flux estimate, the angle and speed loop (25) and a
+    gain schedule `design` over the speed estimate. The analysis's slowly-varying
+    certificates and fast-ramp bound (`analysis.lyapunov`, `analysis.fast_ramp`) are
+    written for this family and accept any of its members."""
+
     paper_motor: ClassVar[str | None] = "zhang750"
     paper_T_s: ClassVar[float | None] = 125e-6
     tunable_kinds: ClassVar[dict[str, str]] = {"w2": "tracking", "zeta2": "damping"}
@@ -331,7 +337,7 @@ class _AbstractFluxObserver(AbstractObserver):
                 - (0.5 * T_s * m.R_s) * (state.i_prev + meas.i_ab) + corr)
 
 
-class _AbstractESO(_AbstractFluxObserver):
+class _AbstractESO(AbstractFluxObserver):
     """(10) with a feedback nonlinearity `feedback(e)`; shared by ESO and LESO."""
 
     @abc.abstractmethod
@@ -474,7 +480,7 @@ class LESOObserver(_AbstractESO):
         return e
 
 
-class AFOObserver(_AbstractFluxObserver):
+class AFOObserver(AbstractFluxObserver):
     r"""Adaptive full-order observer [21] with the PI speed law (53) of zhang2022.
 
     Flux: the same model as `ESOObserver` with linear feedback $G_1 e$ (the gain $K$ of
