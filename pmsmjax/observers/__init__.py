@@ -70,6 +70,10 @@ from ._registry import (
     paper_drive as paper_drive,
     register_observer as register_observer,
 )
+from ._reduced_order import (
+    ReducedOrderObserver as ReducedOrderObserver,
+    ReducedOrderState as ReducedOrderState,
+)
 from ._rotor_flux import (
     RotorFluxObserver as RotorFluxObserver,
     RotorFluxState as RotorFluxState,
@@ -85,4 +89,5 @@ register_observer("c-leso", CLESOObserver)
 register_observer("gi-leso", GILESOObserver)
 register_observer("fa-leso", FALESOObserver)
 from ._reduced_order import ReducedOrderObserver as ReducedOrderObserver, ReducedOrderState as ReducedOrderState  # noqa: E402
+register_observer("reduced-order", ReducedOrderObserver)
 register_observer("reduced-order", ReducedOrderObserver)
