@@ -28,7 +28,7 @@ LOAD = pj.Profile([0.0, 0.15, 0.16, 0.3], [0.0, 0.0, 0.5 * TAU, 0.5 * TAU])
 # times it, at most 2 deg.
 MEASURED_DEG = {"eso": 0.24, "leso": 0.24, "afo": 0.26, "parallel-model": 1.81,
                 "rotor-flux": 0.022, "c-leso": 0.24, "gi-leso": 0.19, "fa-leso": 0.16,
-                "reduced-order": 0.35}
+                "reduced-order": 0.35, "nonlinear-flux": 0.222}
 
 
 def _closed_loop(obs, speed_pu):

@@ -32,7 +32,7 @@ SENSORLESS = [n for n in observer_names() if n != "sensored"]
 MEASURED_DEG = {"eso": (0.28, 0.17), "leso": (0.28, 0.17), "afo": (0.26, 0.19),
                 "parallel-model": (1.65, 0.28), "rotor-flux": (0.022, 0.49),
                 "c-leso": (0.25, 0.30), "gi-leso": (0.19, 0.34), "fa-leso": (0.19, 0.23),
-                "reduced-order": (0.43, 0.12)}
+                "reduced-order": (0.43, 0.12), "nonlinear-flux": (0.264, 0.140)}
 
 
 def _run(name, startup=True):

@@ -49,6 +49,10 @@ from ._li_leso import (
     FALESOObserver as FALESOObserver,
     GILESOObserver as GILESOObserver,
 )
+from ._nonlinear_flux import (
+    NonlinearFluxObserver as NonlinearFluxObserver,
+    NonlinearFluxState as NonlinearFluxState,
+)
 from ._parallel_model import (
     ParallelModelObserver as ParallelModelObserver,
     ParallelModelState as ParallelModelState,
@@ -62,6 +66,10 @@ from ._parallel_model_sensitivity import (
     parallel_model_sensitivity as parallel_model_sensitivity,
 )
 from ._pll import QuadraturePLL as QuadraturePLL
+from ._reduced_order import (
+    ReducedOrderObserver as ReducedOrderObserver,
+    ReducedOrderState as ReducedOrderState,
+)
 from ._registry import (
     DEFAULT_PAPER_DRIVE as DEFAULT_PAPER_DRIVE,
     make_observer as make_observer,
@@ -69,10 +77,6 @@ from ._registry import (
     observer_names as observer_names,
     paper_drive as paper_drive,
     register_observer as register_observer,
-)
-from ._reduced_order import (
-    ReducedOrderObserver as ReducedOrderObserver,
-    ReducedOrderState as ReducedOrderState,
 )
 from ._rotor_flux import (
     RotorFluxObserver as RotorFluxObserver,
@@ -88,6 +92,5 @@ register_observer("rotor-flux", RotorFluxObserver)
 register_observer("c-leso", CLESOObserver)
 register_observer("gi-leso", GILESOObserver)
 register_observer("fa-leso", FALESOObserver)
-from ._reduced_order import ReducedOrderObserver as ReducedOrderObserver, ReducedOrderState as ReducedOrderState  # noqa: E402
 register_observer("reduced-order", ReducedOrderObserver)
-register_observer("reduced-order", ReducedOrderObserver)
+register_observer("nonlinear-flux", NonlinearFluxObserver)
