@@ -20,7 +20,6 @@ import pmsmjax as pj
 from pmsmjax import analysis
 from pmsmjax.analysis._args import _program_inputs
 from pmsmjax.observers import NonlinearFluxObserver, OperatingPoint, make_observer
-from pmsmjax.observers._nonlinear_flux import _true_flux_ab
 
 
 DRIVE = pj.preset("zhang750")
@@ -36,7 +35,11 @@ def _recording(drive, w, i_dq, n, theta0=0.4, T_s=T_S):
     m = drive.three_phase_motor
     theta = theta0 + w * T_s * np.arange(n + 1)
     i_ab = np.asarray(pj.rotate(jnp.asarray(i_dq, float), jnp.asarray(theta)))
-    psi = np.asarray(_true_flux_ab(m, jnp.asarray(theta), jnp.asarray(i_ab)))
+    # the stator flux [L_d i_d + psi_f, L_q i_q] turned by theta, written out here
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    f_d = float(m.L_d) * i_dq[0] + float(m.psi_f)
+    f_q = float(m.L_q) * i_dq[1]
+    psi = np.concatenate([c * f_d - s * f_q, s * f_d + c * f_q], axis=1)
     u_ab = np.diff(psi, axis=0) / T_s + float(m.R_s) * 0.5 * (i_ab[1:] + i_ab[:-1])
     return np.arange(n) * T_s, u_ab, i_ab[:n], theta[:n], psi[:n]
 

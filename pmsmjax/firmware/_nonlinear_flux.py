@@ -12,7 +12,7 @@ predicted angle $\hat\theta_{k-1} + T_s\hat\omega_{k-1}$.
 
 from __future__ import annotations
 
-from ..observers._nonlinear_flux import NonlinearFluxObserver
+from ..observers import NonlinearFluxObserver
 from ._c import CObserver, lit, model_defines, model_doc, scalar as _f
 
 

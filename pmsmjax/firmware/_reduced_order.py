@@ -14,7 +14,7 @@ angle, the speed ($\alpha_o^2\varepsilon$) and the PM-flux correction
 
 from __future__ import annotations
 
-from ..observers._reduced_order import ReducedOrderObserver
+from ..observers import ReducedOrderObserver
 from ._c import CObserver, lit, model_defines, model_doc, scalar as _f
 
 

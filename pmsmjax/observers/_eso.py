@@ -89,6 +89,13 @@ from ._eso_schedules import (
     FixedGains,
     schedule_for,
 )
+from ._flux_coordinates import (
+    flux_error_scale,
+    flux_errors,
+    flux_estimates,
+    model_flux_dq,
+    previous_current_dq,
+)
 
 
 # ---------------------------------------------------------------------------------------
@@ -113,20 +120,15 @@ class FluxObserverState(eqx.Module):
     started: jnp.ndarray
 
 
-def _model_flux(motor: PMSMParams, i_dq):
-    """$\\hat L i + \\hat\\psi_f$ in the estimator frame (V s)."""
-    return jnp.stack([motor.L_d * i_dq[..., 0] + motor.psi_f, motor.L_q * i_dq[..., 1]], -1)
-
-
 def _error(motor: PMSMParams, psi_ab, theta, i_ab):
     """Error signal (10d) $e = \\hat L i - \\hat\\psi + \\hat\\psi_f$ in the estimator frame
     at angle `theta`, and the current in that frame."""
     i_dq = park(i_ab, theta)
-    return _model_flux(motor, i_dq) - park(psi_ab, theta), i_dq
+    return model_flux_dq(motor, i_dq) - park(psi_ab, theta), i_dq
 
 
 def _flux_init(motor, theta, i_ab):
-    return rotate(_model_flux(motor, park(i_ab, theta)), theta)
+    return rotate(model_flux_dq(motor, park(i_ab, theta)), theta)
 
 
 _COORDS = ErrorCoordinates(
@@ -151,13 +153,6 @@ _DESIGN_UNITS = {
 }
 _FAL_UNITS = {"a": "-, fal exponent in (0, 1], zhang2022 (9)",
               "eta": "V s, half-width of fal's linear zone, zhang2022 (9)"}
-def _true_flux_ab(plant: PMSMParams, truth: PlantPoint):
-    """Stator flux of the true machine at `truth` (V s, stationary frame; fundamental
-    PM flux, as in the error dynamics zhang2022 (11))."""
-    i_dq = park(truth.i_ab, truth.theta)
-    return rotate(_model_flux(plant, i_dq), truth.theta)
-
-
 class AbstractFluxObserver(AbstractObserver):
     """The common base of zhang2022's stator-flux observers (`ESOObserver`,
     `LESOObserver`, `AFOObserver`): the flux estimate, the angle and speed loop (25) and a
@@ -272,21 +267,14 @@ class AbstractFluxObserver(AbstractObserver):
 
     def error_scale(self, op: OperatingPoint, plant: PMSMParams):
         del plant
-        pn = jnp.sqrt(jnp.sum(psi_a(self.motor, op.i_dq) ** 2))
-        pn = jnp.where(pn > 0, pn, 1.0)
-        aw = jnp.abs(op.w_m)
-        return jnp.stack([pn, pn, jnp.ones_like(pn), jnp.where(aw > 0, aw, 1.0)])
+        return flux_error_scale(jnp.sqrt(jnp.sum(psi_a(self.motor, op.i_dq) ** 2)), op.w_m)
 
     def error_state(self, state: FluxObserverState, truth: PlantPoint, plant: PMSMParams):
-        psi_err = park(_true_flux_ab(plant, truth) - state.psi_ab, state.theta)
-        return jnp.concatenate([psi_err, jnp.stack([wrap_angle(truth.theta - state.theta),
-                                                    truth.w_m - state.w])])
+        return flux_errors(state.psi_ab, state.theta, state.w, truth, plant)
 
     def observer_state(self, x, truth: PlantPoint, plant: PMSMParams) -> FluxObserverState:
-        x = jnp.asarray(x)
-        theta = wrap_angle(truth.theta - x[2])
-        psi = _true_flux_ab(plant, truth) - rotate(x[:2], theta)
-        return FluxObserverState(psi_ab=psi, theta=theta, w=truth.w_m - x[3],
+        psi, theta, w = flux_estimates(x, truth, plant)
+        return FluxObserverState(psi_ab=psi, theta=theta, w=w,
                                  i_prev=jnp.asarray(truth.i_ab, psi.dtype),
                                  started=jnp.asarray(True))
 
@@ -307,11 +295,8 @@ class AbstractFluxObserver(AbstractObserver):
     def _w_hat(self, psi_ab, theta, w, i_ab):
         """The speed estimate at t_k."""
 
-    def _schedule_current(self, state, meas):
-        # the error signal (10d) of this step is formed at i_{k-1} (the first sample
-        # initialises the flux at i_0): the scheduled model flux is the map's there
-        i_ab = jnp.where(state.started, state.i_prev, jnp.asarray(meas.i_ab))
-        return park(i_ab, state.theta)
+    # the step forms its correction at i_{k-1}: the scheduled model is the map's there
+    _schedule_current = staticmethod(previous_current_dq)
 
     def step(self, state: FluxObserverState, meas: Measurement, T_s):
         self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)

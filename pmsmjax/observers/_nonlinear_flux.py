@@ -163,6 +163,13 @@ from ._base import (
     OperatingPoint,
     PlantPoint,
 )
+from ._flux_coordinates import (
+    flux_error_scale,
+    flux_errors,
+    flux_estimates,
+    previous_current_dq,
+    true_flux_ab,
+)
 
 
 #: The variants (`NonlinearFluxObserver.variant`; the module docstring).
@@ -207,13 +214,6 @@ class NonlinearFluxState(eqx.Module):
     psi_f: jnp.ndarray
     i_prev: jnp.ndarray
     started: jnp.ndarray
-
-
-def _true_flux_ab(plant: PMSMParams, theta, i_ab):
-    """The true machine's stator flux (V s, stationary frame) at rotor angle `theta`."""
-    i_dq = park(i_ab, theta)
-    return rotate(jnp.stack([plant.L_d * i_dq[..., 0] + plant.psi_f,
-                             plant.L_q * i_dq[..., 1]], -1), theta)
 
 
 class NonlinearFluxObserver(AbstractObserver):
@@ -349,12 +349,8 @@ class NonlinearFluxObserver(AbstractObserver):
                                   psi_f=jnp.asarray(self.motor.psi_f, dtype),
                                   i_prev=zero2, started=jnp.asarray(False))
 
-    def _schedule_current(self, state, meas):
-        # the gradient term of this step is formed at i_{k-1} in the frame of
-        # theta_{k-1} (the first sample initialises the flux at i_0): the scheduled model
-        # is the map's there
-        i_ab = jnp.where(state.started, state.i_prev, jnp.asarray(meas.i_ab))
-        return park(i_ab, state.theta)
+    # the step forms its correction at i_{k-1}: the scheduled model is the map's there
+    _schedule_current = staticmethod(previous_current_dq)
 
     def step(self, state: NonlinearFluxState, meas: Measurement, T_s):
         self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)
@@ -413,7 +409,7 @@ class NonlinearFluxObserver(AbstractObserver):
         th = x[2]
         w_hat = w - x[3]
         psi_f = plant.psi_f - x[4] if self.variant == "adaptive" else m.psi_f
-        psi_true = _true_flux_ab(plant, th, i0)
+        psi_true = true_flux_ab(plant, th, i0)
         eta = psi_true - x[:2] - m.L_q * i0
         ref = self._target(psi_f, i0, jnp.zeros((), dtype))
         q, g = self._radial(eta, ref)
@@ -477,7 +473,7 @@ class NonlinearFluxObserver(AbstractObserver):
         norm = jnp.abs(w_s) * ref
 
         def flux(t):  # (e_d, e_q, h)
-            P = _true_flux_ab(plant, t, i0) - m.L_q * i0
+            P = true_flux_ab(plant, t, i0) - m.L_q * i0
             return dR * i0[1] / w_s, P[1], P[0] - dR * i0[1] / w_s
 
         def r_fixed(t):
@@ -545,26 +541,23 @@ class NonlinearFluxObserver(AbstractObserver):
         m = self.motor
         i_dq = jnp.asarray(op.i_dq)
         pa = jnp.sqrt(m.extended_flux(i_dq[..., 0]) ** 2 + (m.L_q * i_dq[..., 1]) ** 2)
-        pa = jnp.where(pa > 0, pa, 1.0)
-        aw = jnp.abs(op.w_m)
-        out = [pa, pa, jnp.ones_like(pa), jnp.where(aw > 0, aw, 1.0)]
-        return jnp.stack(out + ([pa] if self.variant == "adaptive" else []))
+        scale = flux_error_scale(pa, op.w_m)
+        if self.variant == "adaptive":
+            scale = jnp.concatenate([scale, scale[:1]])
+        return scale
 
     def error_state(self, state: NonlinearFluxState, truth: PlantPoint, plant: PMSMParams):
-        e = park(_true_flux_ab(plant, truth.theta, truth.i_ab) - state.psi_ab, state.theta)
-        out = [e, jnp.stack([wrap_angle(truth.theta - state.theta), truth.w_m - state.w])]
+        x = flux_errors(state.psi_ab, state.theta, state.w, truth, plant)
         if self.variant == "adaptive":
-            out.append(jnp.stack([plant.psi_f - state.psi_f]))
-        return jnp.concatenate(out)
+            x = jnp.concatenate([x, jnp.stack([plant.psi_f - state.psi_f])])
+        return x
 
     def observer_state(self, x, truth: PlantPoint, plant: PMSMParams) -> NonlinearFluxState:
-        x = jnp.asarray(x)
-        theta = wrap_angle(truth.theta - x[2])
-        i_ab = jnp.asarray(truth.i_ab, x.dtype)
-        psi = _true_flux_ab(plant, truth.theta, i_ab) - rotate(x[:2], theta)
+        psi, theta, w = flux_estimates(x, truth, plant)
         psi_f = plant.psi_f - x[4] if self.variant == "adaptive" else self.motor.psi_f
-        return NonlinearFluxState(psi_ab=psi, theta=theta, w=truth.w_m - x[3],
-                                  psi_f=jnp.asarray(psi_f, x.dtype), i_prev=i_ab,
+        return NonlinearFluxState(psi_ab=psi, theta=theta, w=w,
+                                  psi_f=jnp.asarray(psi_f, psi.dtype),
+                                  i_prev=jnp.asarray(truth.i_ab, psi.dtype),
                                   started=jnp.asarray(True))
 
 

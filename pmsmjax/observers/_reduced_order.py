@@ -121,6 +121,13 @@ from ._base import (
     OperatingPoint,
     PlantPoint,
 )
+from ._flux_coordinates import (
+    flux_error_scale,
+    flux_errors,
+    flux_estimates,
+    model_flux_dq,
+    previous_current_dq,
+)
 
 
 #: The authors' published default speed-estimation bandwidth of this observer (rad/s).
@@ -169,11 +176,6 @@ class ReducedOrderState(eqx.Module):
     started: jnp.ndarray
 
 
-def _model_flux(motor: PMSMParams, i_dq, psi_f):
-    """$\\psi_s(i) = L_d i_d + \\psi_f + jL_q i_q$ (V s, estimated frame)."""
-    return jnp.stack([motor.L_d * i_dq[..., 0] + psi_f, motor.L_q * i_dq[..., 1]], -1)
-
-
 def _aux_flux(motor: PMSMParams, i_dq, psi_f):
     """$\\psi_a = \\psi_f + (L_d - L_q)(i_d - ji_q)$ (V s, estimated frame)."""
     dL = motor.L_d - motor.L_q
@@ -192,7 +194,7 @@ def _true_flux(plant: PMSMParams, i_dq, theta_err):
     """The true machine's stator flux in the estimated frame (V s): the current `i_dq`
     (A, estimated frame) is $e^{-j\\tilde\\theta}i$ in rotor coordinates."""
     i_r = rotate(i_dq, -theta_err)
-    return rotate(_model_flux(plant, i_r, plant.psi_f), theta_err)
+    return rotate(model_flux_dq(plant, i_r, plant.psi_f), theta_err)
 
 
 class ReducedOrderObserver(AbstractObserver):
@@ -296,7 +298,7 @@ class ReducedOrderObserver(AbstractObserver):
         (rad/s^2), dpsi_f/dt (V))`."""
         m = self.motor
         psi_f = m.psi_f + dpsi_f
-        e = _model_flux(m, i_dq, psi_f) - psi
+        e = model_flux_dq(m, i_dq, psi_f) - psi
         psi_a = _aux_flux(m, i_dq, psi_f)
         re, im = _signals(e, psi_a)
         eps = -im
@@ -316,11 +318,8 @@ class ReducedOrderObserver(AbstractObserver):
                                  w=w0.astype(dtype), dpsi_f=jnp.zeros((), dtype),
                                  i_prev=zero2, started=jnp.asarray(False))
 
-    def _schedule_current(self, state, meas):
-        # e is formed at i_{k-1} (the first sample initialises the flux at i_0): the
-        # scheduled model flux is the map's there
-        i_ab = jnp.where(state.started, state.i_prev, jnp.asarray(meas.i_ab))
-        return park(i_ab, state.theta)
+    # the step forms its correction at i_{k-1}: the scheduled model is the map's there
+    _schedule_current = staticmethod(previous_current_dq)
 
     def step(self, state: ReducedOrderState, meas: Measurement, T_s):
         self = self._scheduled(state, meas)  # noqa: PLW0642 (the current-scheduled model)
@@ -333,7 +332,7 @@ class ReducedOrderObserver(AbstractObserver):
         psi = (state.psi_ab + T_s * meas.u_ab - (0.5 * T_s * m.R_s) * (state.i_prev + i_k)
                + (T_s * jnp.sinc(half / jnp.pi)) * rotate(corr, th + half))
         go = state.started
-        psi0 = rotate(_model_flux(m, park(i_k, th), m.psi_f + state.dpsi_f), th)
+        psi0 = rotate(model_flux_dq(m, park(i_k, th), m.psi_f + state.dpsi_f), th)
         psi = jnp.where(go, psi, psi0).astype(state.psi_ab.dtype)
         theta = jnp.where(go, wrap_angle(th + T_s * w_c), th).astype(th.dtype)
         w = jnp.where(go, state.w + T_s * dw, state.w).astype(state.w.dtype)
@@ -368,30 +367,16 @@ class ReducedOrderObserver(AbstractObserver):
     def error_scale(self, op: OperatingPoint, plant: PMSMParams):
         del plant
         pa = _aux_flux(self.motor, jnp.asarray(op.i_dq), self.motor.psi_f)
-        pn = jnp.sqrt(jnp.sum(pa ** 2))
-        pn = jnp.where(pn > 0, pn, 1.0)
-        aw = jnp.abs(op.w_m)
-        return jnp.stack([pn, pn, jnp.ones_like(pn), jnp.where(aw > 0, aw, 1.0)])
+        return flux_error_scale(jnp.sqrt(jnp.sum(pa ** 2)), op.w_m)
 
     def error_state(self, state: ReducedOrderState, truth: PlantPoint, plant: PMSMParams):
-        psi_err = park(_true_flux_ab(plant, truth) - state.psi_ab, state.theta)
-        return jnp.concatenate([psi_err, jnp.stack([wrap_angle(truth.theta - state.theta),
-                                                    truth.w_m - state.w])])
+        return flux_errors(state.psi_ab, state.theta, state.w, truth, plant)
 
     def observer_state(self, x, truth: PlantPoint, plant: PMSMParams) -> ReducedOrderState:
-        x = jnp.asarray(x)
-        theta = wrap_angle(truth.theta - x[2])
-        psi = _true_flux_ab(plant, truth) - rotate(x[:2], theta)
-        return ReducedOrderState(psi_ab=psi, theta=theta, w=truth.w_m - x[3],
-                                 dpsi_f=jnp.zeros((), x.dtype),
+        psi, theta, w = flux_estimates(x, truth, plant)
+        return ReducedOrderState(psi_ab=psi, theta=theta, w=w, dpsi_f=jnp.zeros((), psi.dtype),
                                  i_prev=jnp.asarray(truth.i_ab, psi.dtype),
                                  started=jnp.asarray(True))
-
-
-def _true_flux_ab(plant: PMSMParams, truth: PlantPoint):
-    """Stator flux of the true machine at `truth` (V s, stationary frame)."""
-    i_dq = park(truth.i_ab, truth.theta)
-    return rotate(_model_flux(plant, i_dq, plant.psi_f), truth.theta)
 
 
 def _check_design(owner: str, values: dict) -> None:
