@@ -143,9 +143,10 @@ class ErrorCoordinates:
 class AbstractObserver(eqx.Module):
     """Base class of every observer (see the module docstring for the contract).
 
-    Subclasses implement `init`, `step`, `from_drive`, `design_parameters`,
-    `with_design`, `error_rhs`, `error_scale`, `error_state` and `observer_state`, and
-    declare the class attributes `coordinates`, `design_units` and `extras`.
+    Subclasses implement `init`, `step`, `from_drive`, `with_design`, `error_rhs`,
+    `error_scale`, `error_state` and `observer_state` (and `design_parameters` where the
+    design is not the fields named in `design_units`), and declare the class attributes
+    `coordinates`, `design_units` and `extras`.
     """
 
     motor: eqx.AbstractVar[PMSMParams]
@@ -266,9 +267,11 @@ class AbstractObserver(eqx.Module):
         observer's machine model (default: the drive's), `design` overrides design
         parameters by name (see `design_units`)."""
 
-    @abc.abstractmethod
     def design_parameters(self) -> dict:
-        """The current design as `{name: value}` (SI units as in `design_units`)."""
+        """The current design as `{name: value}` (SI units as in `design_units`). Default:
+        the fields named in `design_units`; an observer whose design lives elsewhere (a
+        gain schedule, a PLL module) overrides it."""
+        return {k: getattr(self, k) for k in self.design_units}
 
     @abc.abstractmethod
     def with_design(self, **values):

@@ -283,9 +283,6 @@ class NonlinearFluxObserver(AbstractObserver):
                   k_psi=K_PSI_PU * w_r, variant=variant)
         return obs.with_design(**design) if design else obs
 
-    def design_parameters(self) -> dict:
-        return {k: getattr(self, k) for k in _DESIGN_UNITS}
-
     def with_design(self, **values):
         self._check_design_names(values)
         if not values:

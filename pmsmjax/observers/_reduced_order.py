@@ -261,9 +261,6 @@ class ReducedOrderObserver(AbstractObserver):
                   zeta_inf=ZETA_INF, k_f=0.0)
         return obs.with_design(**design) if design else obs
 
-    def design_parameters(self) -> dict:
-        return {k: getattr(self, k) for k in _DESIGN_UNITS}
-
     def with_design(self, **values):
         self._check_design_names(values)
         if not values:

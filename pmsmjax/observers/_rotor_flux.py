@@ -429,9 +429,6 @@ class RotorFluxObserver(AbstractObserver):
                               k_c=g["k_c"], c_theta=g["c_theta"] * b.w_b,
                               gamma=g["gamma"] * b.w_b ** 2 / b.I_b ** 2)
 
-    def design_parameters(self) -> dict:
-        return {k: getattr(self, k) for k in _DESIGN_UNITS}
-
     def with_design(self, **values):
         self._check_design_names(values)
         if not values:
