@@ -148,3 +148,18 @@ def read_npz(path) -> dict:
     are read too, as the command line's `trajectory.npz` holds one."""
     with np.load(path, allow_pickle=True) as f:
         return {k: f[k] for k in f.files}
+
+
+def start_load_reversal_run(drive, observer, *, T_s=125e-6, theta_hat0=2.0):
+    """The closed loop of a new observer's lock test: I/f start from standstill
+    (`IfStartup.from_drive`), speed held at 0 for 50 ms, ramped to 0.5 p.u. by 0.3 s, held,
+    reversed to -0.5 p.u. over 0.6-0.85 s; half the rated load from 0.4 s, reversed at
+    1.0 s; 1.3 s in all. Returns the trajectory (`throw=False`)."""
+    W = 0.5 * float(drive.w_rated)
+    tau = float(drive.tau_rated)
+    sc = pj.Scenario(t_end=1.3,
+                     w_m_ref=pj.Profile([0.0, 0.05, 0.3, 0.6, 0.85], [0.0, 0.0, W, W, -W]),
+                     tau_L=pj.Profile.steps([0.4, 1.0], [0.5 * tau, -0.5 * tau]))
+    ctrl = pj.FOC.from_drive(drive, startup=pj.IfStartup.from_drive(drive))
+    return pj.simulate(drive, ctrl, observer, sc, T_s=T_s, theta_hat0=theta_hat0,
+                       throw=False)

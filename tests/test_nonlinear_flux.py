@@ -21,6 +21,8 @@ from pmsmjax import analysis
 from pmsmjax.analysis._args import _program_inputs
 from pmsmjax.observers import NonlinearFluxObserver, OperatingPoint, make_observer
 
+from .helpers import start_load_reversal_run
+
 
 DRIVE = pj.preset("zhang750")
 W = float(DRIVE.w_rated)
@@ -271,14 +273,9 @@ def test_closed_loop_from_standstill_load_step_and_reversal(preset):
     rotor's I/f alignment fails for every observer; see test_reduced_order.py)."""
     drive = pj.preset(preset)
     W_ = 0.5 * float(drive.w_rated)
-    tau = float(drive.tau_rated)
-    sc = pj.Scenario(t_end=1.3,
-                     w_m_ref=pj.Profile([0.0, 0.05, 0.3, 0.6, 0.85], [0.0, 0.0, W_, W_, -W_]),
-                     tau_L=pj.Profile.steps([0.4, 1.0], [0.5 * tau, -0.5 * tau]))
-    su = pj.IfStartup.from_drive(drive)
-    tr = pj.simulate(drive, pj.FOC.from_drive(drive, startup=su),
-                     make_observer("nonlinear-flux", drive), sc,
-                     theta_hat0=2.0 if preset == "zhang750" else -2.0, throw=False)
+    tr = start_load_reversal_run(drive, make_observer("nonlinear-flux", drive),
+                                 theta_hat0=2.0 if preset == "zhang750" else -2.0)
+    su = pj.IfStartup.from_drive(drive)  # the start-up the run used
     assert bool(tr.ok)
     t, w_m = np.asarray(tr.t), np.asarray(tr.w_m)
     e = np.degrees(np.asarray(tr.theta_err))

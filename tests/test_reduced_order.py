@@ -22,6 +22,8 @@ from pmsmjax.observers import (
     make_observer,
 )
 
+from .helpers import start_load_reversal_run
+
 
 ZHANG = pj.preset("zhang750")
 IPM = pj.preset("morawiec_ipm3k5")
@@ -249,14 +251,9 @@ def test_closed_loop_from_standstill_load_step_and_reversal(name):
     drive, T_s, th0 = {"zhang750": (ZHANG, 125e-6, 2.0),
                        "ipm3k5": (IPM, T_IPM, -2.0)}[name]
     W = 0.5 * float(drive.w_rated)
-    tau = float(drive.tau_rated)
-    sc = pj.Scenario(t_end=1.3,
-                     w_m_ref=pj.Profile([0.0, 0.05, 0.3, 0.6, 0.85], [0.0, 0.0, W, W, -W]),
-                     tau_L=pj.Profile.steps([0.4, 1.0], [0.5 * tau, -0.5 * tau]))
-    su = pj.IfStartup.from_drive(drive)
-    tr = pj.simulate(drive, pj.FOC.from_drive(drive, startup=su),
-                     make_observer("reduced-order", drive), sc, T_s=T_s, theta_hat0=th0,
-                     throw=False)
+    tr = start_load_reversal_run(drive, make_observer("reduced-order", drive), T_s=T_s,
+                                 theta_hat0=th0)
+    su = pj.IfStartup.from_drive(drive)  # the start-up the run used
     assert bool(tr.ok)
     t, w_m = np.asarray(tr.t), np.asarray(tr.w_m)
     e = np.degrees(np.asarray(tr.theta_err))
