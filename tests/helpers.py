@@ -154,12 +154,17 @@ def start_load_reversal_run(drive, observer, *, T_s=125e-6, theta_hat0=2.0):
     """The closed loop of a new observer's lock test: I/f start from standstill
     (`IfStartup.from_drive`), speed held at 0 for 50 ms, ramped to 0.5 p.u. by 0.3 s, held,
     reversed to -0.5 p.u. over 0.6-0.85 s; half the rated load from 0.4 s, reversed at
-    1.0 s; 1.3 s in all. Returns the trajectory (`throw=False`)."""
+    1.0 s; 1.3 s in all. Returns the trajectory (`throw=False`) and `pj.lock_status` of its
+    angle error from the handover on (the first sample at which both the speed and its
+    reference reach the start-up's handover speed)."""
     W = 0.5 * float(drive.w_rated)
     tau = float(drive.tau_rated)
     sc = pj.Scenario(t_end=1.3,
                      w_m_ref=pj.Profile([0.0, 0.05, 0.3, 0.6, 0.85], [0.0, 0.0, W, W, -W]),
                      tau_L=pj.Profile.steps([0.4, 1.0], [0.5 * tau, -0.5 * tau]))
-    ctrl = pj.FOC.from_drive(drive, startup=pj.IfStartup.from_drive(drive))
-    return pj.simulate(drive, ctrl, observer, sc, T_s=T_s, theta_hat0=theta_hat0,
-                       throw=False)
+    su = pj.IfStartup.from_drive(drive)
+    tr = pj.simulate(drive, pj.FOC.from_drive(drive, startup=su), observer, sc, T_s=T_s,
+                     theta_hat0=theta_hat0, throw=False)
+    k = max(int(np.flatnonzero(np.abs(np.asarray(w)) >= su.w_hand)[0])
+            for w in (tr.w_m, tr.w_m_ref))
+    return tr, pj.lock_status(np.asarray(tr.t)[k:], np.asarray(tr.theta_err)[k:])
