@@ -13,8 +13,8 @@ zhang2022 flux observers (`eso`, `leso`, `afo`; `_zhang2022`) with any of their 
 schedules (`ESODesign`: zhang38, fixed_ratio, fixed_w1; `FixedGains`; a tuned
 `TabulatedDesign`), morawiec2023's rotor-flux observer (`rotor-flux`;
 `_morawiec2023`), stumper's parallel-model estimator (`parallel-model`; `_stumper`) and
-the li-fa-leso back-EMF observers (`c-leso`, `gi-leso`, `fa-leso`; `_li`, the matrix
-exponential of the exact ZOH discretisation computed in C every sample).
+the li-fa-leso back-EMF observers (`c-leso`, `gi-leso`, `fa-leso`; `_li`, the exact ZOH
+discretisation in the closed form of the JAX step, `_li_transition`).
 """
 
 from __future__ import annotations
