@@ -262,6 +262,24 @@ MEASURED_M4F = {
     "reduced-order": (1.25e-6, 2.45e-4), "nonlinear-flux": (9.4e-7, 2.44e-4),
 }
 
+def test_the_header_states_the_measured_cost_on_a_cortex_m4f():
+    """Every supported observer has its measured float32 cost on a Cortex-M4F
+    (`firmware._cost`, from benchmarks/throughput/firmware_target.py); the header states
+    it with the share of the sampling period at 170 MHz and says when the step does not
+    fit the period (the GI-LESO at 10 us: 1,700 cycles)."""
+    from pmsmjax.firmware import render
+    from pmsmjax.firmware._cost import M4F_FLOAT32
+
+    assert set(M4F_FLOAT32) == set(supported_observers())
+    _, obs = _case("gi-leso")
+    insns, cycles = M4F_FLOAT32["gi-leso"]
+    head = render(obs, T_S, float32=True)["pmsm_observer.h"]
+    assert f"about {cycles:,} cycles ({insns:,} instructions)" in head
+    assert f"{100 * cycles / (170e6 * T_S):.0f} % of T_s at 170 MHz -- fits" in head
+    assert "does NOT fit" in render(obs, 10e-6, float32=True)["pmsm_observer.h"]
+    assert "software" in render(obs, T_S)["pmsm_observer.h"]  # the double build's note
+
+
 _ARM_REASON = ("needs arm-none-eabi-gcc with newlib for the Cortex-M4F build "
                "(benchmarks/install_arm_toolchain.sh installs it and qemu-system-arm)")
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from pmsmjax.firmware import export_c, supported_observers
+from pmsmjax.firmware._cost import cost_lines
 
 from ._command import Command
 from ._design import add_design_option, observer_with_design
@@ -40,6 +41,9 @@ def export_c_command(args: argparse.Namespace) -> int:
     print(first_line("export-c", motor_text(drive, args), choice.describe(),
                      f"T_s = {args.T_s:g} s, {'float' if args.float32 else 'double'}"))
     print(f"wrote {', '.join(paths.values())}")
+    cost = cost_lines(args.observer, args.T_s, args.float32)
+    if cost:
+        print(" ".join(cost))
     print(f"build: cc -std=c99 -O2 -o replay {args.out}/replay_main.c "
           f"{args.out}/pmsm_observer.c -lm; run: ./replay < recording.csv")
     return 0

@@ -13,6 +13,7 @@ from collections.abc import Callable
 from .._validate import check_positive
 from ..observers import observer_class, observer_names
 from ._c import CObserver
+from ._cost import cost_lines
 
 
 class UnsupportedObserverError(ValueError):
@@ -48,6 +49,7 @@ def _math_macros(float32: bool) -> str:
 
 def _header(obs: CObserver, T_s: float, float32: bool) -> str:
     doc = "\n".join(f" * {line}".rstrip() for line in obs.doc)
+    cost = "".join(f" * {line}\n" for line in cost_lines(obs.name, T_s, float32))
     fields = "\n".join(f"    {decl}; /* {c} */" for decl, c in obs.fields)
     prec = "float32 (float)" if float32 else "float64 (double)"
     return f"""/* pmsm_observer.h -- {obs.title}
@@ -56,7 +58,7 @@ def _header(obs: CObserver, T_s: float, float32: bool) -> str:
  *
  * Number type: {prec} (pmsm_real).
  * Sampling period: PMSM_OBS_T_S = {T_s!r} s (compiled into the gains and the update).
- *
+{cost} *
  * Inputs of pmsm_obs_step at sampling instant t_k (stationary alpha-beta frame, SI):
  *   i_ab[2]      current sampled at t_k (A)
  *   u_ab_prev[2] voltage applied over [t_(k-1), t_k) (V); zero at the first sample
