@@ -14,22 +14,24 @@ Per build:
   links in with libm (a program calling `pmsm_obs_init` and `pmsm_obs_step`, minus the
   same program without them, both with --gc-sections), `sizeof(pmsm_obs_state)` (from
   the symbol table) and the stack frame of `pmsm_obs_step` (-fstack-usage; callees not
-  included); the software double-precision routines the program pulls in (`__aeabi_d*`
-  symbols: none in a float32 build on a single-precision FPU);
+  included); the software double-precision routines (`__aeabi_d*`) the observer calls
+  and those the program links in, with the libm member that needs them (a float32
+  build calls none; on the single-precision FPU of the M4F it may link none);
 - **instructions per step**, counted exactly: QEMU (`qemu-system-arm`, machine
   mps2-an386 / mps2-an500) runs the program one instruction per translation block
   (`-singlestep`; `one-insn-per-tb` from QEMU 8.1) and logs every block it executes
-  (`-d exec,nochain`); the instructions
-  from the entry of `pmsm_obs_step` to the return into the caller, libm included, over
-  `--trace-steps` consecutive steps after the first sample (median and maximum);
+  (`-d exec,nochain`); the instructions from the entry of `pmsm_obs_step` to the return
+  into the caller, libm included, over `--trace-steps` consecutive steps after the
+  first sample (median and maximum);
 - **cycles per step (M4F, estimated)** from the same trace and the instruction timings of
   the Cortex-M4 (its Technical Reference Manual): 1 cycle an instruction, 2 a single
   load or store, 1 + N a load or store of N registers, 3 a floating-point multiply-
   accumulate, 14 a VDIV/VSQRT, 12 an integer division, 2 more a taken branch; no wait
   states (code and data in zero-wait-state memory), no stalls: a lower estimate for a
   part running from flash without its cache;
-- **the budget** at 170 MHz: 21,250 cycles at 8 kHz, 10,625 at 16 kHz; an observer whose
-  estimated cycles exceed one is marked "does not fit";
+- **the budget** at 170 MHz: 21,250 cycles at 8 kHz, 10,625 at 16 kHz; the largest
+  estimated cycles of a step against them ("fits": both periods, 8 kHz only, or "does
+  not fit");
 - **accuracy on the target**: the program replays a closed-loop recording (0.2 s of the
   observer's paper drive in sensorless speed control, current noise; the samples
   compiled in) and prints every estimate as the hexadecimal bits of the number; the
@@ -38,7 +40,7 @@ Per build:
   in double).
 
 Install the toolchain with `benchmarks/install_arm_toolchain.sh` (Debian packages
-gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm). `tests/test_firmware_target.py`
+gcc-arm-none-eabi, libnewlib-arm-none-eabi, qemu-system-arm). `tests/test_firmware.py`
 uses the same build (`build`, `run`) for the Cortex-M4F.
 
 Usage (from the repository root):
