@@ -42,6 +42,11 @@ from ._control._limits import (  # noqa: E402
 )
 from ._control._saturated import MTPATable as MTPATable  # noqa: E402
 from ._control._startup import IfStartup as IfStartup  # noqa: E402
+from ._data._convert import (  # noqa: E402
+    ConvertedLog as ConvertedLog,
+    LogFormatError as LogFormatError,
+    convert_log as convert_log,
+)
 from ._data._flying_start import (  # noqa: E402
     FlyingStart as FlyingStart,
     flying_start as flying_start,
@@ -60,6 +65,15 @@ from ._data._gains_table import (  # noqa: E402
     write_gains_table as write_gains_table,
 )
 from ._data._identifiable import IDENTIFIABLE as IDENTIFIABLE  # noqa: E402
+from ._data._log_checks import (  # noqa: E402
+    EncoderCheck as EncoderCheck,
+    estimate_encoder_offset as estimate_encoder_offset,
+    recording_warnings as recording_warnings,
+)
+from ._data._log_layout import (  # noqa: E402
+    LogLayout as LogLayout,
+    load_log_layout as load_log_layout,
+)
 from ._data._recording import (  # noqa: E402
     RecordedData as RecordedData,
     load_recording as load_recording,
