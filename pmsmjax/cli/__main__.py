@@ -36,6 +36,7 @@ COMMAND_MODULES = (
     "_plant",
     "_replay",
     "_identify",
+    "_convert",
     "_feasibility",
     "_equilibria",
     "_certify",

@@ -101,6 +101,12 @@ def identify_command(args: argparse.Namespace) -> int:
         "residual)" if mech == "measured" else
         "integrated over each segment from its measured start, with the recorded load "
         "torque (zero where none is logged); the speed is a residual"))
+    # the log's own checks, with the motor file's values (a fit absorbs a voltage shift
+    # into the inductances, so the fitted values would hide it)
+    log_warnings = [f"{f}: {w}" for f, r in zip(args.data, recs)
+                    for w in pj.recording_warnings(r, drive)]
+    for msg in log_warnings:
+        print(f"warning: {msg}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", pj.IdentifiabilityWarning)
         res = pj.identify(drive, recs, fit, voltage=args.voltage, segment=args.segment,
@@ -145,7 +151,7 @@ def identify_command(args: argparse.Namespace) -> int:
         "n_residuals": res.n_residuals,
         "n_segments": res.n_segments,
         "solver_steps": res.steps,
-        "warnings": list(res.warnings),
+        "warnings": log_warnings + list(res.warnings),
         **({} if sat is None else {"saturation": {
             "model": "algebraic", **{k: float(getattr(sat["model"], k))
                                      for k in ("S", "T", "U", "V")},

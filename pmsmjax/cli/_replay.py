@@ -82,6 +82,22 @@ def _plot(path, data: pj.RecordedData, theta_hat, w_hat, name: str) -> None:
     fig.savefig(path, dpi=110)
 
 
+def _lost_lock_hints(args, drive: pj.Drive, log_warnings: list[str]) -> list[str]:
+    """What to check after a lost lock, from what the command knows of the log."""
+    hints = []
+    if args.voltage == "applied":
+        hints.append(
+            "if the log's voltages are the controller's commands (duty cycles, references), "
+            "replay with --voltage commanded" + (
+                f" (the drive's dead time u_dt = {float(drive.inverter.u_dt):g} V)"
+                if drive.inverter.u_dt is not None else
+                " and the drive's dead time u_dt (pmsmjax identify --fit u_dt --voltage "
+                "commanded)"))
+    if log_warnings:
+        hints.append("see the warnings above about the log")
+    return hints
+
+
 def replay_command(args: argparse.Namespace) -> int:
     drive = drive_from_args(args)
     choice = observer_with_design(args, drive, default="eso")
@@ -105,6 +121,9 @@ def replay_command(args: argparse.Namespace) -> int:
                        f"0 <= S <= {duration:.6g}")
     print(first_line("replay", motor_text(drive, args), choice.describe(),
                      f"{data.n} samples at T_s = {data.T_s:g} s from {args.data}"))
+    log_warnings = pj.recording_warnings(data, drive)
+    for msg in log_warnings:
+        print(f"warning: {msg}")
     theta0, w0 = initial_state_from_args(args, drive)
     start = "given"
     if not args.flying_start and not initial_state_given(args):
@@ -172,6 +191,7 @@ def replay_command(args: argparse.Namespace) -> int:
         **stats,
         "status": status,
         "lock": lock,
+        "log_warnings": log_warnings,
     }
     if not args.no_plot:
         files["plot"] = os.path.join(out, "replay.png")
@@ -188,7 +208,8 @@ def replay_command(args: argparse.Namespace) -> int:
     if lock is not None and lock["lost"] and finite:
         print(f"pmsmjax replay: the observer lost lock at t = {lock['t_lost_s']:.4g} s "
               f"(mean |angle error| over {1e3 * lock['dwell_s']:g} ms above "
-              f"{lock['lock_deg']:g} deg)",
+              f"{lock['lock_deg']:g} deg)" + "".join(f"; {h}" for h in _lost_lock_hints(
+                  args, drive, log_warnings)),
               file=sys.stderr)
     return 0
 

@@ -20,6 +20,7 @@ from ._gains import (
     plot_poles_vs_speed as plot_poles_vs_speed,
 )
 from ._magnetic import plot_flux_map as plot_flux_map
+from ._recording import plot_recording as plot_recording
 from ._trajectory import (
     plot_identification as plot_identification,
     plot_plant_trace as plot_plant_trace,
