@@ -92,6 +92,7 @@ def _small(cmd: str, args: list[str]) -> list[str]:
 
 def _run_page(page: pathlib.Path, folder: pathlib.Path, monkeypatch, capsys) -> list[str]:
     folder.mkdir()
+    (folder / "docs").symlink_to(ROOT / "docs")  # the pages' paths are the repository's
     monkeypatch.chdir(folder)
     ran = []
     for argv in command_lines(page):
