@@ -364,3 +364,31 @@ def test_replay_prints_the_log_checks_and_lost_lock_hints(tmp_path, capsys):
     assert "--voltage commanded (the drive's dead time u_dt = 3 V)" in hints[0]
     assert hints[1] == "see the warnings above about the log"
     assert _lost_lock_hints(argparse.Namespace(voltage="commanded"), DRIVE, []) == []
+
+
+def test_identify_figure_shows_the_worst_segments_of_every_recording():
+    """`plot_identification`: one column per recording, each on the three segments around
+    its largest current residual, named in the column's title."""
+    from types import SimpleNamespace
+
+    from pmsmjax.plotting import plot_identification
+
+    t = 1e-4 * np.arange(2000)  # 10 segments of 20 ms
+    traces = []
+    for worst in (2, 9):
+        i = np.zeros((t.size, 2))
+        model = i + 1e-3
+        model[(t >= 0.02 * worst) & (t < 0.02 * (worst + 1)), 0] += 0.5
+        traces.append(dict(t=t, i_ab=i, i_model=model, w_m=np.ones_like(t),
+                           w_model=np.ones_like(t)))
+    res = SimpleNamespace(traces=traces, segment_s=0.02,
+                          parameters={"R_s": {"value": 1.0, "unit": "Ohm"}})
+    fig = plot_identification(res)
+    titles = [ax.get_title() for ax in fig.axes if ax.get_title()]
+    assert len(titles) == 2
+    assert "worst segments 0.02-0.0799 s" in titles[0]  # segments 1, 2, 3
+    assert "worst segments 0.14-0.2 s" in titles[1]  # the last three
+    in_worst = 0.501 ** 2 + 1e-6  # squared residual per sample there, 2e-6 elsewhere
+    assert f"residual {math.sqrt(in_worst):.3g} A" in titles[0]
+    # the whole recording's RMS: one segment of ten at the large residual
+    assert f"(whole recording {math.sqrt(0.1 * in_worst + 0.9 * 2e-6):.3g} A)" in titles[0]

@@ -254,32 +254,71 @@ def plot_plant_trace(trace, drive, *, data=None, title: str | None = None,
     return fig
 
 
-def plot_identification(result, *, recording: int = 0, t_window: float | None = None,
-                        title: str | None = None) -> Figure:
-    """Measured against model signals of a `pmsmjax.identify` result: the alpha and beta
-    currents (A) and the speed (rad/s, electrical) of recording `recording`, the model
-    restarted from the measurement at each segment start (multiple shooting), over the
-    first `t_window` seconds (default: 8 segments, so the fit is visible), with the
-    residual underneath."""
-    tr = result.traces[recording]
+def _worst_window(tr, segment_s: float, span: int = 3) -> tuple[np.ndarray, float, float]:
+    """Sample mask of the `span` segments around the segment of `tr` whose current
+    residual RMS is largest, that RMS and the whole trace's (A)."""
     t = np.asarray(tr["t"])
-    span = 8 * result.segment_s if t_window is None else float(t_window)
-    k = t - t[0] <= span
-    fig, ax = _axes(None, 4, height=1.7)
-    for j, name in enumerate(("alpha", "beta")):
-        ax[j].plot(t[k], tr["i_ab"][k, j], "k", lw=0.8, label=f"i_{name} measured")
-        ax[j].plot(t[k], tr["i_model"][k, j], "r--", lw=1.0, label="model")
-        ax[j].set_ylabel(f"i_{name} (A)")
-        _legend(ax[j])
-    ax[2].plot(t[k], tr["w_m"][k], "k", lw=0.8, label="w_m measured")
-    ax[2].plot(t[k], tr["w_model"][k], "r--", lw=1.0, label="model")
-    ax[2].set_ylabel("speed (rad/s)")
-    _legend(ax[2])
-    ax[3].plot(t[k], tr["i_model"][k, 0] - tr["i_ab"][k, 0], "b", lw=0.6,
-               label="i_alpha model - measured")
-    ax[3].set_ylabel("residual (A)")
-    _legend(ax[3])
-    ax[-1].set_xlabel("t (s)")
+    err = np.sum((np.asarray(tr["i_model"]) - np.asarray(tr["i_ab"])) ** 2, axis=1)
+    seg = ((t - t[0]) / segment_s + 1e-9).astype(int)
+    n_seg = int(seg.max()) + 1
+    rms = np.sqrt(np.bincount(seg, err, n_seg) / np.maximum(np.bincount(seg, None, n_seg), 1))
+    worst = int(np.argmax(rms))
+    lo = min(max(worst - span // 2, 0), max(n_seg - span, 0))
+    return (seg >= lo) & (seg < lo + span), float(rms[worst]), float(np.sqrt(np.mean(err)))
+
+
+def plot_identification(result, *, recording: int | None = None,
+                        t_window: float | None = None, title: str | None = None) -> Figure:
+    """Measured against model signals of a `pmsmjax.identify` result: the alpha and beta
+    currents (A), the speed (rad/s, electrical) and the current residual, the model
+    restarted from the measurement at each segment start (multiple shooting).
+
+    **Arguments:**
+
+    - `recording`: the recording to show (index); default every recording, one column
+      each (the eight with the largest residual).
+    - `t_window`: show the first `t_window` seconds; default the three segments around
+      each recording's worst one (largest current residual RMS), which the column's title
+      names with its residual and the whole recording's.
+    - `title`: the figure's title (default: the fitted values).
+    """
+    which = range(len(result.traces)) if recording is None else [recording]
+    cols = []
+    for r in which:
+        tr = result.traces[r]
+        t = np.asarray(tr["t"])
+        if t_window is None:
+            k, worst, whole = _worst_window(tr, result.segment_s)
+            label = (f"recording {r}: worst segments {t[k][0]:.3g}-{t[k][-1]:.3g} s, "
+                     f"residual {worst:.3g} A (whole recording {whole:.3g} A)")
+        else:
+            k = t - t[0] <= float(t_window)
+            label = f"recording {r}: first {float(t_window):g} s"
+        cols.append((tr, k, label, worst if t_window is None else 0.0))
+    if recording is None and len(cols) > 8:
+        cols = sorted(cols, key=lambda c: -c[3])[:8]
+    fig = Figure(figsize=(6.0 * len(cols) + 1.5, 7.4), layout="constrained")
+    grid = fig.subplots(4, len(cols), sharex="col", squeeze=False)
+    for j, (tr, k, label, _) in enumerate(cols):
+        ax = grid[:, j]
+        t = np.asarray(tr["t"])[k]
+        for row, name in enumerate(("alpha", "beta")):
+            ax[row].plot(t, tr["i_ab"][k, row], "k", lw=0.8, label=f"i_{name} measured")
+            ax[row].plot(t, tr["i_model"][k, row], "r--", lw=1.0, label="model")
+            ax[row].set_ylabel(f"i_{name} (A)")
+        ax[2].plot(t, tr["w_m"][k], "k", lw=0.8, label="w_m measured")
+        ax[2].plot(t, tr["w_model"][k], "r--", lw=1.0, label="model")
+        ax[2].set_ylabel("speed (rad/s)")
+        for row in (0, 1):
+            ax[3].plot(t, tr["i_model"][k, row] - tr["i_ab"][k, row], lw=0.6,
+                       color=f"C{row}", label=f"i_{('alpha', 'beta')[row]} model - measured")
+        ax[3].set_ylabel("residual (A)")
+        ax[3].set_xlabel("t (s)")
+        ax[0].set_title(label, fontsize=8)
+        for a in ax:
+            a.grid(True, alpha=0.3)
+            if j == len(cols) - 1:
+                _legend(a)
     fit = ", ".join(f"{n} {p['value']:.4g} {p['unit']}" for n, p in result.parameters.items())
     fig.suptitle(title or f"identified: {fit}", fontsize=9)
     return fig
