@@ -24,9 +24,17 @@ observer through the contract (`from_drive` + `with_design`).
 - *filter time constant* (stumper's $T_{LP}$): from $T_s$ (the forward-Euler filter's
   stability limit) to $1/\omega_{min}$ of the tracking loop (a slower filter than that
   lags more than the allowed ramp lag);
+- *fixed* (zhang2022's flux damping $\zeta_1$ and ratio $\omega_1/|\omega_0|$ of its
+  fixed-ratio schedule): bounds the observer class states itself (`tunable_bounds`), as
+  physical constants of its design, not derived from the drive;
 - any other tunable gain (morawiec2023's $c_\alpha$, $k_c$, $c_\theta$, $\gamma$;
   li's FA-LESO $k_1$, $k_2$): no physical rule here; its bounds are the observer
   contract's factor box around the paper's value (`tunable`), and the report says so.
+
+An observer may name its own coordinates for some of its parameters
+(`tuning_coordinates`, e.g. stumper's tracking filter as bandwidth $\sqrt{v_1}$ and damping
+$v_2/(2\sqrt{v_1})$ instead of $v_1, v_2$); the search moves those, and the class maps
+them to its design (`design_from_tuning`).
 
 The paper's design is the starting point. Where it lies outside the derived bounds (stumper's
 tracking filter and li's PLL are slower than the ramp-lag rule asks at their drives'
@@ -68,9 +76,6 @@ class Coordinate:
 #: Where the paper's design lies outside the derived bounds, they are widened to hold it
 #: with this factor of room (the search must be able to return the baseline).
 PAPER_MARGIN = 1.25
-#: Bounds of zhang2022's flux loop (fixed-ratio schedule): damping and w1/|w0|.
-FLUX_DAMPING = (0.5, 4.0)
-FLUX_RATIO = (0.2, 2.0)
 #: The kinds of coordinate whose bounds derive from the drive (the observer class's
 #: `tunable_kinds`); any other tunable name is a "contract" coordinate.
 KINDS = ("tracking", "damping", "estimator", "time")
@@ -108,24 +113,21 @@ class DesignSpace:
                 f"{w_hi:.4g} rad/s; allow more lag (ramp_lag_deg) or sample faster (T_s)")
         self.a_max = a_max
         self.w_track = (w_lo, w_hi)
+        self._cls = cls
         coords = []
-        tunable = dict(cls.tunable)
-        if problem.observer == "parallel-model":  # (v1, v2) -> bandwidth and damping
-            v1, v2 = self.paper_design["v1"], self.paper_design["v2"]
-            tunable.pop("v1"), tunable.pop("v2")
-            coords.append(self._coord("w_tf", "rad/s", "tracking", math.sqrt(v1),
-                                      problem))
-            coords.append(self._coord("zeta_tf", "-", "damping",
-                                      v2 / (2 * math.sqrt(v1)), problem))
-        if {"zeta1", "ratio"} <= set(cls.speed_scheduled):
-            # zhang2022's flux loop as a fixed-ratio schedule; the paper's (38) is
-            # zeta1 = 1.5 + |w0|/w_rated, w1/|w0| = 1.5/zeta1: its values at half the
-            # rated speed stand for it as the "paper" point
-            coords.append(Coordinate("zeta1", "-", *FLUX_DAMPING, "flux",
-                                     "flux damping of zhang2022 (17); (38) spans 1.5..2.5",
-                                     2.0))
-            coords.append(Coordinate("ratio", "-", *FLUX_RATIO, "flux",
-                                     "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6", 0.75))
+        tunable = {k: v for k, v in cls.tunable.items() if k not in cls.tuning_replaces}
+        # the class's own coordinates for some of its parameters (a reparametrisation)
+        paper_coords = cls.tuning_from_design(
+            {k: self.paper_design[k] for k in cls.tuning_replaces})
+        for name, (unit, kind) in cls.tuning_coordinates.items():
+            if kind not in KINDS:
+                raise ValueError(f"`{cls.__name__}.tuning_coordinates[{name!r}]` has kind "
+                                 f"{kind!r}; choose one of {', '.join(KINDS)}.")
+            coords.append(self._coord(name, unit, kind, float(paper_coords[name]), problem))
+        # parameters whose bounds the class fixes (no rule from the drive)
+        for name, (lo, hi, start, why) in cls.tunable_bounds.items():
+            unit = cls.design_units[name].split(",")[0]
+            coords.append(Coordinate(name, unit, lo, hi, "fixed", why, start))
         for name, box in tunable.items():
             unit = cls.design_units[name].split(",")[0]
             coords.append(self._coord(name, unit, _kind(cls, name), self.paper_design[name],
@@ -200,11 +202,8 @@ class DesignSpace:
         """The observer's design parameters (`design_units` names) of coordinates `x`
         (may be traced)."""
         x = jnp.asarray(x)
-        d = {c.name: x[i] for i, c in enumerate(self.coordinates)}
-        if "w_tf" in d:  # stumper's tracking filter: v1 = w^2, v2 = 2 zeta w
-            w, zeta = d.pop("w_tf"), d.pop("zeta_tf")
-            d["v1"], d["v2"] = w ** 2, 2 * zeta * w
-        return d
+        return self._cls.design_from_tuning(
+            {c.name: x[i] for i, c in enumerate(self.coordinates)})
 
     def observer(self, x, motor=None):
         """The observer with the design `x` (physical coordinates; may be traced; None:

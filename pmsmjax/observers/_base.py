@@ -170,6 +170,17 @@ class AbstractObserver(eqx.Module):
     #: rad/s) or `"time"` (a filter time constant, s). A tunable name not listed keeps the
     #: `tunable` factor box around its default.
     tunable_kinds: ClassVar[dict[str, str]] = {}
+    #: Tunable design parameters whose bounds are physical constants of the observer, not
+    #: derived from the drive: name -> `(lo, hi, start, why)`: the bounds, the value that
+    #: stands for the paper's design (a scheduled parameter has no single value) and the
+    #: reason, in the parameter's unit.
+    tunable_bounds: ClassVar[dict[str, tuple[float, float, float, str]]] = {}
+    #: Coordinates the tuner searches instead of some `tunable` parameters (a
+    #: reparametrisation in physical terms): name -> `(unit, kind)` with a kind of
+    #: `tunable_kinds`; `tuning_replaces` names the parameters they stand for, and
+    #: `design_from_tuning` / `tuning_from_design` map between the two (traceable).
+    tuning_coordinates: ClassVar[dict[str, tuple[str, str]]] = {}
+    tuning_replaces: ClassVar[tuple[str, ...]] = ()
     #: Design parameters that may vary with the observer's own speed estimate (a gain
     #: schedule in its `design` field, zhang2022 Sec. III). Empty: constants only.
     speed_scheduled: ClassVar[tuple[str, ...]] = ()
@@ -272,6 +283,18 @@ class AbstractObserver(eqx.Module):
         the fields named in `design_units`; an observer whose design lives elsewhere (a
         gain schedule, a PLL module) overrides it."""
         return {k: getattr(self, k) for k in self.design_units}
+
+    @classmethod
+    def design_from_tuning(cls, coords: dict) -> dict:
+        """The design parameters (`tuning_replaces`) of tuning coordinates `coords`
+        (`tuning_coordinates` names; values may be traced). None declared: identity."""
+        return dict(coords)
+
+    @classmethod
+    def tuning_from_design(cls, design: dict) -> dict:
+        """The tuning coordinates of the design parameters `design` (the inverse of
+        `design_from_tuning`)."""
+        return dict(design)
 
     @abc.abstractmethod
     def with_design(self, **values):

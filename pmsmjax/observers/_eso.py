@@ -163,6 +163,12 @@ class AbstractFluxObserver(AbstractObserver):
     paper_motor: ClassVar[str | None] = "zhang750"
     paper_T_s: ClassVar[float | None] = 125e-6
     tunable_kinds: ClassVar[dict[str, str]] = {"w2": "tracking", "zeta2": "damping"}
+    #: the flux loop as a fixed-ratio schedule (zeta1, w1/|w0| = ratio); (38) is
+    #: zeta1 = 1.5 + |w0|/w_rated, ratio = 1.5/zeta1, whose values at half the rated speed
+    #: stand for it
+    tunable_bounds: ClassVar[dict[str, tuple[float, float, float, str]]] = {
+        "zeta1": (0.5, 4.0, 2.0, "flux damping of zhang2022 (17); (38) spans 1.5..2.5"),
+        "ratio": (0.2, 2.0, 0.75, "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6")}
     motor: eqx.AbstractVar[PMSMParams]
     design: eqx.AbstractVar[AbstractGainSchedule]
 

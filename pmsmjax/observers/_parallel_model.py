@@ -230,6 +230,11 @@ class ParallelModelObserver(AbstractObserver):
     paper_motor: ClassVar[str | None] = "stumper_mt5"
     paper_T_s: ClassVar[float | None] = 62.5e-6
     tunable_kinds: ClassVar[dict[str, str]] = {"T_LP": "time"}
+    #: the tracking filter (37)-(38) is a type-2 loop with characteristic polynomial
+    #: s^2 + v2 s + v1: the tuner searches its bandwidth and damping
+    tuning_coordinates: ClassVar[dict[str, tuple[str, str]]] = {
+        "w_tf": ("rad/s", "tracking"), "zeta_tf": ("-", "damping")}
+    tuning_replaces: ClassVar[tuple[str, ...]] = ("v1", "v2")
     c_emitter: ClassVar[str | None] = "_stumper:emit"
     motor: PMSMParams
     v1: float
@@ -290,6 +295,26 @@ class ParallelModelObserver(AbstractObserver):
 
     def design_parameters(self) -> dict:
         return {"v1": self.v1, "v2": self.v2, "T_LP": self.T_LP, "T_w": self.T_w}
+
+    @classmethod
+    def design_from_tuning(cls, coords: dict) -> dict:
+        """v1 = w_tf^2, v2 = 2 zeta_tf w_tf from the tracking filter's bandwidth (rad/s)
+        and damping (other names pass through)."""
+        d = dict(coords)
+        if "w_tf" in d:
+            w, zeta = d.pop("w_tf"), d.pop("zeta_tf")
+            d["v1"], d["v2"] = w ** 2, 2 * zeta * w
+        return d
+
+    @classmethod
+    def tuning_from_design(cls, design: dict) -> dict:
+        """w_tf = sqrt(v1), zeta_tf = v2 / (2 sqrt(v1)) (the inverse of
+        `design_from_tuning`)."""
+        d = dict(design)
+        if "v1" in d:
+            v1, v2 = d.pop("v1"), d.pop("v2")
+            d["w_tf"], d["zeta_tf"] = v1 ** 0.5, v2 / (2 * v1 ** 0.5)
+        return d
 
     def with_design(self, **values):
         self._check_design_names(values)
