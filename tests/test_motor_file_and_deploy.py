@@ -319,3 +319,21 @@ def test_gains_table_carries_sampling_period_objective_and_verdict(tuned, tmp_pa
                  "--speed", "0.4", "--t-end", "0.05", "--T-s", str(cfg.T_s), "--no-plot",
                  "--out", str(sim)]) == 0
     assert "warning" not in capsys.readouterr().err
+
+
+def test_a_motor_file_without_base_says_which_bases_it_takes(tmp_path):
+    """Without [base] the bases are the inverter's linear range and the current limit,
+    not the rated values of docs/conventions.md: the reading notes say so, with the
+    numbers, so the same `--i-q 0.5` is not silently twice the preset's current."""
+    from pmsmjax._plant._motorfile import read_motor_file
+
+    text = pj.motor_file_text(pj.preset("zhang750"))
+    head, _ = text.split("[base]")
+    (tmp_path / "m.toml").write_text(head)
+    drive, notes = read_motor_file(tmp_path / "m.toml")
+    i_max = float(pj.preset("zhang750").i_max)
+    assert float(drive.base.I_b) == i_max
+    assert any("no [base] section" in n and f"I_b = {i_max:.4g} A" in n for n in notes)
+    example = pathlib.Path(__file__).parents[1] / "docs" / "examples" / "zhang750.toml"
+    _, notes = read_motor_file(example)
+    assert not any("[base]" in n for n in notes)

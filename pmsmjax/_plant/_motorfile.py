@@ -205,7 +205,8 @@ MOTOR_FILE_SCHEMA: dict[str, dict[str, Field]] = {
         "u_dt": Field("V", "dead-time and device-drop voltage error per phase (default: "
                       "none, an ideal inverter)", required=False, **_NONNEG),
         "i_dt": Field("A", "width of the dead-time error's transition around zero phase "
-                      "current, u_dt tanh(i / i_dt) (default 0.1)", required=False, **_POS),
+                      "current, u_dt tanh(i / i_dt); 0: the hard model u_dt sign(i) "
+                      "(default 0.1)", required=False, **_NONNEG),
     },
     "ratings": {
         "w_rated": Field("rad/s", "rated electrical speed (give this or n_rated_rpm)",
@@ -455,6 +456,12 @@ def _parse(text: str, source: str) -> tuple[Drive, list[str]]:
         w_b = base.get("w_b", w_rated)
     else:  # no [base]: the inverter's linear range, the current limit, the rated speed
         U_b, I_b, w_b = float(inverter.u_lim), rat["i_max"], w_rated
+        notes.append(
+            f"no [base] section: the per-unit bases are U_b = {U_b:.4g} V (the inverter's "
+            f"linear range), I_b = {I_b:.4g} A (the current limit [ratings] i_max) and w_b = "
+            f"w_rated, not the rated values docs/conventions.md names: currents in p.u. "
+            f"(--i-q, --load) are fractions of {I_b:.4g} A. Add [base] I_rated_rms and "
+            f"U_rated_ll (or I_b, U_b) to use the rated ones")
     bases = build("base", lambda: BaseValues(U_b=U_b, I_b=I_b, w_b=w_b, n_p=m["n_p"]))
     name = top.get("name", os.path.splitext(os.path.basename(source))[0] or "custom")
     return build("ratings", lambda: Drive(
