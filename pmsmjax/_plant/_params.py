@@ -238,8 +238,12 @@ class Inverter(eqx.Module):
     - `u_dt`: dead-time and device-drop voltage error per phase (V), >= 0; default `None`
       (an ideal inverter, at no cost). Each phase receives its commanded voltage less
       `u_dt * tanh(i_x / i_dt)` (see `pmsmjax._plant._inverter` for the model).
-    - `i_dt`: width of that error's transition around zero phase current (A), > 0;
-      default 0.1 A (a few percent of rated current is typical).
+    - `i_dt`: width of that error's transition around zero phase current (A), >= 0;
+      default 0.1 A (a few percent of rated current is typical). `0` is the hard model,
+      `u_dt * sign(i_x)`: the smooth model's limit, one parameter for both (hard or smooth
+      then follows the inverter everywhere: plant, compensation, replay, identification,
+      motor files, generated C); the smooth one keeps the plant differentiable in the
+      current and lets `identify` fit `i_dt` (`pmsmjax._plant._inverter`).
     """
 
     u_dc: float
@@ -252,7 +256,7 @@ class Inverter(eqx.Module):
         check_positive("Inverter", "u_dc", self.u_dc, "V")
         check_positive("Inverter", "u_max", self.u_max, "V")
         check_positive("Inverter", "u_dt", self.u_dt, "V", allow_zero=True)
-        check_positive("Inverter", "i_dt", self.i_dt, "A")
+        check_positive("Inverter", "i_dt", self.i_dt, "A", allow_zero=True)
         if self.u_max is not None and is_concrete((self.u_max, self.u_dc)):
             if np.any(np.asarray(self.u_max) > np.asarray(self.u_dc) * 2 / 3 + 1e-12):
                 raise ValueError(
@@ -264,6 +268,15 @@ class Inverter(eqx.Module):
     def u_lim(self):
         """Voltage-vector amplitude limit (V)."""
         return self.u_dc / math.sqrt(3.0) if self.u_max is None else self.u_max
+
+    @property
+    def dead_time(self) -> str:
+        """The dead-time model, for reports: `"none"` (`u_dt` unset or 0), `"hard"`
+        (`u_dt sign(i)`, `i_dt` = 0) or `"smooth"` (`u_dt tanh(i / i_dt)`). Concrete
+        values only."""
+        if self.u_dt is None or not np.any(np.asarray(self.u_dt) != 0):
+            return "none"
+        return "hard" if not np.any(np.asarray(self.i_dt) != 0) else "smooth"
 
 
 class BaseValues(eqx.Module):

@@ -131,7 +131,8 @@ def simulate(
       (use this under `vmap` for sweeps).
     - `observer_u_dt`: the inverter error (V) that the drive's dead-time compensation
       assumes when it hands the observer its voltage: the observer sees the commanded
-      voltage of the last period less `observer_u_dt * tanh(i / i_dt)` per phase,
+      voltage of the last period less `observer_u_dt * tanh(i / i_dt)` per phase (`sign(i)`
+      for the hard model, `i_dt = 0`),
       averaged over the measured currents at both ends of the period (what `replay(...,
       inverter=...)` does with a commanded-voltage recording). Default: the drive's own
       `inverter.u_dt` (an exact model); `0` gives the observer the raw commanded voltage.

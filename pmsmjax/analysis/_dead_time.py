@@ -37,11 +37,12 @@ from ._generic import equilibria
 def dead_time_resistance(u_dt, i_dt, i_amp):
     """Equivalent series resistance (Ohm) of the dead-time error's fundamental at a
     sinusoidal current of amplitude `i_amp` (A): `F(i_amp) / i_amp` (module docstring);
-    `u_dt / i_dt` at zero current (the small-signal slope). NumPy."""
+    `u_dt / i_dt` at zero current (the small-signal slope; infinite for the hard model,
+    `i_dt = 0`). NumPy."""
     i_amp = np.asarray(i_amp, dtype=float)
     safe = np.where(i_amp > 0, i_amp, 1.0)
-    return np.where(i_amp > 0, dead_time_fundamental(u_dt, i_dt, safe) / safe,
-                    float(u_dt) / float(i_dt))
+    slope = float(u_dt) / float(i_dt) if float(i_dt) > 0 else math.inf
+    return np.where(i_amp > 0, dead_time_fundamental(u_dt, i_dt, safe) / safe, slope)
 
 
 def dead_time_angle_error(observer: AbstractObserver, plant, w_m, i_dq, u_dt, i_dt=0.1,

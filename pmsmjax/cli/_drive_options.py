@@ -16,7 +16,8 @@ from ._values import CLIError, finite_float, name_value
 
 _SETTABLE = ("R_s (Ohm), L_d (H), L_q (H), psi_f (V s), n_p (pole pairs), J (kg m^2), "
              "B (N m s/rad), u_dc (V), u_max (V, peak phase), u_dt (V, the inverter's "
-             "dead-time error per phase), i_dt (A, its transition width); dual three-phase "
+             "dead-time error per phase), i_dt (A, its transition width; 0: the hard model u_dt "
+             "sign(i)); dual three-phase "
              "machines "
              "also L_xy (H), gamma (rad)")
 
