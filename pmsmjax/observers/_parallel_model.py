@@ -230,8 +230,7 @@ class ParallelModelObserver(AbstractObserver):
     paper_motor: ClassVar[str | None] = "stumper_mt5"
     paper_T_s: ClassVar[float | None] = 62.5e-6
     tunable_kinds: ClassVar[dict[str, str]] = {"T_LP": "time"}
-    #: the tracking filter (37)-(38) is a type-2 loop with characteristic polynomial
-    #: s^2 + v2 s + v1: the tuner searches its bandwidth and damping
+    #: the tracking filter (37)-(38), s^2 + v2 s + v1: the tuner searches w_tf, zeta_tf
     tuning_coordinates: ClassVar[dict[str, tuple[str, str]]] = {
         "w_tf": ("rad/s", "tracking"), "zeta_tf": ("-", "damping")}
     tuning_replaces: ClassVar[tuple[str, ...]] = ("v1", "v2")
@@ -308,8 +307,7 @@ class ParallelModelObserver(AbstractObserver):
 
     @classmethod
     def tuning_from_design(cls, design: dict) -> dict:
-        """w_tf = sqrt(v1), zeta_tf = v2 / (2 sqrt(v1)) (the inverse of
-        `design_from_tuning`)."""
+        """w_tf = sqrt(v1), zeta_tf = v2 / (2 sqrt(v1)) (`design_from_tuning` inverted)."""
         d = dict(design)
         if "v1" in d:
             v1, v2 = d.pop("v1"), d.pop("v2")
