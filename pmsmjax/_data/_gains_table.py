@@ -33,12 +33,17 @@ observer's design parameters (`design_units`), applied with `with_design`.
 **Provenance** (optional keys, all written by `python -m tuning`): `T_s` (s), the sampling
 period the design was tuned and validated at (a discrete observer's poles move with it:
 the gains are not valid at another period without checking); `objective`, the tuner's
-objective; `verdict`, `{"holds": bool, "baseline": str, "where_not": [str, ...]}`, whether
-the tuned design beat the paper's design on the training, held-out and closed-loop
-validation runs with no run worse (`where_not` says where it did not). A table whose
-verdict does not hold (or has none) is not a validated improvement: `gains.h` then
-emits a compiler warning (silenced by defining `PMSMJAX_GAINS_ACCEPT_UNVALIDATED`),
-and `verdict_warning(table)` gives the line the command line prints.
+objective; `verdict`, `{"holds": bool, "baseline": str, "where_not": [str, ...]}`:
+whether the tuned design passed the tuner's rule against the baseline on closed-loop
+validation runs (`where_not` says where it did not), optionally with `accounting`, its
+counts under the names summary.json gives them (`VERDICT_COUNTS`: `n` runs, `better` /
+`worse`: loss lower / higher than the baseline's by more than 0.1 %, `fraction_better`,
+`worst_rms_change_pct`, `new_lost_lock`: runs losing lock that the baseline holds).
+`verdict_text(verdict)` states it as counted (the tuner's last line, `gains.h`'s header
+comment, `pmsmjax gains`). A table whose verdict does not hold (or has none) is not a
+validated improvement: `gains.h` then emits a compiler warning (silenced by defining
+`PMSMJAX_GAINS_ACCEPT_UNVALIDATED`), and `verdict_warning(table)` gives the
+line the command line prints.
 """
 
 from __future__ import annotations
@@ -78,6 +83,10 @@ INTERPOLATION = (
 #: Columns of a speed-scheduled table and their units.
 DESIGN_COLUMNS = {"w_m": "rad/s", "zeta1": "-", "w1": "rad/s", "zeta2": "-", "w2": "rad/s",
                   "nu2": "-", "nu3": "-"}
+#: The validation counts a tuner verdict may record (`verdict.accounting`; the names and
+#: definitions of `tuning.objective.VOCABULARY`).
+VERDICT_COUNTS = ("n", "better", "worse", "fraction_better", "worst_rms_change_pct",
+                  "new_lost_lock")
 GAIN_COLUMNS = {"G1_11": "1/s", "G1_12": "1/s", "G1_21": "1/s", "G1_22": "1/s",
                 "g2_1": "rad/s per V s", "g2_2": "rad/s per V s",
                 "g3_1": "rad/s^2 per V s", "g3_2": "rad/s^2 per V s",
@@ -181,8 +190,36 @@ def _check_verdict(verdict, source: str) -> dict:
                                                          for w in where_not):
         raise ValueError(f"{source}: `verdict.where_not` must be a list of strings; got "
                          f"{where_not!r}")
-    return {"holds": verdict["holds"], "baseline": str(verdict.get("baseline", "")),
-            "where_not": list(where_not)}
+    out = {"holds": verdict["holds"], "baseline": str(verdict.get("baseline", "")),
+           "where_not": list(where_not)}
+    if "accounting" in verdict:
+        a = verdict["accounting"]
+        if not isinstance(a, dict) or any(
+                isinstance(a.get(k), bool) or not isinstance(a.get(k), int | float)
+                or not math.isfinite(a[k]) for k in VERDICT_COUNTS):
+            raise ValueError(f"{source}: `verdict.accounting` must give a finite number for "
+                             f"each of {', '.join(VERDICT_COUNTS)}; got {a!r}")
+        out["accounting"] = {k: a[k] for k in VERDICT_COUNTS}
+    return out
+
+
+def verdict_text(verdict: dict | None) -> str:
+    """The tuner's verdict stated as counted, one line: "holds: tuned better than the
+    paper's design in 74 of 88 validation runs; worst RMS change +7.6 %; no new lost
+    lock" (from `verdict.accounting`; "holds (no counts recorded)" for a table that
+    records none, "not recorded" without a verdict). The tuner's last line, `gains.h`'s
+    header comment and `pmsmjax gains` print it."""
+    if verdict is None:
+        return "not recorded"
+    word = "holds" if verdict["holds"] else "does NOT hold"
+    a = verdict.get("accounting")
+    if not a:
+        return f"{word} (no counts recorded)"
+    k = int(a["new_lost_lock"])
+    lost = "no new lost lock" if k == 0 else f"{k} new lost lock{'s' if k > 1 else ''}"
+    return (f"{word}: tuned better than {verdict.get('baseline') or 'the paper design'} "
+            f"in {int(a['better'])} of {int(a['n'])} validation runs; worst RMS change "
+            f"{a['worst_rms_change_pct']:+.1f} %; {lost}")
 
 
 def verdict_warning(table: dict) -> str | None:
@@ -361,11 +398,8 @@ def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
                                      f"this period only)" if T_s is not None else
                                      "not recorded"),
            f" * Tuner objective: {table.get('objective') or 'not recorded'}.",
-           " * Tuner verdict: " + ("the tuned design beat "
-                                   f"{table['verdict']['baseline'] or 'the paper design'} "
-                                   "on training, held-out and validation runs"
-                                   if warning is None else
-                                   _c_comment(warning)) + ".",
+           f" * Tuner verdict: {_c_comment(verdict_text(table.get('verdict')))}.",
+           *([f" * Warning: {_c_comment(warning)}."] if warning is not None else []),
            " */",
            f"#ifndef {P}_H", f"#define {P}_H", ""]
     if warning is not None:

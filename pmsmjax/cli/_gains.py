@@ -1,9 +1,9 @@
 """`pmsmjax gains`: check a gains table before it goes into firmware.
 
 Reads the tuner's gains table (`--design`), prints what it records (observer, drive,
-sampling period, objective, the tuner's verdict), and compares the tuned design with the
-paper's design of the same observer for the same drive over speed: the gains, and the
-poles of the discrete observer at the table's sampling period
+sampling period, objective, the tuner's verdict as counted: `pmsmjax.verdict_text`), and
+compares the tuned design with the paper's design of the same observer for the same drive
+over speed: the gains, and the poles of the discrete observer at the table's sampling period
 (`pmsmjax.analysis.discrete_poles`: the eigenvalues of one real observer step at its
 designed equilibrium, at an operating current `--i-d`/`--i-q`). Writes `gains_check.json`
 into `--out`, and with `--plot` `gains.png` (gains versus speed, tuned and paper) and
@@ -130,16 +130,16 @@ def gains_command(args: argparse.Namespace) -> int:
     report = {**header("gains", drive, args), "design_file": os.path.abspath(args.design),
               "observer": table["observer"], "kind": table["kind"],
               "table_T_s": table.get("T_s"), "objective": table.get("objective"),
-              "verdict": v, "verdict_warning": warning, **check}
+              "verdict": v, "verdict_text": pj.verdict_text(v), "verdict_warning": warning,
+              **check}
     files = {"report": os.path.join(out, "gains_check.json")}
     write_json(files["report"], report)
     tuned_at = (f"tuned at T_s = {table['T_s']:g} s" if table.get("T_s") else
                 "sampling period not recorded")
     print(f"gains table: {table['kind']}, {len(table['rows'])} rows, for drive "
           f"{table.get('drive') or '?'}; {tuned_at}")
-    print(f"objective: {table.get('objective') or 'not recorded'}; verdict: "
-          + ("holds (the tuned design beat the paper's on every check)" if warning is None
-             else "NOT validated"))
+    print(f"objective: {table.get('objective') or 'not recorded'}; tuner's verdict: "
+          f"{pj.verdict_text(v)}")
     if warning is not None:
         print(f"warning: {warning}", file=sys.stderr)
     mt, mp = np.asarray(check["max_abs_pole_tuned"]), np.asarray(check["max_abs_pole_paper"])
