@@ -84,13 +84,15 @@ def _recount(out, p):
     (loss_p, rms_p, lost_p), (loss, rms, lost) = res
     rms_change = rms / rms_p - 1
     counts = {"n": vset.n, "better": int(np.sum(loss < (1 - 1e-3) * loss_p)),
+              "worse": int(np.sum(loss > (1 + 1e-3) * loss_p)),
               "rms_worse_than_tol": int(np.sum(rms_change > p.regression_tol)),
               "new_lost_lock": int(np.sum(lost & ~lost_p)),
               "lost_lock_reference": int(np.sum(lost_p))}
     counts["holds"] = (counts["better"] >= 0.75 * vset.n and not counts["rms_worse_than_tol"]
                        and not counts["new_lost_lock"])
     return counts, {"paper": loss_p, design["name"]: loss,
-                    "worst_rms_change_pct": 100 * float(rms_change.max())}
+                    "worst_rms_change_pct": 100 * float(rms_change.max()),
+                    "rms_deg": (float(rms_p.mean()), float(rms.mean()))}
 
 
 def _check_recount(out, p, s):
@@ -102,6 +104,18 @@ def _check_recount(out, p, s):
     assert v["holds"] is mine["holds"]
     assert acc["worst_rms_change_pct"] == pytest.approx(loss["worst_rms_change_pct"],
                                                         rel=1e-8)
+    assert acc["fraction_better"] == mine["better"] / mine["n"]
+    # the metric that leads the report: the mean RMS angle error (deg) of both designs
+    lead = s["rms_angle_error_deg"]
+    assert list(s)[0] == "rms_angle_error_deg" and lead["design"] == s["default"]
+    assert (lead["paper"], lead["tuned"]) == pytest.approx(loss["rms_deg"], rel=1e-8)
+    # the verdict as counted
+    lost = mine["new_lost_lock"]
+    assert v["statement"] == (
+        f"{'holds' if mine['holds'] else 'does NOT hold'}: tuned better than the paper's "
+        f"design in {mine['better']} of {mine['n']} validation runs; worst RMS change "
+        f"{loss['worst_rms_change_pct']:+.1f} %; "
+        + ("no new lost lock" if lost == 0 else f"{lost} new lost lock{'s' * (lost > 1)}"))
     # measured: 8e-9 (the loss's 1e-12 and 1e-6 under the root and the power)
     for name in ("paper", s["default"]):
         assert s["designs"][name]["validation_loss"] == pytest.approx(
@@ -132,9 +146,18 @@ def test_main_job_quick(tmp_path):
     assert set(tg.REQUIRED_KEYS) <= set(s)
     assert s["observer"] == "eso" and s["motor"] == "zhang750"
     assert s["problem"]["budget"] == p.budget and s["problem"]["search"] == "hybrid"
-    # the shape other tools read
+    # the shape other tools read: the accounting's vocabulary, defined in the file, and
+    # the keys it replaced, kept one release with what replaces them
     acc, v = s["accounting"]["validation"], s["verdict"]
-    assert {"n", "improved", "worst_rms_change_pct"} <= set(acc)
+    assert {"n", "better", "worse", "fraction_better", "worst_rms_change_pct",
+            "new_lost_lock"} <= set(acc) and s["vocabulary"] == tg.VOCABULARY
+    assert s["deprecated_keys"]["replaced_by"] == {"improved": "better",
+                                                   "improved_frac": "fraction_better"}
+    assert {"improved", "improved_frac"} <= set(acc)
+    assert acc["improved_frac"] == acc["fraction_better"]
+    for name, row in s["designs"].items():
+        for split, a in row.get("accounting", {}).items():
+            assert set(tg.VOCABULARY) | set(tg.DEPRECATED_KEYS) <= set(a), (name, split)
     assert acc["n"] == 2 * len(p.val_speeds_pu) * len(p.val_cases)
     assert isinstance(v["holds"], bool)
     for name in ("paper", "hybrid", "gradient", "cmaes", "random", "local", "tuned",
@@ -154,16 +177,30 @@ def test_main_job_quick(tmp_path):
     # the tuner or the observers shows here as a verdict that flips
     assert rule and acc["better"] == acc["n"]
     last = printed.strip().splitlines()[-1]
-    assert last.startswith("verdict: the tuned design")
-    assert (" holds against" in last) is rule and ("does NOT hold" in last) is (not rule)
+    assert last == f"verdict: {v['statement']}" and last.startswith("verdict: holds: ")
+    # the console leads with the RMS angle error (deg), then the table in the
+    # accounting's words; the objective is labelled as such
+    lines = printed.splitlines()
+    first = lines.index("") + 1  # the summary after the progress lines
+    lead = s["rms_angle_error_deg"]
+    assert lines[first] == (f"RMS angle error (deg), mean over the {acc['n']} validation "
+                            f"runs: paper design {lead['paper']:.2f}, tuned "
+                            f"({s['default']}) {lead['tuned']:.2f}")
+    assert lines[first + 2].split()[:8] == ["design", "RMS", "deg", "better", "worse",
+                                            "worst_rms_change_pct", "new_lost_lock",
+                                            "train"]
+    assert "train objective: what the searches minimise on the training runs " \
+           "(dimensionless, not degrees" in printed
     # the bounds are stated, with how they were derived
     assert all(b["why"] and b["lo"] < b["hi"] for b in s["bounds"])
     # the gains table for firmware carries the sampling period and this verdict; a
     # verdict that does not hold is announced on stderr and in gains.h
     g = json.loads((out / "gains.json").read_text())
     assert g["T_s"] == s["problem"]["T_s"] and g["verdict"]["holds"] is v["holds"]
+    assert g["verdict"]["accounting"] == {k: acc[k] for k in tg.VOCABULARY}
     header = (out / "gains.h").read_text()
     assert f"#define PMSMJAX_GAINS_VERDICT_HOLDS {int(rule)}" in header
+    assert f" * Tuner verdict: {v['statement']}.\n" in header
     assert ("did NOT pass validation" in proc.stderr) is (not rule)
     # the deployed design rebuilds the observer the report scored
     d = tg.load_design(out)
@@ -198,8 +235,9 @@ def test_main_job_whose_verdict_fails(tmp_path):
     assert v["holds"] is False and s["default"] == "tuned"
     assert any("RMS angle error worse" in w for w in v["where_not"])
     last = proc.stdout.strip().splitlines()[-1]
-    assert last == ("verdict: the tuned design does NOT hold against the paper's design: "
-                    + "; ".join(v["where_not"]))
+    assert last == "verdict: " + "; ".join([v["statement"], *v["where_not"]])
+    assert v["statement"].startswith(f"does NOT hold: tuned better than the paper's design "
+                                     f"in {mine['better']} of {mine['n']} validation runs")
     assert proc.stderr.strip().splitlines()[-1] == (
         f"warning: {out / 'gains.h'} holds a design that did NOT pass validation; deploy "
         f"the paper's design or check the tuned one yourself")
@@ -207,6 +245,7 @@ def test_main_job_whose_verdict_fails(tmp_path):
     assert g["verdict"]["holds"] is False and g["verdict"]["where_not"] == v["where_not"]
     header = (out / "gains.h").read_text()
     assert "#define PMSMJAX_GAINS_VERDICT_HOLDS 0" in header
+    assert f" * Tuner verdict: {v['statement']}.\n" in header
     d = tg.load_design(out)
     assert s["designs"]["tuned"]["design"] == pytest.approx(d, rel=1e-12)
     for k, x in d.items():  # the deployed gains are the tuned design's (9 digits)
@@ -220,7 +259,7 @@ def test_main_job_whose_verdict_fails(tmp_path):
                                str(tmp_path / "use.c")], capture_output=True, text=True)
 
     warned = gcc()
-    assert warned.returncode == 0 and "did NOT beat paper design" in warned.stderr
+    assert warned.returncode == 0 and "did NOT beat the paper's design" in warned.stderr
     assert gcc("-Werror").returncode != 0  # a strict build stops on it
     accepted = gcc("-Werror", "-DPMSMJAX_GAINS_ACCEPT_UNVALIDATED")
     assert accepted.returncode == 0 and accepted.stderr == ""

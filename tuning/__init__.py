@@ -28,6 +28,8 @@ from .compare import (
 from .design_space import Coordinate as Coordinate, DesignSpace as DesignSpace
 from .evaluate import Evaluator as Evaluator
 from .objective import (
+    DEPRECATED_KEYS as DEPRECATED_KEYS,
+    VOCABULARY as VOCABULARY,
     Metrics as Metrics,
     accounting as accounting,
     cvar as cvar,

@@ -1,10 +1,13 @@
 """`python -m tuning`: tune an observer's design in the closed loop (the main job).
 
-Argument parsing only: the options build a `TuningProblem`, `tuning.tune` runs the
-pipeline and `tuning.write_report` writes the folder (`summary.json`, `design.json`,
-`gains.json`/`gains.csv`/`gains.h`, `motor.toml`, the figures). The built-in default is
-zhang2022's ESO on zhang750. The last line printed is the verdict. Exit status 0 when the
-job ran (whatever the verdict), 2 for a bad configuration (one-line message).
+Argument parsing and the console summary: the options build a `TuningProblem`,
+`tuning.tune` runs the pipeline and `tuning.write_report` writes the folder
+(`summary.json`, `design.json`, `gains.json`/`gains.csv`/`gains.h`, `motor.toml`, the
+figures). The built-in default is zhang2022's ESO on zhang750. The console prints the RMS
+angle error (deg) of the paper's and the tuned design first, then each design's
+accounting in summary.json's words (`console_summary`); the last line is the verdict as
+counted (`verdict_line`). Exit status 0 when the job ran (whatever the verdict), 2 for a
+bad configuration (one-line message).
 
 `python -m tuning compare ...` runs the side-by-side comparison of every observer
 (`tuning.compare`). `pmsmjax tune` / `pmsmjax compare` hand over to these two.
@@ -103,6 +106,52 @@ def problem_from_args(args) -> TuningProblem:
     return TuningProblem.quick(**kw) if args.quick else TuningProblem(**kw)
 
 
+#: The console table's columns: heading, where summary.json keeps the value
+#: (`designs.NAME.KEY` or `designs.NAME.accounting.validation.KEY`), key and format; the
+#: RMS angle error first, the accounting under its own names.
+COLUMNS = (("RMS deg", "design", "validation_rms_deg", "{:.2f}"),
+           ("better", "accounting", "better", "{}/{n}"),
+           ("worse", "accounting", "worse", "{}"),
+           ("worst_rms_change_pct", "accounting", "worst_rms_change_pct", "{:+.1f} %"),
+           ("new_lost_lock", "accounting", "new_lost_lock", "{}"),
+           ("train objective", "design", "train_objective", "{:.4g}"))
+
+
+def console_summary(s: dict) -> str:
+    """The console's summary of a summary.json `s`: the RMS angle error of the paper's
+    and the deployed design on the validation runs first, then one row per design in the
+    accounting's words (`tuning.objective.VOCABULARY`, defined under the table), the
+    training objective labelled as such (dimensionless, not degrees)."""
+    from .objective import VOCABULARY
+
+    a, h = s["accounting"]["validation"], s["rms_angle_error_deg"]
+    lines = [f"RMS angle error (deg), mean over the {a['n']} validation runs: paper design "
+             f"{h['paper']:.2f}, tuned ({h['design']}) {h['tuned']:.2f}", ""]
+    widths = [max(len(head) + 2, 8) for head, *_ in COLUMNS]
+    lines.append(f"{'design':<16}" + "".join(f"{head:>{w}}" for (head, *_), w in
+                                             zip(COLUMNS, widths)) + f"{'sims':>7}{'wall s':>8}")
+    for name, row in s["designs"].items():
+        acc = row.get("accounting", {}).get("validation")
+        cells = [fmt.format((row if where == "design" else acc)[key], n=acc and acc["n"])
+                 if where == "design" or acc else "-" for _, where, key, fmt in COLUMNS]
+        sr = row.get("search") or {}
+        wall = f"{sr['wall_s']:.1f}" if "wall_s" in sr else "-"
+        lines.append(f"{name:<16}" + "".join(f"{c:>{w}}" for c, w in zip(cells, widths))
+                     + f"{sr.get('sims', '-'):>7}{wall:>8}")
+    lines += ["", "RMS deg: each validation run's RMS angle error, mean over the runs (deg)"]
+    lines += [f"{key}: {VOCABULARY[key]}" for _, _, key, _ in COLUMNS if key in VOCABULARY]
+    lines.append("train objective: what the searches minimise on the training runs "
+                 "(dimensionless, not degrees; the paper design's is 1 plus penalties)")
+    return "\n".join(lines)
+
+
+def verdict_line(s: dict) -> str:
+    """The job's last line: the verdict as counted (`verdict.statement`), and where it
+    does not hold, why."""
+    v = s["verdict"]
+    return "verdict: " + "; ".join([v["statement"], *v["where_not"]])
+
+
 def main(argv=None, prog: str = "python -m tuning") -> int:
     """Run the tuner's command line `argv` (default `sys.argv[1:]`; `compare ...`: the
     comparison job). Returns the exit status."""
@@ -132,29 +181,13 @@ def main(argv=None, prog: str = "python -m tuning") -> int:
     with out_dir_transaction(str(out)):  # a failed write leaves nothing half-written
         s = write_report(report, out, plot=not args.no_plot)
     print()
-    print(f"{'design':<16}{'train loss':>12}{'held-out':>10}{'validation':>12}"
-          f"{'better':>8}{'worst RMS':>11}{'sims':>7}{'wall s':>8}")
-    for name, row in s["designs"].items():
-        a = row.get("accounting", {}).get("validation")
-        better = f"{a['better']}/{a['n']}" if a else "-"
-        worst = f"{a['worst_rms_change_pct']:+.1f}%" if a else "-"
-        sr = row.get("search") or {}
-        print(f"{name:<16}{row['train_loss']:>12.4g}{row['heldout_loss']:>10.4g}"
-              f"{row['validation_loss']:>12.4g}{better:>8}{worst:>11}"
-              f"{sr.get('sims', '-'):>7}{sr.get('wall_s', float('nan')):>8.1f}")
-    a = s["accounting"]["validation"]
+    print(console_summary(s))
     print(f"wall time {time.perf_counter() - t0:.1f} s; wrote {out / 'summary.json'}")
-    if s["verdict"]["holds"]:
-        print(f"verdict: the tuned design ({s['default']}) holds against the paper's "
-              f"design on {a['n']} validation runs: better in {a['better']}, worst RMS "
-              f"angle error change {a['worst_rms_change_pct']:+.1f} %, lock lost where "
-              f"the paper holds it: {a['new_lost_lock']}")
-    else:
+    if not s["verdict"]["holds"]:
         print(f"warning: {out / 'gains.h'} holds a design that did NOT pass validation; "
               f"deploy the paper's design or check the tuned one yourself",
               file=sys.stderr)
-        print(f"verdict: the tuned design does NOT hold against the paper's design: "
-              f"{'; '.join(s['verdict']['where_not'])}")
+    print(verdict_line(s))
     return 0
 
 

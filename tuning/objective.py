@@ -61,7 +61,8 @@ PEAK_P = 8
 #: The training constraint holds the RMS error within this fraction of the tolerance
 #: (a margin for runs the tuner does not see).
 MARGIN = 0.5
-#: A run counts as better when its loss is lower by more than this (relative).
+#: A run counts as better (worse) when its loss is lower (higher) than the reference's
+#: by more than this (relative): 0.1 %.
 BETTER = 1e-3
 #: Sharpness of the constraint's softplus.
 SHARPNESS = 50.0
@@ -123,13 +124,38 @@ def objective(m: Metrics, ref: Metrics, problem: TuningProblem):
     return J, parts
 
 
+#: The accounting vocabulary: one definition per key, the same words in summary.json
+#: (`accounting.SPLIT`), the console, the figures and the docs. "The paper design" is the
+#: reference run on the same runs.
+VOCABULARY = {
+    "n": "runs compared (the same runs for both designs)",
+    "better": "runs whose loss is lower than the paper design's by more than 0.1 % "
+              "(relative; a smaller change is a tie)",
+    "worse": "runs whose loss is higher than the paper design's by more than 0.1 % "
+             "(relative)",
+    "fraction_better": "better / n",
+    "worst_rms_change_pct": "the largest change of a run's RMS angle error against the "
+                            "paper design's on the same run (%, positive: worse)",
+    "new_lost_lock": "runs that lose lock where the paper design holds it",
+}
+#: The reference's name in the reports (the verdict's baseline).
+BASELINE = "the paper's design"
+#: Keys kept one release for the readers of an older summary.json: old key -> the key
+#: that replaces it (`improved` counted a loss lower by more than the tolerance, not
+#: 0.1 %).
+DEPRECATED_KEYS = {"improved": "better", "improved_frac": "fraction_better"}
+
+
 def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
-    """Per-metric comparison of `m` with `ref` over the same runs (plain numbers):
-    runs better (loss lower by more than `BETTER`, 0.1 %: a change at the level of
-    rounding is a tie, not an improvement), improved / worse (loss changed by more than
-    `tol`, relative), the worst change
-    of the RMS angle error (%), runs whose RMS error is worse by more than `tol`, lock
-    lost where the reference holds it."""
+    """Per-metric comparison of `m` with `ref` over the same runs (plain numbers): first
+    the RMS angle error (deg, mean over the runs: `mean_rms_deg`, and the reference's
+    `mean_rms_deg_reference`), then the keys of `VOCABULARY` (`better`, `worse`: loss
+    lower / higher by more than `BETTER`, 0.1 %, a change at the level of rounding is a
+    tie; `fraction_better`; `worst_rms_change_pct`; `new_lost_lock`), then the
+    details: the tolerance (%), runs whose RMS angle error is worse by more than `tol`
+    (relative), the worst run's index, lock lost by each design, the median loss change
+    (%), and the `DEPRECATED_KEYS` (`improved`: loss lower by more than `tol`;
+    `improved_frac` = `fraction_better`)."""
     import numpy as np
 
     loss, loss_r = np.asarray(m.loss), np.asarray(ref.loss)
@@ -138,18 +164,19 @@ def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
     rel = loss / loss_r - 1.0
     rms_rel = rms / rms_r - 1.0
     worst = int(np.argmax(rms_rel))
-    return {"n": int(loss.size),
-            "improved": int(np.sum(rel < -tol)), "worse": int(np.sum(rel > tol)),
-            "improved_frac": float(np.mean(rel < -BETTER)),
-            "better": int(np.sum(rel < -BETTER)),
-            "tolerance_pct": 100.0 * tol,
-            "worst_rms_change_pct": float(100.0 * rms_rel[worst]), "worst_run": worst,
-            "rms_worse_than_tol": int(np.sum(rms_rel > tol)),
-            "lost_lock": int(np.sum(lost)), "lost_lock_reference": int(np.sum(lost_r)),
+    better = int(np.sum(rel < -BETTER))
+    return {"mean_rms_deg": float(np.mean(rms)),
+            "mean_rms_deg_reference": float(np.mean(rms_r)),
+            "n": int(loss.size), "better": better, "worse": int(np.sum(rel > BETTER)),
+            "fraction_better": better / int(loss.size),
+            "worst_rms_change_pct": float(100.0 * rms_rel[worst]),
             "new_lost_lock": int(np.sum(lost & ~lost_r)),
+            "tolerance_pct": 100.0 * tol,
+            "rms_worse_than_tol": int(np.sum(rms_rel > tol)), "worst_run": worst,
+            "lost_lock": int(np.sum(lost)), "lost_lock_reference": int(np.sum(lost_r)),
             "median_loss_change_pct": float(100.0 * np.median(rel)),
-            "mean_rms_deg": float(np.mean(rms)), "mean_rms_deg_reference":
-                float(np.mean(rms_r))}
+            # deprecated (DEPRECATED_KEYS), kept one release
+            "improved": int(np.sum(rel < -tol)), "improved_frac": better / int(loss.size)}
 
 
 def holds(acc: dict, min_frac: float = 0.75) -> tuple[bool, list[str]]:
@@ -168,4 +195,5 @@ def holds(acc: dict, min_frac: float = 0.75) -> tuple[bool, list[str]]:
     return not why, why
 
 
-__all__ = ["Metrics", "accounting", "cvar", "holds", "objective", "run_metrics"]
+__all__ = ["BASELINE", "BETTER", "DEPRECATED_KEYS", "VOCABULARY", "Metrics", "accounting",
+           "cvar", "holds", "objective", "run_metrics"]

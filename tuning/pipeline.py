@@ -31,9 +31,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import pmsmjax as pj
+
 from .design_space import DesignSpace
 from .evaluate import Evaluator
-from .objective import accounting, holds, objective
+from .objective import BASELINE, VOCABULARY, accounting, holds, objective
 from .problem import TuningProblem
 from .scenarios import ScenarioSet, check_disjoint, heldout_set, training_set, validation_set
 from .search import STRATEGIES, SearchResult, gradient_search
@@ -56,7 +58,8 @@ class TuningReport:
       `searches`: strategy -> `SearchResult`.
     - `metrics`: split -> design -> `Metrics`; `objective`: split -> design -> J.
     - `accounting`: split -> design -> per-metric comparison with the paper's design.
-    - `default`: the design name deployed; `verdict`: `{"holds", "where_not", ...}`.
+    - `default`: the design name deployed; `verdict`: `{"holds", "where_not",
+      "statement", ...}` (`statement`: the verdict as counted, `pmsmjax.verdict_text`).
     - `wall_s`: total wall time (s).
     """
 
@@ -152,6 +155,11 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"blocked: the paper's own design with its gains changed by 1e-9 (relative) "
             f"already fails the rule ({'; '.join(floor_why)}): runs in which it loses lock "
             f"are chaotic, so no design passes a per-run rule on them")
+    # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
+    a = acc["validation"][default]
+    verdict["statement"] = pj.verdict_text({
+        "holds": verdict["holds"], "baseline": BASELINE,
+        "accounting": {k: a[k] for k in VOCABULARY}})
     return TuningReport(problem=problem, space=space, sets=sets, disjoint=disjoint,
                         designs=designs, searches=searches, metrics=metrics,
                         objective=obj, accounting=acc, default=default, verdict=verdict,

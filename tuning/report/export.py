@@ -1,8 +1,9 @@
 """The tuned design as a gains table for firmware (`pmsmjax.load_gains_table` format):
 one row of the observer's design parameters (constants; zhang2022's flux schedule is the
 fixed-ratio law w1 = ratio x |w0|, which the observer evaluates at run time), with the
-sampling period and the tuner's verdict; `gains.h` warns when compiled if the verdict
-does not hold."""
+sampling period and the tuner's verdict with its validation counts (`VOCABULARY`, as
+summary.json names them); `gains.h` states them in its header comment and warns when
+compiled if the verdict does not hold."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ import numpy as np
 
 import pmsmjax as pj
 from pmsmjax.observers import observer_class
+
+from ..objective import BASELINE, VOCABULARY
 
 
 def gains_table(report, name: str | None = None) -> dict:
@@ -25,8 +28,10 @@ def gains_table(report, name: str | None = None) -> dict:
              f"runs with L_d, L_q in {problem.mismatch_range}, R_s in "
              f"{problem.resistance_range}, psi_f in {problem.flux_range} (observer / "
              f"plant); design '{name}'"]
-    verdict = {"holds": bool(report.verdict["holds"]), "baseline": "paper design",
-               "where_not": list(report.verdict["where_not"])}
+    acc = report.accounting["validation"][name]
+    verdict = {"holds": bool(report.verdict["holds"]), "baseline": BASELINE,
+               "where_not": list(report.verdict["where_not"]),
+               "accounting": {k: acc[k] for k in VOCABULARY}}
     return pj.gains_table_constant(problem.observer, values, units, drive=drive.name,
                                    notes=notes, T_s=float(problem.T_s),
                                    objective="cvar", verdict=verdict)

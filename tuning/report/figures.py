@@ -1,16 +1,19 @@
-"""The report's figures (matplotlib, written as PNG):
+"""The report's figures (matplotlib, written as PNG), each titled with the metric a user
+reads first, the RMS angle error of the paper's and the deployed design on the validation
+runs (deg, mean over the runs):
 
-- `search.png`: best training objective against closed-loop simulations, every strategy
-  at the same budget;
+- `search.png`: best training objective (dimensionless, not degrees) against closed-loop
+  simulations, every strategy at the same budget;
 - `front.png`: the tracking-versus-noise front on the validation runs (mean RMS angle
   error against mean speed-estimate noise), the paper design and the default marked;
 - `validation.png`: each validation run's RMS angle error, paper design against the
-  default, with the +tolerance line.
+  default, with the +tolerance line; the verdict as counted in its title.
 """
 
 from __future__ import annotations
 
 import pathlib
+import textwrap
 
 import numpy as np
 
@@ -25,6 +28,9 @@ def plot_report(report, out) -> None:
     import matplotlib.pyplot as plt
 
     out = pathlib.Path(out)
+    acc = report.accounting["validation"][report.default]
+    rms = (f"RMS angle error (validation, mean): paper {acc['mean_rms_deg_reference']:.2f}"
+           f" deg -> {report.default} {acc['mean_rms_deg']:.2f} deg")
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, r in report.searches.items():
         if name.startswith("front"):
@@ -33,8 +39,8 @@ def plot_report(report, out) -> None:
         ax.plot(h[:, 0], h[:, 1], label=f"{name} ({r.wall_s:.0f} s)")
     ax.axhline(report.objective["train"]["paper"], color="k", ls=":", label="paper design")
     ax.set_xlabel("closed-loop simulations")
-    ax.set_ylabel("training objective (best so far)")
-    ax.set_title(f"{report.problem.observer}: searches at equal budget")
+    ax.set_ylabel("training objective, best so far (dimensionless)")
+    ax.set_title(f"{report.problem.observer}: searches at equal budget\n{rms}", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "search.png", dpi=120)
@@ -51,7 +57,7 @@ def plot_report(report, out) -> None:
         ax.plot(x, y, mk, ms=12 if mk == "*" else 7, label=name)
     ax.set_xlabel("speed-estimate noise, mean over validation runs (rad/s)")
     ax.set_ylabel("RMS angle error, mean over validation runs (deg)")
-    ax.set_title("tracking versus noise (validation)")
+    ax.set_title(f"tracking versus noise (validation)\n{rms}", fontsize=9)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "front.png", dpi=120)
@@ -68,7 +74,8 @@ def plot_report(report, out) -> None:
             label=f"+{100 * tol:g} % (the rule)")
     ax.set_xlabel("paper design: RMS angle error (deg)")
     ax.set_ylabel(f"{report.default}: RMS angle error (deg)")
-    ax.set_title(f"validation runs; verdict holds: {report.verdict['holds']}")
+    verdict = textwrap.wrap(f"verdict {report.verdict['statement']}", 80)
+    ax.set_title("\n".join([rms, *verdict]), fontsize=8)
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "validation.png", dpi=120)

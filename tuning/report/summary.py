@@ -1,9 +1,15 @@
 """`summary.json` and the output folder of a tuning run.
 
-The shape other tools read is kept: `accounting.validation.{n, improved,
-worst_rms_change_pct}`, `verdict.holds` and `designs.NAME.validation_loss` (the mean
-per-run loss on the validation runs), with every search strategy (the CMA-ES peer
-among them) in `designs`.
+It leads with the metric a user reads, `rms_angle_error_deg`: each validation run's RMS
+angle error (deg), mean over the runs, of the paper's design and of the deployed one.
+The accounting against the paper's design uses one vocabulary (`tuning.objective.
+VOCABULARY`, written into the file as `vocabulary`): `accounting.SPLIT.{n, better, worse,
+fraction_better, worst_rms_change_pct, new_lost_lock}`, the same names as the console
+and the docs. The keys it replaced stay one release (`deprecated_keys`: old key -> new
+key). Other tools also read `verdict.holds`, `verdict.statement` (the verdict as
+counted) and `designs.NAME.validation_loss` (the mean per-run loss on the validation
+runs, dimensionless), with every search strategy (the CMA-ES peer among them) in
+`designs`.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ import numpy as np
 import pmsmjax as pj
 from pmsmjax.cli import json_safe, write_json
 
+from ..objective import DEPRECATED_KEYS, VOCABULARY
 from .export import gains_table
 
 
@@ -47,10 +54,10 @@ def summary(report) -> dict:
     acc = report.accounting
     designs = {}
     for name, x in report.designs.items():
-        row = {f"{s}_loss": float(np.mean(np.asarray(report.metrics[s][name].loss)))
+        row = {f"{s}_rms_deg": float(np.mean(np.asarray(report.metrics[s][name].rms_deg)))
                for s in SPLITS}
         row |= {f"{s}_objective": report.objective[s][name] for s in SPLITS}
-        row |= {f"{s}_rms_deg": float(np.mean(np.asarray(report.metrics[s][name].rms_deg)))
+        row |= {f"{s}_loss": float(np.mean(np.asarray(report.metrics[s][name].loss)))
                 for s in SPLITS}
         row["validation_lost_lock"] = int(np.sum(np.asarray(
             report.metrics["validation"][name].lost_lock)))
@@ -71,11 +78,26 @@ def summary(report) -> dict:
             row["accounting"] = {s: acc[s][name] for s in SPLITS}
         designs[name] = row
     d = report.default
+    va = acc["validation"][d]
     out = dict(
+        rms_angle_error_deg={
+            "what": f"each validation run's RMS angle error (deg), mean over the "
+                    f"{va['n']} runs",
+            "paper": va["mean_rms_deg_reference"], "tuned": va["mean_rms_deg"],
+            "design": d},
         observer=p.observer, motor=p.drive().name, default=d,
         baseline_label="paper design",
         verdict=report.verdict,
         accounting={s: acc[s][d] for s in SPLITS},
+        vocabulary=dict(VOCABULARY),
+        deprecated_keys={
+            "where": "every accounting dict (accounting.SPLIT, designs.NAME.accounting."
+                     "SPLIT); kept this release, removed in the next",
+            "replaced_by": dict(DEPRECATED_KEYS),
+            "note": "`improved` counted the runs whose loss is lower by more than the "
+                    "tolerance; `better` counts those lower by more than 0.1 %. `worse` "
+                    "now counts the runs whose loss is higher by more than 0.1 % (it "
+                    "used the tolerance before)"},
         designs=designs,
         bounds=space.bounds_table(),
         paper_inside_bounds=space.paper_inside(),
@@ -95,14 +117,17 @@ def summary(report) -> dict:
             "Every run of every split is a closed-loop sensorless run (speed controlled "
             "on the estimate, nothing imposed); training, held-out and validation runs "
             "share no speed, mismatch value or noise key (`disjoint`).",
-            "Loss of a run: RMS angle error / theta_unit + w_peak * smooth peak / "
-            "peak_unit + w_noise * speed-estimate noise / noise_unit; designs.*.*_loss is "
-            "its mean over the split's runs; *_objective the tuner's objective (0.5 mean + "
-            "0.5 CVaR of the ratio to the paper design, plus the per-metric "
-            "no-regression penalties), 1 + penalties for the paper design itself.",
-            "accounting: against the paper design on the same runs: improved/worse by "
-            "more than the tolerance, better (any amount), worst RMS angle error change, "
-            "runs losing lock that the paper design holds.",
+            "rms_angle_error_deg and designs.*.*_rms_deg: each run's RMS angle error "
+            "(deg), mean over the split's runs: the metric to read first.",
+            "Loss of a run (dimensionless): RMS angle error / theta_unit + w_peak * smooth "
+            "peak / peak_unit + w_noise * speed-estimate noise / noise_unit; "
+            "designs.*.*_loss is its mean over the split's runs; *_objective the tuner's "
+            "objective (dimensionless: 0.5 mean + 0.5 CVaR of the ratio to the paper "
+            "design, plus the per-metric no-regression penalties), 1 + penalties for the "
+            "paper design itself. Neither is in degrees.",
+            "accounting: against the paper design on the same runs, in the words of "
+            "`vocabulary` (better / worse: loss lower / higher by more than 0.1 %), with "
+            "mean_rms_deg (the design's) and mean_rms_deg_reference (the paper design's).",
         ])
     return json_safe(out)
 

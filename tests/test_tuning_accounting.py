@@ -1,0 +1,197 @@
+"""The tuner's accounting vocabulary (`tuning.objective.VOCABULARY`) on hand-built cases:
+the 0.1 % threshold that decides `better` and `worse`, ties, a lost lock that is new
+against one held by both or lost by both, the worst RMS change, the rule's 75 %
+threshold, the deprecated keys; the console summary and the verdict as counted, in the
+tuner's last line, `gains.h`'s header comment and `pmsmjax gains`.
+
+Every expected count is written out by hand from the inputs, not recomputed with the
+code's own comparison.
+"""
+
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import pmsmjax as pj
+import tuning as tg
+from pmsmjax._data._gains_table import VERDICT_COUNTS, gains_c_header
+from tuning.__main__ import console_summary, verdict_line
+from tuning.objective import BASELINE, BETTER
+
+
+def _metrics(loss, rms=None, lost=None):
+    """`tg.Metrics` of runs with these losses, RMS angle errors (deg) and lock losses."""
+    n = len(loss)
+    rms = np.ones(n) if rms is None else np.asarray(rms, float)
+    lost = np.zeros(n, bool) if lost is None else np.asarray(lost, bool)
+    z = jnp.zeros(n)
+    return tg.Metrics(rms_deg=jnp.asarray(rms), peak_deg=z, static_deg=z, noise_rad_s=z,
+                      out_of_lock=z, lost_lock=jnp.asarray(lost), ok=jnp.ones(n, bool),
+                      loss=jnp.asarray(loss, float))
+
+
+def test_a_tenth_of_a_per_cent_decides_better_and_worse():
+    """Loss ratios to the paper design's: 0.9989 is better, 0.9991 a tie, 1.0 a tie,
+    1.0009 a tie, 1.0011 worse; 0.5 better, 2.0 worse."""
+    assert BETTER == 1e-3
+    ref = _metrics(np.full(7, 4.0))
+    m = _metrics(4.0 * np.array([0.9989, 0.9991, 1.0, 1.0009, 1.0011, 0.5, 2.0]))
+    a = tg.accounting(m, ref, 0.1)
+    assert (a["n"], a["better"], a["worse"]) == (7, 2, 2)
+    assert a["fraction_better"] == 2 / 7
+    # the deprecated keys, kept one release: `improved` counts a loss lower by more than
+    # the tolerance (10 % here: only the 0.5), `improved_frac` is `fraction_better`
+    assert a["improved"] == 1 and a["improved_frac"] == a["fraction_better"]
+
+
+def test_ties_count_neither_better_nor_worse():
+    ref = _metrics([1.0, 2.0, 3.0])
+    a = tg.accounting(_metrics([1.0, 2.0, 3.0]), ref, 0.1)
+    assert (a["better"], a["worse"], a["fraction_better"]) == (0, 0, 0.0)
+    assert a["worst_rms_change_pct"] == 0.0 and a["new_lost_lock"] == 0
+    ok, why = tg.holds(a)
+    assert not ok and why == ["better in 0 of 3 runs (< 75 %)"]
+
+
+def test_a_new_lost_lock_counts_and_one_lost_by_both_does_not():
+    """Run 0: both lose lock (not new); run 1: only the tuned design (new); run 2: only
+    the paper's (not new); run 3: both hold."""
+    ref = _metrics(np.ones(4), lost=[True, False, True, False])
+    m = _metrics(np.full(4, 0.5), lost=[True, True, False, False])
+    a = tg.accounting(m, ref, 0.1)
+    assert a["new_lost_lock"] == 1
+    assert (a["lost_lock"], a["lost_lock_reference"]) == (2, 2)
+    ok, why = tg.holds(a)
+    assert not ok and why == ["1 runs lose lock that the reference holds"]
+    held = _metrics(np.full(4, 0.5), lost=[True, False, False, False])
+    a = tg.accounting(held, ref, 0.1)
+    assert a["new_lost_lock"] == 0 and tg.holds(a)[0]
+
+
+def test_worst_rms_change_and_the_rules_thresholds():
+    """The worst RMS change is the largest per-run change of the RMS angle error (%), and
+    the rule asks for better in at least 75 % of the runs (6 of 8 holds, 5 of 8 does
+    not) and no RMS change above the tolerance."""
+    ref = _metrics(np.ones(8), rms=np.full(8, 2.0))
+    rms = np.array([2.152, 1.0, 1.0, 1.0, 1.0, 1.0, 2.0, 2.0])  # run 0: +7.6 %
+    six = _metrics([0.5] * 6 + [1.0, 1.0], rms=rms)
+    a = tg.accounting(six, ref, 0.1)
+    assert a["worst_rms_change_pct"] == pytest.approx(7.6, abs=1e-9)
+    assert a["worst_run"] == 0 and a["rms_worse_than_tol"] == 0
+    assert a["mean_rms_deg"] == pytest.approx(rms.mean()) and a["mean_rms_deg_reference"] == 2.0
+    assert tg.holds(a) == (True, [])
+    five = _metrics([0.5] * 5 + [1.0] * 3, rms=rms)
+    ok, why = tg.holds(tg.accounting(five, ref, 0.1))
+    assert not ok and why == ["better in 5 of 8 runs (< 75 %)"]
+    over = _metrics([0.5] * 8, rms=np.r_[2.22, rms[1:]])  # +11 % > 10 %
+    ok, why = tg.holds(tg.accounting(over, ref, 0.1))
+    assert not ok and why[0].startswith("1 runs with the RMS angle error worse by more "
+                                        "than 10 % (worst +11.0 %)")
+
+
+def test_the_vocabulary_and_the_deprecated_keys():
+    """One definition per key: the accounting has every key of the vocabulary (and the
+    gains table's verdict records the same), and each deprecated key names one of them."""
+    a = tg.accounting(_metrics([0.5, 2.0]), _metrics([1.0, 1.0]), 0.1)
+    assert tuple(tg.VOCABULARY) == ("n", "better", "worse", "fraction_better",
+                                    "worst_rms_change_pct", "new_lost_lock")
+    assert tuple(tg.VOCABULARY) == VERDICT_COUNTS
+    assert set(tg.VOCABULARY) <= set(a)
+    assert "0.1 %" in tg.VOCABULARY["better"] and "0.1 %" in tg.VOCABULARY["worse"]
+    assert tg.DEPRECATED_KEYS == {"improved": "better", "improved_frac": "fraction_better"}
+    assert set(tg.DEPRECATED_KEYS) <= set(a)
+    # the RMS angle error leads the accounting
+    assert list(a)[:2] == ["mean_rms_deg", "mean_rms_deg_reference"]
+
+
+COUNTS = {"n": 88, "better": 74, "worse": 12, "fraction_better": 74 / 88,
+          "worst_rms_change_pct": 7.64, "new_lost_lock": 0}
+HOLDS = ("holds: tuned better than the paper's design in 74 of 88 validation runs; worst "
+         "RMS change +7.6 %; no new lost lock")
+
+
+def _table(verdict):
+    return pj.gains_table_constant("eso", {"w2": 400.0}, {"w2": "rad/s"}, drive="zhang750",
+                                   T_s=125e-6, objective="cvar", verdict=verdict)
+
+
+def test_the_verdict_is_stated_as_counted_in_gains_h():
+    ok = _table({"holds": True, "baseline": BASELINE, "where_not": [],
+                 "accounting": COUNTS})
+    assert pj.verdict_text(ok["verdict"]) == HOLDS
+    text = gains_c_header(ok)
+    assert f" * Tuner verdict: {HOLDS}.\n" in text and "beat" not in text
+    assert "#define PMSMJAX_GAINS_VERDICT_HOLDS 1" in text
+    failed = _table({"holds": False, "baseline": BASELINE,
+                     "where_not": ["2 runs lose lock that the reference holds"],
+                     "accounting": dict(COUNTS, better=63, worst_rms_change_pct=8.9,
+                                        new_lost_lock=2)})
+    text = gains_c_header(failed)
+    assert (" * Tuner verdict: does NOT hold: tuned better than the paper's design in 63 "
+            "of 88 validation runs; worst RMS change +8.9 %; 2 new lost locks.\n") in text
+    assert " * Warning: the eso gains table did NOT beat the paper's design" in text
+    assert pj.verdict_text(dict(failed["verdict"], accounting=dict(
+        COUNTS, new_lost_lock=1))).endswith("; 1 new lost lock")
+    # a table written before the counts were recorded, and one with no verdict at all
+    old = _table({"holds": True, "baseline": "paper design", "where_not": []})
+    assert "accounting" not in old["verdict"]
+    assert " * Tuner verdict: holds (no counts recorded).\n" in gains_c_header(old)
+    assert pj.verdict_text(None) == "not recorded"
+    for bad in ({"n": 88}, dict(COUNTS, better="74"), dict(COUNTS, n=True),
+                dict(COUNTS, worst_rms_change_pct=float("nan"))):
+        with pytest.raises(ValueError, match="verdict.accounting"):
+            _table({"holds": True, "accounting": bad})
+
+
+def test_gains_command_prints_the_counted_verdict(tmp_path, capsys):
+    from pmsmjax.cli.__main__ import main
+
+    pj.write_gains_table(_table({"holds": True, "baseline": BASELINE, "where_not": [],
+                                 "accounting": COUNTS}), tmp_path / "tuned")
+    out = tmp_path / "check"
+    assert main(["gains", "--design", str(tmp_path / "tuned"), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"objective: cvar; tuner's verdict: {HOLDS}\n" in printed
+    assert "beat" not in printed
+    r = json.loads((out / "gains_check.json").read_text())
+    assert r["verdict_text"] == HOLDS and r["verdict"]["accounting"] == COUNTS
+
+
+def _summary(holds=True):
+    acc = dict(COUNTS, mean_rms_deg=2.76, mean_rms_deg_reference=5.73)
+    designs = {
+        "paper": {"validation_rms_deg": 5.73, "train_objective": 1.834, "search": None},
+        "hybrid": {"validation_rms_deg": 2.76, "train_objective": 0.7216,
+                   "accounting": {"validation": acc},
+                   "search": {"sims": 1200, "wall_s": 15.8}}}
+    statement = HOLDS if holds else HOLDS.replace("holds", "does NOT hold", 1)
+    return {"rms_angle_error_deg": {"paper": 5.73, "tuned": 2.76, "design": "tuned"},
+            "accounting": {"validation": acc}, "designs": designs,
+            "verdict": {"holds": holds, "statement": statement,
+                        "where_not": [] if holds else ["1 runs lose lock"]}}
+
+
+def test_console_leads_with_the_rms_angle_error_and_uses_the_vocabulary():
+    text = console_summary(_summary())
+    lines = text.splitlines()
+    assert lines[0] == ("RMS angle error (deg), mean over the 88 validation runs: paper "
+                        "design 5.73, tuned (tuned) 2.76")
+    head = lines[2].split()
+    assert head[:3] == ["design", "RMS", "deg"]
+    assert [k for k in tg.VOCABULARY if k != "n" and k != "fraction_better"] == \
+        [h for h in head if h in tg.VOCABULARY]
+    assert "loss" not in lines[0] + lines[2]  # no loss shown as if it were degrees
+    assert "train objective: " in text and "(dimensionless, not degrees" in text
+    hybrid = next(ln for ln in lines if ln.startswith("hybrid")).split()
+    assert hybrid[1:8] == ["2.76", "74/88", "12", "+7.6", "%", "0", "0.7216"]
+    paper = next(ln for ln in lines if ln.startswith("paper")).split()
+    assert paper[1:7] == ["5.73", "-", "-", "-", "-", "1.834"]
+    for k in ("better", "worse", "worst_rms_change_pct", "new_lost_lock"):
+        assert f"{k}: {tg.VOCABULARY[k]}" in lines
+    assert verdict_line(_summary()) == f"verdict: {HOLDS}"
+    assert verdict_line(_summary(False)) == ("verdict: does NOT hold: tuned better than "
+                                             "the paper's design in 74 of 88 validation "
+                                             "runs; worst RMS change +7.6 %; no new lost "
+                                             "lock; 1 runs lose lock")
