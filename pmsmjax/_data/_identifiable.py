@@ -13,6 +13,10 @@ IDENTIFIABLE = {
     "B": ("N m s/rad", "a range of speeds held long enough for friction to show"),
     "u_dt": ("V", "commanded voltages with changes of the current amplitude or zero "
                   "crossings of the phase currents"),
+    "i_dt": ("A", "commanded voltages with phase currents passing slowly through zero, "
+                  "within a few i_dt of it for several samples (low speed, small or "
+                  "reversing currents); currents that stay far from zero relative to i_dt "
+                  "cannot show the dead time's transition"),
     "a_d0": ("1/H", "i_d steps near zero current and the back-EMF at speed"),
     "a_dd": ("A/(V s)^(S+1)", "i_d steps over the field-weakening range (down to -i_max) "
                               "at speed"),

@@ -59,7 +59,10 @@ column: the recording cannot see it) raises `IdentifyError` naming it and saying
 excitation it needs; one that is only weakly determined (relative standard deviation
 above `warn_rel_std`) or nearly collinear with another (correlation above 0.995) gives an
 `IdentifiabilityWarning` with the same explanation, and the result lists it in
-`warnings`. Parameters are fitted in log space (positive), `u_dt` linearly (it may be 0).
+`warnings`. Parameters are fitted in log space (positive), `u_dt` linearly (it may be 0);
+`i_dt` in log space, so from the smooth dead-time model (`i_dt = 0`, the hard one, is no
+start): phase currents that never come within a few `i_dt` of zero leave its column dead
+or weak, and the error or warning names it with the excitation it needs.
 
 **Saturation.** `fit` with `"saturation"` (or some of `a_d0, a_dd, a_q0, a_qq, a_dq,
 i_f`) fits an `AlgebraicSaturation` with its exponents held: the plant's
@@ -217,10 +220,10 @@ def _with_values(drive: Drive, values: dict) -> Drive:
             drive = eqx.tree_at(lambda d, n=name: getattr(d.mechanics, n), drive, v)
         elif name in SATURATION_FIT:
             continue  # set on the magnetic model (`_Problem.plant`)
-        else:
-            inv = drive.inverter
-            drive = eqx.tree_at(lambda d: d.inverter, drive, Inverter(
-                u_dc=inv.u_dc, u_max=inv.u_max, delay=inv.delay, u_dt=v, i_dt=inv.i_dt))
+        else:  # u_dt, i_dt
+            inv = {k: getattr(drive.inverter, k) for k in ("u_dc", "u_max", "delay", "u_dt",
+                                                           "i_dt")}
+            drive = eqx.tree_at(lambda d: d.inverter, drive, Inverter(**{**inv, name: v}))
     return drive
 
 
@@ -331,7 +334,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
       `theta` (rad, electrical), and `w_m` (rad/s; else derived from `theta`) and
       `tau_L` (N m; else zero) where recorded.
     - `fit`: names among `IDENTIFIABLE`: R_s (Ohm), L_d, L_q (H), psi_f (V s), J
-      (kg m^2), B (N m s/rad), u_dt (V), and the coefficients of an `AlgebraicSaturation`
+      (kg m^2), B (N m s/rad), u_dt (V), i_dt (A), and the coefficients of an `AlgebraicSaturation`
       (a_d0, a_dd, a_q0, a_qq, a_dq, i_f; `"saturation"` stands for all six): the plant
       then saturates (`PMSMParams.magnetic`), L_d, L_q, psi_f cannot be fitted with them
       (they are then only the deployed constants: the fitted drive takes the model's
@@ -339,7 +342,8 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
       (`min_coverage`).
     - `voltage`: `"applied"` (the recorded `u_ab` reached the windings) or `"commanded"`
       (the controller's voltage: the plant applies the inverter's dead-time error,
-      `drive.inverter.u_dt`, fitted when `u_dt` is in `fit`).
+      `drive.inverter.u_dt`, hard or smooth as its `i_dt` says, fitted when `u_dt`, `i_dt`
+      are in `fit`).
     - `segment`: multiple-shooting segment length (s).
     - `n_substeps`: RK4 steps per sampling period.
     - `max_steps`, `rtol`, `atol`: Levenberg-Marquardt limits and tolerances.
@@ -400,11 +404,15 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     if voltage not in ("applied", "commanded"):
         raise IdentifyError(f"`identify(voltage=...)` must be 'applied' or 'commanded'; got "
                             f"{voltage!r}.")
-    if "u_dt" in names and voltage != "commanded":
-        raise IdentifyError(
-            "u_dt (V): with voltage='applied' the recorded voltage already reached the "
-            "windings, so the inverter error cannot act on the model; fit u_dt from "
-            "commanded voltages (voltage='commanded').")
+    for n in ("u_dt", "i_dt"):
+        if n in names and voltage != "commanded":
+            raise IdentifyError(
+                f"{n} ({IDENTIFIABLE[n][0]}): with voltage='applied' the recorded voltage "
+                f"already reached the windings, so the inverter error cannot act on the "
+                f"model; fit {n} from commanded voltages (voltage='commanded').")
+    if "i_dt" in names and "u_dt" not in names and drive.inverter.dead_time == "none":
+        raise IdentifyError("i_dt (A) shapes the dead-time error, and the drive has none "
+                            "(u_dt unset or 0): set u_dt (--set u_dt=V) or fit it too.")
     mechanics = mechanics_mode(names, mechanics)
     if not max_noise_ratio > 0:
         raise IdentifyError(f"`identify(max_noise_ratio=...)` (-) must be > 0; got "
@@ -447,12 +455,14 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         elif n in _MECH:
             v = getattr(drive.mechanics, n)
         else:
-            v = drive.inverter.u_dt
+            v = getattr(drive.inverter, n)
         v = 0.0 if v is None else float(v)
         if n != "u_dt" and not v > 0:
             raise IdentifyError(f"the starting value of {n} ({IDENTIFIABLE[n][0]}) must be "
                                 f"> 0 to fit it in log space; got {v!r} (set it with "
-                                f"--set {n}=VALUE).")
+                                f"--set {n}=VALUE" + ("; i_dt = 0 is the hard dead time, "
+                                "and fitting i_dt fits the smooth one" if n == "i_dt"
+                                else "") + ").")
         p0.append(v)
         lin.append(max(v, 1.0) if n == "u_dt" else 0.0)
     problem = _Problem(drive=drive, names=names, p0=jnp.asarray(p0), lin_scale=jnp.asarray(lin),

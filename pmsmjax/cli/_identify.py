@@ -54,8 +54,8 @@ def _identify_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--voltage", choices=("applied", "commanded"), default="applied",
                    help="what the recordings' u_ab is: the voltage the windings received "
                         "(default), or the one the controller commanded (the plant then "
-                        "applies the inverter's dead-time error u_dt, which --fit u_dt "
-                        "estimates)")
+                        "applies the inverter's dead-time error u_dt, hard or smooth as "
+                        "the drive's i_dt says, which --fit u_dt i_dt estimates)")
     g.add_argument("--fit", required=True, nargs="+", metavar="NAME",
                    help=f"the parameters to fit, space- or comma-separated, among "
                         f"{', '.join(f'{n} ({u})' for n, (u, _) in pj.IDENTIFIABLE.items())}; "
@@ -182,14 +182,14 @@ def identify_command(args: argparse.Namespace) -> int:
 
 COMMAND = Command(
     name="identify",
-    help="fit a drive's parameters (R_s, L_d, L_q, psi_f, J, B, u_dt, a saturation "
+    help="fit a drive's parameters (R_s, L_d, L_q, psi_f, J, B, u_dt, i_dt, a saturation "
          "model) to recordings",
     description=(
         "Fit the parameters --fit of the drive (--motor or --motor-file, after --set; its "
         "values are the starting point) to one or more recordings --data by least squares "
         "through the differentiable plant (multiple shooting, Levenberg-Marquardt), with the "
         "recorded voltages taken as applied or as commanded (--voltage; then the inverter's "
-        "dead-time error u_dt acts and can be fitted). Writes to --out: identify.json "
+        "dead-time error u_dt, i_dt acts and can be fitted). Writes to --out: identify.json "
         "(parameters.NAME.{value, initial, std} in SI units, the residual, the condition of "
         "the problem, the correlations), identified.toml (a motor file with the fitted "
         "values, for --motor-file; with --fit saturation, a [saturation] table with model = "
