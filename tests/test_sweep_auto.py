@@ -179,20 +179,28 @@ FEAS = ["--observer", "leso", "--set", "L_d=1e-3", "--set", "L_q=4.9e-3", "--i-q
 
 def test_feasibility_default_chunks(tmp_path, capsys):
     """`pmsmjax feasibility` without --chunk-size: one chunk (the map is small), no chunk
-    file, and the map of the explicit chunks (the same status; the angles to rounding:
-    another block width)."""
+    file and no result.npz (the command's feasibility.npz holds the map: a finished sweep
+    keeps its manifest alone), and the map of the explicit chunks (the same status; the
+    angles to rounding: another block width)."""
     assert main(["feasibility", *FEAS, "--out", str(tmp_path / "auto")]) == 0
     assert "sweep: 1 chunk of up to 198 points" in capsys.readouterr().out
-    assert sorted(os.listdir(tmp_path / "auto" / "sweep")) == ["result.npz", "sweep.json"]
+    assert sorted(os.listdir(tmp_path / "auto" / "sweep")) == ["sweep.json"]
+    manifest = json.loads((tmp_path / "auto" / "sweep" / "sweep.json").read_text())
+    assert manifest["complete"] and manifest["result"] is None
     assert main(["feasibility", *FEAS, "--chunk-size", "40", "--out",
                  str(tmp_path / "40")]) == 0
     with np.load(tmp_path / "auto" / "feasibility.npz") as a, \
             np.load(tmp_path / "40" / "feasibility.npz") as b:
         np.testing.assert_array_equal(a["status"], b["status"])
         np.testing.assert_allclose(a["stable_theta_deg"], b["stable_theta_deg"], rtol=1e-13)
-    # running it again reads the finished sweep
+    # running it again computes it again (nothing of it was kept), to the same file
+    first = dict(np.load(tmp_path / "auto" / "feasibility.npz"))
     assert main(["feasibility", *FEAS, "--out", str(tmp_path / "auto")]) == 0
-    assert "1 reused from an earlier run" in capsys.readouterr().out
+    assert "reused" not in capsys.readouterr().out
+    with np.load(tmp_path / "auto" / "feasibility.npz") as again:
+        assert sorted(again.files) == sorted(first)
+        for k, v in first.items():  # NaN where a design has no such equilibrium
+            np.testing.assert_array_equal(again[k], v)
 
 
 _TWO_PROCESSES = """

@@ -134,6 +134,7 @@ def run_sweep(
     allow_nonfinite: bool = False,
     on_chunk_done: Callable[[ChunkInfo], None] | None = None,
     keep_chunks: bool | None = None,
+    keep_result: bool = True,
 ) -> Any:
     """Evaluate `fn` on every point of `grid`, in chunks sharded over all devices.
 
@@ -180,6 +181,10 @@ def run_sweep(
     - `keep_chunks`: keep the chunk files after `result.npz` is written (and write the
       last chunk's file too). Default: True when `chunk_size` is given, False for the
       automatic size (the chunk files then exist only while the sweep is unfinished).
+    - `keep_result`: write `result.npz` when the sweep is finished, so that running it
+      again only reads it. False: a finished sweep keeps its manifest alone (the caller
+      stores what it needs of the outputs, as `pmsmjax feasibility` does in its own file);
+      an interrupted one still resumes from its chunk files.
 
     **Returns:**
 
@@ -230,7 +235,8 @@ def run_sweep(
     """
     spec = _sweep_spec(fn, grid, out_dir=out_dir, chunk_size=chunk_size,
                        batch_size=batch_size, metadata=metadata, mesh=mesh, dtype=dtype,
-                       allow_nonfinite=allow_nonfinite, keep_chunks=keep_chunks)
+                       allow_nonfinite=allow_nonfinite, keep_chunks=keep_chunks,
+                       keep_result=keep_result)
     block = _block_length(spec)
     scan = _resume_scan(spec, resume)
     manifest = _new_manifest(spec, scan.chunk_size, scan.manifest)
@@ -327,7 +333,7 @@ def _compute(spec, block, scan, manifest, old_chunks, results, progress, on_chun
     is_writer = spec.is_writer
     pbar = chunks = result_file = None
     writer = concurrent.futures.ThreadPoolExecutor(1) if is_writer else None
-    if is_writer:
+    if is_writer and spec.keep_result:
         # `result.npz` is begun now: the writer thread writes the grid into it while the
         # devices compute; the outputs follow when every chunk is done.
         result_file = _ResultFile(spec.out_dir)

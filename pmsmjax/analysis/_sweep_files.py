@@ -242,8 +242,9 @@ class _ResultFile:
 
 
 def _complete(spec, results, result_file, manifest):
-    """Write `result.npz` and the complete manifest (process 0), then delete the chunk
-    files unless they are kept: the result holds all of them. `result.npz` is flushed to
+    """Write `result.npz` (unless `spec.keep_result` is False) and the complete manifest
+    (process 0), then delete the chunk files unless they are kept: the result holds all
+    of them. `result.npz` is flushed to
     the disk (`fsync`) when it replaces chunk files; when no chunk file was written (one
     chunk), it is written like the command's other outputs."""
     manifest["complete"] = True
@@ -254,8 +255,10 @@ def _complete(spec, results, result_file, manifest):
     if shape is not None:
         arrays = {k: v.reshape(*shape, *v.shape[1:]) for k, v in arrays.items()}
     chunk_files = [name for name in os.listdir(out_dir) if _CHUNK_RE.match(name)]
-    result_file.commit({**arrays, "__fingerprint__": np.array(spec.fingerprint)},
-                       durable=bool(chunk_files) and not keep_chunks)
+    if spec.keep_result:
+        result_file.commit({**arrays, "__fingerprint__": np.array(spec.fingerprint)},
+                           durable=bool(chunk_files) and not keep_chunks)
+    manifest["result"] = _RESULT if spec.keep_result else None
     manifest["n_nonfinite"] = sum(c["n_nonfinite"] for c in manifest["chunks"].values())
     failed = [c["n_failed"] for c in manifest["chunks"].values()]
     manifest["n_failed"] = None if not spec.status_leaves else sum(failed)

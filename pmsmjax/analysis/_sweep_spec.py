@@ -41,7 +41,7 @@ class _SweepSpec:
     - `parts`, `fingerprint`: the hashes that identify the sweep, and the hash of them.
     - `metadata_json`: the user metadata as canonical JSON.
     - `auto`: the automatic chunk size (`chunk_size=None`); `chunk_size`, `batch_size`,
-      `keep_chunks`, `mesh`, `out_dir`: the options, checked.
+      `keep_chunks`, `keep_result`, `mesh`, `out_dir`: the options, checked.
     - `is_writer`: this is process 0, which writes the files.
     """
 
@@ -61,6 +61,7 @@ class _SweepSpec:
     chunk_size: int | None
     batch_size: int | None
     keep_chunks: bool
+    keep_result: bool
     mesh: Mesh
     out_dir: str
     is_writer: bool
@@ -72,7 +73,7 @@ class _SweepSpec:
 
 
 def _sweep_spec(fn, grid, *, out_dir, chunk_size, batch_size, metadata, mesh, dtype,
-                allow_nonfinite, keep_chunks) -> _SweepSpec:
+                allow_nonfinite, keep_chunks, keep_result=True) -> _SweepSpec:
     """[`run_sweep`][]'s arguments checked, and `fn` traced: the `_SweepSpec`."""
     if not callable(fn):
         raise TypeError(f"`run_sweep(fn=...)` must be callable; got {type(fn).__name__}.")
@@ -132,7 +133,8 @@ def _sweep_spec(fn, grid, *, out_dir, chunk_size, batch_size, metadata, mesh, dt
         n_points=n_points, out_names=out_names, out_specs=out_specs, out_treedef=out_treedef,
         status_leaves=status_leaves, parts=parts, fingerprint=fingerprint,
         metadata_json=metadata_json, auto=auto, chunk_size=chunk_size, batch_size=batch_size,
-        keep_chunks=keep_chunks, mesh=mesh, out_dir=out_dir, is_writer=is_writer)
+        keep_chunks=keep_chunks, keep_result=bool(keep_result), mesh=mesh, out_dir=out_dir,
+        is_writer=is_writer)
 
 
 # --------------------------------------------------------------------------------------

@@ -281,8 +281,11 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
         "I_b": float(drive.base.I_b), "i_dq_pu": list(i_pu), "x_name": x[0],
         "y_name": y[0], "method": method, "observer": choice.info()})
     infos = []
+    # the command's feasibility.npz holds the map: a finished sweep keeps its manifest
+    # alone (writing the map twice cost more than computing it), an interrupted one its
+    # chunk files to resume from
     out = run_sweep_with(settings, point, grid, metadata=metadata,
-                         on_chunk_done=infos.append)
+                         on_chunk_done=infos.append, keep_result=False)
     per = {k: v[:, None].swapaxes(2, 3) for k, v in out.items()}  # (speed, load = 1, x, y)
     none = np.zeros((*per["design_status"].shape, 0))  # the equilibria are not kept
     fm = FeasibilityMap(
@@ -422,10 +425,11 @@ COMMAND = Command(
         "axis (S, NY, NX) and speed has shape (S,). DIR/feasibility.png overlays the maps "
         "of all speeds. The speeds x designs are evaluated in chunks by "
         "pmsmjax.analysis.run_sweep, sharded over every device: each finished chunk is "
-        "written to --sweep-dir (default DIR/sweep, also the manifest sweep.json and "
-        "result.npz), and the same command run again after an interruption resumes from "
-        "there. With --coordinator the same command started in several processes or on "
-        "several hosts (jax.distributed) shares the work; process 0 writes the outputs."
+        "written to --sweep-dir (default DIR/sweep, also the manifest sweep.json), and the "
+        "same command run again after an interruption resumes from there; a finished "
+        "sweep keeps its manifest alone (feasibility.npz holds the map). With "
+        "--coordinator the same command started in several processes or on several hosts "
+        "(jax.distributed) shares the work; process 0 writes the outputs."
     ),
     add_arguments=_feasibility_arguments,
     run=feasibility_command,

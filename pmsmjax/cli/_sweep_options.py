@@ -216,10 +216,12 @@ def init_distributed(settings: SweepSettings) -> SweepSettings:
 
 
 def run_sweep_with(settings: SweepSettings, fn, grid, *, metadata=None,
-                   on_chunk_done=None, progress: bool = True):
+                   on_chunk_done=None, progress: bool = True, keep_result: bool = True):
     """`pmsmjax.analysis.run_sweep(fn, grid, ...)` with the options of `settings`; the
-    progress bar on process 0 only. The finished chunks in `--sweep-dir` survive a
-    failing or interrupted command (`keep_on_failure`), so that running it again resumes.
+    progress bar on process 0 only; `keep_result=False` for a command that stores the
+    outputs in its own file (a finished sweep then keeps its manifest alone). The
+    finished chunks in `--sweep-dir` survive a failing or interrupted command
+    (`keep_on_failure`), so that running it again resumes.
 
     `--sweep-dir` holding another sweep: a *finished* one is replaced (its outputs are
     the command's previous outputs, which the command overwrites anyway: running a
@@ -232,7 +234,7 @@ def run_sweep_with(settings: SweepSettings, fn, grid, *, metadata=None,
     from pmsmjax.analysis import run_sweep
 
     keep_on_failure(settings.sweep_dir)
-    kw = dict(metadata=metadata, on_chunk_done=on_chunk_done,
+    kw = dict(metadata=metadata, on_chunk_done=on_chunk_done, keep_result=keep_result,
               **settings.run_sweep_kwargs(progress=progress and is_writer()))
     try:
         return run_sweep(fn, grid, **kw)
