@@ -1,10 +1,12 @@
 """C99 code generation for the observers: the discrete step exactly as `pmsmjax.replay`
 computes it, for firmware.
 
-`export_c(observer, T_s, out_dir, float32=False)` writes `pmsm_observer.h` (state,
-inputs, units, sampling period), `pmsm_observer.c` (the step, no allocation, libm only)
-and `replay_main.c` (reads a CSV recording `t,u_a,u_b,i_a,i_b` in the stationary
-alpha-beta frame on standard input and prints `theta_hat,w_hat` per sample).
+`export_c(observer, T_s, out_dir, float32=False, inverter=None)` writes `pmsm_observer.h`
+(state, inputs, units, sampling period), `pmsm_observer.c` (the step, no allocation, libm
+only) and `replay_main.c` (reads a CSV recording `t,u_a,u_b,i_a,i_b` in the stationary
+alpha-beta frame on standard input and prints `theta_hat,w_hat` per sample). With an
+`inverter` whose dead-time model is set (`u_dt`, `i_dt`), the step takes commanded
+voltages and compensates them as `replay(..., inverter=...)` does (`_dead_time`).
 
 One module per observer family; `render` picks it by the observer's class (the class's own
 `c_emitter` attribute; a class without one raises `UnsupportedObserverError`, never another
