@@ -264,11 +264,15 @@ def test_hard_model_compensation():
                                4 * U_DT / math.pi, rtol=1e-15)
 
 
-def test_hard_model_in_the_loop_and_replay():
+def test_hard_model_in_the_loop_and_replay(tmp_path):
     """zhang750 at 0.1 p.u. and half load with a hard 3 V dead time: the drive's own
     compensation (the hard model) holds the ESO within 2 deg of the ideal inverter's run,
     and replaying the commanded-voltage recording with the drive's inverter reproduces
-    the in-loop estimates; the motor file keeps the model (i_dt = 0)."""
+    the in-loop estimates; the motor file keeps the model (i_dt = 0). The same commanded
+    voltages logged as duty cycles (a logger's CSV written here) and converted by
+    `convert_log` come back, and `pmsmjax replay --voltage commanded` with that motor file
+    applies the hard model to them: the in-loop estimates again, and the report names
+    the model."""
     d = pj.replace_params(DRIVE, u_dt=U_DT, i_dt=0.0)
     obs = make_observer("eso", d)
     w = 0.1 * float(d.w_rated)
@@ -282,3 +286,33 @@ def test_hard_model_in_the_loop_and_replay():
     np.testing.assert_allclose(np.asarray(th), np.asarray(comp.theta_hat), atol=1e-9)
     back = pj.parse_motor_file(pj.motor_file_text(d)).inverter
     assert back.dead_time == "hard" and float(back.i_dt) == 0.0
+    # duty cycles d_x = 1/2 + v_x / u_dc of the phase voltages (inverse Clarke written here)
+    import json
+
+    from pmsmjax.cli import main
+
+    u, i = np.asarray(rec.u_ab), np.asarray(rec.i_ab)
+    s3 = math.sqrt(3.0)
+    v = [u[:, 0], -0.5 * u[:, 0] + s3 / 2 * u[:, 1], -0.5 * u[:, 0] - s3 / 2 * u[:, 1]]
+    u_dc = float(d.inverter.u_dc)
+    cols = {"t": np.asarray(rec.t), "ia": i[:, 0], "ib": -0.5 * i[:, 0] + s3 / 2 * i[:, 1],
+            "da": 0.5 + v[0] / u_dc, "db": 0.5 + v[1] / u_dc, "dc": 0.5 + v[2] / u_dc,
+            "theta": np.asarray(rec.theta)}
+    with open(tmp_path / "log.csv", "w") as f:
+        f.write(",".join(cols) + "\n")
+        for row in zip(*cols.values()):
+            f.write(",".join(repr(float(x)) for x in row) + "\n")
+    layout = pj.LogLayout(time="t", current=("ia", "ib"), voltage=("da", "db", "dc"),
+                          voltage_frame="duty", voltage_u_dc=u_dc, angle="theta")
+    conv = pj.convert_log(tmp_path / "log.csv", layout, drive=d)
+    assert conv.commanded
+    np.testing.assert_allclose(np.asarray(conv.data.u_ab), u, rtol=0, atol=1e-12)
+    pj.save_recording(tmp_path / "log.npz", conv.data)
+    pj.save_motor_file(d, tmp_path / "m.toml")
+    assert main(["replay", "--motor-file", str(tmp_path / "m.toml"), "--voltage",
+                 "commanded", "--observer", "eso", "--data", str(tmp_path / "log.npz"),
+                 "--theta0", "0", "--speed0", "0.1", "--out", str(tmp_path / "r")]) == 0
+    th_cli = np.load(tmp_path / "r" / "replay.npz")["theta_hat"]
+    np.testing.assert_allclose(th_cli, np.asarray(comp.theta_hat), atol=1e-9)
+    report = json.loads((tmp_path / "r" / "stats.json").read_text())
+    assert report["inverter_model"] == {"u_dt": U_DT, "i_dt": 0.0, "dead_time": "hard"}

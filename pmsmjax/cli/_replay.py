@@ -182,7 +182,8 @@ def replay_command(args: argparse.Namespace) -> int:
         "T_s": data.T_s,
         "voltage": args.voltage,
         "inverter_model": None if inverter is None else {
-            "u_dt": float(inverter.u_dt), "i_dt": float(inverter.i_dt)},
+            "u_dt": float(inverter.u_dt), "i_dt": float(inverter.i_dt),
+            "dead_time": inverter.dead_time},
         "initial_estimate": {"theta0_deg": math.degrees(theta0), "w0_rad_s": w0,
                              "flying_start": bool(args.flying_start), "start": start},
         "arrays": {"theta_hat": "rad, estimated electrical angle at t_k, wrapped",
