@@ -93,7 +93,9 @@ def feasibility(n_axis, repeats, tmp):
     from pmsmjax.analysis import grid_product, run_sweep
     from pmsmjax.cli import _feasibility as cf, main
 
-    args = ["--set", "L_q=12.3e-3", "--i-q", "1", "--speed", "0.5",
+    # the LESO, as `feasibility_map` maps it (the command's default observer is the ESO,
+    # whose map takes the general route)
+    args = ["--observer", "leso", "--set", "L_q=12.3e-3", "--i-q", "1", "--speed", "0.5",
             "--zeta1", f"0:5:{n_axis}", "--ratio", f"0:2:{n_axis}"]
     n = n_axis * n_axis
     z, r = np.linspace(0, 5, n_axis), np.linspace(0, 2, n_axis)
