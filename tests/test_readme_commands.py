@@ -137,9 +137,14 @@ def test_readme_command_lines_run(tmp_path, monkeypatch, capsys):
         if others is not None:  # "an unstable one at 118 deg"
             assert [round(e["theta_deg"]) for e in eqs if not e["designed"]] == others
             assert not any(e["stable"] for e in eqs if not e["designed"])
-    # the your-own-drive guide is there and ran end to end
+    # the your-own-drive guide is there and ran end to end: from a logger's CSV to the C
+    # of the tuned design with the drive's dead-time compensation
     assert any("--motor-file" in r and "tune" in r for r in guide)
     assert any("--design" in r and "replay" in r for r in guide)
+    assert any(r.split()[1] == "convert" for r in guide)
+    assert guide[-1].split()[1] == "export-c"
+    header = (tmp_path / "your-own-drive" / "firmware" / "pmsm_observer.h").read_text()
+    assert "#define PMSM_OBS_DEAD_TIME_COMPENSATION 1" in header
 
 
 def test_docs_command_lines_parse():
