@@ -117,8 +117,10 @@ from ._plant._motorfile import (  # noqa: E402
     MOTOR_FILE_SCHEMA as MOTOR_FILE_SCHEMA,
     MotorFileError as MotorFileError,
     load_motor_file as load_motor_file,
-    motor_file_text as motor_file_text,
     parse_motor_file as parse_motor_file,
+)
+from ._plant._motorfile_write import (  # noqa: E402
+    motor_file_text as motor_file_text,
     save_motor_file as save_motor_file,
 )
 from ._plant._params import (  # noqa: E402
