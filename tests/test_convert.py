@@ -392,3 +392,31 @@ def test_identify_figure_shows_the_worst_segments_of_every_recording():
     assert f"residual {math.sqrt(in_worst):.3g} A" in titles[0]
     # the whole recording's RMS: one segment of ten at the large residual
     assert f"(whole recording {math.sqrt(0.1 * in_worst + 0.9 * 2e-6):.3g} A)" in titles[0]
+
+
+def test_the_drive_sampling_period_in_the_motor_file(tmp_path, capsys):
+    """`[control] T_s` in a motor file: read and written back, the default of export-c
+    (and simulate), and a recording at another period is a warning that names the
+    likely cause."""
+    from pmsmjax._plant._motorfile import read_motor_file
+
+    text = pj.motor_file_text(DRIVE) + "\n[control]\nT_s = 0.0001\n"
+    (tmp_path / "m.toml").write_text(text)
+    drive, _ = read_motor_file(tmp_path / "m.toml")
+    assert drive.T_s == 1e-4 and pj.parse_motor_file(pj.motor_file_text(drive)).T_s == 1e-4
+    assert main(["export-c", "--motor-file", str(tmp_path / "m.toml"), "--out",
+                 str(tmp_path / "c")]) == 0
+    assert "T_s = 0.0001 s" in capsys.readouterr().out
+    t, theta, i_ab, u_ab, w = reference()
+    data = pj.RecordedData(t=t, u_ab=u_ab, i_ab=i_ab, theta=theta, w_m=w)  # 125 us
+    msgs = pj.recording_warnings(data, drive)
+    assert len(msgs) == 1 and "differs from the drive's [control] T_s = 0.0001 s" in msgs[0]
+    drive_125 = pj.parse_motor_file(pj.motor_file_text(DRIVE) + "\n[control]\nT_s = 125e-6\n")
+    assert not pj.recording_warnings(data, drive_125)
+    data_ms = pj.RecordedData(t=1e3 * t, u_ab=u_ab, i_ab=i_ab)  # time left in ms
+    msgs = pj.recording_warnings(data_ms, drive_125)
+    assert any("a ratio of 1000: a time column in ms or us?" in m for m in msgs)
+    assert any("decimated" in m for m in pj.recording_warnings(
+        pj.RecordedData(t=4 * t, u_ab=u_ab, i_ab=i_ab), drive_125))  # every 4th sample
+    with pytest.raises(pj.MotorFileError, match=r"\[control\] T_s"):
+        pj.parse_motor_file(pj.motor_file_text(DRIVE) + "\n[control]\nT_s = -1\n")

@@ -30,6 +30,7 @@ import os
 import numpy as np
 
 from ._log_checks import (
+    drive_period_warnings,
     encoder_warnings,
     estimate_encoder_offset,
     sampling_period_warnings,
@@ -273,6 +274,7 @@ def convert_log(path, layout: LogLayout, *, drive=None) -> ConvertedLog:
     except FileNotFoundError:
         raise LogFormatError(f"{path}: no such file") from None
     t, T_s, jitter, warnings = _time_axis(path, cols[layout.time], lines, layout)
+    warnings += drive_period_warnings(T_s, drive)
     if layout.current_adc_range is not None:
         lo, hi = layout.current_adc_range
         for n in layout.current:

@@ -171,10 +171,24 @@ def encoder_warnings(data: RecordedData, motor, *, layout: bool = False) -> list
     return out
 
 
+def drive_period_warnings(T_s: float, drive) -> list[str]:
+    """A warning when a recording's period `T_s` (s) differs from the drive's (`Drive.T_s`,
+    a motor file's `[control] T_s`), naming the likely cause."""
+    if drive is None or drive.T_s is None or abs(T_s / drive.T_s - 1.0) <= 1e-3:
+        return []
+    ratio = T_s / drive.T_s
+    unit = any(abs(ratio / f - 1.0) < 1e-2 for f in (1e3, 1e-3, 1e6, 1e-6))
+    hint = ("" if abs(ratio - 1.0) <= 0.5 else f"; a ratio of {ratio:.4g}: " + (
+        "a time column in ms or us?" if unit else
+        "a log decimated (every n-th sample) or a drive running at another period?"))
+    return [f"the recording's sampling period {T_s:.6g} s differs from the drive's "
+            f"[control] T_s = {drive.T_s:.6g} s{hint}"]
+
+
 def recording_warnings(data: RecordedData, drive) -> list[str]:
     """The checks of this module on a recording (`drive`: its machine model), each a
     warning that says what to do; an empty list for a log that passes them all."""
-    out = sampling_period_warnings(data.T_s)
+    out = sampling_period_warnings(data.T_s) + drive_period_warnings(data.T_s, drive)
     if data.u_ab is not None and data.i_ab is not None and not drive.dual:
         out += encoder_warnings(data, drive.three_phase_motor)
     return out

@@ -350,6 +350,9 @@ class Drive(eqx.Module):
     - `tau_rated`: rated torque (N m); "load in p.u." = fraction of this.
     - `i_max`: current-vector amplitude limit of the controller (A, peak).
     - `name`, `notes`: preset name and the assumptions made (static strings).
+    - `T_s`: the drive's sampling period (s), where known (a motor file's `[control]
+      T_s`; static): the commands' default period, against which a recording's is
+      checked. None: each command's own default.
     """
 
     motor: PMSMParams | DualThreePhaseParams
@@ -361,8 +364,11 @@ class Drive(eqx.Module):
     i_max: float
     name: str = eqx.field(static=True, default="custom")
     notes: str = eqx.field(static=True, default="")
+    T_s: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
+        if self.T_s is not None:
+            check_positive("Drive", "T_s", self.T_s, "s")
         check_positive("Drive", "w_rated", self.w_rated, "rad/s")
         check_positive("Drive", "tau_rated", self.tau_rated, "N m")
         check_positive("Drive", "i_max", self.i_max, "A")

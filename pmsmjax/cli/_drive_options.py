@@ -43,6 +43,18 @@ def add_drive_options(parser: argparse.ArgumentParser) -> None:
 
 #: The preset used when neither --motor nor --motor-file is given.
 DEFAULT_MOTOR = "zhang750"
+#: The sampling period (s) of a command that runs in time when neither `--T-s` nor the
+#: drive (a motor file's `[control] T_s`) gives one.
+DEFAULT_T_S = 125e-6
+T_S_HELP = ("(s; default: the motor file's [control] T_s, else 125e-6)")
+
+
+def sampling_period_from_args(args: argparse.Namespace, drive: pj.Drive) -> float:
+    """`--T-s`, else the drive's `T_s` (a motor file's `[control] T_s`), else
+    `DEFAULT_T_S`; also stored back into `args.T_s`."""
+    if getattr(args, "T_s", None) is None:
+        args.T_s = float(drive.T_s) if drive.T_s is not None else DEFAULT_T_S
+    return float(args.T_s)
 
 
 def drive_from_args(args: argparse.Namespace) -> pj.Drive:

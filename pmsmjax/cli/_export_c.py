@@ -11,7 +11,13 @@ from pmsmjax.firmware._dead_time import compensation
 
 from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._drive_options import add_drive_options, drive_from_args, motor_text
+from ._drive_options import (
+    T_S_HELP,
+    add_drive_options,
+    drive_from_args,
+    motor_text,
+    sampling_period_from_args,
+)
 from ._observer_options import add_observer_options
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._values import CLIError, positive_float
@@ -22,9 +28,9 @@ def _arguments(p: argparse.ArgumentParser) -> None:
     add_observer_options(p, default="eso")
     add_design_option(p)
     g = add_output_options(p, None, plot=False)
-    g.add_argument("--T-s", dest="T_s", type=positive_float, default=125e-6, metavar="S",
-                   help="sampling period compiled into the code (s, default: %(default)s); "
-                        "the recording replayed must have this sampling period")
+    g.add_argument("--T-s", dest="T_s", type=positive_float, default=None, metavar="S",
+                   help="sampling period compiled into the code " + T_S_HELP + "; the "
+                        "recording replayed must have this sampling period")
     g.add_argument("--float32", action="store_true",
                    help="generate float (single precision) arithmetic instead of double")
 
@@ -34,6 +40,7 @@ def export_c_command(args: argparse.Namespace) -> int:
         raise CLIError(f"--observer {args.observer}: export-c has no C code for it; it "
                        f"supports {', '.join(supported_observers())}")
     drive = drive_from_args(args)
+    sampling_period_from_args(args, drive)
     choice = observer_with_design(args, drive, default="eso")
     inverter = drive.inverter if drive.inverter.dead_time != "none" else None
     if inverter is not None and drive.dual:

@@ -18,7 +18,14 @@ import pmsmjax as pj
 from .._files import write_json
 from ._command import Command
 from ._design import add_design_option, observer_with_design
-from ._drive_options import add_drive_options, drive_from_args, drive_info, motor_text
+from ._drive_options import (
+    T_S_HELP,
+    add_drive_options,
+    drive_from_args,
+    drive_info,
+    motor_text,
+    sampling_period_from_args,
+)
 from ._observer_options import add_observer_options
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._runs import compile_and_run, run_lock_status
@@ -70,8 +77,8 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="load-torque step (p.u. of the rated torque; default 0.5 for the "
                         "scenarios with a load step, not allowed for the others)")
     g = p.add_argument_group("control and sensing")
-    g.add_argument("--T-s", dest="T_s", type=positive_float, default=125e-6, metavar="S",
-                   help="sampling period of the controller (s, default: %(default)s)")
+    g.add_argument("--T-s", dest="T_s", type=positive_float, default=None, metavar="S",
+                   help="sampling period of the controller " + T_S_HELP)
     g.add_argument("--current-bw", type=positive_float, default=500.0, metavar="HZ",
                    help="current-loop bandwidth (Hz; alpha_c = 2 pi HZ rad/s, "
                         "default: %(default)s)")
@@ -123,6 +130,7 @@ def simulate_command(args: argparse.Namespace) -> int:
         raise CLIError(f"--load is not used by scenario {args.scenario!r} (it has no load step)")
     load = spec.default_load if args.load is None else args.load
     drive = drive_from_args(args)
+    sampling_period_from_args(args, drive)
     if args.delay:
         # The Inverter's delay flag is static: replace the whole Inverter.
         inv = drive.inverter
