@@ -245,7 +245,10 @@ def test_tuning_defaults_for_li_dtp_and_the_tunable_design():
 
 def _reference_propagator(obs, w, T_s):
     """The exact transition over one period from the real augmented system
-    `[x1, s, i, delta, c]` (the inputs turning at `w`), by `scipy.linalg.expm`."""
+    `[x1, s, i, delta, c]` (the inputs turning at `w`), by `scipy.linalg.expm` of the
+    balanced matrix (an exact similarity: unbalanced, the states' units (A to A/s^2 ...)
+    leave expm's error in the small entries relative to the large ones, up to 3e-12 of
+    the terms at 500 us)."""
     sl = pytest.importorskip("scipy.linalg")
     A, B, C, Dx, D1 = (np.asarray(M, float) for M in obs._matrices(np.float64(w)))
     n = obs.n_s
@@ -255,7 +258,8 @@ def _reference_propagator(obs, w, T_s):
     M[:2, :2], M[:2, 2:i_], M[:2, i_:d_], M[:2, c_:] = K, C, -K, I2 / obs.motor.L_q
     M[2:i_, :2], M[2:i_, 2:i_], M[2:i_, i_:d_] = B, A, -B
     M[i_:d_, i_:d_], M[i_:d_, d_:c_], M[d_:c_, d_:c_], M[c_:, c_:] = wJ, I2, wJ, wJ
-    return sl.expm(M * T_s)[:i_]
+    Mb, (d, _) = sl.matrix_balance(M * T_s, permute=False, separate=True)
+    return (d[:, None] * sl.expm(Mb) / d[None, :])[:i_]
 
 
 def _meas(i, u, dtype):
@@ -325,50 +329,103 @@ def test_replay_gradient_matches_finite_differences(name, param):
     assert grad == pytest.approx(fd, rel=1e-5)
 
 
-def test_gi_leso_action_path_and_fallback_against_scipy():
-    """The GI-LESO's transition takes the Taylor action (`phi_action`) where the scaled
-    norm of X is at most `ACTION_NORM` and the balanced matrix functions otherwise; both
-    sides of the switch (T_s = 100 us and 1 ms, and a 4x bandwidth at 100 us) agree with
-    `scipy.linalg.expm` of the complex augmented matrix [[X, g1, g0], [0, 0, 1], [0, 0, 0]]
-    applied to [y; 0; 1]. Tolerance: 1e-12 relative to the size of the terms, as the
-    transition test (round-off is ~1e-15; the truncation bound at the switch 4e-17)."""
+def test_gi_leso_transition_structure_and_branches_against_scipy():
+    """The GI-LESO's transition (`GILESOObserver._transition_c`) against `scipy.linalg.expm`
+    of the real augmented system (`_reference_propagator`, the general route), 1e-12
+    relative to the size of the terms, in every branch of its switch (Taylor degree for
+    rho <= 0.5, for rho <= 3, the balanced matrix function beyond: 100 us, 4x bandwidth,
+    500 us, 2 ms on `li_dtp`; `zhang750` at 125 us), at speeds of both signs and zero with
+    the resonance at the estimated speed and at a fixed one met exactly, for a batch under
+    `vmap` (one branch for all) and in the step's real layout; float32 close to float64.
+    And its derivation: the characteristic polynomial of A_o is (29)'s denominator, the
+    product on the non-zero entries is the dense X of `_complex_system`, the norm bound
+    the scaled row-sum norm in `_complex_scale`'s units, and y + u + phi_2(X) v the
+    three matrix functions of the complex X."""
     sl = pytest.importorskip("scipy.linalg")
-    from pmsmjax.observers import _matrix_functions as F
-    from pmsmjax.observers._back_emf_leso import _to_complex
-    rng = np.random.default_rng(3)
+    from pmsmjax.observers import _li_leso as G, _matrix_functions as F
+    assert [F.taylor_degree(x, jnp.float64) for x in F.ACTION_NORMS] == [12, 24]
+    assert [F.taylor_degree(x, jnp.float32) for x in F.ACTION_NORMS] == [6, 14]
     base = make_observer("gi-leso", DTP)
-    sides = set()
-    batch = []
-    for obs, T_s in ((base, 1e-4), (base, 1e-3), (base.with_design(w0=4.0 * base.w0), 1e-4)):
-        for w in (-1.3 * W, 0.0, 0.6 * W, 2.0 * W):
-            A, B, C, Dx, D1 = (_to_complex(M) for M in obs._matrices(jnp.asarray(w)))
-            Ao = np.asarray(jnp.block([[Dx + D1, C], [B, A]]))
-            X = (Ao - 1j * w * np.eye(4)) * T_s
-            d = np.asarray(obs._complex_scale(jnp.asarray(w)))
-            rho = np.max(np.sum(np.abs(X) * (d[None, :] / d[:, None]), 1))
-            y, g0, g1 = (d * (rng.normal(size=4) + 1j * rng.normal(size=4)) for _ in range(3))
-            # the reference in the scaled units (an exact similarity; scipy does not
-            # balance), mapped back
-            M = np.zeros((6, 6), complex)
-            M[:4, :4], M[:4, 4], M[:4, 5], M[4, 5] = X * (d[None, :] / d[:, None]), \
-                g1 / d, g0 / d, 1.0
-            zs = np.r_[y / d, 0.0, 1.0]
-            ref = d * (sl.expm(M) @ zs)[:4]
-            size = d * (np.abs(sl.expm(np.abs(M))) @ np.abs(zs))[:4]
-            out = np.asarray(F.phi_apply(jnp.asarray(X), y, g0, g1, jnp.asarray(rho)))
-            assert np.max(np.abs(out - ref) / size) < 1e-12, (T_s, w, rho)
-            if rho <= F.ACTION_NORM:
-                act = np.asarray(F.phi_action(jnp.asarray(X), y, g0, g1))
-                assert np.max(np.abs(act - ref) / size) < 1e-12, (T_s, w, rho)
-            sides.add(bool(rho <= F.ACTION_NORM))
-            batch.append((X, y, g0, g1, rho, ref, size))
-    assert sides == {True, False}  # both branches were exercised
-    # under vmap one branch serves the batch: a mixed batch (fallback for all) and one
-    # that is all within the action's norm agree with the references as well
-    for sel in (batch, [b for b in batch if b[4] <= F.ACTION_NORM]):
-        Xs, ys, g0s, g1s, rhos, refs, sizes = (np.stack(c) for c in zip(*sel))
-        out = np.asarray(jax.vmap(F.phi_apply)(Xs, ys, g0s, g1s, rhos))
-        assert np.max(np.abs(out - refs) / sizes) < 1e-12
+    fixed = make_observer("gi-leso", DTP, resonance="fixed")
+    z750 = make_observer("gi-leso", pj.preset("zhang750"))
+    cases = [(base, 1e-4), (base.with_design(w0=4.0 * base.w0, K_r=16.0 * base.K_r), 1e-4),
+             (base, 5e-4), (base, 2e-3), (fixed, 1e-4), (z750, 1.25e-4)]
+    trans = eqx.filter_jit(lambda o, w, T, y, i0, dl, c: o._transition_c(w, T, y, i0, dl, c))
+    parts = eqx.filter_jit(lambda o, w, T: (o._entries(w, T), o._complex_system(w)[0],
+                                            o._complex_scale(w)))
+    rng = np.random.default_rng(11)
+    branches = set()
+    for obs, T_s in cases:
+        Wd = float(DTP.w_rated if obs is not z750 else pj.preset("zhang750").w_rated)
+        rows = []
+        for w in np.array([-1.3, -1e-3, 0.0, 0.6, 1.0, 2.0]) * Wd + (obs is fixed) * obs.w_r:
+            k, Ao, d = parts(obs, jnp.asarray(w), jnp.asarray(T_s))
+            X = np.asarray(Ao) * T_s - 1j * w * T_s * np.eye(4)
+            # no block closed form: the characteristic polynomial is (29)'s denominator
+            wr2 = max((abs(w) if obs.resonance == "estimated" else obs.w_r) ** 2,
+                      obs.w_c ** 2)
+            ref = np.polyadd(np.polymul([1.0, 2 * obs.w0, obs.w0 ** 2],
+                                        [1.0, 2 * obs.w_c, wr2]),
+                             [2 * obs.K_r * obs.w_c, 0.0])
+            np.testing.assert_allclose(np.poly(np.asarray(Ao).real), ref, rtol=1e-9)
+            # the derivation's pieces: the sparse product, the norm bound
+            t = rng.normal(size=8)
+            Xt = X @ (t[0::2] + 1j * t[1::2])
+            np.testing.assert_allclose(np.asarray(G._gi_matvec(k, jnp.asarray(t))),
+                                       np.stack([Xt.real, Xt.imag], -1).ravel(), rtol=1e-13,
+                                       atol=1e-15 * np.abs(X).max() * np.abs(t).max())
+            d = np.asarray(d)
+            rho = float(obs._norm_bound(k))
+            assert rho == pytest.approx(np.max(np.sum(np.abs(X) * d / d[:, None], 1)),
+                                        rel=1e-13)
+            branches.add(int(np.searchsorted(F.ACTION_NORMS, rho)))
+            # the transition against the real augmented system, random states and inputs
+            R = _reference_propagator(obs, w, T_s)
+            v = rng.normal(size=14) * np.repeat([1.0, obs.w0, 1e-3, 1e-1, 1.0, 1e3, 1e2], 2)
+            z = v[0::2] + 1j * v[1::2]
+            out = np.asarray(trans(obs, jnp.asarray(w), T_s, jnp.asarray(z[:4]), z[4], z[5],
+                                   z[6]))
+            err = np.abs(out - R @ v) / (np.abs(R) @ np.abs(v))
+            assert np.max(err) < 1e-12, (T_s, w, rho, np.max(err))
+            # the step's real layout gives the same numbers
+            np.testing.assert_array_equal(
+                np.asarray(trans(obs, jnp.asarray(w), T_s, jnp.asarray(v[:8]), z[4], z[5],
+                                 z[6])), out)
+            # y + u + phi_2(X) v = e^X y + phi_1(X) g0 + phi_2(X) g1 (expm of [[X, I, 0],
+            # [0, 0, I], [0, 0, 0]] has e^X, phi_1, phi_2 in its first block row), in the
+            # units `_complex_scale` (an exact similarity; scipy does not balance)
+            g_i = np.array([2.0 * obs.w0, obs.w0 ** 2, 0.0, -1.0])
+            g0 = T_s * (g_i * z[4] + np.array([1.0 / obs.motor.L_q, 0, 0, 0]) * z[6]) / d
+            g1 = T_s ** 2 * g_i * z[5] / d
+            y, Xs = z[:4] / d, X * d / d[:, None]
+            M = np.zeros((12, 12), complex)
+            M[:4, :4], M[:4, 4:8], M[4:8, 8:] = Xs, np.eye(4), np.eye(4)
+            E = sl.expm(M)
+            u = Xs @ y + g0
+            lhs = E[:4, :4] @ y + E[:4, 4:8] @ g0 + E[:4, 8:] @ g1
+            rhs = y + u + E[:4, 8:] @ (Xs @ u + g1)
+            size = np.abs(E[:4]) @ np.abs(np.r_[y, g0, g1])
+            assert np.max(np.abs(lhs - rhs) / size) < 1e-12, (T_s, w, rho)
+            rows.append((w, v, R))
+        # a batch under vmap: one branch serves every member
+        ws, vs = np.array([r[0] for r in rows]), np.stack([r[1] for r in rows])
+        zs = vs[:, 0::2] + 1j * vs[:, 1::2]
+        outs = np.asarray(jax.vmap(lambda w, y, i0, dl, c: obs._transition_c(
+            w, T_s, y, i0, dl, c))(ws, zs[:, :4], zs[:, 4], zs[:, 5], zs[:, 6]))
+        for (w, v, R), o in zip(rows, outs):
+            assert np.max(np.abs(o - R @ v) / (np.abs(R) @ np.abs(v))) < 1e-12, (T_s, w)
+    assert branches == {0, 1, 2}
+    # float32: the same transition to its round-off (degrees 6 and 14)
+    for obs, T_s in cases[:3]:
+        o32 = pj.astype(obs, jnp.float32)
+        for w in (-0.7 * W, 0.0, 1.0 * W):
+            v = rng.normal(size=14) * np.repeat([1.0, obs.w0, 1e-3, 1e-1, 1.0, 1e3, 1e2], 2)
+            R = _reference_propagator(obs, w, T_s)
+            z = (v[0::2] + 1j * v[1::2]).astype(np.complex64)
+            out = np.asarray(trans(o32, jnp.float32(w), jnp.float32(T_s), jnp.asarray(z[:4]),
+                                   z[4], z[5], z[6]))
+            assert out.dtype == np.float32
+            assert np.max(np.abs(out - R @ v) / (np.abs(R) @ np.abs(v))) < 2e-6, (T_s, w)
 
 
 def test_pair_functions_series_path_and_doublings_against_scipy():

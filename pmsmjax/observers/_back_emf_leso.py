@@ -33,9 +33,9 @@ of $s$: `transfer_function`.
   $e^X$, $\varphi_1(X)$, $\varphi_2(X)$ of the observer's own matrix
   $X = (A_o - j\hat\omega I)T_s$ in complex form (`_transition`; size $1 + n_s/2$: 2 for
   the C-LESO and FA-LESO, 4 for the GI-LESO), computed by `_matrix_functions`: as pairs
-  of complex numbers for the $2\times2$ case (`phi_pair_apply`), as the action on one
-  vector for the GI-LESO (`phi_apply`, with the row-sum norm of $X$ taken in the
-  design's units, `GILESOObserver._complex_scale`). Exact to round-off far beyond the
+  of complex numbers for the $2\times2$ case (`phi_pair_apply`); the GI-LESO writes its
+  transition as one action $\varphi_2(X)v$ on the non-zero entries of its $X$
+  (`GILESOObserver._transition_c`, `phi2_action`). Exact to round-off far beyond the
   designs' $|X| \approx 0.2$ at $T_s = 100\,\mu$s (`_propagator` assembles the real
   transition matrix; the tests check it against `scipy.linalg.expm` of the real
   augmented system, and `jax.grad` through a replay against finite differences). The
@@ -89,7 +89,7 @@ from ._base import (
     OperatingPoint,
     PlantPoint,
 )
-from ._matrix_functions import phi_apply, phi_pair_apply
+from ._matrix_functions import phi_pair_apply
 from ._pll import PLL_UNITS, QuadraturePLL
 
 
@@ -128,6 +128,13 @@ def _cplx(v):
 def _real(z):
     """A complex vector -> the real vector of consecutive (re, im) pairs."""
     return jnp.stack([z.real, z.imag], -1).reshape(-1)
+
+
+def _real_layout(out):
+    """A transition's result (`_transition_c`: its complex components, or the real
+    layout of consecutive (re, im) pairs already) in the real layout."""
+    out = jnp.stack(out) if isinstance(out, tuple) else out
+    return _real(out) if jnp.iscomplexobj(out) else out
 
 
 class LESOState(eqx.Module):
@@ -219,9 +226,11 @@ class AbstractBackEMFLESO(AbstractObserver):
         return jnp.block([[K, C], [B, A]]), -jnp.concatenate([K, B])[:, 0], C[0], Dx[0, 0]
 
     def _transition_c(self, w_hat, T_s, y, i0, dl, c, rot=None):
-        r"""`_transition` in complex form: the complex state `y` (size $p$) one period on
+        r"""`_transition` in complex form: the complex state `y` one period on
         (stationary frame), from the complex current `i0`, its hold slope `dl` and the
-        voltage-integral rate `c`; `rot` is $e^{j\hat\omega T_s}$ if the caller has it."""
+        voltage-integral rate `c`; `rot` is $e^{j\hat\omega T_s}$ if the caller has it.
+        Here for $p = 2$ (the two components as a tuple); an observer with a larger state
+        writes its own, and may return the real layout (`_real_layout`)."""
         T = jnp.asarray(T_s, jnp.real(i0).dtype)
         Ao, g_i, _, _ = self._complex_system(w_hat)
         jwT = jax.lax.complex(jnp.zeros_like(T), -jnp.asarray(w_hat, T.dtype) * T)
@@ -243,14 +252,9 @@ class AbstractBackEMFLESO(AbstractObserver):
             rot = jnp.exp(-jwT) if rot is None else rot
             out = rot[..., None] * out
             return out[..., 0], out[..., 1]
-        p = Ao.shape[0]
-        X = Ao * T + jwT * jnp.eye(p, dtype=Ao.dtype)
-        g_c = jnp.zeros(p, Ao.dtype).at[0].set(inv_lq)
-        g0, g1 = T * (g_i * i0 + g_c * c), (T * T) * (g_i * dl)
-        d = jax.lax.stop_gradient(self._complex_scale(w_hat).astype(T.dtype))
-        rho = jnp.max(jnp.sum(jnp.abs(X) * (d[None, :] / d[:, None]), 1))
-        rot = jnp.exp(-jwT) if rot is None else rot
-        return rot * phi_apply(X, y, g0, g1, jax.lax.stop_gradient(rho))
+        raise NotImplementedError(
+            f"{type(self).__name__}: an observer with more than one complex internal state "
+            "gives its own `_transition_c` (as `GILESOObserver`).")
 
     def _transition(self, w_hat, T_s, v):
         r"""The state `[x1, s]` one period after `v = [x1, s, i, delta, c]` (real, `(n_s +
@@ -264,21 +268,20 @@ class AbstractBackEMFLESO(AbstractObserver):
         so with $X = (A_o - j\hat\omega I)T_s$:
         $y(T_s) = e^{j\hat\omega T_s}[e^X y + T_s\varphi_1(X)(g_i i + g_c c) +
         T_s^2\varphi_2(X)g_i\delta]$. For $p = 2$ (C-LESO, FA-LESO) the three functions
-        of $X$ are pairs of complex numbers (`phi_pair`); for the GI-LESO the sum is
-        evaluated as one action (`phi_apply`: a Taylor series of the action where the
-        scaled norm of $X$ is small, the $4\times4$ matrix functions `phi_matrix`
-        otherwise). `step` calls `_transition_c` on the complex state directly."""
+        of $X$ are pairs of complex numbers (`phi_pair`); the GI-LESO evaluates the sum
+        as one action on the non-zero entries of its $X$
+        (`GILESOObserver._transition_c`). `step` calls `_transition_c` directly (the
+        GI-LESO's on the state's real layout)."""
         p = 1 + self.n_s // 2
         z = _cplx(v)
         y = z[:p]
         out = self._transition_c(w_hat, T_s, tuple(y) if p == 2 else y, z[p], z[p + 1],
                                  z[p + 2])
-        out = jnp.stack(out) if isinstance(out, tuple) else out
-        return _real(out).astype(v.dtype)
+        return _real_layout(out).astype(v.dtype)
 
     def _complex_scale(self, w_hat):
         """A diagonal scaling of the complex state `[x1, s]` (its units) under which the
-        norm of `X` measures the Taylor truncation (`phi_apply`)."""
+        norm of `X` measures the Taylor truncation (`GILESOObserver._transition_c`)."""
         return jnp.ones(1 + self.n_s // 2, jnp.result_type(w_hat, float))
 
     def _propagator(self, w_hat, T_s):
@@ -321,13 +324,12 @@ class AbstractBackEMFLESO(AbstractObserver):
         delta = (i_k * jnp.conj(rot) - i_prev) / T
         if self.n_s == 2:
             out = self._transition_c(w_hat, T, (x1, s_c[0]), i_prev, delta, c, rot)
-        else:
-            out = self._transition_c(w_hat, T, jnp.stack([x1] + s_c), i_prev, delta, c,
-                                     rot)
-            out = [out[j] for j in range(1 + self.n_s // 2)]
+        else:  # the state in the real layout (`GILESOObserver._transition_c`)
+            out = self._transition_c(w_hat, T, jnp.concatenate([state.x1, state.s]),
+                                     i_prev, delta, c, rot)
         # back to the real layout [x1, s] as one array: every consumer reads it (XLA
         # would otherwise duplicate the transition's graph into each of them)
-        z = _real(jnp.stack(out)).astype(dtype)
+        z = _real_layout(out).astype(dtype)
         x1_new, s_new = z[:2], z[2:]
         i_k = jnp.asarray(meas.i_ab).astype(dtype)
         go = state.started

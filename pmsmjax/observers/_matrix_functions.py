@@ -16,17 +16,20 @@ Every function is a Taylor polynomial and doublings with static shapes and no di
   $\mu \pm \sqrt d$ is at most `PAIR_NORM` = 0.5 (0.19 for the C-LESO, 0.05 for the
   FA-LESO; truncation below $4\times10^{-18}$), otherwise at $X/8$ followed by three
   doublings.
-- **Larger matrices, applied to one vector** (`phi_apply`): while the row-sum norm of
-  $X$ in the caller's units is at most `ACTION_NORM` = 0.5 (the GI-LESO: about
-  $3\omega_0T_s$, 0.47), the Taylor series of the action (the exponential of the
-  augmented matrix $[[X, g_1, g_0], [0, 0, 1], [0, 0, 0]]$ applied to $[y; 0; 1]$) of
-  degree 14 by Horner's rule (one matrix-vector product a degree; truncation below
-  $4\times10^{-17}$), otherwise the three matrix functions (`phi_matrix`: balanced,
-  degree 12, five doublings).
+- **Larger matrices, applied to one vector** (`phi2_action`): $\varphi_2(X)v$ by the
+  Taylor series $\sum_n X^nv/(n+2)!$ and Horner's rule, one product with $X$ a degree,
+  the product given by the caller (the GI-LESO writes it on the non-zero entries of its
+  $X$ and reduces $e^Xy + \varphi_1(X)g_0 + \varphi_2(X)g_1$ to this one action:
+  `GILESOObserver._transition_c`). The degree (`taylor_degree`) makes the truncation
+  below the unit round-off of the number type for a row-sum norm of $X$ (in the caller's
+  units) up to the branch's bound in `ACTION_NORMS` = (0.5, 3) (the GI-LESO: about
+  $3\omega_0T_s$, 0.47 on `li_dtp` at 100 us, 2.4 on `zhang750` at 125 us): 12 and 24 in
+  float64, 6 and 14 in float32. Beyond 3, the three matrix functions (`phi_matrix`:
+  balanced, degree 12, five doublings).
 
-Both switches are `switched`: a `lax.cond`, with one branch for the whole batch under
+The switches are `switched`: a `lax.switch`, with one branch for the whole batch under
 `vmap`. Exact to round-off for eigenvalues (balanced norms) of $X$ up to about 8, far
-beyond the designs' $|X| \approx 0.2$ (`tests/test_li_leso.py` checks both sides of
+beyond the designs' $|X| \approx 0.2$ (`tests/test_li_leso.py` checks every branch of
 each switch against `scipy.linalg.expm`).
 """
 
@@ -125,48 +128,59 @@ def phi_matrix(X, order: int = 12, squarings: int = 5):
     return E0 * back, E1 * back, E2 * back
 
 
-#: The Taylor action (`phi_action`) is used while the scaled norm of X is at most this;
-#: its degree makes the truncation below round-off there:
-#: 0.5^15/15! e^0.5 = 4e-17 (the remainder of the series bounded by the norm).
-ACTION_NORM = 0.5
-ACTION_ORDER = 14
+#: The row-sum norms of X up to which the Taylor branches of the GI-LESO's transition
+#: (`phi2_action` at the degree `taylor_degree` gives for them) serve; beyond the last,
+#: the balanced matrix functions (`phi_matrix`).
+ACTION_NORMS = (0.5, 3.0)
 
 
-def phi_action(X, y, g0, g1, order: int = ACTION_ORDER):
-    r"""$e^X y + \varphi_1(X)g_0 + \varphi_2(X)g_1$ by its Taylor series
-    $\sum_k X^k c_k$, $c_k = y/k! + g_0/(k+1)! + g_1/(k+2)!$ (the action of the
-    exponential of the augmented matrix $[[X, g_1, g_0], [0, 0, 1], [0, 0, 0]]$ on
-    $[y; 0; 1]$), by Horner's rule: one matrix-vector product a degree, no matrix
-    products. The truncation is below round-off for a (diagonally scaled) norm of $X$ up
-    to `ACTION_NORM`; the products are invariant to the diagonal scaling (no
-    cancellation there), so it is applied to $X$ as it is."""
-    inv = [1.0 / math.factorial(k) for k in range(order + 3)]
-    v = y * inv[order] + g0 * inv[order + 1] + g1 * inv[order + 2]
-    for k in range(order - 1, -1, -1):
-        v = jnp.sum(X * v[..., None, :], -1) + (y * inv[k] + g0 * inv[k + 1]
-                                                + g1 * inv[k + 2])
-    return v
+def taylor_degree(norm: float, dtype) -> int:
+    r"""The least degree $N$ whose truncation of $\varphi_2(X)v = \sum_n X^nv/(n+2)!$,
+    bounded by the remainder $\sum_{n > N}\rho^n/(n+2)! \le \rho^{N+1}/((N+3)!\,(1 -
+    \rho/(N+4)))$ at the row-sum norm $\rho$ = `norm` (relative to $\|v\|$ in the same
+    units), is below the unit round-off of `dtype` ($2^{-53}$ in float64, $2^{-24}$ in
+    float32): 12 at 0.5 and 24 at 3 in float64, 6 and 14 in float32."""
+    u = 0.5 * float(jnp.finfo(dtype).eps)
+    n = 0
+    while norm ** (n + 1) / (math.factorial(n + 3) * (1.0 - norm / (n + 4))) > u:
+        n += 1
+    return n
 
 
-def _phi_full(X, y, g0, g1):
-    E0, E1, E2 = phi_matrix(X)
-    return E0 @ y + E1 @ g0 + E2 @ g1
+def phi2_action(matvec, v, order: int, unroll: int = 1):
+    r"""$\varphi_2(X)v = \sum_{n \le N} X^nv/(n+2)!$ ($N$ = `order`) by Horner's rule,
+    $t \leftarrow Xt + v/(n+2)!$ from $t = v/(N+2)!$, where `matvec(t)` is the product
+    $Xt$ (the caller's layout of `v`, one array). The degrees run in a loop (`fori_loop`,
+    `unroll` of them a pass): written out, XLA fuses the last product with everything
+    before it and computes the shared products again for every component."""
+    inv = jnp.asarray([1.0 / math.factorial(n + 2) for n in range(order + 1)], v.dtype)
+
+    def body(j, t):
+        return matvec(t) + inv[order - 1 - j] * v
+
+    return jax.lax.fori_loop(0, order, body, inv[order] * v, unroll=unroll)
 
 
-def switched(cheap, full, limit: float):
-    """`f(*args, rho)`: `cheap(*args)` where `rho <= limit`, else `full(*args)` (same
-    values to round-off on either side; `rho` is a bound held constant for
-    differentiation).
+def switched(branches, limits):
+    """`f(*args, rho)`: `branches[i](*args)` for the first `i` with `rho <= limits[i]`
+    (ascending), the last branch beyond them (same values to round-off in every branch
+    that serves; `rho` is a bound held constant for differentiation).
 
-    Plainly a `lax.cond`. Under `vmap` a `cond` on a batched predicate would evaluate
-    both branches (a select): a batching rule (`custom_vmap`) takes one branch for the
-    whole batch instead, the cheap one only if it holds for every member, so the cheap
-    path is not paid for twice. That rule has no reverse mode: a `custom_jvp`
-    differentiates through the plain `cond` (same values)."""
+    Plainly a `lax.switch`. Under `vmap` a switch on a batched index would evaluate
+    every branch (a select): a batching rule (`custom_vmap`) takes one branch for the
+    whole batch instead, the one that serves its largest `rho`, so the cheaper branches
+    are not paid for on top of it. That rule has no reverse mode: a `custom_jvp`
+    differentiates through the plain switch (same values)."""
+    branches = tuple(branches)
+    limits = tuple(float(x) for x in limits)
+    assert len(branches) == len(limits) + 1 and list(limits) == sorted(limits)
+
+    def index(rho):
+        return sum((rho > x).astype(jnp.int32) for x in limits)
 
     def plain(*a):
-        return jax.lax.cond(a[-1] <= limit, lambda o: cheap(*o), lambda o: full(*o),
-                            a[:-1])
+        return jax.lax.switch(index(a[-1]), [lambda o, b=b: b(*o) for b in branches],
+                              a[:-1])
 
     @jax.custom_batching.custom_vmap
     def batched(*a):
@@ -174,10 +188,11 @@ def switched(cheap, full, limit: float):
 
     @batched.def_vmap
     def _rule(axis_size, in_batched, *a):
-        a = [x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x))
-             for x, b in zip(a, in_batched)]
-        out = jax.lax.cond(jnp.all(a[-1] <= limit), lambda o: jax.vmap(cheap)(*o),
-                           lambda o: jax.vmap(full)(*o), a[:-1])
+        a = jax.tree_util.tree_map(
+            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
+            list(a), list(in_batched))
+        out = jax.lax.switch(jnp.max(index(a[-1])),
+                             [lambda o, b=b: jax.vmap(b)(*o) for b in branches], a[:-1])
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     @jax.custom_jvp
@@ -189,17 +204,6 @@ def switched(cheap, full, limit: float):
         return jax.jvp(plain, primals, tangents)
 
     return f
-
-
-_phi_switched = switched(phi_action, _phi_full, ACTION_NORM)
-
-
-def phi_apply(X, y, g0, g1, rho):
-    r"""$e^X y + \varphi_1(X)g_0 + \varphi_2(X)g_1$ for a complex $X$ whose diagonally
-    scaled norm is `rho`: the Taylor action (`phi_action`) where `rho <= ACTION_NORM`,
-    else the balanced matrix functions (`phi_matrix`); `switched` (one branch for a
-    batch under `vmap`, derivatives through the plain `cond`)."""
-    return _phi_switched(X, y, g0, g1, rho)
 
 
 #: The pair functions skip the doublings (`phi_pair` at `squarings=0`) while the bound
@@ -218,8 +222,8 @@ def pair_radius(mu, d):
             + jnp.sqrt(jnp.abs(jnp.real(d)) + jnp.abs(jnp.imag(d))))
 
 
-_phi_pair_switched = switched(lambda mu, d: phi_pair(mu, d, squarings=0), phi_pair,
-                               PAIR_NORM)
+_phi_pair_switched = switched((lambda mu, d: phi_pair(mu, d, squarings=0), phi_pair),
+                              (PAIR_NORM,))
 
 
 def phi_pair_apply(mu, d):
