@@ -415,13 +415,16 @@ def _gi_phi2(dtype: str):
     for `dtype`, the balanced matrix function beyond (`switched`)."""
 
     def taylor(norm):
+        # with a batch axis first (`switched`'s `native`), the components first inside:
+        # each product a vector operation over the batch per component
         n = taylor_degree(norm, dtype)
-        return lambda k, v: phi2_action(functools.partial(_gi_matvec, k), v, n)
+        return lambda k, v: phi2_action(functools.partial(_gi_matvec, k), v.T, n).T
 
     def full(k, v):
         return _real(phi_matrix(_gi_dense(k))[2] @ jax.lax.complex(v[0::2], v[1::2]))
 
-    return switched([taylor(x) for x in ACTION_NORMS] + [full], ACTION_NORMS)
+    return switched([taylor(x) for x in ACTION_NORMS] + [full], ACTION_NORMS,
+                    native=range(len(ACTION_NORMS)))
 
 
 class FALESOObserver(AbstractBackEMFLESO):

@@ -161,7 +161,7 @@ def phi2_action(matvec, v, order: int, unroll: int = 1):
     return jax.lax.fori_loop(0, order, body, inv[order] * v, unroll=unroll)
 
 
-def switched(branches, limits):
+def switched(branches, limits, native=()):
     """`f(*args, rho)`: `branches[i](*args)` for the first `i` with `rho <= limits[i]`
     (ascending), the last branch beyond them (same values to round-off in every branch
     that serves; `rho` is a bound held constant for differentiation).
@@ -169,11 +169,15 @@ def switched(branches, limits):
     Plainly a `lax.switch`. Under `vmap` a switch on a batched index would evaluate
     every branch (a select): a batching rule (`custom_vmap`) takes one branch for the
     whole batch instead, the one that serves its largest `rho`, so the cheaper branches
-    are not paid for on top of it. That rule has no reverse mode: a `custom_jvp`
+    are not paid for on top of it; it calls a branch whose index is in `native` on the
+    batch directly (every argument with its batch axis first: the branch lays the batch
+    out itself), the others under `vmap`. That rule has no reverse mode: a `custom_jvp`
     differentiates through the plain switch (same values)."""
     branches = tuple(branches)
     limits = tuple(float(x) for x in limits)
     assert len(branches) == len(limits) + 1 and list(limits) == sorted(limits)
+    native = set(native)
+    batched_branches = [b if i in native else jax.vmap(b) for i, b in enumerate(branches)]
 
     def index(rho):
         return sum((rho > x).astype(jnp.int32) for x in limits)
@@ -192,7 +196,7 @@ def switched(branches, limits):
             lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
             list(a), list(in_batched))
         out = jax.lax.switch(jnp.max(index(a[-1])),
-                             [lambda o, b=b: jax.vmap(b)(*o) for b in branches], a[:-1])
+                             [lambda o, b=b: b(*o) for b in batched_branches], a[:-1])
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     @jax.custom_jvp
