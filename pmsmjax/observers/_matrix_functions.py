@@ -170,14 +170,14 @@ def switched(branches, limits, native=()):
     every branch (a select): a batching rule (`custom_vmap`) takes one branch for the
     whole batch instead, the one that serves its largest `rho`, so the cheaper branches
     are not paid for on top of it; it calls a branch whose index is in `native` on the
-    batch directly (every argument with its batch axis first: the branch lays the batch
-    out itself), the others under `vmap`. That rule has no reverse mode: a `custom_jvp`
+    batch directly (every argument with its batch axis first, unbatched scalars as they
+    are: the branch lays the batch out itself), the others under `vmap`, and a batch of
+    one as no batch. That rule has no reverse mode: a `custom_jvp`
     differentiates through the plain switch (same values)."""
     branches = tuple(branches)
     limits = tuple(float(x) for x in limits)
     assert len(branches) == len(limits) + 1 and list(limits) == sorted(limits)
     native = set(native)
-    batched_branches = [b if i in native else jax.vmap(b) for i, b in enumerate(branches)]
 
     def index(rho):
         return sum((rho > x).astype(jnp.int32) for x in limits)
@@ -192,11 +192,27 @@ def switched(branches, limits, native=()):
 
     @batched.def_vmap
     def _rule(axis_size, in_batched, *a):
-        a = jax.tree_util.tree_map(
-            lambda x, b: x if b else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)),
-            list(a), list(in_batched))
+        if axis_size == 1:  # a batch of one: the unbatched program
+            a = jax.tree_util.tree_map(lambda x, b: x[0] if b else x, list(a),
+                                       list(in_batched))
+            out = plain(*a)
+            return (jax.tree_util.tree_map(lambda x: x[None], out),
+                    jax.tree_util.tree_map(lambda _: True, out))
+        # native branches: unbatched scalars as they are (they broadcast), other
+        # unbatched arguments with the batch axis; the others under `vmap`
+        on = jax.tree_util.tree_map(
+            lambda x, b: x if b or jnp.ndim(x) == 0
+            else jnp.broadcast_to(x, (axis_size,) + jnp.shape(x)), list(a[:-1]),
+            list(in_batched[:-1]))
+        axes = jax.tree_util.tree_map(lambda b: 0 if b else None, list(in_batched[:-1]))
+
+        def call(i, b):
+            if i in native:
+                return lambda o: b(*o[0])
+            return lambda o: jax.vmap(b, in_axes=axes)(*o[1])
+
         out = jax.lax.switch(jnp.max(index(a[-1])),
-                             [lambda o, b=b: b(*o) for b in batched_branches], a[:-1])
+                             [call(i, b) for i, b in enumerate(branches)], (on, a[:-1]))
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     @jax.custom_jvp
