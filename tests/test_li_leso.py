@@ -336,7 +336,8 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
     rho <= 0.5, for rho <= 3, the balanced matrix function beyond: 100 us, 4x bandwidth,
     500 us, 2 ms on `li_dtp`; `zhang750` at 125 us), at speeds of both signs and zero with
     the resonance at the estimated speed and at a fixed one met exactly, for a batch under
-    `vmap` (one branch for all) and in the step's real layout; float32 close to float64.
+    `vmap` (one branch for all; one over the loop's chunk) and in the step's real layout;
+    float32 close to float64.
     And its derivation: the characteristic polynomial of A_o is (29)'s denominator, the
     product on the non-zero entries is the dense X of `_complex_system`, the norm bound
     the scaled row-sum norm in `_complex_scale`'s units, and y + u + phi_2(X) v the
@@ -415,6 +416,16 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
         for (w, v, R), o in zip(rows, outs):
             assert np.max(np.abs(o - R @ v) / (np.abs(R) @ np.abs(v))) < 1e-12, (T_s, w)
     assert branches == {0, 1, 2}
+    # a batch over the Taylor loop's chunk (`_GI_CHUNK_BYTES`: 128 in float64): three
+    # chunks, the last padded, the same numbers as one by one
+    scale = np.array([1.0, base.w0, 1e-3, 1e-1, 1.0, 1e3, 1e2])
+    wb = np.linspace(-1.5, 1.5, 300) * W
+    zb = (rng.normal(size=(300, 7)) + 1j * rng.normal(size=(300, 7))) * scale
+    one = jax.jit(lambda w, z: base._transition_c(w, 1e-4, z[:4], z[4], z[5], z[6]))
+    ob = np.asarray(jax.jit(jax.vmap(one))(wb, zb))
+    for j in (0, 127, 128, 299):
+        np.testing.assert_allclose(ob[j], np.asarray(one(wb[j], zb[j])), rtol=1e-14,
+                                   atol=1e-15 * np.abs(ob[j]).max())
     # float32: the same transition to its round-off (degrees 6 and 14)
     for obs, T_s in cases[:3]:
         o32 = pj.astype(obs, jnp.float32)

@@ -407,18 +407,52 @@ def _gi_dense(k):
     return jax.lax.complex(A, -th * jnp.eye(4, dtype=A.dtype))
 
 
+#: The GI-LESO's Taylor loop runs a batch in chunks whose state (8 components) holds at
+#: most this many bytes: a degree reads and writes about five times the state, and
+#: pmsmjax's loop setting (`runtime`'s `FAST_LOOP_FLAGS`) compiles a loop whose body
+#: accesses under 64 KiB as one kernel; above, every degree runs kernel by kernel (about
+#: a third slower at batch 256 in float64).
+_GI_CHUNK_BYTES = 8192
+
+
+def _gi_taylor(k, v, order: int):
+    r"""$\varphi_2(X)v$ by `phi2_action` on `_gi_matvec` of degree `order`, `v` (the real
+    layout) with an optional batch axis first (`switched`'s `native`; the entries `k`
+    batched alike or scalars): inside, the components first, each product a vector
+    operation over the batch per component; a batch over `_GI_CHUNK_BYTES` in chunks
+    (`lax.map`, the last padded with zeros)."""
+    def run(k, v):
+        return phi2_action(functools.partial(_gi_matvec, k), v.T, order).T
+
+    c = _GI_CHUNK_BYTES // (8 * v.dtype.itemsize)
+    if v.ndim < 2 or v.shape[0] <= c:
+        return run(k, v)
+    n, m = v.shape[0], -(-v.shape[0] // c)
+
+    def split(x):
+        x = jnp.pad(x, [(0, m * c - n)] + [(0, 0)] * (x.ndim - 1))
+        return x.reshape((m, c) + x.shape[1:])
+
+    batched = [jnp.ndim(x) > 0 for x in k]
+
+    def chunk(args):
+        kb, vb = args
+        kb = iter(kb)
+        return run(tuple(next(kb) if b else x for x, b in zip(k, batched)), vb)
+
+    out = jax.lax.map(chunk, (tuple(split(x) for x, b in zip(k, batched) if b), split(v)))
+    return out.reshape((m * c,) + out.shape[2:])[:n]
+
+
 @functools.lru_cache
 def _gi_phi2(dtype: str):
     r"""$\varphi_2(X)v$ for the GI-LESO (`GILESOObserver._transition_c`): `f(k, v, rho)`
     for the entries `k`, the vector `v` (the real layout) and the norm bound
     `rho`: Horner's rule on `_gi_matvec` at the degree of each bound in `ACTION_NORMS`
-    for `dtype`, the balanced matrix function beyond (`switched`)."""
+    for `dtype` (`_gi_taylor`), the balanced matrix function beyond (`switched`)."""
 
     def taylor(norm):
-        # with a batch axis first (`switched`'s `native`), the components first inside:
-        # each product a vector operation over the batch per component
-        n = taylor_degree(norm, dtype)
-        return lambda k, v: phi2_action(functools.partial(_gi_matvec, k), v.T, n).T
+        return functools.partial(_gi_taylor, order=taylor_degree(norm, dtype))
 
     def full(k, v):
         return _real(phi_matrix(_gi_dense(k))[2] @ jax.lax.complex(v[0::2], v[1::2]))
