@@ -2,12 +2,13 @@ r"""Identification of a drive's parameters from recordings, by least squares thr
 differentiable plant.
 
 **Formulation: multiple shooting on the recorded states.** Each recording is cut into
-segments of `segment` seconds. A segment starts from the *measured* state at its first
-sample (current rotated into rotor coordinates with the recorded angle, angle, speed)
-and the plant (`PMSM`, with the inverter's dead-time error for commanded voltages) is
-integrated over it, driven by the recorded voltage and load torque. The residuals are
-the differences between the simulated and the measured currents and speeds at the
-segment's samples, each channel divided by its noise level. The parameters minimise
+segments of `segment` seconds. A segment starts from the recorded angle at its first
+sample and from a current (and, with the mechanics integrated, a speed) that are
+unknowns of the fit, starting at the recorded ones, and the plant (`PMSM`, with the
+inverter's dead-time error for commanded voltages) is integrated over it, driven by the
+recorded voltage and load torque. The residuals are the differences between the
+simulated and the measured currents and speeds at the segment's samples, each channel
+divided by its noise level. The parameters minimise
 their sum of squares (optimistix Levenberg-Marquardt, forward-mode Jacobian: a few
 parameters against many residuals).
 
@@ -21,9 +22,12 @@ Why this formulation:
   thousands of steps explode or vanish) and every function evaluation is sequential;
 - multiple shooting keeps the simulated trajectory close to the measured one (each
   segment restarts from data), so the problem stays nearly quadratic from starting values
-  far from the truth, and all segments run side by side under `vmap`. The price is a small
-  errors-in-variables bias, since each segment starts from a noisy measured current; it
-  shrinks with the segment length and vanishes without noise.
+  far from the truth, and all segments run side by side under `vmap`. Each segment's
+  start is fitted rather than taken from the noisy sample: a start taken from the data
+  put the sample's noise into every later sample of the segment (an errors-in-variables
+  bias, and standard deviations half the spread over noise seeds for L_q, measured),
+  while a fitted start leaves every sample one independent residual; it costs two
+  unknowns per segment (three with the speed), each acting on its own segment only.
 
 **Mechanics: measured or integrated** (`mechanics`). When neither J nor B is fitted
 (`"auto"` then picks `"measured"`), the electrical model runs on the recorded rotor
@@ -33,9 +37,16 @@ linearly to the next recorded speed (a constant acceleration, integrated exactly
 RK4 step); only the currents are residuals. This
 holds whatever moves the rotor: a dyno that holds the speed, a load that is not logged.
 With J or B fitted (`"integrated"`), each segment integrates the mechanics from its
-measured start, driven by the recorded load torque (zero where none is recorded: a
-warning says so, since a load the log does not hold runs the model's speed away from the
-measured one and biases every parameter), and the speed is a residual too.
+measured start and the speed is a residual too. The load torque that drives it is the
+recorded one (`load="recorded"`; zero where none is recorded, with a warning, since a
+load the log does not hold runs the model's speed away from the measured one and biases
+every parameter) or, for a recording that logs none (`load="auto"`, or for every one with
+`"segment"`), a constant load torque per segment fitted with the parameters: unknowns
+that enter the mechanics linearly, one per segment (a load that changes within a segment,
+as a dyno's does, leaves a residual that the fit warns about). J then shows only through
+torque changes within a segment (a current step) and B through speed changes within
+one; where a segment has neither, the per-segment load absorbs them and the warnings
+say so.
 
 **A model that does not fit.** The current noise the recordings imply is estimated from
 the measured currents themselves (`current_noise`: the scaled median absolute second
@@ -82,22 +93,31 @@ import warnings
 from collections.abc import Sequence
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
-from .._plant._params import Drive, Inverter
-from .._sim._integrate import RK4, check_drive_step, integrate
+from .._plant._params import Drive
+from .._sim._integrate import RK4, check_drive_step
 from . import _identify_saturation as _sat
 from ._identifiable import IDENTIFIABLE as IDENTIFIABLE, SATURATION_FIT
-from ._identify_motion import IdentifyError, current_noise, mechanics_mode, motion_step
+from ._identify_motion import (
+    IdentifyError,
+    current_noise,
+    cut,
+    load_mode,
+    mechanics_mode,
+    recorded_speed,
+)
+from ._identify_problem import (
+    MECH as _MECH,
+    MOTOR as _MOTOR,
+    Problem as _Problem,
+    channel_rms as _channel_rms,
+    jacobian as _jacobian,
+    solve as _solve,
+)
 from ._recording import RecordedData
-
-
-_MOTOR = ("R_s", "L_d", "L_q", "psi_f")
-_MECH = ("J", "B")
 
 
 class IdentifiabilityWarning(UserWarning):
@@ -136,6 +156,9 @@ class IdentifyResult(eqx.Module):
     - `mechanics`: `"measured"` (the model ran on the recorded angle and speed; the speed
       residual is not part of the fit and reported as 0) or `"integrated"`.
     - `noise`: `{"i_A": ...}`, the current noise the recordings imply (`current_noise`).
+    - `loads`: per recording, `None` (its load torque was the recorded one, or none acted
+      on the model) or `{"t_start"` (s, each segment's start), `"value"` (N m, the fitted
+      constant load torque of each segment, added to a logged one), `"std"` (N m)`}`.
     """
 
     drive: Drive
@@ -154,6 +177,7 @@ class IdentifyResult(eqx.Module):
     saturation: dict | None = None
     mechanics: str = "integrated"
     noise: dict | None = None
+    loads: list | None = None
 
 
 def _recordings(data) -> list[RecordedData]:
@@ -174,155 +198,12 @@ def _recordings(data) -> list[RecordedData]:
     return recs
 
 
-def _speed(r: RecordedData) -> np.ndarray:
-    """The recorded speed, or the centred derivative of the unwrapped angle."""
-    if r.w_m is not None:
-        return np.asarray(r.w_m, float)
-    return np.gradient(np.unwrap(np.asarray(r.theta, float)), r.T_s)
-
-
-class _Segments(eqx.Module):
-    """One recording cut into `n` segments of `m` steps (arrays; the plant's inputs)."""
-
-    i0_ab: jnp.ndarray  # (n, 2) measured current at each segment's start
-    th0: jnp.ndarray  # (n,)
-    w0: jnp.ndarray  # (n,)
-    u: jnp.ndarray  # (n, m, 2) voltage over each step
-    tau_L: jnp.ndarray  # (n, m)
-    i_meas: jnp.ndarray  # (n, m, 2) measured current after each step
-    w_meas: jnp.ndarray  # (n, m)
-    th: jnp.ndarray  # (n, m) measured angle at each step's start
-    w: jnp.ndarray  # (n, m) measured speed at each step's start
-    acc: jnp.ndarray  # (n, m) measured speed change over each step / T_s
-    T_s: float = eqx.field(static=True)
-
-
-def _cut(r: RecordedData, m: int) -> _Segments:
-    n = (r.n - 1) // m
-    idx = np.arange(n) * m
-    steps = idx[:, None] + np.arange(m)[None, :]
-    w = _speed(r)
-    tau = np.zeros(r.n) if r.tau_L is None else np.asarray(r.tau_L, float)
-    return _Segments(
-        i0_ab=jnp.asarray(r.i_ab[idx]), th0=jnp.asarray(np.asarray(r.theta)[idx]),
-        w0=jnp.asarray(w[idx]), u=jnp.asarray(r.u_ab[steps]), tau_L=jnp.asarray(tau[steps]),
-        i_meas=jnp.asarray(r.i_ab[steps + 1]), w_meas=jnp.asarray(w[steps + 1]),
-        th=jnp.asarray(np.asarray(r.theta, float)[steps]), w=jnp.asarray(w[steps]),
-        acc=jnp.asarray((w[steps + 1] - w[steps]) / r.T_s), T_s=float(r.T_s))
-
-
-def _with_values(drive: Drive, values: dict) -> Drive:
-    """`drive` with traced parameter values replaced (no validation: inside the fit)."""
-    for name, v in values.items():
-        if name in _MOTOR:
-            drive = eqx.tree_at(lambda d, n=name: getattr(d.motor, n), drive, v)
-        elif name in _MECH:
-            drive = eqx.tree_at(lambda d, n=name: getattr(d.mechanics, n), drive, v)
-        elif name in SATURATION_FIT:
-            continue  # set on the magnetic model (`_Problem.plant`)
-        else:  # u_dt, i_dt
-            inv = {k: getattr(drive.inverter, k) for k in ("u_dc", "u_max", "delay", "u_dt",
-                                                           "i_dt")}
-            drive = eqx.tree_at(lambda d: d.inverter, drive, Inverter(**{**inv, name: v}))
-    return drive
-
-
-def _simulate_segments(plant: PMSM, seg: _Segments, n_substeps: int, measured: bool):
-    """Model current (n, m, 2) and speed (n, m) after each step of each segment;
-    `measured`: the rotor moves as recorded (module docstring), else its mechanics are
-    integrated."""
-
-    def one(i0, th0, w0, u, tau, th, w, acc):
-        c, s = cos_sin(th0)
-        y0 = PlantState(i_dq=jnp.stack([c * i0[0] + s * i0[1], c * i0[1] - s * i0[0]]),
-                        theta=th0, w_m=w0)
-
-        def step(y, x):
-            uk, tk, thk, wk, ak = x
-            y, field, args = motion_step(plant.vector_field, y, PlantInput(u_ab=uk, tau_L=tk),
-                                         thk, wk, ak, measured)
-            y = integrate(field, y, args, seg.T_s, solver=RK4(), n_substeps=n_substeps)
-            return y, (plant.i_ab(y), y.w_m)
-
-        return jax.lax.scan(step, y0, (u, tau, th, w, acc))[1]
-
-    return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L, seg.th, seg.w, seg.acc)
-
-
-class _Problem(eqx.Module):
-    drive: Drive
-    names: tuple = eqx.field(static=True)
-    p0: jnp.ndarray  # initial values (SI)
-    lin_scale: jnp.ndarray  # scale of the linear (u_dt) parameters, 0 for log ones
-    commanded: bool = eqx.field(static=True)
-    n_substeps: int = eqx.field(static=True)
-    saturation: object = None  # the starting AlgebraicSaturation of a saturation fit
-    measured: bool = eqx.field(static=True, default=False)  # the rotor moves as recorded
-
-    def values(self, x):
-        vals = jnp.where(self.lin_scale > 0, self.p0 + self.lin_scale * x,
-                         self.p0 * jnp.exp(x))
-        return dict(zip(self.names, [vals[k] for k in range(len(self.names))]))
-
-    def magnetic(self, x):
-        """The `AlgebraicSaturation` at `x` (traced: derivatives flow through it)."""
-        return _sat.with_values(self.saturation, self.values(x))
-
-    def plant(self, x) -> PMSM:
-        d = _with_values(self.drive, self.values(x))
-        if self.saturation is not None:
-            d = _sat.set_magnetic(d, self.magnetic(x))
-        return PMSM(d.motor, d.mechanics, d.inverter if self.commanded else None)
-
-    def model(self, x, segs):
-        plant = self.plant(x)
-        if self.saturation is not None:  # the flux-linkage form of the same plant
-            mag = plant.motor.magnetic
-            return [_sat.simulate_segments(plant, mag, s, self.n_substeps, self.measured)
-                    for s in segs]
-        return [_simulate_segments(plant, s, self.n_substeps, self.measured) for s in segs]
-
-    def residuals(self, x, args):
-        segs, sig_i, sig_w = args
-        out = []
-        for s, (i_m, w_m) in zip(segs, self.model(x, segs)):
-            out.append(((i_m - s.i_meas) / sig_i).ravel())
-            if not self.measured:  # a recorded speed is an input, not a residual
-                out.append(((w_m - s.w_meas) / sig_w).ravel())
-        return jnp.concatenate(out)
-
-
-@eqx.filter_jit
-def _solve(problem, x0, args, rtol, atol, max_steps):
-    sol = optx.least_squares(problem.residuals, optx.LevenbergMarquardt(rtol=rtol, atol=atol),
-                             x0, args=args, max_steps=max_steps, throw=False)
-    return sol.value, sol.result, sol.stats["num_steps"]
-
-
-@eqx.filter_jit
-def _jacobian(problem, x, args):
-    return problem.residuals(x, args), jax.jacfwd(problem.residuals)(x, args)
-
-
-@eqx.filter_jit
-def _channel_rms(problem, x, segs):
-    """RMS of the current and speed residuals, and the model's response per recording
-    (the traces of the result): one compiled program for both."""
-    sq_i, sq_w, n_i, n_w = 0.0, 0.0, 0, 0
-    model = problem.model(x, segs)
-    for s, (i_m, w_m) in zip(segs, model):
-        sq_i, n_i = sq_i + jnp.sum((i_m - s.i_meas) ** 2), n_i + i_m.size
-        sq_w, n_w = sq_w + jnp.sum((w_m - s.w_meas) ** 2), n_w + w_m.size
-    rms_w = 0.0 * sq_w if problem.measured else jnp.sqrt(sq_w / n_w)
-    return jnp.sqrt(sq_i / n_i), rms_w, model
-
-
 def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
              fit: Sequence[str] = ("R_s", "L_d", "L_q", "psi_f"), *,
              voltage: str = "applied", segment: float = 0.02, n_substeps: int = 1,
              max_steps: int = 100, rtol: float = 1e-10, atol: float = 1e-10,
              warn_rel_std: float = 0.01, saturation=None, exponents=None,
-             min_coverage: float = 0.5, mechanics: str = "auto",
+             min_coverage: float = 0.5, mechanics: str = "auto", load: str = "auto",
              max_noise_ratio: float = 3.0) -> IdentifyResult:
     """Fit the parameters `fit` of `drive` to one or more recordings (module docstring).
 
@@ -359,6 +240,10 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
       mechanics integrated over each segment with the recorded load torque; needed to
       fit J or B), or `"auto"` (default): `"integrated"` when J or B is fitted, else
       `"measured"` (module docstring).
+    - `load`: the load torque of integrated mechanics: `"recorded"` (the log's `tau_L`,
+      zero where none is logged), `"segment"` (a constant load torque per segment fitted
+      with the parameters, on top of a logged one), or `"auto"` (default): fitted per
+      segment for a recording that logs none. Not with mechanics `"measured"`.
     - `max_noise_ratio`: the final current residual above this multiple of the current
       noise the recordings imply gives a warning that the model does not fit them.
     - `min_coverage`: the fraction of the current range (i_d over [-i_max, 0], |i_q| up
@@ -420,6 +305,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     if not (segment > 0 and math.isfinite(segment)):
         raise IdentifyError(f"`identify(segment=...)` (s) must be > 0; got {segment!r}.")
     recs = _recordings(data)
+    fit_load = load_mode(recs, mechanics, load)
     segs = []
     for k, r in enumerate(recs):
         check_drive_step(drive, r.T_s, RK4(), n_substeps)
@@ -430,14 +316,15 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
                 f"{r.n} samples ({(r.n - 1) * r.T_s:.4g} s) for segments of {m} samples "
                 f"({segment:g} s); it needs at least two segments (record longer or pass "
                 f"a shorter `segment`).")
-        segs.append(_cut(r, m))
-        if mechanics == "integrated" and r.tau_L is None:
+        segs.append(cut(r, m))
+        if mechanics == "integrated" and r.tau_L is None and not fit_load[k]:
             warnings.warn(
                 f"recording {k}{' (' + r.source + ')' if r.source else ''} has no load "
                 f"torque: with mechanics='integrated' (J or B fitted) the model's rotor "
                 f"runs with none, so under a load or on a dyno its speed leaves the "
-                f"recorded one and every parameter is biased. Log the load torque, or fit "
-                f"the electrical parameters alone (mechanics='measured').",
+                f"recorded one and every parameter is biased. Log the load torque, fit "
+                f"one per segment (load='segment'), or fit the electrical parameters alone "
+                f"(mechanics='measured').",
                 IdentifiabilityWarning, stacklevel=2)
 
     sat_info, excite = None, []
@@ -467,8 +354,12 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         lin.append(max(v, 1.0) if n == "u_dt" else 0.0)
     problem = _Problem(drive=drive, names=names, p0=jnp.asarray(p0), lin_scale=jnp.asarray(lin),
                        commanded=voltage == "commanded", n_substeps=n_substeps,
-                       saturation=start_sat, measured=mechanics == "measured")
-    x = jnp.zeros(len(names))
+                       saturation=start_sat, measured=mechanics == "measured",
+                       n_seg=tuple(s.w0.shape[0] for s in segs), fit_load=fit_load,
+                       load_scale=float(drive.tau_rated), i_scale=1e-2 * float(drive.i_max),
+                       w_scale=1e-2 * float(drive.w_rated))
+    k_named = len(names)
+    x = jnp.zeros(problem.n_unknowns())
     sig_i = 1e-3 * float(drive.i_max)
     sig_w = 1e-3 * float(drive.w_rated)
     steps = 0
@@ -482,7 +373,7 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
             warnings.warn(f"identify: the Levenberg-Marquardt solve stopped without meeting "
                           f"its tolerances ({optx.RESULTS[result]}); the values may not be "
                           f"converged (raise max_steps).", IdentifiabilityWarning, stacklevel=2)
-        rms_i, rms_w, model = _channel_rms(problem, x, segs)
+        rms_i, rms_w, model = _channel_rms(problem, x, args)
         rms_i, rms_w = float(rms_i), float(rms_w)
         if not (math.isfinite(rms_i) and math.isfinite(rms_w)):
             raise IdentifyError(
@@ -494,11 +385,11 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
             sig_w = max(rms_w, 1e-9 * float(drive.w_rated))
     # `args` of the last stage: its weights are the final ones (only stage 0 reweights)
     r, Jx = (np.asarray(a) for a in _jacobian(problem, x, args))
-    dof = max(r.size - len(names), 1)
+    dof = max(r.size - x.size - problem.n_start * sum(problem.n_seg), 1)
     s2 = float(r @ r) / dof
-    col = np.linalg.norm(Jx, axis=0)
+    col = np.maximum(np.linalg.norm(Jx, axis=0), 1e-300)
     warn_list = []
-    dead = [n for n, c in zip(names, col) if not c > 1e-10 * max(col.max(), 1e-300)]
+    dead = [n for n, c in zip(names, col) if not c > 1e-10 * col.max()]
     if dead:
         raise IdentifyError(
             "the recording(s) cannot determine " + "; ".join(
@@ -512,7 +403,12 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     cov_x = cov_n / np.outer(col, col)
     std_x = np.sqrt(np.maximum(np.diag(cov_x), 0.0))
     d = np.sqrt(np.maximum(np.diag(cov_n), 1e-300))
-    corr = cov_n / np.outer(d, d)
+    corr = (cov_n / np.outer(d, d))[:k_named, :k_named]
+    loads = [None if ld is None else {
+        "t_start": np.asarray(rec.t)[np.arange(s.w0.shape[0]) * s.w_meas.shape[1]],
+        "value": problem.load_scale * np.asarray(x[ld]),
+        "std": problem.load_scale * std_x[ld]}
+        for rec, s, ld in zip(recs, segs, problem.slices())]
     vals = {k: float(v) for k, v in problem.values(x).items()}
     params = {}
     for k, n in enumerate(names):
@@ -541,8 +437,11 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     floor_i = 2.0 * float(drive.i_max) / 4096 / math.sqrt(12.0)
     if rms_i > max_noise_ratio * max(noise_i, floor_i):
         causes = (["a load torque the log does not hold (fit without J and B to run the "
-                   "model on the recorded speed, or log tau_L)"] if mechanics == "integrated"
-                  else [])
+                   "model on the recorded speed, or log tau_L)"]
+                  if mechanics == "integrated" and not all(fit_load) else
+                  ["a load torque that changes within a segment, as a dyno's does (shorter "
+                   "segments, or fit without J and B to run the model on the recorded "
+                   "speed)"] if mechanics == "integrated" else [])
         if voltage == "applied":
             causes.append("commanded voltages taken as applied (voltage='commanded')")
         causes += ["a delay between the logged voltage and current",
@@ -576,14 +475,14 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         n_seg, m = s.w_meas.shape
         k = np.arange(1, n_seg * m + 1)
         traces.append({"t": np.asarray(rec.t)[k], "i_ab": np.asarray(rec.i_ab)[k],
-                       "i_model": np.asarray(i_m).reshape(-1, 2), "w_m": _speed(rec)[k],
+                       "i_model": np.asarray(i_m).reshape(-1, 2), "w_m": recorded_speed(rec)[k],
                        "w_model": np.asarray(w_m).reshape(-1)})
     return IdentifyResult(
         drive=fitted, parameters=params, residual_rms={"i_A": rms_i, "w_rad_s": rms_w},
         cost=s2, condition=condition, correlation=corr, names=names,
         n_residuals=int(r.size), n_segments=int(sum(s.w0.shape[0] for s in segs)),
         segment_s=float(segment), steps=steps, warnings=tuple(excite + warn_list), traces=traces,
-        saturation=sat_info, mechanics=mechanics, noise={"i_A": noise_i})
+        saturation=sat_info, mechanics=mechanics, noise={"i_A": noise_i}, loads=loads)
 
 
 def _fitted_drive(drive: Drive, vals: dict) -> Drive:

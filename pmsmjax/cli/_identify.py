@@ -7,9 +7,11 @@ import os
 import time
 import warnings
 
+import numpy as np
+
 import pmsmjax as pj
 
-from .._data._identify_motion import mechanics_mode
+from .._data._identify_motion import LOAD_MODES, load_mode, mechanics_mode
 from .._data._identify_saturation import flux_map_rows, saturation_table, write_flux_map
 from .._files import atomic_write, write_json
 from ._command import Command
@@ -79,9 +81,16 @@ def _identify_arguments(p: argparse.ArgumentParser) -> None:
                         "no load torque needed), 'integrated' integrates the mechanics "
                         "with the recorded load torque (needed for J, B); 'auto' "
                         "(default): integrated when J or B is fitted, else measured")
+    g.add_argument("--load", choices=LOAD_MODES, default="auto",
+                   help="with the mechanics integrated, the load torque that drives them: "
+                        "'recorded' (the log's tau_L, zero where none), 'segment' (a "
+                        "constant load torque per segment fitted with the parameters, on "
+                        "top of a logged one), 'auto' (default): fitted per segment for a "
+                        "recording that logs none")
     g.add_argument("--segment", type=positive_float, default=0.02, metavar="S",
                    help="multiple-shooting segment length (s, default: %(default)s): each "
-                        "segment restarts the model from the measured state")
+                        "segment restarts the model from the logged angle and a fitted "
+                        "current (and speed) near the logged one")
     g.add_argument("--max-steps", type=positive_int, default=100, metavar="N",
                    help="Levenberg-Marquardt steps per solve (default: %(default)s)")
     add_output_options(p, None)
@@ -94,13 +103,16 @@ def identify_command(args: argparse.Namespace) -> int:
     recs = [pj.load_recording(f, require=("t", "u_ab", "i_ab", "theta")) for f in args.data]
     out = prepare_out_dir(args.out)
     mech = mechanics_mode(fit, args.mechanics)
+    fit_load = load_mode(recs, mech, args.load)
     print(f"pmsmjax identify: {drive.name}, fitting {', '.join(fit)} to {len(recs)} "
           f"recording(s) ({sum(r.n for r in recs)} samples, {args.voltage} voltages)")
     print("mechanics: " + (
         "measured (the model runs on the recorded angle and speed; the speed is not a "
         "residual)" if mech == "measured" else
-        "integrated over each segment from its measured start, with the recorded load "
-        "torque (zero where none is logged); the speed is a residual"))
+        "integrated over each segment from its measured start; the speed is a residual; "
+        "load torque " + ("fitted per segment (constant over each)" if all(fit_load) else
+                          "recorded (zero where none is logged)" if not any(fit_load) else
+                          "fitted per segment where none is logged, else recorded")))
     # the log's own checks, with the motor file's values (a fit absorbs a voltage shift
     # into the inductances, so the fitted values would hide it)
     log_warnings = [f"{f}: {w}" for f, r in zip(args.data, recs)
@@ -111,7 +123,7 @@ def identify_command(args: argparse.Namespace) -> int:
         warnings.simplefilter("always", pj.IdentifiabilityWarning)
         res = pj.identify(drive, recs, fit, voltage=args.voltage, segment=args.segment,
                           max_steps=args.max_steps, exponents=args.saturation_exponents,
-                          min_coverage=args.min_coverage, mechanics=mech)
+                          min_coverage=args.min_coverage, mechanics=mech, load=args.load)
     for w in caught:
         if not issubclass(w.category, pj.IdentifiabilityWarning):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
@@ -137,10 +149,14 @@ def identify_command(args: argparse.Namespace) -> int:
         "data": list(args.data),
         "voltage": args.voltage,
         "mechanics": res.mechanics,
-        "formulation": "multiple shooting: each segment restarts the plant from the measured "
-                       "state; residuals = model - measured current (A) and, with the "
-                       "mechanics integrated, speed (rad/s), each channel divided by its "
-                       "residual RMS; Levenberg-Marquardt",
+        "load": [None if ld is None else {k: ld[k] for k in ("t_start", "value", "std")}
+                 for ld in res.loads],
+        "formulation": "multiple shooting: each segment restarts the plant from the logged "
+                       "angle and a fitted current (and, with the mechanics integrated, "
+                       "speed; and a load torque per segment where fitted); residuals = "
+                       "model - measured current (A) and, with the mechanics integrated, "
+                       "speed (rad/s), each channel divided by its residual RMS; "
+                       "Levenberg-Marquardt",
         "segment_s": res.segment_s,
         "parameters": res.parameters,
         "residual_rms": res.residual_rms,
@@ -168,6 +184,11 @@ def identify_command(args: argparse.Namespace) -> int:
              else f"{res.residual_rms['w_rad_s']:.3g} rad/s")
     print(f"residual RMS {res.residual_rms['i_A']:.3g} A (the log's current noise about "
           f"{res.noise['i_A']:.3g} A), {speed}; condition {res.condition:.3g}")
+    for f, ld in zip(args.data, res.loads):
+        if ld is not None:
+            print(f"  load torque fitted per segment ({f}): {ld['value'].min():.3g} .. "
+                  f"{ld['value'].max():.3g} N m over {ld['value'].size} segments, median "
+                  f"+- {np.median(ld['std']):.2g}")
     if sat is not None:
         c, f = sat["currents"], sat["flux_std"]
         print(f"saturation: recorded i_d {c['i_d_A'][0]:.3g}..{c['i_d_A'][1]:.3g} A, i_q "
