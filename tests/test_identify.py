@@ -425,6 +425,61 @@ def test_standard_deviations_cover_the_errors_over_noise_seeds():
     assert np.all((lo < mean_sq) & (mean_sq < hi)), dict(zip(names, mean_sq.round(2)))
 
 
+def test_identification_and_replay_on_logs_with_real_sensors():
+    """zhang750 with 3 V of dead time, commanded voltages, logged as sensors give it: the
+    phase currents with 0.02 A of noise through a 12-bit converter over +-i_max, the
+    angle of a 4,096-count encoder (and the speed derived from it over 2 ms, as
+    `pmsmjax convert` does), and once more with 0.3 V of white noise on the logged
+    voltages (a logger that converts them itself). Identification (R_s, L_d, L_q, psi_f,
+    u_dt from 30-40 % off) stays within three times its measured errors (without the
+    voltage noise R_s 2.4e-3, L_d 5.2e-4, L_q 2.0e-4, psi_f 6.5e-5, u_dt 2.3e-3; with it
+    6.9e-3, 3.4e-3, 4.7e-4, 5.3e-4, 4.2e-3: the issue's 2 % and 5 % hold with margin),
+    and the ESO replayed with the identified inverter model stays within 0.3 deg RMS of
+    the replay with the true one over the run's second half (measured 0.04 and 0.10 deg).
+    Voltage noise is process noise to the model: its standard deviations do not cover it
+    (up to 7 of them off), which is why the limits here are the measured errors."""
+    d = pj.replace_params(pj.preset("zhang750"), u_dt=3.0)
+    i_m, T, n_p = float(d.i_max), 0.3, int(d.motor.n_p)
+    sc = pj.Scenario(
+        t_end=T,
+        i_q_ref=pj.Profile.steps(list(np.linspace(0, T, 11)[1:-1]),
+                                 [0.3 * i_m * (-1) ** k for k in range(1, 10)],
+                                 initial=0.3 * i_m),
+        i_d_ref=pj.Profile.steps([0.2 * T, 0.45 * T, 0.7 * T],
+                                 [-0.25 * i_m, -0.05 * i_m, -0.3 * i_m], initial=0.0))
+    q_enc = 2 * math.pi * n_p / 4096
+    tr = pj.simulate(d, pj.FOC.from_drive(d), pj.SensoredObserver(), sc, T_s=1e-4,
+                     w_m0=0.3 * float(d.w_rated), key=jax.random.PRNGKey(3),
+                     sensing=pj.Sensing(noise_std=0.02, quantum=2 * i_m / 4096,
+                                        encoder_quantum=q_enc))
+    names = ("R_s", "L_d", "L_q", "psi_f", "u_dt")
+    start = _start(d, dict(R_s=1.4, L_d=0.6, L_q=1.3, psi_f=0.7, u_dt=0.6))
+    measured = {0.0: (2.4e-3, 5.2e-4, 2.0e-4, 6.5e-5, 2.3e-3),
+                0.3: (6.9e-3, 3.4e-3, 4.7e-4, 5.3e-4, 4.2e-3)}
+    for v_noise, errs in measured.items():
+        rec = pj.RecordedData.from_trajectory(tr, encoder_quantum=q_enc,
+                                              voltage_noise_std=v_noise,
+                                              key=jax.random.PRNGKey(4))
+        # the logged angle lies on the encoder's grid, within half a count of the truth
+        counts = np.unwrap(rec.theta) / q_enc
+        assert np.allclose(counts, np.round(counts), atol=1e-6)
+        assert np.abs(pj.wrap_angle(rec.theta - np.asarray(tr.theta))).max() <= 0.5 * q_enc + 1e-12
+        res = pj.identify(start, rec, names, voltage="commanded")
+        for n, lim in zip(names, errs):
+            assert abs(res.parameters[n]["value"] / _true(d, n) - 1) < 3 * lim, (
+                v_noise, n, res.parameters[n])
+        th_true, _ = pj.replay(pj.observers.make_observer("eso", d), rec,
+                               inverter=d.inverter, w0=float(rec.w_m[0]))
+        th_id, _ = pj.replay(pj.observers.make_observer("eso", res.drive), rec,
+                             inverter=res.drive.inverter, w0=float(rec.w_m[0]))
+        e = np.degrees(np.asarray(pj.wrap_angle(th_id - th_true)))[rec.n // 2:]
+        assert np.sqrt(np.mean(e ** 2)) < 0.3, (v_noise, np.sqrt(np.mean(e ** 2)))
+    with pytest.raises(ValueError, match="needs `key`"):
+        pj.RecordedData.from_trajectory(tr, voltage_noise_std=0.1)
+    with pytest.raises(ValueError, match=r"encoder_quantum.*\(rad\).*>= 0"):
+        pj.RecordedData.from_trajectory(tr, encoder_quantum=-1.0)
+
+
 def test_i_dt_from_a_recording_made_without_the_package():
     """zhang750 on a dyno at low speed (0.05 p.u., a ramp to 0.1 p.u.: the phase currents
     pass zero slowly) with a smooth dead time of 3 V over i_dt = 0.3 A, commanded

@@ -37,7 +37,7 @@ from ._log_checks import (
     wrap,
 )
 from ._log_layout import TIME_UNITS, LogLayout
-from ._recording import RecordedData
+from ._recording import RecordedData, centred_speed
 
 
 _SQRT3 = math.sqrt(3.0)
@@ -237,16 +237,6 @@ def _angle_rad(raw: np.ndarray, layout: LogLayout, n_p) -> np.ndarray:
     return rad * n_p if unit.startswith("mech") else rad
 
 
-def _centred_speed(theta: np.ndarray, t: np.ndarray, window: float) -> np.ndarray:
-    """The angle's centred difference over `window` seconds (a shorter span at the ends):
-    no delay, and an encoder's quantum divided by the span instead of one period."""
-    n = t.size
-    h = max(1, int(round(0.5 * window / (t[1] - t[0]))))
-    k = np.arange(n)
-    hi, lo = np.minimum(k + h, n - 1), np.maximum(k - h, 0)
-    return (theta[hi] - theta[lo]) / (t[hi] - t[lo])
-
-
 def convert_log(path, layout: LogLayout, *, drive=None) -> ConvertedLog:
     """Read a logger's CSV at `path` through `layout` (`LogLayout`, or
     `load_log_layout(file)`) into the recorded-data format (module docstring: timing
@@ -306,7 +296,7 @@ def convert_log(path, layout: LogLayout, *, drive=None) -> ConvertedLog:
              "elec_rad/s": 1.0}[layout.speed_unit]
         arrays["w_m"] = raw * f
     elif theta_unwrapped is not None:
-        arrays["w_m"] = _centred_speed(theta_unwrapped, arrays["t"],
+        arrays["w_m"] = centred_speed(theta_unwrapped, arrays["t"],
                                        layout.angle_speed_window)
     if layout.load is not None:
         arrays["tau_L"] = layout.load_scale * cols[layout.load][keep]

@@ -18,7 +18,7 @@ import numpy as np
 from .._frames import park
 from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
 from .._sim._integrate import RK4, integrate
-from ._recording import RecordedData
+from ._recording import RecordedData, centred_speed
 
 
 class IdentifyError(ValueError):
@@ -43,10 +43,12 @@ def mechanics_mode(names: Sequence[str], mechanics: str = "auto") -> str:
 
 
 def recorded_speed(r: RecordedData) -> np.ndarray:
-    """The recorded speed, or the centred derivative of the unwrapped angle."""
+    """The recorded speed, or the unwrapped angle's centred difference over 2 ms (as
+    `pmsmjax convert` derives a speed from an encoder column: an encoder's quantum
+    divided by 2 ms, not by one period)."""
     if r.w_m is not None:
         return np.asarray(r.w_m, float)
-    return np.gradient(np.unwrap(np.asarray(r.theta, float)), r.T_s)
+    return centred_speed(np.unwrap(np.asarray(r.theta, float)), np.asarray(r.t, float), 0.002)
 
 
 class Segments(eqx.Module):

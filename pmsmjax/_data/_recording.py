@@ -192,17 +192,25 @@ class RecordedData(eqx.Module):
         return self
 
     @classmethod
-    def from_trajectory(cls, traj, *, measured: bool = True, estimates: bool = False
-                        ) -> RecordedData:
+    def from_trajectory(cls, traj, *, measured: bool = True, estimates: bool = False,
+                        encoder_quantum: float = 0.0, speed_window: float = 0.002,
+                        voltage_noise_std: float = 0.0, key=None) -> RecordedData:
         """The recorded-data view of one `Trajectory` from `simulate`.
 
         **Arguments:**
 
         - `traj`: an unbatched `Trajectory`.
         - `measured`: if `True` (default), `i_ab` is the current the controller measured
-          (`Trajectory.i_meas_ab`, with any sensor noise), as a drive would log it;
-          otherwise the true current `Trajectory.i_ab`.
+          (`Trajectory.i_meas_ab`, with the sensor noise and quantisation of `Sensing`),
+          as a drive would log it; otherwise the true current `Trajectory.i_ab`.
         - `estimates`: also store `theta_hat`, `w_hat`.
+        - `encoder_quantum`: the logged angle's resolution (rad, electrical; an encoder of
+          N counts per mechanical revolution on n_p pole pairs: 2 pi n_p / N); 0 (default)
+          logs the true angle and speed. Above 0 the angle is the quantised one and the
+          speed is derived from it as `pmsmjax convert` derives it from an encoder
+          column (`centred_speed` over `speed_window` s).
+        - `voltage_noise_std`: white Gaussian noise (V) on each logged voltage component,
+          as a voltage measurement adds it; needs `key` (a `jax.random` key) when > 0.
 
         `u_ab` is the voltage commanded over each period (after any computational delay;
         the plant's own when the inverter is ideal, `drive.inverter.u_dt` unset), `theta` the
@@ -213,9 +221,40 @@ class RecordedData(eqx.Module):
                 "`RecordedData.from_trajectory` needs one run; index a batched Trajectory "
                 "first, e.g. `jax.tree_util.tree_map(lambda x: x[0], traj)`."
             )
+        for name, v, unit in (("encoder_quantum", encoder_quantum, "rad"),
+                              ("speed_window", speed_window, "s"),
+                              ("voltage_noise_std", voltage_noise_std, "V")):
+            if not (np.isfinite(v) and v >= 0) or (name == "speed_window" and v == 0):
+                raise ValueError(f"`RecordedData.from_trajectory({name}=...)` ({unit}) must "
+                                 f"be finite and {'> 0' if name == 'speed_window' else '>= 0'}"
+                                 f"; got {v!r}.")
         extra = dict(theta_hat=traj.theta_hat, w_hat=traj.w_hat) if estimates else {}
-        return cls(t=traj.t, u_ab=traj.u_ab, i_ab=traj.i_meas_ab if measured else traj.i_ab,
-                   theta=traj.theta, w_m=traj.w_m, tau_L=traj.tau_L, **extra)
+        t, theta, w_m, u_ab = (np.asarray(a, float) for a in (traj.t, traj.theta, traj.w_m,
+                                                               traj.u_ab))
+        if encoder_quantum > 0:
+            counts = np.round(np.unwrap(theta) / encoder_quantum) * encoder_quantum
+            theta = np.angle(np.exp(1j * counts))
+            w_m = centred_speed(counts, t, speed_window)
+        if voltage_noise_std > 0:
+            if key is None:
+                raise ValueError("`RecordedData.from_trajectory(voltage_noise_std=...)` > 0 "
+                                 "needs `key` (jax.random.PRNGKey).")
+            import jax
+
+            u_ab = u_ab + voltage_noise_std * np.asarray(jax.random.normal(key, u_ab.shape))
+        return cls(t=t, u_ab=u_ab, i_ab=traj.i_meas_ab if measured else traj.i_ab,
+                   theta=theta, w_m=w_m, tau_L=traj.tau_L, **extra)
+
+
+def centred_speed(theta: np.ndarray, t: np.ndarray, window: float) -> np.ndarray:
+    """The unwrapped angle's centred difference over `window` seconds (a shorter span at
+    the ends): no delay, and an encoder's quantum divided by the span instead of one
+    period (rad/s)."""
+    n = t.size
+    h = max(1, int(round(0.5 * window / (t[1] - t[0]))))
+    k = np.arange(n)
+    hi, lo = np.minimum(k + h, n - 1), np.maximum(k - h, 0)
+    return (theta[hi] - theta[lo]) / (t[hi] - t[lo])
 
 
 def _check_names(names) -> tuple[str, ...]:
