@@ -185,10 +185,28 @@ def drive_period_warnings(T_s: float, drive) -> list[str]:
             f"[control] T_s = {drive.T_s:.6g} s{hint}"]
 
 
-def recording_warnings(data: RecordedData, drive) -> list[str]:
+def recording_warnings(data: RecordedData, drive, *, inverter=None) -> list[str]:
     """The checks of this module on a recording (`drive`: its machine model), each a
-    warning that says what to do; an empty list for a log that passes them all."""
+    warning that says what to do; an empty list for a log that passes them all.
+    `inverter`: for commanded voltages, the `Inverter` whose dead-time error (`u_dt`,
+    `i_dt`) the checks take off them first, over each period at its two ends' currents
+    (the error of a few volts along the current otherwise reads as an angle offset or a
+    delay where the current has a d component); None takes the voltages as applied."""
     out = sampling_period_warnings(data.T_s) + drive_period_warnings(data.T_s, drive)
     if data.u_ab is not None and data.i_ab is not None and not drive.dual:
+        if inverter is not None and inverter.dead_time != "none":
+            data = _applied(data, inverter)
         out += encoder_warnings(data, drive.three_phase_motor)
     return out
+
+
+def _applied(data: RecordedData, inverter) -> RecordedData:
+    """`data` with its commanded voltages less the inverter's dead-time error."""
+    from .._plant._inverter import observer_voltage
+
+    i = np.asarray(data.i_ab, float)
+    u = np.array(data.u_ab, float)
+    u[:-1] = np.asarray(observer_voltage(u[:-1], i[:-1], i[1:], float(inverter.u_dt),
+                                         inverter.i_dt))
+    arrays = {**data.arrays(), "u_ab": u}
+    return RecordedData(**arrays, source=data.source)

@@ -113,17 +113,20 @@ def identify_command(args: argparse.Namespace) -> int:
         "load torque " + ("fitted per segment (constant over each)" if all(fit_load) else
                           "recorded (zero where none is logged)" if not any(fit_load) else
                           "fitted per segment where none is logged, else recorded")))
-    # the log's own checks, with the motor file's values (a fit absorbs a voltage shift
-    # into the inductances, so the fitted values would hide it)
-    log_warnings = [f"{f}: {w}" for f, r in zip(args.data, recs)
-                    for w in pj.recording_warnings(r, drive)]
-    for msg in log_warnings:
-        print(f"warning: {msg}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", pj.IdentifiabilityWarning)
         res = pj.identify(drive, recs, fit, voltage=args.voltage, segment=args.segment,
                           max_steps=args.max_steps, exponents=args.saturation_exponents,
                           min_coverage=args.min_coverage, mechanics=mech, load=args.load)
+    # the log's own checks, with the motor file's machine (a fit absorbs a voltage shift
+    # into the inductances, so the fitted values would hide it) and, for commanded
+    # voltages, the fitted inverter (a dead time started from a guess would read as an
+    # offset or a delay)
+    inverter = res.drive.inverter if args.voltage == "commanded" else None
+    log_warnings = [f"{f}: {w}" for f, r in zip(args.data, recs)
+                    for w in pj.recording_warnings(r, drive, inverter=inverter)]
+    for msg in log_warnings:
+        print(f"warning: {msg}")
     for w in caught:
         if not issubclass(w.category, pj.IdentifiabilityWarning):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

@@ -121,7 +121,7 @@ def replay_command(args: argparse.Namespace) -> int:
                        f"0 <= S <= {duration:.6g}")
     print(first_line("replay", motor_text(drive, args), choice.describe(),
                      f"{data.n} samples at T_s = {data.T_s:g} s from {args.data}"))
-    log_warnings = pj.recording_warnings(data, drive)
+    log_warnings = pj.recording_warnings(data, drive, inverter=inverter)
     for msg in log_warnings:
         print(f"warning: {msg}")
     theta0, w0 = initial_state_from_args(args, drive)
