@@ -380,8 +380,9 @@ def test_a_load_nobody_logged_is_fitted_per_segment(tmp_path, capsys):
     pj.save_recording(tmp_path / "rec.npz", rec)
     pj.save_motor_file(start, tmp_path / "start.toml")
     assert cli_main(["identify", "--motor-file", str(tmp_path / "start.toml"), "--data",
-                     str(tmp_path / "rec.npz"), "--fit", "R_s,L_d,L_q,psi_f,J", "--no-plot",
+                     str(tmp_path / "rec.npz"), "--fit", "R_s,L_d,L_q,psi_f,J",
                      "--out", str(tmp_path / "out")]) == 0
+    assert (tmp_path / "out" / "identify.png").stat().st_size > 10_000  # loads on the right
     console = capsys.readouterr().out.splitlines()
     assert "integrated" in console[1] and "load torque fitted per segment" in console[1]
     rep = json.loads((tmp_path / "out" / "identify.json").read_text())

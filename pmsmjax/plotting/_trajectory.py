@@ -51,8 +51,9 @@ def _axes(fig: Figure | None, n: int, width: float = 9.0, height: float = 1.9):
     return fig, list(axes)
 
 
-def _legend(ax, extra=()):
-    """Legend outside the axes on the right, one entry per label."""
+def _legend(ax, extra=(), x: float = 1.01):
+    """Legend outside the axes on the right (at `x` in axes units: beyond a twin axis'
+    ticks), one entry per label."""
     handles, labels = ax.get_legend_handles_labels()
     seen = {}
     for h, lab in list(zip(handles, labels)) + list(extra):
@@ -60,7 +61,7 @@ def _legend(ax, extra=()):
             seen[lab] = h
     if seen:
         ax.legend(list(seen.values()), list(seen), loc="upper left",
-                  bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
+                  bbox_to_anchor=(x, 1.0), fontsize="small", frameon=False)
 
 
 def _split_runs(obj, fields):
@@ -271,7 +272,9 @@ def plot_identification(result, *, recording: int | None = None,
                         t_window: float | None = None, title: str | None = None) -> Figure:
     """Measured against model signals of a `pmsmjax.identify` result: the alpha and beta
     currents (A), the speed (rad/s, electrical) and the current residual, the model
-    restarted from the measurement at each segment start (multiple shooting).
+    restarted at each segment start (multiple shooting: the logged angle and speed, the
+    fitted current); a load torque fitted per segment (N m) on the speed panel's right
+    axis.
 
     **Arguments:**
 
@@ -294,12 +297,13 @@ def plot_identification(result, *, recording: int | None = None,
         else:
             k = t - t[0] <= float(t_window)
             label = f"recording {r}: first {float(t_window):g} s"
-        cols.append((tr, k, label, worst if t_window is None else 0.0))
+        cols.append((tr, k, label, worst if t_window is None else 0.0, r))
     if recording is None and len(cols) > 8:
         cols = sorted(cols, key=lambda c: -c[3])[:8]
     fig = Figure(figsize=(6.0 * len(cols) + 1.5, 7.4), layout="constrained")
     grid = fig.subplots(4, len(cols), sharex="col", squeeze=False)
-    for j, (tr, k, label, _) in enumerate(cols):
+    loads = result.loads or [None] * len(result.traces)
+    for j, (tr, k, label, _, r) in enumerate(cols):
         ax = grid[:, j]
         t = np.asarray(tr["t"])[k]
         for row, name in enumerate(("alpha", "beta")):
@@ -309,6 +313,17 @@ def plot_identification(result, *, recording: int | None = None,
         ax[2].plot(t, tr["w_m"][k], "k", lw=0.8, label="w_m measured")
         ax[2].plot(t, tr["w_model"][k], "r--", lw=1.0, label="model")
         ax[2].set_ylabel("speed (rad/s)")
+        extra = ()
+        if loads[r] is not None:
+            ld, tw = loads[r], ax[2].twinx()
+            t0 = np.asarray(ld["t_start"])  # the segments in the window, to its ends
+            sel = np.flatnonzero((t0 + result.segment_s > t[0]) & (t0 < t[-1]))
+            xs = np.clip(np.append(t0[sel], t0[sel[-1]] + result.segment_s), t[0], t[-1])
+            extra = tw.step(xs, np.append(ld["value"][sel], ld["value"][sel[-1]]),
+                            where="post", color="C2", lw=1.0,
+                            label="load fitted per segment (N m, right)")
+            extra = [(h, h.get_label()) for h in extra]
+            tw.tick_params(axis="y", colors="C2")
         for row in (0, 1):
             ax[3].plot(t, tr["i_model"][k, row] - tr["i_ab"][k, row], lw=0.6,
                        color=f"C{row}", label=f"i_{('alpha', 'beta')[row]} model - measured")
@@ -318,7 +333,7 @@ def plot_identification(result, *, recording: int | None = None,
         for a in ax:
             a.grid(True, alpha=0.3)
             if j == len(cols) - 1:
-                _legend(a)
+                _legend(a, extra if a is ax[2] else (), 1.1 if extra and a is ax[2] else 1.01)
     fit = ", ".join(f"{n} {p['value']:.4g} {p['unit']}" for n, p in result.parameters.items())
     fig.suptitle(title or f"identified: {fit}", fontsize=9)
     return fig
