@@ -113,8 +113,7 @@ from ._identify_problem import (
     MECH as _MECH,
     MOTOR as _MOTOR,
     Problem as _Problem,
-    channel_rms as _channel_rms,
-    jacobian as _jacobian,
+    final as _final,
     solve as _solve,
 )
 from ._recording import RecordedData
@@ -364,27 +363,24 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
     sig_w = 1e-3 * float(drive.w_rated)
     steps = 0
     for stage in range(2):
-        # the weights as arrays: both stages (and the Jacobian below) run one program
-        # each (as Python floats they would be static values: a compile per stage)
+        # the weights as arrays: both stages run one program (as Python floats they would
+        # be static values: a compile per stage)
         args = (segs, jnp.asarray(sig_i, x.dtype), jnp.asarray(sig_w, x.dtype))
-        x, result, n_steps = _solve(problem, x, args, rtol, atol, max_steps)
+        x, result, n_steps, rms_i, rms_w = _solve(problem, x, args, rtol, atol, max_steps)
         steps += int(n_steps)
         if result != optx.RESULTS.successful and stage == 1:
             warnings.warn(f"identify: the Levenberg-Marquardt solve stopped without meeting "
                           f"its tolerances ({optx.RESULTS[result]}); the values may not be "
                           f"converged (raise max_steps).", IdentifiabilityWarning, stacklevel=2)
-        rms_i, rms_w, model = _channel_rms(problem, x, args)
-        rms_i, rms_w = float(rms_i), float(rms_w)
-        if not (math.isfinite(rms_i) and math.isfinite(rms_w)):
-            raise IdentifyError(
-                "the fit diverged (non-finite model response): the starting values are too "
-                "far from the recording's drive, or T_s is too coarse for the plant (try "
-                "n_substeps > 1).")
         if stage == 0:  # reweight each channel by its residual RMS (floored)
-            sig_i = max(rms_i, 1e-9 * float(drive.i_max))
-            sig_w = max(rms_w, 1e-9 * float(drive.w_rated))
+            _check_finite(float(rms_i), float(rms_w))
+            sig_i = max(float(rms_i), 1e-9 * float(drive.i_max))
+            sig_w = max(float(rms_w), 1e-9 * float(drive.w_rated))
     # `args` of the last stage: its weights are the final ones (only stage 0 reweights)
-    r, Jx = (np.asarray(a) for a in _jacobian(problem, x, args))
+    r, Jx, rms_i, rms_w, model = _final(problem, x, args)
+    rms_i, rms_w = float(rms_i), float(rms_w)
+    _check_finite(rms_i, rms_w)
+    r, Jx = np.asarray(r), np.asarray(Jx)
     dof = max(r.size - x.size - problem.n_start * sum(problem.n_seg), 1)
     s2 = float(r @ r) / dof
     col = np.maximum(np.linalg.norm(Jx, axis=0), 1e-300)
@@ -483,6 +479,14 @@ def identify(drive: Drive, data: RecordedData | Sequence[RecordedData],
         n_residuals=int(r.size), n_segments=int(sum(s.w0.shape[0] for s in segs)),
         segment_s=float(segment), steps=steps, warnings=tuple(excite + warn_list), traces=traces,
         saturation=sat_info, mechanics=mechanics, noise={"i_A": noise_i}, loads=loads)
+
+
+def _check_finite(rms_i: float, rms_w: float) -> None:
+    if not (math.isfinite(rms_i) and math.isfinite(rms_w)):
+        raise IdentifyError(
+            "the fit diverged (non-finite model response): the starting values are too far "
+            "from the recording's drive, or T_s is too coarse for the plant (try "
+            "n_substeps > 1).")
 
 
 def _fitted_drive(drive: Drive, vals: dict) -> Drive:

@@ -1,8 +1,9 @@
 """The least-squares problem of `identify` (`_identify`): the unknowns (the named
 parameters, and a load torque per segment where fitted), the segments' starts eliminated
-by variable projection (`Problem.projected`), and the compiled programs of the fit:
-the Levenberg-Marquardt solve, the Jacobian for the covariance, the residuals per
-channel with the model's response."""
+by variable projection (`Problem.projected`), and the two compiled programs of the
+fit: the Levenberg-Marquardt solve (`solve`, once per stage) and what the result needs
+at the solution (`final`: the Jacobian for the covariance, the residuals per channel,
+the model's response)."""
 
 from __future__ import annotations
 
@@ -165,8 +166,22 @@ class Problem(eqx.Module):
                                                                      directions)])
 
 
+    def channel_rms(self, x, segs, sig_i, sig_w, projected) -> tuple:
+        """RMS of the current (A) and speed (rad/s; 0 on the recorded speed) residuals of
+        `projected` (`Problem.projected` at x)."""
+        sq_i, sq_w, n_i, n_w = 0.0, 0.0, 0, 0
+        for seg, (r, _) in zip(segs, projected):
+            n_cur = seg.i_meas[0].size
+            sq_i, n_i = sq_i + jnp.sum((sig_i * r[:, :n_cur]) ** 2), n_i + r[:, :n_cur].size
+            sq_w, n_w = sq_w + jnp.sum((sig_w * r[:, n_cur:]) ** 2), n_w + seg.w_meas.size
+        return jnp.sqrt(sq_i / n_i), 0.0 * sq_w if self.measured else jnp.sqrt(sq_w / n_w)
+
+
 @eqx.filter_jit
 def solve(problem, x0, args, rtol, atol, max_steps):
+    """The Levenberg-Marquardt solve from x0 with the weights of `args` (segments, sig_i,
+    sig_w): the solution, optimistix's result, its steps and the residuals' RMS per
+    channel there (the weights of a next stage)."""
     # the segments' start directions held at x0 over the solve (the final covariance and
     # residuals take them at the solution): each step then integrates the segments once
     # with the parameters' derivatives and not again for the directions; from the first
@@ -174,30 +189,23 @@ def solve(problem, x0, args, rtol, atol, max_steps):
     args = (*args[:3], problem.start_directions(x0, *args[:3]))
     sol = optx.least_squares(problem.residuals, optx.LevenbergMarquardt(rtol=rtol, atol=atol),
                              x0, args=args, max_steps=max_steps, throw=False)
-    return sol.value, sol.result, sol.stats["num_steps"]
+    rms = problem.channel_rms(sol.value, *args[:3], problem.projected(sol.value, *args))
+    return sol.value, sol.result, sol.stats["num_steps"], *rms
 
 
 @eqx.filter_jit
-def jacobian(problem, x, args):
-    args = (*args, problem.start_directions(x, *args))  # at x, held
-    return problem.residuals(x, args), jax.jacfwd(problem.residuals)(x, args)
-
-
-@eqx.filter_jit
-def channel_rms(problem, x, args):
-    """RMS of the current and speed residuals, and the model's response per recording
-    from its segments' fitted starts (the traces of the result): one compiled program."""
+def final(problem, x, args):
+    """At the solution x, one compiled program: the weighted residuals and their Jacobian
+    (for the covariance), the RMS per channel and the model's response per recording
+    from its segments' fitted starts (the traces of the result)."""
     segs, sig_i, sig_w = args
-    sq_i, sq_w, n_i, n_w = 0.0, 0.0, 0, 0
+    held = (*args, problem.start_directions(x, *args))  # at x, held
+    projected = problem.projected(x, *held)
+    r = jnp.concatenate([p[0].ravel() for p in projected])
     plant, model = problem.plant(x), []
-    for seg, load, (r, start) in zip(segs, problem.slices(),
-                                     problem.projected(x, segs, sig_i, sig_w)):
-        n_cur = seg.i_meas[0].size
-        sq_i, n_i = sq_i + jnp.sum((sig_i * r[:, :n_cur]) ** 2), n_i + r[:, :n_cur].size
-        sq_w = sq_w + jnp.sum((sig_w * r[:, n_cur:]) ** 2)
-        n_w = n_w + seg.w_meas.size
+    for seg, load, (_, start) in zip(segs, problem.slices(), projected):
         if load is not None:
             seg = with_loads(seg, problem.load_scale * x[load])
         model.append(problem.simulate(plant, seg, start))
-    rms_w = 0.0 * sq_w if problem.measured else jnp.sqrt(sq_w / n_w)
-    return jnp.sqrt(sq_i / n_i), rms_w, model
+    return (r, jax.jacfwd(problem.residuals)(x, held),
+            *problem.channel_rms(x, segs, sig_i, sig_w, projected), model)
