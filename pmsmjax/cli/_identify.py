@@ -81,7 +81,7 @@ def _identify_arguments(p: argparse.ArgumentParser) -> None:
                         "no load torque needed), 'integrated' integrates the mechanics "
                         "with the recorded load torque (needed for J, B); 'auto' "
                         "(default): integrated when J or B is fitted, else measured")
-    g.add_argument("--load", choices=LOAD_MODES, default="auto",
+    g.add_argument("--load-model", choices=LOAD_MODES, default="auto",
                    help="with the mechanics integrated, the load torque that drives them: "
                         "'recorded' (the log's tau_L, zero where none), 'segment' (a "
                         "constant load torque per segment fitted with the parameters, on "
@@ -103,7 +103,7 @@ def identify_command(args: argparse.Namespace) -> int:
     recs = [pj.load_recording(f, require=("t", "u_ab", "i_ab", "theta")) for f in args.data]
     out = prepare_out_dir(args.out)
     mech = mechanics_mode(fit, args.mechanics)
-    fit_load = load_mode(recs, mech, args.load)
+    fit_load = load_mode(recs, mech, args.load_model)
     print(f"pmsmjax identify: {drive.name}, fitting {', '.join(fit)} to {len(recs)} "
           f"recording(s) ({sum(r.n for r in recs)} samples, {args.voltage} voltages)")
     print("mechanics: " + (
@@ -117,7 +117,7 @@ def identify_command(args: argparse.Namespace) -> int:
         warnings.simplefilter("always", pj.IdentifiabilityWarning)
         res = pj.identify(drive, recs, fit, voltage=args.voltage, segment=args.segment,
                           max_steps=args.max_steps, exponents=args.saturation_exponents,
-                          min_coverage=args.min_coverage, mechanics=mech, load=args.load)
+                          min_coverage=args.min_coverage, mechanics=mech, load=args.load_model)
     # the log's own checks, with the motor file's machine (a fit absorbs a voltage shift
     # into the inductances, so the fitted values would hide it) and, for commanded
     # voltages, the fitted inverter (a dead time started from a guess would read as an
