@@ -26,8 +26,10 @@ Why this formulation:
   start is fitted rather than taken from the noisy sample: a start taken from the data
   put the sample's noise into every later sample of the segment (an errors-in-variables
   bias, and standard deviations half the spread over noise seeds for L_q, measured),
-  while a fitted start leaves every sample one independent residual; it costs two
-  unknowns per segment (three with the speed), each acting on its own segment only.
+  while a fitted start leaves every sample one independent residual. The starts (two
+  unknowns per segment, three with the speed, each acting on its own segment only) are
+  eliminated by variable projection (`_identify_problem.Problem.projected`), so the
+  solver sees only the named parameters and any fitted loads.
 
 **Mechanics: measured or integrated** (`mechanics`). When neither J nor B is fitted
 (`"auto"` then picks `"measured"`), the electrical model runs on the recorded rotor
@@ -151,7 +153,7 @@ class IdentifyResult(eqx.Module):
       to the PM flux)`}`.
     - `traces`: per recording, `{"t", "i_ab", "i_model", "w_m", "w_model"}` (NumPy): the
       measured signals and the segment-wise model response at the fitted parameters
-      (segment starts reset the model to the measurement).
+      (each segment restarts the model at the logged angle and its fitted start).
     - `mechanics`: `"measured"` (the model ran on the recorded angle and speed; the speed
       residual is not part of the fit and reported as 0) or `"integrated"`.
     - `noise`: `{"i_A": ...}`, the current noise the recordings imply (`current_noise`).
