@@ -302,7 +302,7 @@ def plot_identification(result, *, recording: int | None = None,
         cols = sorted(cols, key=lambda c: -c[3])[:8]
     fig = Figure(figsize=(6.0 * len(cols) + 1.5, 7.4), layout="constrained")
     grid = fig.subplots(4, len(cols), sharex="col", squeeze=False)
-    loads = result.loads or [None] * len(result.traces)
+    loads = getattr(result, "loads", None) or [None] * len(result.traces)
     for j, (tr, k, label, _, r) in enumerate(cols):
         ax = grid[:, j]
         t = np.asarray(tr["t"])[k]
