@@ -18,7 +18,7 @@ import numpy as np
 from .._frames import park
 from .._plant._motor import PMSM, PlantInput, PlantState, cos_sin
 from .._sim._integrate import RK4, integrate
-from ._recording import RecordedData, centred_speed
+from ._recording import SPEED_WINDOW, RecordedData, centred_speed
 
 
 class IdentifyError(ValueError):
@@ -48,7 +48,8 @@ def recorded_speed(r: RecordedData) -> np.ndarray:
     divided by 2 ms, not by one period)."""
     if r.w_m is not None:
         return np.asarray(r.w_m, float)
-    return centred_speed(np.unwrap(np.asarray(r.theta, float)), np.asarray(r.t, float), 0.002)
+    return centred_speed(np.unwrap(np.asarray(r.theta, float)), np.asarray(r.t, float),
+                         SPEED_WINDOW)
 
 
 class Segments(eqx.Module):
@@ -101,7 +102,6 @@ def simulate_segments(plant: PMSM, seg: Segments, n_substeps: int, measured: boo
         return jax.lax.scan(step, y0, (u, tau, th, w, acc))[1]
 
     return jax.vmap(one)(seg.i0_ab, seg.th0, seg.w0, seg.u, seg.tau_L, seg.th, seg.w, seg.acc)
-
 
 
 LOAD_MODES = ("auto", "recorded", "segment")

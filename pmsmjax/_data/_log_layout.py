@@ -39,6 +39,8 @@ import os
 
 import tomllib
 
+from ._recording import SPEED_WINDOW
+
 
 TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 FRAMES = ("phase", "alpha_beta")
@@ -130,7 +132,7 @@ class LogLayout:
     angle_offset: float | str = 0.0
     angle_direction: int = 1
     angle_n_p: float | None = None
-    angle_speed_window: float = 0.002
+    angle_speed_window: float = SPEED_WINDOW
     speed: str | None = None
     speed_unit: str = "elec_rad/s"
     load: str | None = None

@@ -29,6 +29,11 @@ import equinox as eqx
 import numpy as np
 
 
+#: The span (s) of the centred difference that derives a speed from a logged angle
+#: (`centred_speed`) where a log has no speed: convert's layout default, identify's.
+SPEED_WINDOW = 0.002
+
+
 #: Every array of the format with its unit and whether it is a 2-vector, in file order.
 FIELDS: dict[str, tuple[str, bool]] = {
     "t": ("s", False),
@@ -193,7 +198,7 @@ class RecordedData(eqx.Module):
 
     @classmethod
     def from_trajectory(cls, traj, *, measured: bool = True, estimates: bool = False,
-                        encoder_quantum: float = 0.0, speed_window: float = 0.002,
+                        encoder_quantum: float = 0.0, speed_window: float = SPEED_WINDOW,
                         voltage_noise_std: float = 0.0, key=None) -> RecordedData:
         """The recorded-data view of one `Trajectory` from `simulate`.
 
