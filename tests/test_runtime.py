@@ -484,6 +484,45 @@ def test_unkeyable_static_values_are_not_stored(store):
     assert not store.exists()
 
 
+class _Fit(eqx.Module):
+    x: jnp.ndarray
+    parts: list  # a field that is itself a list of (array, array) pairs
+
+
+def _lstsq_fn(A, b):
+    # QR and an eigensolver: LAPACK custom calls without jax.export's compatibility
+    # guarantee (a stored program pins the jaxlib that wrote it)
+    q, r = jnp.linalg.qr(A)
+    x = jax.scipy.linalg.solve_triangular(r, q.T @ b)
+    _TRACES.append("lstsq")
+    return _Fit(x=x, parts=[(q, r), (jnp.linalg.eigvalsh(A.T @ A), A @ x - b)])
+
+
+def test_programs_with_lapack_calls_and_nested_results_are_stored(store):
+    """The identification's solve (QR in its Levenberg-Marquardt steps) is stored like
+    the analysis: LAPACK's custom calls are allowed, and a result field may be a list of
+    pairs. Fed its own committed outputs again, the program read back is compiled once."""
+    rng = np.random.default_rng(3)
+    A, b = rng.standard_normal((9, 3)), rng.standard_normal(9)
+    out = pj.runtime.stored_call("lstsq", _lstsq_fn, (jnp.asarray(A), jnp.asarray(b)), _Fit)
+    assert out is not None and len(list(store.glob("lstsq-*.jaxexport"))) == 1
+    pj.runtime._stored._LOADED.clear()
+    again = pj.runtime.stored_call("lstsq", _lstsq_fn, (jnp.asarray(A), jnp.asarray(b)), _Fit)
+    assert _TRACES == ["lstsq"]  # read from the file, not traced again
+    ref = np.linalg.lstsq(A, b, rcond=None)[0]
+    for o in (out, again):
+        np.testing.assert_allclose(np.asarray(o.x), ref, rtol=1e-12)
+        (q, r), (ev, res) = o.parts
+        np.testing.assert_allclose(np.asarray(q) @ np.asarray(r), A, atol=1e-13)
+        np.testing.assert_allclose(np.asarray(ev), np.linalg.eigvalsh(A.T @ A), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(res), A @ ref - b, atol=1e-12)
+    # a call whose inputs are an earlier call's outputs (committed arrays) has the
+    # signature of one with fresh arrays: one compiled program serves both
+    pj.runtime.stored_call("lstsq", _lstsq_fn, (again.parts[0][0], again.x[:0].sum() + b), _Fit)
+    (call,) = pj.runtime._stored._LOADED.values()
+    assert call._cache_size() == 1
+
+
 def test_stored_equilibria_equal_a_fresh_trace(store):
     """The CLI's stored analysis (the whole `equilibria`, one exported program) against
     the API's own call, for the LESO at 0.5 p.u. speed with a model mismatch (so the

@@ -177,11 +177,38 @@ class Problem(eqx.Module):
         return jnp.sqrt(sq_i / n_i), 0.0 * sq_w if self.measured else jnp.sqrt(sq_w / n_w)
 
 
-@eqx.filter_jit
-def solve(problem, x0, args, rtol, atol, max_steps):
-    """The Levenberg-Marquardt solve from x0 with the weights of `args` (segments, sig_i,
-    sig_w): the solution, optimistix's result, its steps and the residuals' RMS per
-    channel there (the weights of a next stage)."""
+class Solved(eqx.Module):
+    """What `solve` returns: the solution, optimistix's result code, its steps and the
+    residuals' RMS per channel there (current in A, speed in rad/s)."""
+    value: jnp.ndarray
+    result: jnp.ndarray  # the integer behind `optx.RESULTS`
+    steps: jnp.ndarray
+    rms_i: jnp.ndarray
+    rms_w: jnp.ndarray
+
+
+class Final(eqx.Module):
+    """What `final` returns: the weighted residuals, their Jacobian, the RMS per channel
+    and per recording the model's (current, speed) response."""
+    r: jnp.ndarray
+    jacobian: jnp.ndarray
+    rms_i: jnp.ndarray
+    rms_w: jnp.ndarray
+    model: list
+
+
+def _stored(tag, program, jitted, args, out_type):
+    """`program(*args)` as a stored program (`pmsmjax.runtime.stored_call`: a repeated
+    command skips the tracing, about ten seconds for the solve) or, where none can be
+    stored (the cache off, under a transformation), by its `equinox.filter_jit` form
+    `jitted`."""
+    from .. import runtime
+
+    out = runtime.stored_call(tag, program, args, out_type)
+    return jitted(*args) if out is None else out
+
+
+def _solve_program(problem, x0, args, rtol, atol, max_steps) -> Solved:
     # the segments' start directions held at x0 over the solve (the final covariance and
     # residuals take them at the solution): each step then integrates the segments once
     # with the parameters' derivatives and not again for the directions; from the first
@@ -190,14 +217,23 @@ def solve(problem, x0, args, rtol, atol, max_steps):
     sol = optx.least_squares(problem.residuals, optx.LevenbergMarquardt(rtol=rtol, atol=atol),
                              x0, args=args, max_steps=max_steps, throw=False)
     rms = problem.channel_rms(sol.value, *args[:3], problem.projected(sol.value, *args))
-    return sol.value, sol.result, sol.stats["num_steps"], *rms
+    return Solved(sol.value, sol.result._value, sol.stats["num_steps"], *rms)
 
 
-@eqx.filter_jit
-def final(problem, x, args):
-    """At the solution x, one compiled program: the weighted residuals and their Jacobian
-    (for the covariance), the RMS per channel and the model's response per recording
-    from its segments' fitted starts (the traces of the result)."""
+solve_jit = eqx.filter_jit(_solve_program)
+
+
+def solve(problem, x0, args, rtol, atol, max_steps):
+    """The Levenberg-Marquardt solve from x0 with the weights of `args` (segments, sig_i,
+    sig_w): the solution, optimistix's result, its steps and the residuals' RMS per
+    channel there (the weights of a next stage)."""
+    out = _stored("identify-solve", _solve_program, solve_jit,
+                  (problem, x0, args, float(rtol), float(atol), int(max_steps)), Solved)
+    result = eqx.tree_at(lambda r: r._value, optx.RESULTS.successful, out.result)
+    return out.value, result, out.steps, out.rms_i, out.rms_w
+
+
+def _final_program(problem, x, args) -> Final:
     segs, sig_i, sig_w = args
     held = (*args, problem.start_directions(x, *args))  # at x, held
     projected = problem.projected(x, *held)
@@ -207,5 +243,16 @@ def final(problem, x, args):
         if load is not None:
             seg = with_loads(seg, problem.load_scale * x[load])
         model.append(problem.simulate(plant, seg, start))
-    return (r, jax.jacfwd(problem.residuals)(x, held),
-            *problem.channel_rms(x, segs, sig_i, sig_w, projected), model)
+    return Final(r, jax.jacfwd(problem.residuals)(x, held),
+                 *problem.channel_rms(x, segs, sig_i, sig_w, projected), model)
+
+
+final_jit = eqx.filter_jit(_final_program)
+
+
+def final(problem, x, args):
+    """At the solution x, one compiled program: the weighted residuals and their Jacobian
+    (for the covariance), the RMS per channel and the model's response per recording
+    from its segments' fitted starts (the traces of the result)."""
+    out = _stored("identify-final", _final_program, final_jit, (problem, x, args), Final)
+    return out.r, out.jacobian, out.rms_i, out.rms_w, out.model

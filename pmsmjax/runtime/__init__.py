@@ -38,15 +38,19 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   `PMSMJAX_CACHE=0` (or `configure(cache=False)`); clear it with `pmsmjax cache --clear`
   or `clear_cache()`.
 - **Stored programs.** The compilation cache skips XLA's compile only: Python still
-  traces and lowers the program, seconds for the generic equilibrium analysis. So with
-  the cache on, `pmsmjax equilibria` also keeps its traced analysis as a `jax.export`
-  program (StableHLO) in `cache_dir()/exported` (`stored_call`), keyed by the observer's
-  class and static fields, the shapes and dtypes of the inputs, the options, the
-  pmsmjax version and a hash of its source, and the jax/jaxlib versions: a repeated
-  command reads it instead of tracing, and its compile hits the compilation cache. A
-  stored program that cannot be read or does not match is made again from a fresh trace.
-  `PMSMJAX_CACHE=0` turns it off with the cache, and `pmsmjax cache --clear` removes it
-  with the cache.
+  traces and lowers the program, seconds for the generic equilibrium analysis and about
+  ten for identification's Levenberg-Marquardt solve. So with the cache on, the
+  equilibrium analysis of `pmsmjax equilibria` and the two programs of `identify` (the
+  solve and the covariance at the solution) are also kept traced, as `jax.export`
+  programs (StableHLO) in `cache_dir()/exported` (`stored_call`), keyed by the
+  function, its static arguments (an observer's class and fields, the options), the
+  shapes and dtypes of its array inputs, the pmsmjax version and a hash of its source,
+  the jax/jaxlib versions and the backend: a repeated command reads the program instead
+  of tracing, and its compile hits the compilation cache. LAPACK's custom calls (QR,
+  eigensolvers), which `jax.export` does not guarantee across jaxlib versions, are
+  allowed, since the key pins the jaxlib. A stored program that cannot be read or does
+  not match is made again from a fresh trace. `PMSMJAX_CACHE=0` turns it off with the
+  cache, and `pmsmjax cache --clear` removes it with the cache.
 
 - **Quick compiles (opt-in, `PMSMJAX_QUICK_COMPILE=1`).** XLA's CPU backend spends most
   of a compile in LLVM, once per fused kernel; `QUICK_COMPILE_FLAGS` compile at LLVM's

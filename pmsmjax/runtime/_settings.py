@@ -168,8 +168,10 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> d
                           RuntimeWarning, stacklevel=2)
         else:
             jax.config.update("jax_compilation_cache_dir", str(d))
-            # cache every compiled program that took noticeable time (default 1 s)
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+            # cache every compiled program (JAX's default keeps those over 1 s): a
+            # command's few dozen small eager programs (array set-up, unit conversions)
+            # otherwise compile afresh in every process, about 1.5 s of a warm identify
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
             applied_dir = str(d)
             store_dir = d / STORED_SUBDIR
     set_stored_programs_dir(store_dir)
