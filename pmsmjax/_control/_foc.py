@@ -211,6 +211,10 @@ class FOC(eqx.Module):
             i_if = jnp.stack([-jnp.sin(su.off) * i_q_if, jnp.cos(su.off) * i_q_if])
             i_ref = (1.0 - s) * i_if + s * i_ref
         c_state, u = self.current.step(state.current, i_ref, i_dq, w_hat, T_s)
+        startup = state.startup
+        if su is not None:  # the stabiliser's rotor speed from this step's voltage
+            startup = eqx.tree_at(lambda t: t.w_r, su, self.startup.rotor_speed(
+                su, u[..., 0], self.current.motor, T_s).astype(su.w_r.dtype))
         return FOCState(current=c_state, speed=s_state, dual=state.dual,
-                        startup=state.startup), \
+                        startup=startup), \
             FOCOutput(u_dq=u, i_ref=i_ref, tau_ref=tau_ref)

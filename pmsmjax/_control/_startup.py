@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax.numpy as jnp
 
@@ -10,12 +12,35 @@ from .._plant._params import Drive
 from .._validate import check_positive
 
 
+#: The stabiliser's largest phase shift of the open-loop frame (rad): 45 deg.
+_PHI_MAX = 0.25 * math.pi
+
+
+def swing_frequency(drive: Drive, i: float) -> float:
+    r"""The angular frequency (rad/s) at which the rotor of `drive` swings about the rest
+    point of a current vector of amplitude `i` (A) held in a fixed frame, for small
+    swings: $\omega_n = \sqrt{k_\tau \psi_a i\, n_p / J}$ with $k_\tau = 1.5 n_p$ and
+    the active flux $\psi_a = \psi_f + (L_d - L_q) i$ (the stiffness of the torque
+    $k_\tau(\psi_f + (L_d - L_q) i_d) i_q$ at $i_d = i$, $i_q = 0$); friction left
+    out."""
+    m = drive.motor
+    psi_a = float(m.psi_f) + (float(m.L_d) - float(m.L_q)) * i
+    if not psi_a > 0:
+        raise ValueError(f"IfStartup: the active flux psi_f + (L_d - L_q) i_start = "
+                         f"{psi_a:.4g} V s is not positive at i_start = {i:.4g} A: the "
+                         f"current vector makes no restoring torque; lower i_start_pu.")
+    return math.sqrt(float(drive.k_tau) * psi_a * i * float(m.n_p)
+                     / float(drive.mechanics.J))
+
+
 class StartupState(eqx.Module):
     """State of `IfStartup`: the open-loop frame's angle `theta` (rad, wrapped) and speed
     `w` (rad/s, electrical), the handover progress `lam` (0: open loop, 1: the observer's
     frame) and, from the last step, `off` = wrap(open-loop angle - controller angle)
     (rad) and `off_obs` = wrap(open-loop angle - observer angle) (rad); `t`: time since
-    the start (s)."""
+    the start (s). The stabiliser's: `phi` the frame's phase shift from the ramp (rad),
+    `w_frame` the frame's speed over the last step (rad/s) and `w_r` the filtered
+    estimate of the rotor's speed from the frame's back-EMF (rad/s, electrical)."""
 
     theta: jnp.ndarray
     w: jnp.ndarray
@@ -23,6 +48,9 @@ class StartupState(eqx.Module):
     off: jnp.ndarray
     off_obs: jnp.ndarray
     t: jnp.ndarray
+    phi: jnp.ndarray
+    w_frame: jnp.ndarray
+    w_r: jnp.ndarray
 
 
 class IfStartup(eqx.Module):
@@ -54,6 +82,31 @@ class IfStartup(eqx.Module):
     from the open-loop angle to the observer's, which rotate together; were they half
     a turn apart at the handover, the direction would be arbitrary.)
 
+    *Stabiliser* (`c_damp` > 0; `from_drive(..., zeta=0.7)`). A current vector held in an
+    open-loop frame pulls the rotor like a spring: the rotor swings about its rest point
+    (the frame's d axis, $\delta = \theta - \theta_{if} = \pm\pi/2$) at
+    $\omega_n = \sqrt{k_\tau \psi_a |i| n_p / J}$ with nothing to damp it but friction,
+    so a rotor that starts far from the rest point (up to half a turn: the angle is
+    unknown) is still swinging when the ramp starts and may never be pulled in. The
+    stabiliser damps the swing from the frame's d-axis voltage: with the current held at
+    $(0, i)$ in the frame, $u_d = \partial\psi_d/\partial\delta\,(\omega - \omega_{frame})
+    - \omega_{frame}\psi_q$ and near the rest point $\partial\psi_d/\partial\delta =
+    -\mathrm{sign}(i)\,\psi_a$, $\psi_q = \mathrm{sign}(i)(\psi_f + L_d|i|)$, with the
+    active flux $\psi_a = \psi_f + (L_d - L_q)|i|$ (derived in `tests/test_startup.py`
+    against the machine's flux linkage), so the controller's own voltage gives the
+    rotor's speed $\hat\omega$ (low-pass filtered at `w_damp`). The frame is shifted
+    against the rotor's motion relative to the ramp,
+    $\theta_{if} = \theta_{ramp} - c\,(\hat\omega - \omega_{ramp})$ (clipped to
+    +-45 deg), which adds the damping torque of a ratio $\zeta = c\,\omega_n/2$ to the
+    swing (the rest point's stiffness times $c$ times the rotor's speed). The shift is
+    held once the handover starts. Far from the rest point the sign of
+    $\partial\psi_d/\partial\delta$ flips and the loop pumps a little energy in, which
+    it takes out as the rotor passes the rest point. Measured (`tests/test_startup.py`,
+    docs/lock-and-startup.md): on stumper_mt5 the swing decays as designed; on zhang750
+    and morawiec_ipm3k5 a residual oscillation of 0.2-2.5 deg remains (the estimate's
+    own loop through the frame's phase shift and the current controller's lag), and on
+    zhang750 it slows the LESO's and AFO's handover, so it is not the default.
+
     Pure and scan friendly; every branch is a `jnp.where`/clip, so a run stays
     differentiable (almost everywhere) in the parameters. Only speed-controlled runs
     use it (current-controlled runs keep the observer's frame).
@@ -66,6 +119,11 @@ class IfStartup(eqx.Module):
       observer's low-speed limit.
     - `t_blend`: duration of the handover (s), > 0.
     - `t_align`: duration of the alignment (s), > 0.
+    - `c_damp`: the stabiliser's gain $c$ (s), >= 0: the frame's phase shift per rad/s
+      of the rotor's speed relative to the ramp; 0 turns the stabiliser off (a plain
+      I/f start).
+    - `w_damp`: bandwidth of the stabiliser's speed estimate (rad/s), > 0 when
+      `c_damp` > 0.
     """
 
     i_start: float
@@ -73,6 +131,8 @@ class IfStartup(eqx.Module):
     w_hand: float
     t_blend: float
     t_align: float = 0.1
+    c_damp: float = 0.0
+    w_damp: float = 0.0
 
     def __check_init__(self):
         check_positive("IfStartup", "i_start", self.i_start, "A")
@@ -80,22 +140,46 @@ class IfStartup(eqx.Module):
         check_positive("IfStartup", "w_hand", self.w_hand, "rad/s")
         check_positive("IfStartup", "t_blend", self.t_blend, "s")
         check_positive("IfStartup", "t_align", self.t_align, "s")
+        check_positive("IfStartup", "c_damp", self.c_damp, "s", allow_zero=True)
+        if self.c_damp > 0:
+            check_positive("IfStartup", "w_damp", self.w_damp, "rad/s (with c_damp > 0)")
 
     @classmethod
     def from_drive(cls, drive: Drive, *, i_start_pu: float = 0.5, w_hand_pu: float = 0.1,
                    a_max_pu: float = 2.0, t_blend: float = 0.05,
-                   t_align: float = 0.1) -> IfStartup:
+                   t_align: float = 0.1, zeta: float = 0.0) -> IfStartup:
         """The default start: `i_start = i_start_pu * i_max`, handover at
         `w_hand_pu * w_rated`, frequency ramp at most `a_max_pu * w_rated` per second,
-        handover over `t_blend` s, after an alignment of `t_align` s."""
+        handover over `t_blend` s, after an alignment of `t_align` s, with the
+        stabiliser designed for the damping ratio `zeta` of the rotor's swing at
+        `i_start` (`swing_frequency`; `c_damp = 2 zeta / omega_n`, the speed estimate
+        filtered at `10 omega_n`); the default `zeta=0` starts without it (a plain I/f
+        start), and 0.7 is its design value (docs/lock-and-startup.md: what it does on
+        each preset)."""
+        check_positive("IfStartup.from_drive", "zeta", zeta, "", allow_zero=True)
         w = float(drive.w_rated)
-        return cls(i_start=i_start_pu * float(drive.i_max), a_max=a_max_pu * w,
-                   w_hand=w_hand_pu * w, t_blend=t_blend, t_align=t_align)
+        i_start = i_start_pu * float(drive.i_max)
+        w_n = swing_frequency(drive, i_start)
+        return cls(i_start=i_start, a_max=a_max_pu * w, w_hand=w_hand_pu * w,
+                   t_blend=t_blend, t_align=t_align, c_damp=2.0 * zeta / w_n,
+                   w_damp=10.0 * w_n)
 
     def init(self, theta0=0.0) -> StartupState:
         z = jnp.zeros(())
         return StartupState(theta=wrap_angle(jnp.asarray(theta0, float)), w=z, lam=z, off=z,
-                            off_obs=z, t=z)
+                            off_obs=z, t=z, phi=z, w_frame=z, w_r=z)
+
+    def rotor_speed(self, state: StartupState, u_d, motor, T_s):
+        """The stabiliser's filtered estimate of the rotor's speed (rad/s, electrical)
+        after a step whose controller (in the open-loop frame, current held at
+        (0, +-amplitude)) applied the d-axis voltage `u_d` (V), from the controller's
+        constant machine model `motor` (the class docstring's relation)."""
+        i = self.amplitude(state)
+        sign = jnp.where(state.w < 0, -1.0, 1.0)
+        psi_a = motor.psi_f + (motor.L_d - motor.L_q) * i
+        slip = -(sign * u_d + state.w_frame * (motor.psi_f + motor.L_d * i)) / psi_a
+        a = self.w_damp * T_s / (1.0 + self.w_damp * T_s)
+        return state.w_r + a * (state.w_frame + slip - state.w_r)
 
     def amplitude(self, state: StartupState):
         """The open-loop current amplitude (A): a smooth rise over `t_align`."""
@@ -114,7 +198,12 @@ class IfStartup(eqx.Module):
         aligning = t < self.t_align
         dw = jnp.clip(w_ref - state.w, -self.a_max * T_s, self.a_max * T_s)
         w_if = jnp.where(aligning, 0.0, state.w + dw)
-        th_if = wrap_angle(state.theta + T_s * w_if)
+        th_ramp = state.theta - state.phi + T_s * w_if
+        # the stabiliser's phase shift against the rotor's motion relative to the ramp
+        # (held from the handover on)
+        phi = jnp.where(state.lam > 0, state.phi,
+                        jnp.clip(-self.c_damp * (state.w_r - w_if), -_PHI_MAX, _PHI_MAX))
+        th_if = wrap_angle(th_ramp + phi)
         # hand over once above w_hand with the observer in agreement: its angle within
         # 90 deg of the open-loop frame (the rotor's load angle is) and its speed within
         # 25 % of the frame's (no false lock at pi, no slipping PLL)
@@ -123,7 +212,8 @@ class IfStartup(eqx.Module):
         go = (state.lam > 0) | ((jnp.abs(w_if) >= self.w_hand) & agree)
         lam = jnp.clip(state.lam + jnp.where(go, T_s / self.t_blend, 0.0), 0.0, 1.0)
         new = StartupState(theta=th_if, w=w_if, lam=lam, off=state.off,
-                           off_obs=wrap_angle(th_if - theta_hat), t=t)
+                           off_obs=wrap_angle(th_if - theta_hat), t=t, phi=phi,
+                           w_frame=w_if + (phi - state.phi) / T_s, w_r=state.w_r)
         s = self.weight(new)
         d = wrap_angle(theta_hat - th_if)
         theta_c = wrap_angle(th_if + s * d)
