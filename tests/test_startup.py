@@ -229,20 +229,22 @@ def test_swing_frequency_and_the_stabilisers_damping():
     crossings of the simulated 20-deg swing on zhang750: measured 1.9 % longer, as on
     morawiec_ipm3k5, 5 % allowed; on stumper_mt5 5.9 %, not explained); the stabiliser
     designed for zeta = 0.7 takes the swing down by exp(-2 pi zeta / sqrt(1 - zeta^2))
-    = 0.2 % a period on stumper_mt5 (measured: the second period's peak 0.5 % of the
-    plain swing's, 1.5 % allowed), where the plain start keeps 85 % of it."""
+    = 0.2 % a period: measured, the second period's peak 0.14 % of the plain swing's on
+    stumper_mt5 and 0.87 % on zhang750 (3x allowed), where the plain start keeps 85 % and
+    97 % of it."""
     t, x, T_n = _swing("zhang750", 0.0)
     m = t > 0.1
     zc = t[m][1:][(x[m][:-1] < 0) & (x[m][1:] >= 0)]
     assert np.diff(zc).mean() == pytest.approx(T_n, rel=0.05)
-    t, x, T_n = _swing("stumper_mt5", 0.0)
+    for name, measured in (("stumper_mt5", 0.0014), ("zhang750", 0.0087)):
+        t, x, T_n = _swing(name, 0.0)
 
-    def peak(x, k):  # largest |angle| over the k-th period after the alignment
-        return np.abs(x[(t >= 0.02 + k * T_n) & (t < 0.02 + (k + 1) * T_n)]).max()
+        def peak(x, k):  # largest |angle| over the k-th period after the alignment
+            return np.abs(x[(t >= 0.02 + k * T_n) & (t < 0.02 + (k + 1) * T_n)]).max()
 
-    t, xd, _ = _swing("stumper_mt5", 0.7)
-    assert peak(x, 1) > 0.8 * peak(x, 0)
-    assert peak(xd, 1) < 0.015 * peak(x, 1)
+        _, xd, _ = _swing(name, 0.7)
+        assert peak(x, 1) > 0.8 * peak(x, 0)
+        assert peak(xd, 1) < 3 * measured * peak(x, 1), name
 
 
 def test_stabiliser_starts_the_ipm_from_where_the_plain_start_fails():
@@ -250,7 +252,7 @@ def test_stabiliser_starts_the_ipm_from_where_the_plain_start_fails():
     aligned current): the plain I/f start leaves the rotor swinging backwards at the end
     of the alignment and never pulls it in (measured: -0.08 of the set-point at 0.5 s);
     with the stabiliser (zeta = 0.7) the ESO drive is at the set-point by then
-    (measured: 1.2 % over it, still settling; 3.6 % allowed)."""
+    (measured: 1.3 % over it, still settling; 3.9 % allowed)."""
     d = pj.preset("morawiec_ipm3k5")
     w = 0.5 * float(d.w_rated)
     sc = pj.Scenario(t_end=0.5, w_m_ref=pj.Profile([0.0, 0.05, 0.3], [0.0, 0.0, w]))
@@ -261,7 +263,7 @@ def test_stabiliser_starts_the_ipm_from_where_the_plain_start_fails():
         t = np.asarray(tr.t)
         out.append(np.asarray(tr.w_m)[t >= 0.45].mean() / w)
     assert out[0] < 0.5
-    assert abs(out[1] - 1.0) < 0.036
+    assert abs(out[1] - 1.0) < 0.039
 
 
 def test_stabiliser_rejects_bad_values():

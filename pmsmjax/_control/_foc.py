@@ -207,14 +207,17 @@ class FOC(eqx.Module):
                                                    i_ref_override, speed_mode)
         if su is not None:
             s = self.startup.weight(su)
-            # the open-loop current (0, i_q_if) in the controller frame
-            i_if = jnp.stack([-jnp.sin(su.off) * i_q_if, jnp.cos(su.off) * i_q_if])
+            # the open-loop current (i_d, i_q_if) in the controller frame (i_d: the
+            # stabiliser's, 0 without it)
+            i_d_if = self.startup.damping_current(su)
+            c_off, s_off = jnp.cos(su.off), jnp.sin(su.off)
+            i_if = jnp.stack([c_off * i_d_if - s_off * i_q_if, s_off * i_d_if + c_off * i_q_if])
             i_ref = (1.0 - s) * i_if + s * i_ref
         c_state, u = self.current.step(state.current, i_ref, i_dq, w_hat, T_s)
         startup = state.startup
         if su is not None:  # the stabiliser's rotor speed from this step's voltage
             startup = eqx.tree_at(lambda t: t.w_r, su, self.startup.rotor_speed(
-                su, u[..., 0], self.current.motor, T_s).astype(su.w_r.dtype))
+                su, u[..., 0], i_dq[..., 0], self.current.motor, T_s).astype(su.w_r.dtype))
         return FOCState(current=c_state, speed=s_state, dual=state.dual,
                         startup=startup), \
             FOCOutput(u_dq=u, i_ref=i_ref, tau_ref=tau_ref)

@@ -12,8 +12,9 @@ from .._plant._params import Drive
 from .._validate import check_positive
 
 
-#: The stabiliser's largest phase shift of the open-loop frame (rad): 45 deg.
-_PHI_MAX = 0.25 * math.pi
+#: The stabiliser's largest d current, as a fraction of the open-loop amplitude (the
+#: current vector turned by at most 45 deg).
+_ID_MAX = math.sqrt(0.5)
 
 
 def swing_frequency(drive: Drive, i: float) -> float:
@@ -38,9 +39,8 @@ class StartupState(eqx.Module):
     `w` (rad/s, electrical), the handover progress `lam` (0: open loop, 1: the observer's
     frame) and, from the last step, `off` = wrap(open-loop angle - controller angle)
     (rad) and `off_obs` = wrap(open-loop angle - observer angle) (rad); `t`: time since
-    the start (s). The stabiliser's: `phi` the frame's phase shift from the ramp (rad),
-    `w_frame` the frame's speed over the last step (rad/s) and `w_r` the filtered
-    estimate of the rotor's speed from the frame's back-EMF (rad/s, electrical)."""
+    the start (s); `w_r`: the stabiliser's filtered estimate of the rotor's speed from
+    the frame's back-EMF (rad/s, electrical)."""
 
     theta: jnp.ndarray
     w: jnp.ndarray
@@ -48,8 +48,6 @@ class StartupState(eqx.Module):
     off: jnp.ndarray
     off_obs: jnp.ndarray
     t: jnp.ndarray
-    phi: jnp.ndarray
-    w_frame: jnp.ndarray
     w_r: jnp.ndarray
 
 
@@ -89,23 +87,25 @@ class IfStartup(eqx.Module):
     so a rotor that starts far from the rest point (up to half a turn: the angle is
     unknown) is still swinging when the ramp starts and may never be pulled in. The
     stabiliser damps the swing from the frame's d-axis voltage: with the current held at
-    $(0, i)$ in the frame, $u_d = \partial\psi_d/\partial\delta\,(\omega - \omega_{frame})
-    - \omega_{frame}\psi_q$ and near the rest point $\partial\psi_d/\partial\delta =
-    -\mathrm{sign}(i)\,\psi_a$, $\psi_q = \mathrm{sign}(i)(\psi_f + L_d|i|)$, with the
-    active flux $\psi_a = \psi_f + (L_d - L_q)|i|$ (derived in `tests/test_startup.py`
-    against the machine's flux linkage), so the controller's own voltage gives the
-    rotor's speed $\hat\omega$ (low-pass filtered at `w_damp`). The frame is shifted
-    against the rotor's motion relative to the ramp,
-    $\theta_{if} = \theta_{ramp} - c\,(\hat\omega - \omega_{ramp})$ (clipped to
-    +-45 deg), which adds the damping torque of a ratio $\zeta = c\,\omega_n/2$ to the
-    swing (the rest point's stiffness times $c$ times the rotor's speed). The shift is
-    held once the handover starts. Far from the rest point the sign of
-    $\partial\psi_d/\partial\delta$ flips and the loop pumps a little energy in, which
-    it takes out as the rotor passes the rest point. Measured (`tests/test_startup.py`,
-    docs/lock-and-startup.md): on stumper_mt5 the swing decays as designed; on zhang750
-    and morawiec_ipm3k5 a residual oscillation of 0.2-2.5 deg remains (the estimate's
-    own loop through the frame's phase shift and the current controller's lag), and on
-    zhang750 it slows the LESO's and AFO's handover, so it is not the default.
+    $(0, i)$ in the frame, $u_d = R i_d + \partial\psi_d/\partial\delta\,(\omega -
+    \omega_{if}) - \omega_{if}\psi_q$ and near the rest point
+    $\partial\psi_d/\partial\delta = -\mathrm{sign}(i)\,\psi_a$,
+    $\psi_q = \mathrm{sign}(i)(\psi_f + L_d|i|)$, with the active flux
+    $\psi_a = \psi_f + (L_d - L_q)|i|$ (derived in `tests/test_startup.py` against the
+    machine's flux linkage), so the controller's own voltage gives the rotor's speed
+    $\hat\omega$ (low-pass filtered at `w_damp`). A d current in the frame,
+    $i_d = c\,(\hat\omega - \omega_{if})\,i$ (the vector turned by at most 45 deg),
+    makes the torque of the vector turned by $-c(\hat\omega - \omega_{if})$: the rest
+    point's stiffness times $c$ times the rotor's speed, a damping ratio
+    $\zeta = c\,\omega_n/2$ (the frame itself stays on its ramp: turning the frame
+    instead left an oscillation of 0.2-2.5 deg through the current controller's lag).
+    From the handover on the d current is held and fades with the blend. Measured
+    (`tests/test_startup.py`, docs/lock-and-startup.md): the swing decays to below 3 %
+    within one period on the three single-machine presets, and from 24 initial angle
+    errors each the ESO drive fails to start only from the dead point (the rotor exactly
+    opposite the rest point, where the current makes no torque). It is not the default:
+    on zhang750 under load the rotor then reaches the handover speed before the LESO and
+    the AFO have converged, and their handover onto a 40-deg error loses the lock.
 
     Pure and scan friendly; every branch is a `jnp.where`/clip, so a run stays
     differentiable (almost everywhere) in the parameters. Only speed-controlled runs
@@ -167,19 +167,30 @@ class IfStartup(eqx.Module):
     def init(self, theta0=0.0) -> StartupState:
         z = jnp.zeros(())
         return StartupState(theta=wrap_angle(jnp.asarray(theta0, float)), w=z, lam=z, off=z,
-                            off_obs=z, t=z, phi=z, w_frame=z, w_r=z)
+                            off_obs=z, t=z, w_r=z)
 
-    def rotor_speed(self, state: StartupState, u_d, motor, T_s):
+    def rotor_speed(self, state: StartupState, u_d, i_d, motor, T_s):
         """The stabiliser's filtered estimate of the rotor's speed (rad/s, electrical)
-        after a step whose controller (in the open-loop frame, current held at
-        (0, +-amplitude)) applied the d-axis voltage `u_d` (V), from the controller's
-        constant machine model `motor` (the class docstring's relation)."""
+        after a step whose controller (in the open-loop frame, current about
+        (0, +-amplitude)) applied the d-axis voltage `u_d` (V) with the d current `i_d`
+        (A) measured, from the controller's constant machine model `motor` (the class
+        docstring's relation)."""
         i = self.amplitude(state)
         sign = jnp.where(state.w < 0, -1.0, 1.0)
         psi_a = motor.psi_f + (motor.L_d - motor.L_q) * i
-        slip = -(sign * u_d + state.w_frame * (motor.psi_f + motor.L_d * i)) / psi_a
+        slip = -(sign * (u_d - motor.R_s * i_d)
+                 + state.w * (motor.psi_f + motor.L_d * i)) / psi_a
         a = self.w_damp * T_s / (1.0 + self.w_damp * T_s)
-        return state.w_r + a * (state.w_frame + slip - state.w_r)
+        w_r = state.w_r + a * (state.w + slip - state.w_r)
+        return jnp.where(state.lam > 0, state.w_r, w_r)  # held from the handover on
+
+    def damping_current(self, state: StartupState):
+        """The stabiliser's d current in the open-loop frame (A): the current vector
+        turned against the rotor's swing relative to the frame, `c_damp` times the
+        rotor's speed relative to it times the signed amplitude (at most 45 deg)."""
+        i = self.amplitude(state) * jnp.where(state.w < 0, -1.0, 1.0)
+        turn = jnp.clip(self.c_damp * (state.w_r - state.w), -_ID_MAX, _ID_MAX)
+        return i * turn
 
     def amplitude(self, state: StartupState):
         """The open-loop current amplitude (A): a smooth rise over `t_align`."""
@@ -198,12 +209,7 @@ class IfStartup(eqx.Module):
         aligning = t < self.t_align
         dw = jnp.clip(w_ref - state.w, -self.a_max * T_s, self.a_max * T_s)
         w_if = jnp.where(aligning, 0.0, state.w + dw)
-        th_ramp = state.theta - state.phi + T_s * w_if
-        # the stabiliser's phase shift against the rotor's motion relative to the ramp
-        # (held from the handover on)
-        phi = jnp.where(state.lam > 0, state.phi,
-                        jnp.clip(-self.c_damp * (state.w_r - w_if), -_PHI_MAX, _PHI_MAX))
-        th_if = wrap_angle(th_ramp + phi)
+        th_if = wrap_angle(state.theta + T_s * w_if)
         # hand over once above w_hand with the observer in agreement: its angle within
         # 90 deg of the open-loop frame (the rotor's load angle is) and its speed within
         # 25 % of the frame's (no false lock at pi, no slipping PLL)
@@ -212,8 +218,11 @@ class IfStartup(eqx.Module):
         go = (state.lam > 0) | ((jnp.abs(w_if) >= self.w_hand) & agree)
         lam = jnp.clip(state.lam + jnp.where(go, T_s / self.t_blend, 0.0), 0.0, 1.0)
         new = StartupState(theta=th_if, w=w_if, lam=lam, off=state.off,
-                           off_obs=wrap_angle(th_if - theta_hat), t=t, phi=phi,
-                           w_frame=w_if + (phi - state.phi) / T_s, w_r=state.w_r)
+                           off_obs=wrap_angle(th_if - theta_hat), t=t,
+                           # from the handover on the stabiliser's d current is held (and
+                           # faded by the blend): its speed moves with the frame's
+                           w_r=jnp.where(state.lam > 0, state.w_r + (w_if - state.w),
+                                         state.w_r))
         s = self.weight(new)
         d = wrap_angle(theta_hat - th_if)
         theta_c = wrap_angle(th_if + s * d)
