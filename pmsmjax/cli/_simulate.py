@@ -43,14 +43,16 @@ def _startup_info(su, catch: bool = False) -> dict | None:
     if su is None:
         return None
     return {"type": "I/f", "i_start_A": float(su.i_start), "a_max_rad_s2": float(su.a_max),
-            "w_hand_rad_s": float(su.w_hand), "t_blend_s": float(su.t_blend)}
+            "w_hand_rad_s": float(su.w_hand), "t_blend_s": float(su.t_blend),
+            "stabiliser_c_damp_s": float(su.c_damp)}
 
 
 def _startup_text(su) -> str:
     if su is None:
         return "none (the observer's frame from the first sample)"
     return (f"I/f, {float(su.i_start):.3g} A open loop, handover at {float(su.w_hand):.4g} "
-            f"rad/s over {float(su.t_blend):.3g} s")
+            f"rad/s over {float(su.t_blend):.3g} s" + (
+                f", stabiliser c_damp {float(su.c_damp):.3g} s" if su.c_damp > 0 else ""))
 
 
 def _speed_error_stats(x: np.ndarray, scale: float) -> dict:
@@ -111,6 +113,10 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                         "sample; 'auto' (default) for a sensorless observer 'if' when the "
                         "rotor starts at standstill, 'catch' when it turns (all: a "
                         "drive's practice, not the papers')")
+    g.add_argument("--if-damping", type=nonneg_float, default=0.0, metavar="ZETA",
+                   help="the I/f start's stabiliser: the damping ratio it gives the rotor's "
+                        "swing about the aligned current (0.7 its design value; default "
+                        "%(default)s: off; pmsmjax.IfStartup.from_drive(zeta=...))")
     g.add_argument("--theta-hat0", type=finite_float, default=None, metavar="DEG",
                    help="the observer's initial angle estimate (deg, electrical; default: "
                         "the rotor's initial angle 0, i.e. a known angle)")
@@ -153,7 +159,8 @@ def simulate_command(args: argparse.Namespace) -> int:
         observer = pj.FlyingCatch(observer)
     controller = pj.FOC.from_drive(
         drive, alpha_c=alpha_c, alpha_s=alpha_s,
-        startup=pj.IfStartup.from_drive(drive) if startup == "if" else None)
+        startup=pj.IfStartup.from_drive(drive, zeta=args.if_damping) if startup == "if"
+        else None)
     sensing = pj.Sensing(noise_std=args.noise)
     n_steps = scenario.n_steps(args.T_s)
     out = prepare_out_dir(args.out)
