@@ -90,7 +90,14 @@ print(json.dumps(dict(
     stable=[bool(s) for s in np.asarray(eq.stable)[valid]])))
 """
 
-FAST_ROUTE = ("eso", "parallel-model")  # observers with their own route under "auto"
+
+
+def _own_route(name: str) -> bool:
+    """Whether the observer's class declares its family's own route (`fast_equilibria`),
+    which `method="auto"` takes: the generic route is then measured as well."""
+    from pmsmjax.observers import AbstractObserver, observer_class
+
+    return observer_class(name).fast_equilibria is not AbstractObserver.fast_equilibria
 
 
 def api(name: str, method: str, env: dict, timeout: float) -> dict:
@@ -154,7 +161,7 @@ def main(argv=None) -> int:
         for name in names:
             row = dict(observer=name, api={})
             routes = [] if args.no_api else (
-                ["auto"] + (["generic"] if name in FAST_ROUTE and not args.no_generic else []))
+                ["auto"] + (["generic"] if _own_route(name) and not args.no_generic else []))
             for method in routes:
                 r = api(name, method, env, args.timeout)
                 row["api"]["cli" if method == "auto" else "generic"] = r
