@@ -273,3 +273,10 @@ def test_stabiliser_rejects_bad_values():
         pj.IfStartup(i_start=1.0, a_max=1.0, w_hand=1.0, t_blend=0.1, c_damp=0.01)
     with pytest.raises(ValueError, match="zeta"):
         pj.IfStartup.from_drive(DRIVE, zeta=-0.1)
+    # a current whose reluctance flux cancels the magnet's makes no restoring torque:
+    # the stabiliser cannot be designed there, the plain start is built as before
+    salient = pj.replace_params(DRIVE, L_q=float(DRIVE.motor.L_d) + 2.0 * float(
+        DRIVE.motor.psi_f) / (0.5 * float(DRIVE.i_max)))
+    assert pj.IfStartup.from_drive(salient).c_damp == 0.0
+    with pytest.raises(ValueError, match="active flux"):
+        pj.IfStartup.from_drive(salient, zeta=0.7)

@@ -119,9 +119,9 @@ class IfStartup(eqx.Module):
       observer's low-speed limit.
     - `t_blend`: duration of the handover (s), > 0.
     - `t_align`: duration of the alignment (s), > 0.
-    - `c_damp`: the stabiliser's gain $c$ (s), >= 0: the frame's phase shift per rad/s
-      of the rotor's speed relative to the ramp; 0 turns the stabiliser off (a plain
-      I/f start).
+    - `c_damp`: the stabiliser's gain $c$ (s), >= 0: the current vector's turn (rad)
+      per rad/s of the rotor's speed relative to the open-loop frame; 0 turns the
+      stabiliser off (a plain I/f start).
     - `w_damp`: bandwidth of the stabiliser's speed estimate (rad/s), > 0 when
       `c_damp` > 0.
     """
@@ -159,6 +159,9 @@ class IfStartup(eqx.Module):
         check_positive("IfStartup.from_drive", "zeta", zeta, "", allow_zero=True)
         w = float(drive.w_rated)
         i_start = i_start_pu * float(drive.i_max)
+        if zeta == 0:  # a plain start: no swing frequency needed
+            return cls(i_start=i_start, a_max=a_max_pu * w, w_hand=w_hand_pu * w,
+                       t_blend=t_blend, t_align=t_align)
         w_n = swing_frequency(drive, i_start)
         return cls(i_start=i_start, a_max=a_max_pu * w, w_hand=w_hand_pu * w,
                    t_blend=t_blend, t_align=t_align, c_damp=2.0 * zeta / w_n,
