@@ -117,7 +117,6 @@ def _program_key(tag: str, fn, args) -> str | None:
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
-_ANY_CUSTOM_CALL = [jax.export.DisabledSafetyCheck.custom_call("ALL")]
 _LOADED: dict = {}  # key -> the jitted call of a program read in this process
 
 
@@ -197,7 +196,8 @@ def stored_call(tag: str, fn, args: tuple, out_type):
         # every custom call allowed (LAPACK's QR and eigensolvers have no compatibility
         # guarantee across jaxlib versions): the key pins jax, jaxlib and the backend, so
         # a stored program only ever runs on the jaxlib that wrote it
-        blob = bytes(jax.export.export(jax.jit(flat), disabled_checks=_ANY_CUSTOM_CALL)(
+        blob = bytes(jax.export.export(jax.jit(flat), disabled_checks=[
+            jax.export.DisabledSafetyCheck.custom_call("ALL")])(
             *leaves).serialize())
     except Exception:  # noqa: BLE001 - not exportable: the caller traces as usual
         return None
