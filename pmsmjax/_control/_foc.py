@@ -197,7 +197,7 @@ class FOC(eqx.Module):
         if su is not None:
             # bumpless handover: before it starts, the speed loop's integrator holds the
             # torque of the open-loop current in the observer's frame
-            i_q_if = self.startup.amplitude(su) * jnp.where(su.w < 0, -1.0, 1.0)
+            i_q_if = self.startup.signed_amplitude(su)
             m = self.current.motor
             tau_obs = self.k_tau * m.psi_f * i_q_if * jnp.cos(su.off_obs)
             state = eqx.tree_at(lambda s: s.speed.x_I, state,

@@ -179,7 +179,7 @@ class IfStartup(eqx.Module):
         (A) measured, from the controller's constant machine model `motor` (the class
         docstring's relation)."""
         i = self.amplitude(state)
-        sign = jnp.where(state.w < 0, -1.0, 1.0)
+        sign = self.direction(state)
         psi_a = motor.psi_f + (motor.L_d - motor.L_q) * i
         slip = -(sign * (u_d - motor.R_s * i_d)
                  + state.w * (motor.psi_f + motor.L_d * i)) / psi_a
@@ -191,9 +191,18 @@ class IfStartup(eqx.Module):
         """The stabiliser's d current in the open-loop frame (A): the current vector
         turned against the rotor's swing relative to the frame, `c_damp` times the
         rotor's speed relative to it times the signed amplitude (at most 45 deg)."""
-        i = self.amplitude(state) * jnp.where(state.w < 0, -1.0, 1.0)
+        i = self.signed_amplitude(state)
         turn = jnp.clip(self.c_damp * (state.w_r - state.w), -_ID_MAX, _ID_MAX)
         return i * turn
+
+    @staticmethod
+    def direction(state: StartupState):
+        """The open-loop current's sign: +1, or -1 while the frame turns backwards."""
+        return jnp.where(state.w < 0, -1.0, 1.0)
+
+    def signed_amplitude(self, state: StartupState):
+        """The open-loop q current in the frame (A): `amplitude` with `direction`."""
+        return self.amplitude(state) * self.direction(state)
 
     def amplitude(self, state: StartupState):
         """The open-loop current amplitude (A): a smooth rise over `t_align`."""
