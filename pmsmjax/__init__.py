@@ -171,6 +171,7 @@ from .observers import (  # noqa: E402
     ParallelModelObserver as ParallelModelObserver,  # noqa: E402
     RotorFluxObserver as RotorFluxObserver,
     SensoredObserver as SensoredObserver,
+    SpeedFromAngle as SpeedFromAngle,
 )
 
 

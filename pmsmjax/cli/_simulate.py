@@ -117,6 +117,14 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="the I/f start's stabiliser: the damping ratio it gives the rotor's "
                         "swing about the aligned current (0.7 its design value; default "
                         "%(default)s: off; pmsmjax.IfStartup.from_drive(zeta=...))")
+    g.add_argument("--speed-from-angle", type=positive_float, default=None, metavar="HZ",
+                   nargs="?", const=round(pj.observers.W_TRACK / (2 * math.pi), 9),
+                   help="hand the controller the speed of the observer's angle estimate, "
+                        "through a tracking loop of this natural frequency (Hz; without a "
+                        "value 30 Hz), instead of the observer's own speed estimate "
+                        "(pmsmjax.SpeedFromAngle; a drive's practice: it keeps the AFO, "
+                        "rotor-flux and parallel-model observers' speed loops stable where "
+                        "their models are off, e.g. on a saturated machine)")
     g.add_argument("--theta-hat0", type=finite_float, default=None, metavar="DEG",
                    help="the observer's initial angle estimate (deg, electrical; default: "
                         "the rotor's initial angle 0, i.e. a known angle)")
@@ -155,6 +163,11 @@ def simulate_command(args: argparse.Namespace) -> int:
     if startup in ("if", "catch") and args.observer == "sensored":
         raise CLIError(f"--startup {startup} needs a sensorless observer (--observer NAME): "
                        "the sensored drive knows its angle from the start")
+    if args.speed_from_angle is not None:
+        if args.observer == "sensored":
+            raise CLIError("--speed-from-angle needs a sensorless observer (--observer NAME): "
+                           "the sensored drive reads its speed from the encoder")
+        observer = pj.SpeedFromAngle(observer, w_track=2 * math.pi * args.speed_from_angle)
     if startup == "catch":
         observer = pj.FlyingCatch(observer)
     controller = pj.FOC.from_drive(
@@ -167,6 +180,8 @@ def simulate_command(args: argparse.Namespace) -> int:
 
     text = ("observer sensored (the encoder's angle and speed)" if args.observer ==
             "sensored" else choice.describe())
+    if args.speed_from_angle is not None:
+        text += f", speed from its angle ({args.speed_from_angle:g} Hz tracking loop)"
     print(first_line("simulate", motor_text(drive, args), text + ", FOC",
                      f"scenario {args.scenario!r}: {description}"))
     if args.observer != "sensored":
@@ -223,6 +238,7 @@ def simulate_command(args: argparse.Namespace) -> int:
         "speed_hat0_pu": args.speed_hat0,
         "observer": args.observer,
         "observer_details": choice.info() if args.observer != "sensored" else None,
+        "speed_from_angle_Hz": args.speed_from_angle,
         "design_file": getattr(args, "design", None),
         "sensing": {"noise_std_A": float(args.noise), "seed": int(args.seed)},
         "computational_delay": bool(args.delay),

@@ -82,6 +82,12 @@ from ._rotor_flux import (
     RotorFluxObserver as RotorFluxObserver,
     RotorFluxState as RotorFluxState,
 )
+from ._speed_tracker import (
+    W_TRACK as W_TRACK,
+    SpeedFromAngle as SpeedFromAngle,
+    TrackerState as TrackerState,
+)
+from ._wrapper import WrappedObserver as WrappedObserver
 
 
 register_observer("eso", ESOObserver)

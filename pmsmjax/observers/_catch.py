@@ -29,8 +29,8 @@ speed it implies is far from the one its magnitude implies).
 
 The wrapper is pure and scan friendly (every decision a `jnp.where`); its analysis
 (error dynamics, equilibria, design) is the wrapped observer's: after the catch it is
-that observer. Its `motor` is the wrapped observer's machine model (replace it with
-`with_motor`, or scale it in `simulate`, and both use the new one).
+that observer (`WrappedObserver`). Its `motor` is the wrapped observer's machine model
+(replace it with `with_motor`, or scale it in `simulate`, and both use the new one).
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from .._data._flying_start import model_back_emf
 from .._frames import back_emf_angle, rotation_between, wrap_angle
 from .._plant._params import PMSMParams
 from ._base import AbstractObserver, Estimate, Measurement
+from ._wrapper import WrappedObserver
 
 
 #: A window is taken to show a turning rotor when its mean model back-EMF exceeds this
@@ -65,7 +66,7 @@ class CatchState(eqx.Module):
     u_sum: jnp.ndarray
 
 
-class FlyingCatch(AbstractObserver):
+class FlyingCatch(WrappedObserver):
     """`observer` re-started from the back-EMF of the first `n` periods where they show a
     turning rotor (see the module docstring).
 
@@ -80,9 +81,7 @@ class FlyingCatch(AbstractObserver):
     n: int = eqx.field(static=True, default=64)
 
     def __init__(self, observer: AbstractObserver, n: int = 64):
-        if not isinstance(observer, AbstractObserver) or isinstance(observer, FlyingCatch):
-            raise ValueError(f"`FlyingCatch(observer=...)` must be an observer (not a "
-                             f"FlyingCatch); got {type(observer).__name__}.")
+        self._check_wrapped("FlyingCatch", observer, FlyingCatch)
         if not isinstance(getattr(observer, "motor", None), PMSMParams):
             raise ValueError(f"`FlyingCatch`: {type(observer).__name__} has no machine "
                              "model (`motor`, a PMSMParams) to read the back-EMF with.")
@@ -93,25 +92,8 @@ class FlyingCatch(AbstractObserver):
         self.motor = observer.motor
         self.n = n
 
-    # the wrapped observer's contract, with this wrapper's machine model
-    def _inner(self) -> AbstractObserver:
-        return eqx.tree_at(lambda o: o.motor, self.observer, self.motor)
-
-    @property
-    def coordinates(self):
-        return self.observer.coordinates
-
-    @property
-    def design_units(self):
-        return self.observer.design_units
-
-    @property
-    def extras(self):
-        return self.observer.extras
-
-    @property
-    def angle_dependent(self):
-        return self.observer.angle_dependent
+    def _rewrap(self, observer: AbstractObserver) -> FlyingCatch:
+        return FlyingCatch(observer, self.n)
 
     def init(self, theta0=0.0, w0=0.0) -> CatchState:
         inner = self._inner().init(theta0=theta0, w0=w0)
@@ -158,37 +140,6 @@ class FlyingCatch(AbstractObserver):
         new = CatchState(inner=inner, k=jnp.minimum(k + 1, self.n + 1), i_prev=i_k, e_prev=e,
                          turn=turn, e_sum=e_sum, u_sum=u_sum)
         return new, est
-
-    # --- design and analysis: the wrapped observer's -----------------------------------
-    @classmethod
-    def from_drive(cls, drive, *, motor: PMSMParams | None = None, **design):
-        raise ValueError("`FlyingCatch` wraps an observer: `FlyingCatch(make_observer(name, "
-                         "drive))`.")
-
-    def design_parameters(self) -> dict:
-        return self.observer.design_parameters()
-
-    def with_design(self, **values):
-        return FlyingCatch(self.observer.with_design(**values), self.n)
-
-    def with_motor(self, motor: PMSMParams):
-        return FlyingCatch(self.observer.with_motor(motor), self.n)
-
-    def error_rhs(self, x, op, plant):
-        return self._inner().error_rhs(x, op, plant)
-
-    def error_scale(self, op, plant):
-        return self._inner().error_scale(op, plant)
-
-    def error_state(self, state, truth, plant):
-        return self._inner().error_state(state.inner, truth, plant)
-
-    def observer_state(self, x, truth, plant):
-        raise ValueError("`FlyingCatch.observer_state`: analyse the wrapped observer "
-                         "(`.observer`); the catch only changes its start.")
-
-    def designed_error(self, op, plant):
-        return self._inner().designed_error(op, plant)
 
 
 def _select(pred, a, b):
