@@ -38,6 +38,12 @@ def test_problem_rejects_bad_input_by_name():
         tg.TuningProblem(speed_range=(0.5, 0.1))
     with pytest.raises(ValueError, match="search"):
         tg.TuningProblem(search="sgd")
+    for bad in (0.0, -5.0, float("inf")):
+        with pytest.raises(ValueError, match="speed_from_angle"):
+            tg.TuningProblem(speed_from_angle=bad)
+    from tuning.__main__ import build_parser, problem_from_args
+    args = build_parser().parse_args(["--speed-from-angle"])
+    assert problem_from_args(args).speed_from_angle == 30.0
     # the family's own motor and its paper drive's sampling period by default
     q = tg.TuningProblem(observer="parallel-model")
     assert q.motor == "stumper_mt5" and q.T_s == 62.5e-6
@@ -87,6 +93,16 @@ def test_validation_runs_are_closed_loop(small):
     ref = 0.3 * w_r + 0.2 * w_r * (0.2 - 0.1) / 0.2
     assert w[k_ramp] < ref  # a real drive lags the ramp
     assert w[k_ramp] > 0.3 * w_r
+    assert "w_observer" not in traj.extras
+    # the speed loop on the speed of the observer's angle (`speed_from_angle`): the
+    # observer's own estimate rides along, the controller's speed is the tracker's (it
+    # differs from the observer's own, and the drive still reaches its set-point)
+    tracked = tg.simulate_set(lambda m: space.observer(None, m), p.drive(), p.controller(),
+                              va, T_s=p.T_s, noise_std=p.noise_std,
+                              save_every=p.save_every, speed_from_angle=30.0)
+    w_own = np.asarray(tracked.extras["w_observer"][0])
+    assert np.max(np.abs(np.asarray(tracked.w_hat[0]) - w_own)) > 1e-3 * w_r
+    assert abs(float(tracked.w_m[0, -1]) - 0.5 * w_r) < 0.02 * w_r
 
 
 def test_ramp_lag_bound_and_round_trip():

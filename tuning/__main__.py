@@ -16,6 +16,7 @@ bad configuration (one-line message).
 from __future__ import annotations
 
 import argparse
+import math
 import pathlib
 import sys
 import time
@@ -67,6 +68,12 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                    help="sampling period (s; default the motor's paper drive's)")
     p.add_argument("--noise", type=float, default=d.noise_std, metavar="A",
                    help="current-sensor noise std per component (A)")
+    p.add_argument("--speed-from-angle", type=float, default=None, metavar="HZ", nargs="?",
+                   const=round(pj.observers.W_TRACK / (2 * math.pi), 9),
+                   help="the drive's speed loop takes the speed of the observer's angle "
+                        "through a tracking loop of this natural frequency (Hz; without a "
+                        "value 30 Hz; pmsmjax.SpeedFromAngle) instead of the observer's own "
+                        "speed estimate, in every run")
     p.add_argument("--val-speeds", action=ListOption, item=finite_float,
                    default=d.val_speeds_pu, metavar="PU",
                    help="validation speeds (p.u., each with both signs)")
@@ -94,6 +101,8 @@ def problem_from_args(args) -> TuningProblem:
         kw["val_speeds_pu"] = tuple(args.val_speeds)
     if args.T_s is not None:
         kw["T_s"] = args.T_s
+    if args.speed_from_angle is not None:
+        kw["speed_from_angle"] = args.speed_from_angle
     if args.motor_file is not None:
         if args.motor is not None:
             raise ValueError(f"--motor {args.motor} and --motor-file {args.motor_file}: give "

@@ -55,7 +55,8 @@ class _Programs:
         def score(build, sset):
             # every run of `sset` with the observer `build(motor)` builds, and its metrics
             traj = simulate_set(build, drive, foc, sset, T_s=problem.T_s,
-                                noise_std=problem.noise_std, save_every=problem.save_every)
+                                noise_std=problem.noise_std, save_every=problem.save_every,
+                                speed_from_angle=problem.speed_from_angle)
             return run_metrics(traj, problem)
 
         def metrics(x, sset):

@@ -99,7 +99,10 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     _say(log, f"tuning the {problem.observer} observer on {problem.drive().name}: "
               f"{space.n} coordinates ({', '.join(space.names)}); "
               f"{sets['train'].n} training, {sets['heldout'].n} held-out and "
-              f"{sets['validation'].n} validation closed-loop runs (disjoint)")
+              f"{sets['validation'].n} validation closed-loop runs (disjoint)"
+              + ("" if problem.speed_from_angle is None else
+                 f"; the speed loop on the speed of the observer's angle "
+                 f"({problem.speed_from_angle:g} Hz tracking loop)"))
     evs = {k: Evaluator(problem, space, s) for k, s in sets.items()}
     ev = evs["train"]
     z0 = space.to_unconstrained(space.paper_point())

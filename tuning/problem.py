@@ -99,6 +99,11 @@ class TuningProblem:
     - `T_s`: sampling period (s); default the motor's paper drive's (`sampling_period`, else
       125 us).
     - `noise_std`: current-sensor noise per component (A).
+    - `speed_from_angle`: None (default) closes the speed loop on the observer's own
+      speed estimate; a frequency (Hz) hands the controller the speed of the observer's
+      angle through `pmsmjax.SpeedFromAngle` of that natural frequency, in every run
+      (training, held-out and validation): the drive the design is for computes its
+      speed that way.
 
     **Scenarios** (`tuning.scenarios`): closed-loop sensorless runs, speed controlled on
     the estimate, nothing imposed.
@@ -150,6 +155,7 @@ class TuningProblem:
     set_params: tuple = ()
     T_s: float | None = None
     noise_std: float = 0.02
+    speed_from_angle: float | None = None
     # scenarios
     t_end: float = 0.3
     n_train: int = 24
@@ -225,6 +231,9 @@ class TuningProblem:
                 v = getattr(self, k)
                 if not (isinstance(v, (int, float)) and math.isfinite(v) and ok(v)):
                     _bad(k, v, allowed)
+        f = self.speed_from_angle
+        if f is not None and not (isinstance(f, (int, float)) and math.isfinite(f) and f > 0):
+            _bad("speed_from_angle", f, "None or a frequency > 0 (Hz)")
         for k in ("speed_range", "accel_range", "mismatch_range", "resistance_range",
                   "flux_range", "noise_range", "damping_range"):
             lo_hi = getattr(self, k)

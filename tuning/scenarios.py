@@ -247,15 +247,19 @@ def scenario(drive: pj.Drive, s0, s1, t0, t1, t_load, load_pu, t_end) -> pj.Scen
 
 
 def simulate_set(make_observer, drive: pj.Drive, foc: pj.FOC, sset: ScenarioSet, *,
-                 T_s: float, noise_std: float, save_every: int) -> pj.Trajectory:
+                 T_s: float, noise_std: float, save_every: int,
+                 speed_from_angle: float | None = None) -> pj.Trajectory:
     """Run every scenario of `sset` (vmapped, `throw=False`): `make_observer(motor)`
     builds the observer (its design already applied; traced values allowed) with the
-    observer-model `motor`."""
+    observer-model `motor`; `speed_from_angle` (Hz): the controller takes the speed of
+    its angle (`pmsmjax.SpeedFromAngle`) instead of its own speed estimate."""
     w_r = float(drive.w_rated)
     noisy = noise_std > 0
 
     def one(s0, s1, t0, t1, t_load, load_pu, k_d, k_q, k_R, k_psi, k_noise, key):
         obs = make_observer(observer_model(drive, k_d, k_q, k_R, k_psi))
+        if speed_from_angle is not None:
+            obs = pj.SpeedFromAngle(obs, w_track=2 * math.pi * speed_from_angle)
         sc = scenario(drive, s0, s1, t0, t1, t_load, load_pu, sset.t_end)
         return pj.simulate(drive, foc, obs, sc, T_s=T_s,
                            sensing=pj.Sensing(noise_std=noise_std * k_noise),
