@@ -1,6 +1,6 @@
-"""`SpeedFromAngle`: the speed a drive takes from an observer's angle estimate."""
+"""`SpeedFromAngle`: the speed a drive takes from an observer's angle estimate (its
+closed loop on the saturated preset: tests/test_saturated_analysis.py)."""
 
-import json
 import math
 
 import jax
@@ -60,34 +60,6 @@ def test_the_tracker_is_its_discrete_loop_and_lags_a_ramp_by_its_closed_form():
                                rtol=0, atol=1e-9)
     lag = (w - w_hat)[t > 0.1]
     np.testing.assert_allclose(lag, 2 * zeta * a / w_track, rtol=0.018)
-
-
-def test_the_saturated_rotor_flux_drive_holds_with_its_angle_speed(tmp_path, capsys):
-    """ipm3k5_sat, the rotor-flux observer, `pmsmjax simulate --load 0.3`: with the
-    observer's own speed estimate in the speed loop it loses lock (docs/saturation.md);
-    with `--speed-from-angle` (30 Hz) it holds, its speed error after settling 8.5e-4 p.u.
-    RMS (tested at 3x), and its angle error during the load step is the steady-state
-    analysis's static error at that speed and load (measured 1.124 deg against 1.120, a
-    ripple of 0.013 deg standard deviation; tested at about 3x)."""
-    out = tmp_path / "run"
-    argv = ["simulate", "--motor", "ipm3k5_sat", "--observer", "rotor-flux", "--load", "0.3",
-            "--speed-from-angle", "--no-plot", "--out", str(out)]
-    assert cli_main(argv) == 0
-    first = capsys.readouterr().out.splitlines()[0]
-    assert "speed from its angle (30 Hz tracking loop)" in first
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["status"] == "successful" and summary["speed_from_angle_Hz"] == 30.0
-    assert summary["speed_error_after_settling"]["rms_pu"] < 3 * 8.5e-4
-    traj = np.load(out / "trajectory.npz")
-    t, err = traj["t"], np.degrees(traj["theta_err"])
-    drive = pj.preset("ipm3k5_sat")
-    w, tau = 0.5 * float(drive.w_rated), 0.3 * float(drive.tau_rated)
-    point = pj.analysis.saturated_operating_point(make_observer("rotor-flux", drive), drive,
-                                                  w, tau)
-    static = np.degrees(float(point.theta))
-    held = err[(t > 1.05) & (t < 1.2)]  # the load on since 0.8 s, off at 1.2 s
-    assert static > 0.5
-    assert abs(held.mean() - static) < 0.015 and held.std() < 0.04, (held.mean(), static)
 
 
 def test_bad_wrappers_are_named():
