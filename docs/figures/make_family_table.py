@@ -1,0 +1,105 @@
+"""The family table of docs/tuning.md ("Results for every observer family"): every
+tunable observer with `python -m tuning --observer NAME` on its paper's motor and the
+defaults, each in a fresh process as a user runs it; the table is written between the
+page's `<!-- family table -->` markers and to docs/figures/tuning_families.json.
+
+Run from the repository root: `python docs/figures/make_family_table.py [--out DIR]
+[--observers a,b] [--speed-from-angle]` (DIR keeps each run's output; default a
+temporary folder). The whole table takes about 35 minutes on a 2-core machine."""
+
+import argparse
+import json
+import os
+import platform
+import re
+import subprocess
+import sys
+import tempfile
+import time
+
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+PAGE = os.path.join(HERE, os.pardir, "tuning.md")
+BEGIN, END = "<!-- family table -->", "<!-- /family table -->"
+
+
+def tunable_observers() -> list[str]:
+    from pmsmjax.observers import observer_class, observer_names
+
+    return [n for n in observer_names() if observer_class(n).tunable]
+
+
+def run_one(name: str, out: str, extra: list[str]) -> dict:
+    t0 = time.perf_counter()
+    cmd = [sys.executable, "-m", "tuning", "--observer", name, "--out", out, "--no-plot",
+           "--no-progress", *extra]
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if p.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} -> exit {p.returncode}\n{p.stderr[-2000:]}")
+    s = json.loads(open(os.path.join(out, "summary.json")).read())
+    a = s["accounting"]["validation"]
+    return dict(observer=name, motor=s["motor"], paper_rms_deg=a["mean_rms_deg_reference"],
+                tuned_rms_deg=a["mean_rms_deg"], better=a["better"], n=a["n"],
+                worst_rms_change_pct=a["worst_rms_change_pct"],
+                lost_lock_paper=a["lost_lock_reference"], lost_lock_tuned=a["lost_lock"],
+                new_lost_lock=a["new_lost_lock"],
+                verdict="holds" if s["verdict"]["holds"] else "does not hold", wall_s=wall)
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| observer | motor | paper RMS (deg) | tuned RMS (deg) | `better` | "
+           "`worst_rms_change_pct` | lost lock paper -> tuned (`new_lost_lock`) | verdict "
+           "| wall |",
+           "|---|---|---:|---:|---:|---:|---|---|---:|"]
+    for r in rows:
+        out.append(f"| {r['observer']} | {r['motor']} | {r['paper_rms_deg']:.2f} | "
+                   f"{r['tuned_rms_deg']:.2f} | {r['better']}/{r['n']} | "
+                   f"{r['worst_rms_change_pct']:+.1f} % | {r['lost_lock_paper']} -> "
+                   f"{r['lost_lock_tuned']} ({r['new_lost_lock']} new) | {r['verdict']} | "
+                   f"{r['wall_s']:.0f} s |")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=None, help="keep each run's output here")
+    ap.add_argument("--observers", default=None, help="comma-separated (default: all)")
+    ap.add_argument("--speed-from-angle", action="store_true",
+                    help="every run with the speed loop on the angle's speed (30 Hz); "
+                         "written to tuning_families_speed_from_angle.json, page untouched")
+    ap.add_argument("--from-json", action="store_true",
+                    help="only write the page's table from tuning_families.json")
+    args = ap.parse_args(argv)
+    stem = "tuning_families" + ("_speed_from_angle" if args.speed_from_angle else "")
+    if args.from_json:
+        saved = json.loads(open(os.path.join(HERE, stem + ".json")).read())
+        rows, machine, date = saved["rows"], saved["machine"], saved["date"]
+    else:
+        names = args.observers.split(",") if args.observers else tunable_observers()
+        extra = ["--speed-from-angle"] if args.speed_from_angle else []
+        base = args.out or tempfile.mkdtemp(prefix="families-")
+        rows = []
+        for name in names:
+            r = run_one(name, os.path.join(base, name), extra)
+            rows.append(r)
+            print(f"{name}: {r['verdict']}, {r['better']}/{r['n']}, "
+                  f"{r['worst_rms_change_pct']:+.1f} %, {r['wall_s']:.0f} s", flush=True)
+        machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python "
+                   f"{platform.python_version()}")
+        date = time.strftime("%Y-%m-%d")
+        with open(os.path.join(HERE, stem + ".json"), "w") as f:
+            json.dump(dict(machine=machine, date=date, rows=rows), f, indent=1)
+    text = table(rows)
+    print(text)
+    if not args.speed_from_angle and not args.observers:
+        page = open(PAGE).read()
+        stamp = f"(`docs/figures/make_family_table.py`, {date}, {machine})"
+        page = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END),
+                      f"{BEGIN}\n{stamp}:\n\n{text}\n{END}", page, flags=re.S)
+        open(PAGE, "w").write(page)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
