@@ -16,7 +16,6 @@ bad configuration (one-line message).
 from __future__ import annotations
 
 import argparse
-import math
 import pathlib
 import sys
 import time
@@ -69,7 +68,7 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=d.noise_std, metavar="A",
                    help="current-sensor noise std per component (A)")
     p.add_argument("--speed-from-angle", type=float, default=None, metavar="HZ", nargs="?",
-                   const=round(pj.observers.W_TRACK / (2 * math.pi), 9),
+                   const=pj.observers.W_TRACK_HZ,
                    help="the drive's speed loop takes the speed of the observer's angle "
                         "through a tracking loop of this natural frequency (Hz; without a "
                         "value 30 Hz; pmsmjax.SpeedFromAngle) instead of the observer's own "

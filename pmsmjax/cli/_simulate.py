@@ -118,7 +118,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                         "swing about the aligned current (0.7 its design value; default "
                         "%(default)s: off; pmsmjax.IfStartup.from_drive(zeta=...))")
     g.add_argument("--speed-from-angle", type=positive_float, default=None, metavar="HZ",
-                   nargs="?", const=round(pj.observers.W_TRACK / (2 * math.pi), 9),
+                   nargs="?", const=pj.observers.W_TRACK_HZ,
                    help="hand the controller the speed of the observer's angle estimate, "
                         "through a tracking loop of this natural frequency (Hz; without a "
                         "value 30 Hz), instead of the observer's own speed estimate "

@@ -84,6 +84,7 @@ from ._rotor_flux import (
 )
 from ._speed_tracker import (
     W_TRACK as W_TRACK,
+    W_TRACK_HZ as W_TRACK_HZ,
     SpeedFromAngle as SpeedFromAngle,
     TrackerState as TrackerState,
 )

@@ -56,8 +56,10 @@ from ._base import AbstractObserver, Estimate, Measurement
 from ._wrapper import WrappedObserver
 
 
-#: The default natural frequency of the tracker (rad/s): 2 pi 30 Hz (module docstring).
-W_TRACK = 2.0 * math.pi * 30.0
+#: The default natural frequency of the tracker (Hz, and in rad/s): 30 Hz (module
+#: docstring).
+W_TRACK_HZ = 30.0
+W_TRACK = 2.0 * math.pi * W_TRACK_HZ
 
 
 class TrackerState(eqx.Module):
