@@ -40,11 +40,17 @@ def test_readme_example_runs_and_shows_the_static_error(tmp_path, monkeypatch, c
 
 
 def test_observers_page_example_runs():
-    """The registry example of docs/observers.md: under load (5 A) the observer with L_q
-    50 % high has its designed equilibrium off zero, stable."""
-    block, = re.findall(r"```python\n(.*?)```", OBSERVERS.read_text(), flags=re.S)
+    """The examples of docs/observers.md, run in order in one namespace: under load (5 A)
+    the registry's observer with L_q 50 % high has its designed equilibrium off zero,
+    stable; the speed taken from the angle (`SpeedFromAngle`) runs in the closed loop
+    with the observer's own speed beside it."""
+    blocks = re.findall(r"```python\n(.*?)```", OBSERVERS.read_text(), flags=re.S)
+    assert len(blocks) == 2
     ns: dict = {}
-    exec(compile(block, str(OBSERVERS), "exec"), ns)
+    for block in blocks:
+        exec(compile(block, str(OBSERVERS), "exec"), ns)
+    traj = ns["traj"]
+    assert bool(traj.ok) and "w_observer" in traj.extras
     eq = ns["eq"]
     assert int(eq.status) == 0
     theta = np.degrees(np.asarray(eq.theta)[np.asarray(eq.valid)])
