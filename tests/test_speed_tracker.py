@@ -78,3 +78,18 @@ def test_bad_wrappers_are_named():
     assert tracked.with_design().w_track == 100.0
     assert pj.FlyingCatch(tracked).observer is tracked
     assert cli_main(["simulate", "--speed-from-angle", "--t-end", "0.1", "--no-plot"]) == 2
+
+
+def test_export_c_generates_the_tracked_speed(tmp_path, capsys):
+    """`pmsmjax export-c --speed-from-angle`: the header says that w_hat is the tracked
+    speed, with the loop's gains (the C against replay: tests/test_firmware.py,
+    "afo-tracked")."""
+    out = tmp_path / "fw"
+    assert cli_main(["export-c", "--observer", "afo", "--speed-from-angle", "20",
+                     "--out", str(out)]) == 0
+    assert "speed from its angle (20 Hz tracking loop)" in capsys.readouterr().out
+    header = (out / "pmsm_observer.h").read_text()
+    w_t = 2 * math.pi * 20.0
+    assert "speed from its angle (SpeedFromAngle)" in header
+    assert f"k_p = 2 zeta w_track = {2 * w_t!r} rad/s" in header
+    assert "trk_w" in header

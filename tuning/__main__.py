@@ -21,7 +21,13 @@ import sys
 import time
 
 import pmsmjax as pj
-from pmsmjax.cli import ListOption, add_drive_options, finite_float, out_dir_transaction
+from pmsmjax.cli import (
+    ListOption,
+    add_drive_options,
+    add_speed_from_angle_option,
+    finite_float,
+    out_dir_transaction,
+)
 from pmsmjax.observers import observer_names
 
 from .problem import SEARCHES, TuningProblem
@@ -67,12 +73,7 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                    help="sampling period (s; default the motor's paper drive's)")
     p.add_argument("--noise", type=float, default=d.noise_std, metavar="A",
                    help="current-sensor noise std per component (A)")
-    p.add_argument("--speed-from-angle", type=float, default=None, metavar="HZ", nargs="?",
-                   const=pj.observers.W_TRACK_HZ,
-                   help="the drive's speed loop takes the speed of the observer's angle "
-                        "through a tracking loop of this natural frequency (Hz; without a "
-                        "value 30 Hz; pmsmjax.SpeedFromAngle) instead of the observer's own "
-                        "speed estimate, in every run")
+    add_speed_from_angle_option(p, "; every run's speed loop takes it")
     p.add_argument("--val-speeds", action=ListOption, item=finite_float,
                    default=d.val_speeds_pu, metavar="PU",
                    help="validation speeds (p.u., each with both signs)")

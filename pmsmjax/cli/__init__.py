@@ -22,6 +22,7 @@ from ._drive_options import (
 )
 from ._observer_options import (
     ObserverChoice as ObserverChoice,
+    add_speed_from_angle_option as add_speed_from_angle_option,
     observer_from_args as observer_from_args,
 )
 from ._operating_point import current_from_args as current_from_args

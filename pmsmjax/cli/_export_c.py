@@ -18,7 +18,12 @@ from ._drive_options import (
     motor_text,
     sampling_period_from_args,
 )
-from ._observer_options import add_observer_options
+from ._observer_options import (
+    add_observer_options,
+    add_speed_from_angle_option,
+    speed_from_angle_text,
+    with_speed_from_angle,
+)
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._values import CLIError, positive_float
 
@@ -33,6 +38,7 @@ def _arguments(p: argparse.ArgumentParser) -> None:
                         "recording replayed must have this sampling period")
     g.add_argument("--float32", action="store_true",
                    help="generate float (single precision) arithmetic instead of double")
+    add_speed_from_angle_option(g, "; the generated step returns it as w_hat")
 
 
 def export_c_command(args: argparse.Namespace) -> int:
@@ -49,11 +55,13 @@ def export_c_command(args: argparse.Namespace) -> int:
                        "allowed for three-phase drives (drop u_dt with --set u_dt=0 to "
                        "generate code that takes applied voltages)")
     try:
-        paths = export_c(choice.observer, args.T_s, prepare_out_dir(args.out),
+        paths = export_c(with_speed_from_angle(args, choice.observer), args.T_s,
+                         prepare_out_dir(args.out),
                          float32=args.float32, inverter=inverter)
     except ValueError as e:
         raise CLIError(str(e)) from e
-    print(first_line("export-c", motor_text(drive, args), choice.describe(),
+    print(first_line("export-c", motor_text(drive, args),
+                     choice.describe() + speed_from_angle_text(args),
                      f"T_s = {args.T_s:g} s, {'float' if args.float32 else 'double'}"))
     print(f"wrote {', '.join(paths.values())}")
     if inverter is None:

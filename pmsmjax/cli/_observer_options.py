@@ -346,3 +346,29 @@ def scheduled_observer(args, observer: pj.AbstractObserver, drive: pj.Drive):
         raise CLIError("--scheduled: the sensored observer (the encoder) has no machine "
                        "model; give a sensorless --observer")
     return observer.with_magnetic(magnetic)
+
+
+def add_speed_from_angle_option(group, what: str = "") -> None:
+    """`--speed-from-angle [HZ]` (`pmsmjax.SpeedFromAngle`), the same for every command that
+    takes it; `what` ends the help (what the command does with it)."""
+    group.add_argument(
+        "--speed-from-angle", type=positive_float, default=None, metavar="HZ", nargs="?",
+        const=pj.observers.W_TRACK_HZ,
+        help="the speed of the observer's angle estimate through a type-2 tracking loop of "
+             "this natural frequency (Hz; without a value "
+             f"{pj.observers.W_TRACK_HZ:g} Hz) in place of the observer's own speed "
+             "estimate (pmsmjax.SpeedFromAngle; a drive's practice: it keeps the AFO, "
+             "rotor-flux and parallel-model observers' speed loops stable where their "
+             "models are off, e.g. on a saturated machine)" + what)
+
+
+def speed_from_angle_text(args) -> str:
+    """What the console's first line adds for `--speed-from-angle` (empty without it)."""
+    f = getattr(args, "speed_from_angle", None)
+    return "" if f is None else f", speed from its angle ({f:g} Hz tracking loop)"
+
+
+def with_speed_from_angle(args, observer):
+    """`observer` wrapped in `SpeedFromAngle` when `--speed-from-angle` was given."""
+    f = getattr(args, "speed_from_angle", None)
+    return observer if f is None else pj.SpeedFromAngle(observer, w_track=2 * math.pi * f)

@@ -26,7 +26,12 @@ from ._drive_options import (
     motor_text,
     sampling_period_from_args,
 )
-from ._observer_options import add_observer_options
+from ._observer_options import (
+    add_observer_options,
+    add_speed_from_angle_option,
+    speed_from_angle_text,
+    with_speed_from_angle,
+)
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._runs import compile_and_run, run_lock_status
 from ._scenarios import SCENARIOS
@@ -117,14 +122,7 @@ def _simulate_arguments(p: argparse.ArgumentParser) -> None:
                    help="the I/f start's stabiliser: the damping ratio it gives the rotor's "
                         "swing about the aligned current (0.7 its design value; default "
                         "%(default)s: off; pmsmjax.IfStartup.from_drive(zeta=...))")
-    g.add_argument("--speed-from-angle", type=positive_float, default=None, metavar="HZ",
-                   nargs="?", const=pj.observers.W_TRACK_HZ,
-                   help="hand the controller the speed of the observer's angle estimate, "
-                        "through a tracking loop of this natural frequency (Hz; without a "
-                        "value 30 Hz), instead of the observer's own speed estimate "
-                        "(pmsmjax.SpeedFromAngle; a drive's practice: it keeps the AFO, "
-                        "rotor-flux and parallel-model observers' speed loops stable where "
-                        "their models are off, e.g. on a saturated machine)")
+    add_speed_from_angle_option(g, "; the controller takes it")
     g.add_argument("--theta-hat0", type=finite_float, default=None, metavar="DEG",
                    help="the observer's initial angle estimate (deg, electrical; default: "
                         "the rotor's initial angle 0, i.e. a known angle)")
@@ -167,7 +165,7 @@ def simulate_command(args: argparse.Namespace) -> int:
         if args.observer == "sensored":
             raise CLIError("--speed-from-angle needs a sensorless observer (--observer NAME): "
                            "the sensored drive reads its speed from the encoder")
-        observer = pj.SpeedFromAngle(observer, w_track=2 * math.pi * args.speed_from_angle)
+        observer = with_speed_from_angle(args, observer)
     if startup == "catch":
         observer = pj.FlyingCatch(observer)
     controller = pj.FOC.from_drive(
@@ -180,8 +178,7 @@ def simulate_command(args: argparse.Namespace) -> int:
 
     text = ("observer sensored (the encoder's angle and speed)" if args.observer ==
             "sensored" else choice.describe())
-    if args.speed_from_angle is not None:
-        text += f", speed from its angle ({args.speed_from_angle:g} Hz tracking loop)"
+    text += speed_from_angle_text(args)
     print(first_line("simulate", motor_text(drive, args), text + ", FOC",
                      f"scenario {args.scenario!r}: {description}"))
     if args.observer != "sensored":

@@ -45,6 +45,7 @@ tracks an angle, not a back-EMF, so it has no sign ambiguity of its own).
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -81,6 +82,9 @@ class SpeedFromAngle(WrappedObserver):
     - `w_track`: the tracker's natural frequency (rad/s), > 0; default 2 pi 30 Hz.
     - `zeta`: its damping (-), > 0; default 1 (critically damped).
     """
+
+    #: C code (`pmsmjax export-c`): the wrapped observer's, then the tracking loop.
+    c_emitter: ClassVar[str | None] = "_tracker:emit"
 
     observer: AbstractObserver
     motor: PMSMParams | None
