@@ -20,8 +20,7 @@ def emit(observer: SpeedFromAngle, T_s: float) -> CObserver:
             f"export-c has no C emitter for the observer inside SpeedFromAngle "
             f"({type(inner).__name__})")
     obs = emitter(inner, T_s)
-    w_t, zeta = float(observer.w_track), float(observer.zeta)
-    k_p, k_i = 2.0 * zeta * w_t, w_t * w_t
+    k_p, k_i = (float(g) for g in observer.gains())
     helpers = obs.helpers + f"""
 /* the wrapped observer's step ({obs.name}) */
 static void pmsm_obs_inner_step(pmsm_obs_state *s, const pmsm_real i_ab[2],

@@ -27,8 +27,8 @@ lags by $a/k_i$; 33 rad/s at the default on zhang750 ramped from 0 to 0.5 p.u. i
 0.2 s, 2.5 % of its rated speed, gone within about $5/\omega_t$ = 27 ms of the ramp's
 end). The output angle is the observer's own $\hat\theta_k$ (no lag added); the output
 speed is the integral state $\varpi_k$ (the proportional path would carry the angle's
-noise). The wrapped observer runs unchanged,
-its own speed estimate in `Estimate.extras["w_observer"]`.
+noise). The wrapped observer runs unchanged, its own speed estimate in
+`Estimate.extras["w_observer"]`.
 
 **Bandwidth.** `w_track` sits between the speed loop and the observer's own modes: too
 slow and its lag enters the speed loop (on the saturated preset, 60 rad/s against the
@@ -106,6 +106,11 @@ class SpeedFromAngle(WrappedObserver):
     def _rewrap(self, observer: AbstractObserver) -> SpeedFromAngle:
         return SpeedFromAngle(observer, self.w_track, self.zeta)
 
+    def gains(self):
+        """`(k_p, k_i)` (rad/s, rad/s^2): `2 zeta w_track`, `w_track^2` (the step and its
+        generated C both take them from here)."""
+        return 2.0 * self.zeta * self.w_track, self.w_track ** 2
+
     @property
     def extras(self):
         return {**self.observer.extras,
@@ -123,7 +128,7 @@ class SpeedFromAngle(WrappedObserver):
 
     def step(self, state: TrackerState, meas: Measurement, T_s):
         inner, est = self._inner().step(state.inner, meas, T_s)
-        k_p, k_i = 2.0 * self.zeta * self.w_track, self.w_track ** 2
+        k_p, k_i = self.gains()
         pred = state.theta + T_s * state.w
         eps = wrap_angle(est.theta_hat - pred)
         w = state.w + (T_s * k_i) * eps
