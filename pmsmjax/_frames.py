@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -41,6 +42,10 @@ def jmul(x):
     return _vec(-x[..., 1], x[..., 0])
 
 
+# `rotate` and `wrap_angle` are jitted: called outside a trace (on a trajectory's arrays,
+# by metrics and replay), each of their operations would otherwise compile a program of
+# its own for every new shape; inside a trace the call is inlined.
+@jax.jit
 def rotate(x, theta):
     """Rotate 2-vector(s) `x` by angle `theta` (rad): exp(theta J) x."""
     x = jnp.asarray(x)
@@ -82,6 +87,7 @@ def inv_clarke(x_ab, x_0=0.0):
     return jnp.asarray(x_ab) @ jnp.asarray(_INV_CLARKE.T) + jnp.asarray(x_0)[..., None]
 
 
+@jax.jit
 def wrap_angle(theta):
     """Wrap angle(s) to (-pi, pi]."""
     w = jnp.remainder(theta + jnp.pi, 2 * jnp.pi) - jnp.pi

@@ -22,6 +22,7 @@ A time, not a count of samples: the same part of the run whatever the sampling p
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -44,6 +45,9 @@ LOCK_DWELL_S = 10e-3
 LOCK_ACQUIRE_S = 50e-3
 
 
+# The array metrics below are jitted: outside a trace (on a finished run's arrays) each
+# of their operations would otherwise compile a program of its own for every new shape.
+@jax.jit
 def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
                 dwell_s: float = LOCK_DWELL_S, acquire_s: float = LOCK_ACQUIRE_S) -> dict:
     r"""Whether an observer acquired and kept lock: **the one definition of loss of lock**
@@ -130,6 +134,7 @@ def _at_or_after(t, t_from):
     return t >= jnp.asarray(t_from)[..., None] - 1e-3 * _spacing(t)
 
 
+@jax.jit
 def settling_time(t, err, tol, t_from=None):
     """Time after which `|err| <= tol` for good; `nan` if it never settles (the last
     sample is outside the band). Works under `vmap`.
@@ -289,9 +294,13 @@ def run_errors(traj):
     **Arguments:** `traj`: a `Trajectory` (any leading batch axes; samples on the last
     axis).
     """
-    th, w_err = traj.theta_err, traj.w_m - traj.w_hat
+    return _run_errors(traj.theta_err, traj.w_m, traj.w_hat, traj.ok)
+
+
+def _run_errors(theta_err, w_m, w_hat, ok):
+    th, w_err = theta_err, w_m - w_hat
     fin = jnp.isfinite(th) & jnp.isfinite(w_err)
-    ok = traj.ok & jnp.all(fin, axis=-1)
+    ok = ok & jnp.all(fin, axis=-1)
     return (jnp.rad2deg(jnp.where(fin, th, jnp.pi)), jnp.where(fin, w_err, 0.0), ok)
 
 
@@ -325,13 +334,19 @@ def run_metrics(traj, *, lock_deg: float = LOCK_DEG, settle_from=None,
 
     **Returns:** a dict of arrays with the batch shape of `traj`.
     """
-    t = jnp.asarray(traj.t)
-    th, w_err, ok = run_errors(traj)
+    return _run_metrics(traj.t, traj.theta_err, traj.w_m, traj.w_hat, traj.ok, lock_deg,
+                        settle_from, settle_band_deg)
+
+
+@jax.jit
+def _run_metrics(t, theta_err, w_m, w_hat, ok, lock_deg, settle_from, settle_band_deg):
+    t = jnp.asarray(t)
+    th, w_err, ok = _run_errors(theta_err, w_m, w_hat, ok)
     win = jnp.broadcast_to(static_window(t), th.shape)
     static = _window_mean(th, win)
     noise, _ = _window_std(w_err, win)
     settle = settling_time(t, th - static[..., None], settle_band_deg, settle_from)
-    lost = lock_status(t, traj.theta_err, ok=ok, lock_deg=lock_deg)["lost"]
+    lost = lock_status(t, theta_err, ok=ok, lock_deg=lock_deg)["lost"]
     return dict(static_deg=static, rms_deg=_safe_sqrt(jnp.mean(th ** 2, -1)),
                 max_abs_deg=jnp.max(jnp.abs(th), -1), settle_s=settle, noise_rad_s=noise,
                 lost_lock=lost, ok=ok)
@@ -368,11 +383,15 @@ def trajectory_metrics(traj, *, t_transient, T_s, save_every=1, theta_err0) -> d
 
     **Returns:** a dict of arrays with the batch shape of `traj`.
     """
-    t = traj.t
-    th = traj.theta_err
-    w_err = traj.w_m - traj.w_hat
+    return _trajectory_metrics(traj.t, traj.theta_err, traj.w_m, traj.w_hat, traj.ok,
+                               t_transient, T_s, save_every, theta_err0)
+
+
+@jax.jit
+def _trajectory_metrics(t, th, w_m, w_hat, ok, t_transient, T_s, save_every, theta_err0):
+    w_err = w_m - w_hat
     fin = jnp.isfinite(th) & jnp.isfinite(w_err)
-    ok = traj.ok & jnp.all(fin, axis=-1)
+    ok = ok & jnp.all(fin, axis=-1)
     # keep non-finite samples out of the arithmetic (their gradient is dropped anyway)
     th = jnp.where(fin, th, 0.0)
     w_err = jnp.where(fin, w_err, 0.0)
