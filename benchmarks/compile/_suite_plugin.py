@@ -1,0 +1,62 @@
+"""A pytest plugin for `benchmarks.compile.suite`: where each worker's compile time goes.
+
+It listens to JAX's compile events (`jax.monitoring`: tracing, lowering to MLIR and XLA's
+backend compile, each with the name of the function compiled) and, when the session
+ends, writes `worker-PID.json` into `$PMSMJAX_SUITE_PROFILE_DIR`:
+
+- `tests`: per test id, the seconds of each event while it ran (setup, call, teardown);
+- `functions`: per compiled function name, `[compiles, backend_s, trace_s, lower_s]`.
+
+Only the workers' own compiles are seen: a test's child processes are not (their time
+is in the test's duration).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+
+_EVENTS = {"/jax/core/compile/backend_compile_duration": 1,
+           "/jax/core/compile/jaxpr_trace_duration": 2,
+           "/jax/core/compile/jaxpr_to_mlir_module_duration": 3}
+_current: list[str | None] = [None]
+_tests: dict = collections.defaultdict(lambda: collections.defaultdict(float))
+_functions: dict = collections.defaultdict(lambda: [0, 0.0, 0.0, 0.0])
+
+
+def _listener(event: str, duration: float, **kwargs) -> None:
+    k = _EVENTS.get(event)
+    if k is None:
+        return
+    if _current[0] is not None:
+        _tests[_current[0]][event.rsplit("/", 1)[1]] += duration
+    row = _functions[str(kwargs.get("fun_name"))]
+    row[0] += k == 1
+    row[k] += duration
+
+
+def pytest_configure(config):
+    import jax.monitoring
+
+    jax.monitoring.register_event_duration_secs_listener(_listener)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    _current[0] = item.nodeid
+    yield
+    _current[0] = None
+
+
+def pytest_sessionfinish(session):
+    folder = os.environ.get("PMSMJAX_SUITE_PROFILE_DIR")
+    if not folder:
+        return
+    path = Path(folder) / f"worker-{os.getpid()}.json"
+    path.write_text(json.dumps({"tests": {k: dict(v) for k, v in _tests.items()},
+                                "functions": dict(_functions)}))
