@@ -231,6 +231,7 @@ def test_quick_compiles_give_the_same_numbers(env, tmp_path):
         out[quick] = json.loads((tmp_path / f"{quick}.json").read_text())
     assert "--xla_backend_optimization_level=0" in out["1"]["flags"].split()
     assert "--xla_cpu_use_fusion_emitters=false" in out["1"]["flags"].split()
+    assert "--xla_cpu_parallel_codegen_split_count=1" in out["1"]["flags"].split()
     assert "xla_backend_optimization_level" not in out["0"]["flags"]
     a, b = out["0"], out["1"]
     # They differ in round-off only (measured: 7e-15 rad, 2e-13 rad/s of 505 rad/s, 1e-15

@@ -54,7 +54,8 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
 
 - **Quick compiles (opt-in, `PMSMJAX_QUICK_COMPILE=1`).** XLA's CPU backend spends most
   of a compile in LLVM, once per fused kernel; `QUICK_COMPILE_FLAGS` compile at LLVM's
-  lowest optimisation level with XLA's older kernel emitters. Programs then compile
+  lowest optimisation level with XLA's older kernel emitters, one LLVM module per
+  program (fewer memory mappings per compiled program). Programs then compile
   2 to 3x faster and run 1.3 to 3x slower (BENCHMARKS.md, "Quick compiles"). It pays where
   thousands of programs each run once, as in the test suite, which turns it on for its
   workers, their subprocesses and the notebooks' kernels (`tests/conftest.py`); the
