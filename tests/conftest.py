@@ -4,9 +4,10 @@ import os
 # Quick compiles (pmsmjax.runtime, QUICK_COMPILE_FLAGS): the suite compiles thousands of
 # programs and runs most of them once, so it compiles at LLVM's lowest optimisation level
 # with XLA's older kernel emitters, which halves its time. Set here, before pmsmjax is
-# imported, so that the workers, their subprocesses (the command-line tests) and the
-# notebooks' kernels all inherit it; tests/test_runtime.py checks that both settings give
-# the same numbers. PMSMJAX_QUICK_COMPILE=0 runs the suite with the users' default.
+# imported, so that the workers (and the notebooks they run), their subprocesses (the
+# command-line tests) and the notebook run in a Jupyter kernel all inherit it;
+# tests/test_runtime.py checks that both settings give the same numbers.
+# PMSMJAX_QUICK_COMPILE=0 runs the suite with the users' default.
 os.environ.setdefault("PMSMJAX_QUICK_COMPILE", "1")
 
 import jax  # noqa: E402
