@@ -59,45 +59,48 @@ def getkey():
 # persistent compilation cache shares only XLA's part of the larger ones, not the
 # tracing). Here the unit of work is a test module, and each notebook one of its own
 # (`pytest_xdist_make_scheduler` below). xdist hands the units out in the order of their
-# first test, so the longest go first (measured wall times in BENCHMARKS.md, "The test
-# suite's time"): the run then does not end with one worker on a long module while the
-# other has nothing left. Only the order and the grouping change: every test runs.
+# first test, so the longest go first (measured: `python -m benchmarks.compile.suite`
+# prints the longest units; the order below is that of a cold run of 11-29): the run
+# then does not end with one worker on a long module while the other has nothing left.
+# Only the order and the grouping change: every test runs.
 NOTEBOOK_TEST = "tests/test_notebooks.py::test_notebook_runs["  # + the notebook's file name
 LONGEST_FIRST = (
-    NOTEBOOK_TEST + "03_",
-    NOTEBOOK_TEST + "05_",
-    NOTEBOOK_TEST + "04_",
+    "tests/test_identify.py::",
     "tests/test_contract.py::",
-    "tests/test_readme_commands.py::",
-    NOTEBOOK_TEST + "02_",
-    NOTEBOOK_TEST + "09_",
-    NOTEBOOK_TEST + "10_",
-    NOTEBOOK_TEST + "11_",
-    "tests/test_saturated_analysis.py::",
-    "tests/test_flux_map_files.py::",
-    "tests/test_saturated_observers.py::",
-    "tests/test_identify_saturation.py::",
-    "tests/test_saturated_control.py::",
+    NOTEBOOK_TEST + "03_",
+    "tests/test_runtime.py::",
     "tests/test_li_leso.py::",
     "tests/test_compare.py::",
-    "tests/test_runtime.py::",
+    NOTEBOOK_TEST + "05_",
     "tests/test_main_job.py::",
-    NOTEBOOK_TEST + "07_",
+    NOTEBOOK_TEST + "04_",
+    "tests/test_saturated_analysis.py::",
+    NOTEBOOK_TEST + "10_",
     "tests/test_harmonic_ripple.py::",
-    "tests/test_identify.py::",
-    NOTEBOOK_TEST + "08_",
+    "tests/test_equilibria.py::",
+    "tests/test_firmware.py::",
+    "tests/test_readme_commands.py::",
+    "tests/test_cli_analysis.py::",
     "tests/test_rotor_flux.py::",
+    NOTEBOOK_TEST + "02_",
+    "tests/test_startup.py::",
+    "tests/test_saturated_observers.py::",
+    NOTEBOOK_TEST + "11_",
+    "tests/test_tuning.py::",
+    "tests/test_identify_saturation.py::",
+    NOTEBOOK_TEST + "07_",
+    "tests/test_feasibility.py::",
     "tests/test_reduced_order.py::",
-    "tests/test_nonlinear_flux.py::",
+    "tests/test_lyapunov.py::",
+    "tests/test_docs.py::",
+    NOTEBOOK_TEST + "09_",
+    "tests/test_firmware_plots.py::",
+    NOTEBOOK_TEST + "08_",
     "tests/test_replay_lock.py::",
     NOTEBOOK_TEST + "06_",
-    "tests/test_tuning.py::",
-    "tests/test_cli_analysis.py::",
-    "tests/test_feasibility.py::",
-    "tests/test_firmware_plots.py::",
-    "tests/test_lyapunov.py::",
-    "tests/test_equilibria.py::",
-    "tests/test_docs.py::",
+    "tests/test_nonlinear_flux.py::",
+    "tests/test_flux_map_files.py::",
+    "tests/test_saturated_control.py::",
     NOTEBOOK_TEST + "01_",
 )
 
