@@ -15,12 +15,12 @@ from pmsmjax.observers import make_observer, observer_class, observer_names
 @pytest.mark.parametrize("name", observer_names())
 def test_tuning_coordinates_map_to_the_design_and_back(name):
     cls = observer_class(name)
-    motor = cls.paper_motor or "zhang750"
-    design = make_observer(name, pj.preset(motor)).design_parameters()
+    drive = pj.preset(cls.paper_motor or "zhang750")
+    design = make_observer(name, drive).design_parameters()
     own = {k: float(design[k]) for k in cls.tuning_replaces}
-    coords = cls.tuning_from_design(own)
+    coords = cls.tuning_from_design(own, drive)
     assert set(coords) == set(own) - set(cls.tuning_replaces) | set(cls.tuning_coordinates)
-    back = cls.design_from_tuning(coords)
+    back = cls.design_from_tuning(coords, drive)
     assert back.keys() == own.keys()
     assert all(math.isclose(back[k], own[k], rel_tol=1e-12) for k in own)
     for lo, hi, start, why in cls.tunable_bounds.values():

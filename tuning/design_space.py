@@ -21,20 +21,29 @@ observer through the contract (`from_drive` + `with_design`).
 - *estimator bandwidth* (li's LESO $\omega_0$ (16)): from the lowest tracking bandwidth
   (an estimator slower than the loop it feeds adds its lag to the loop's) to $1/T_s$
   (the LESOs are discretised exactly, so this is a noise bound, not a stability one);
+- *explicit feedback rate* (morawiec2023's current-error rate and position correction,
+  applied once per sampling period): from the lowest tracking bandwidth to
+  `w_T_s_max / T_s`, the tracking bandwidth's discrete limit (at a rate of 1 / T_s the
+  discrete observer is unstable);
 - *filter time constant* (stumper's $T_{LP}$): from $T_s$ (the forward-Euler filter's
   stability limit) to $1/\omega_{min}$ of the tracking loop (a slower filter than that
   lags more than the allowed ramp lag);
 - *fixed* (zhang2022's flux damping $\zeta_1$ and ratio $\omega_1/|\omega_0|$ of its
   fixed-ratio schedule): bounds the observer class states itself (`tunable_bounds`), as
   physical constants of its design, not derived from the drive;
-- any other tunable gain (morawiec2023's $c_\alpha$, $k_c$, $c_\theta$, $\gamma$;
-  li's FA-LESO $k_1$, $k_2$): no physical rule here; its bounds are the observer
-  contract's factor box around the paper's value (`tunable`), and the report says so.
+- any other tunable gain (li's FA-LESO $k_1$, $k_2$, morawiec2023's $k_c$): no physical
+  rule here; its bounds are the observer contract's factor box around the paper's value
+  (`tunable`), and the report says so.
 
 An observer may name its own coordinates for some of its parameters
 (`tuning_coordinates`, e.g. stumper's tracking filter as bandwidth $\sqrt{v_1}$ and damping
 $v_2/(2\sqrt{v_1})$ instead of $v_1, v_2$); the search moves those, and the class maps
-them to its design (`design_from_tuning`).
+them to its design on the drive (`design_from_tuning`). morawiec2023's rotor-flux
+observer is searched in the coordinates a reduction of its spectrum gives
+(`pmsmjax.observers._rotor_flux_design`): the speed law's bandwidth at speed
+$\omega_\gamma = \sqrt\gamma\,\psi_f/L_q$ (tracking), the d-axis current-error rate
+$a_i = (1 + c_\alpha)R_s/L_d$ and the position correction's rate $c_\theta$ (explicit
+feedback rates).
 
 The paper's design is the starting point. Where it lies outside the derived bounds (stumper's
 tracking filter and li's PLL are slower than the ramp-lag rule asks at their drives'
@@ -76,9 +85,16 @@ class Coordinate:
 #: Where the paper's design lies outside the derived bounds, they are widened to hold it
 #: with this factor of room (the search must be able to return the baseline).
 PAPER_MARGIN = 1.25
+#: Where `_stable_bounds` checks the linearised error dynamics (an observer class with
+#: `tuning_spectral`): electrical speeds (p.u. of rated, both directions; below about
+#: 0.13 p.u. morawiec2023's observer has no stable design at light load) and q-currents
+#: (p.u. of the base current, d-current on MTPA), and how many values per coordinate.
+SPECTRUM_SPEEDS_PU = (-1.0, -0.5, -0.2, 0.2, 0.5, 1.0)
+SPECTRUM_IQ_PU = (-0.5, 0.0, 0.5, 1.0)
+SPECTRUM_SCAN = 65
 #: The kinds of coordinate whose bounds derive from the drive (the observer class's
 #: `tunable_kinds`); any other tunable name is a "contract" coordinate.
-KINDS = ("tracking", "damping", "estimator", "time")
+KINDS = ("tracking", "damping", "estimator", "explicit", "time")
 
 
 def _kind(cls, name: str) -> str:
@@ -118,7 +134,7 @@ class DesignSpace:
         tunable = {k: v for k, v in cls.tunable.items() if k not in cls.tuning_replaces}
         # the class's own coordinates for some of its parameters (a reparametrisation)
         paper_coords = cls.tuning_from_design(
-            {k: self.paper_design[k] for k in cls.tuning_replaces})
+            {k: self.paper_design[k] for k in cls.tuning_replaces}, self._drive)
         for name, (unit, kind) in cls.tuning_coordinates.items():
             if kind not in KINDS:
                 raise ValueError(f"`{cls.__name__}.tuning_coordinates[{name!r}]` has kind "
@@ -133,6 +149,8 @@ class DesignSpace:
             coords.append(self._coord(name, unit, _kind(cls, name), self.paper_design[name],
                                       problem, box))
         self.coordinates = tuple(coords)
+        if cls.tuning_spectral:
+            self.coordinates = self._stable_bounds()
 
     def _coord(self, name, unit, kind, paper, problem, box=None) -> Coordinate:
         w_lo, w_hi = self.w_track
@@ -147,6 +165,10 @@ class DesignSpace:
         elif kind == "estimator":
             lo, hi = w_lo, 1.0 / problem.T_s
             why = "at least the lowest tracking bandwidth; at most 1/T_s (noise)"
+        elif kind == "explicit":
+            lo, hi = w_lo, w_hi
+            why = ("at least the lowest tracking bandwidth; applied once per sampling "
+                   f"period: w T_s <= {problem.w_T_s_max:g}")
         elif kind == "time":
             lo, hi = problem.T_s, 1.0 / w_lo
             why = "T_s (forward-Euler stability) to 1/(lowest tracking bandwidth)"
@@ -159,6 +181,56 @@ class DesignSpace:
             why += (f"; widened to hold the paper's value {paper:.4g} {unit} (x/"
                     f"{PAPER_MARGIN:g} of it), which lies outside the derived bounds")
         return Coordinate(name, unit, float(lo), float(hi), kind, why, float(paper))
+
+    def _stable_bounds(self) -> tuple[Coordinate, ...]:
+        """Each coordinate's bounds narrowed to the interval around the paper's design
+        (the others held at it) in which `analysis.linearization` (averaged over the
+        rotor angle) is stable at every point of `SPECTRUM_SPEEDS_PU` x
+        `SPECTRUM_IQ_PU` (MTPA d-current), scanned at `SPECTRUM_SCAN` log-spaced values
+        between the rule's bounds; the bounds are the last stable values (module
+        docstring)."""
+        from pmsmjax import analysis, mtpa_i_d
+
+        drive = self._drive
+        m, coords = drive.three_phase_motor, self.coordinates
+        w, i_q = np.meshgrid(np.array(SPECTRUM_SPEEDS_PU) * drive.w_rated,
+                             np.array(SPECTRUM_IQ_PU) * drive.base.I_b)
+        w, i_q = jnp.asarray(w.ravel()), jnp.asarray(i_q.ravel())
+        i_dq = jnp.stack([mtpa_i_d(i_q, m), i_q], -1)
+
+        def worst(x):  # the largest real part over the operating points (1/s)
+            obs = self.observer(x)
+            A = jax.vmap(lambda w_, i_: analysis.linearization(obs, m, w_, i_))(w, i_dq)
+            return jnp.max(jnp.real(jnp.linalg.eigvals(A)))
+
+        x0 = np.array([c.paper for c in coords])
+        grids = [np.unique(np.r_[np.geomspace(c.lo, c.hi, SPECTRUM_SCAN), c.paper])
+                 for c in coords]
+        n = max(len(g) for g in grids)
+        X = np.repeat(x0[None], len(coords) * n, 0)
+        for j, g in enumerate(grids):
+            X[j * n:(j + 1) * n, j] = np.pad(g, (0, n - len(g)), mode="edge")
+        stable = np.asarray(jax.jit(jax.vmap(worst))(jnp.asarray(X))).reshape(
+            len(coords), n) < 0
+        where = (f"stable linearisation (analysis.linearization, averaged over the angle) "
+                 f"at speeds +-{'/'.join(f'{v:g}' for v in SPECTRUM_SPEEDS_PU if v > 0)} "
+                 f"p.u. x i_q {min(SPECTRUM_IQ_PU):g}..{max(SPECTRUM_IQ_PU):g} p.u. (MTPA)")
+        out = []
+        for j, (c, g) in enumerate(zip(coords, grids)):
+            ok, k = stable[j, :len(g)], int(np.searchsorted(g, c.paper))
+            if not ok[k]:
+                out.append(dataclasses.replace(
+                    c, why=c.why + f"; the paper's design is not a {where}: bounds kept"))
+                continue
+            lo, hi = k, k
+            while lo > 0 and ok[lo - 1]:
+                lo -= 1
+            while hi < len(g) - 1 and ok[hi + 1]:
+                hi += 1
+            out.append(dataclasses.replace(
+                c, lo=float(g[lo]), hi=float(g[hi]),
+                why=c.why + f"; narrowed to the {where}, the others at the paper's values"))
+        return tuple(out)
 
     # --- coordinates ------------------------------------------------------------------
     @property
@@ -203,7 +275,7 @@ class DesignSpace:
         (may be traced)."""
         x = jnp.asarray(x)
         return self._cls.design_from_tuning(
-            {c.name: x[i] for i, c in enumerate(self.coordinates)})
+            {c.name: x[i] for i, c in enumerate(self.coordinates)}, self._drive)
 
     def observer(self, x, motor=None):
         """The observer with the design `x` (physical coordinates; may be traced; None:

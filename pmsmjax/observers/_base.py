@@ -167,7 +167,8 @@ class AbstractObserver(eqx.Module):
     #: How the tuner derives the bounds of a `tunable` parameter from the drive
     #: (`tuning.DesignSpace`): name -> `"tracking"` (a type-2 angle-tracking bandwidth,
     #: rad/s), `"damping"` (its damping ratio), `"estimator"` (an estimator bandwidth,
-    #: rad/s) or `"time"` (a filter time constant, s). A tunable name not listed keeps the
+    #: rad/s), `"explicit"` (the rate of a feedback applied once per sampling period,
+    #: 1/s) or `"time"` (a filter time constant, s). A tunable name not listed keeps the
     #: `tunable` factor box around its default.
     tunable_kinds: ClassVar[dict[str, str]] = {}
     #: Tunable design parameters whose bounds are physical constants of the observer, not
@@ -181,6 +182,11 @@ class AbstractObserver(eqx.Module):
     #: `design_from_tuning` / `tuning_from_design` map between the two (traceable).
     tuning_coordinates: ClassVar[dict[str, tuple[str, str]]] = {}
     tuning_replaces: ClassVar[tuple[str, ...]] = ()
+    #: Whether the tuner narrows each coordinate's bounds to the interval around the
+    #: paper's design in which the linearised error dynamics are stable over the drive's
+    #: operating points (`tuning.DesignSpace`), for a design whose stable region is
+    #: narrower than its rules give (morawiec2023's).
+    tuning_spectral: ClassVar[bool] = False
     #: Design parameters that may vary with the observer's own speed estimate (a gain
     #: schedule in its `design` field, zhang2022 Sec. III). Empty: constants only.
     speed_scheduled: ClassVar[tuple[str, ...]] = ()
@@ -285,15 +291,16 @@ class AbstractObserver(eqx.Module):
         return {k: getattr(self, k) for k in self.design_units}
 
     @classmethod
-    def design_from_tuning(cls, coords: dict) -> dict:
+    def design_from_tuning(cls, coords: dict, drive=None) -> dict:
         """The design parameters (`tuning_replaces`) of tuning coordinates `coords`
-        (`tuning_coordinates` names; values may be traced). None declared: identity."""
+        (`tuning_coordinates` names; values may be traced) on `drive` (the `Drive` whose
+        constants a coordinate may be scaled with). None declared: identity."""
         return dict(coords)
 
     @classmethod
-    def tuning_from_design(cls, design: dict) -> dict:
-        """The tuning coordinates of the design parameters `design` (the inverse of
-        `design_from_tuning`)."""
+    def tuning_from_design(cls, design: dict, drive=None) -> dict:
+        """The tuning coordinates of the design parameters `design` on `drive` (the
+        inverse of `design_from_tuning`)."""
         return dict(design)
 
     @abc.abstractmethod

@@ -296,7 +296,7 @@ class ParallelModelObserver(AbstractObserver):
         return {"v1": self.v1, "v2": self.v2, "T_LP": self.T_LP, "T_w": self.T_w}
 
     @classmethod
-    def design_from_tuning(cls, coords: dict) -> dict:
+    def design_from_tuning(cls, coords: dict, drive=None) -> dict:
         """v1 = w_tf^2, v2 = 2 zeta_tf w_tf from the tracking filter's bandwidth (rad/s)
         and damping (other names pass through)."""
         d = dict(coords)
@@ -306,7 +306,7 @@ class ParallelModelObserver(AbstractObserver):
         return d
 
     @classmethod
-    def tuning_from_design(cls, design: dict) -> dict:
+    def tuning_from_design(cls, design: dict, drive=None) -> dict:
         """w_tf = sqrt(v1), zeta_tf = v2 / (2 sqrt(v1)) (`design_from_tuning` inverted)."""
         d = dict(design)
         if "v1" in d:

@@ -81,15 +81,14 @@ $$\frac{d\hat\omega}{dt} = -\frac{\gamma}{L_d}\left(\hat\lambda_\beta\tilde i_\a
 `"printed"` is (32) as printed. For the salient machine the linearisation
 (`analysis.linearization`, averaged, and `analysis.floquet`) confirms it: with the
 printed sign an eigenvalue lies in the right half plane at every speed and load tested
-(and a simulation from a small error diverges), with the derived one the paper's
-gains (gamma 1.0 p.u.) are stable at every point tested from 0.2 to 1 p.u., both
-directions, loads -0.9, 0, 0.9 p.u., and at 1.5 p.u. except under the motoring
-0.9 p.u. load (`test_rotor_flux.py`; "Choice of gamma" below). Below about 0.13 p.u.
-at light motoring load the slowest exponent crosses zero (the angle is unobservable at
-standstill, and the position correction, built from the current error, carries no
-angle information there). The region of attraction is small: with a matched model at
-0.2 p.u. and 0.35 p.u. load (and gamma 2.0 p.u.) the generic analysis finds an unstable
-equilibrium at 0.082 rad.
+(and a simulation from a small error diverges), with the derived one the paper's gains
+(gamma 1.0 p.u.) are stable at every point tested from 0.2 to 1 p.u., both directions,
+loads -0.9, 0, 0.9 p.u., and at 1.5 p.u. except under the motoring 0.9 p.u. load
+(`test_rotor_flux.py`; "Choice of gamma" below). Below about 0.13 p.u. at light motoring
+load the slowest exponent crosses zero (the angle is unobservable at standstill, and the
+position correction, built from the current error, carries no angle information there).
+The region of attraction is small: with a matched model at 0.2 p.u. and 0.35 p.u. load
+(and gamma 2.0 p.u.) the generic analysis finds an unstable equilibrium at 0.082 rad.
 
 **Saturated machines** (`with_magnetic`, docs/observers.md): the scheduled model takes
 the map's apparent $L_d$, $L_q$, $\psi_f$ at the measured current (previous estimate's
@@ -110,9 +109,8 @@ the speed by forward Euler and the angle with the mean of the old and new speed
 estimates (semi-implicit: the Jacobian of a step stays $I + T_sA + O(T_s^2)$, and with
 the paper's fast gains on a low-inductance machine a plain Euler angle drifted from the
 continuous error dynamics by 6 % over 30 ms at 50 kHz, this rule by 2.8 %;
-`test_contract.py`). A matched observer at zero error stays there
-exactly. At $k = 0$ the flux
-is initialised from the measured current and the initial angle ($\hat i_0 = i_0$).
+`test_contract.py`). A matched observer at zero error stays there exactly. At $k = 0$
+the flux is initialised from the measured current and the initial angle ($\hat i_0 = i_0$).
 
 **Choice of gamma** (not given with the paper's gains; Fig. 5(b) sweeps 0.01-2 p.u.),
 measured on `morawiec_ipm3k5` at 6.6 kHz with the other gains as printed:
@@ -158,6 +156,7 @@ import jax.numpy as jnp
 from .._frames import rotate, rotation_between, wrap_angle
 from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive
+from . import _rotor_flux_design as _design
 from ._base import (
     AbstractObserver,
     ErrorCoordinates,
@@ -377,10 +376,14 @@ class RotorFluxObserver(AbstractObserver):
         "i_ab_hat": "A, estimated stator current, stationary frame (2,)",
         "lambda_ab_hat": "V s, estimated rotor flux vector morawiec2023 (10)-(11) (2,)",
         "s_omega": "A^2, scalar product morawiec2023 (33) divided by L_d",
-        "theta_lambda": "rad, flux angle deviation morawiec2023 (30)-(31)",
-    }
+        "theta_lambda": "rad, flux angle deviation morawiec2023 (30)-(31)"}
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
         "c_alpha": (0.2, 5.0), "c_theta": (0.2, 5.0), "gamma": (0.1, 10.0), "k_c": (0.1, 10.)}
+    tunable_kinds, tuning_spectral = {"c_theta": "explicit"}, True
+    tuning_coordinates, tuning_replaces = _design.TUNING_COORDINATES, _design.TUNING_REPLACES
+    # the tuner's coordinates, from the reduced spectrum (`_rotor_flux_design`)
+    design_from_tuning, tuning_from_design = (_design.design_from_tuning,
+                                              _design.tuning_from_design)
 
     def __check_init__(self):
         if not isinstance(self.motor, PMSMParams):
