@@ -5,7 +5,9 @@ page's `<!-- family table -->` markers and to docs/figures/tuning_families.json.
 
 Run from the repository root: `python docs/figures/make_family_table.py [--out DIR]
 [--observers a,b] [--speed-from-angle]` (DIR keeps each run's output; default a
-temporary folder). The whole table takes about 35 minutes on a 2-core machine."""
+temporary folder). The whole table takes about 35 minutes on a 2-core machine.
+`--observers` runs those rows again and keeps the others from the JSON; every row
+carries the date it was measured, and the page says which rows are from which day."""
 
 import argparse
 import json
@@ -44,7 +46,8 @@ def run_one(name: str, out: str, extra: list[str]) -> dict:
                 worst_rms_change_pct=a["worst_rms_change_pct"],
                 lost_lock_paper=a["lost_lock_reference"], lost_lock_tuned=a["lost_lock"],
                 new_lost_lock=a["new_lost_lock"],
-                verdict="holds" if s["verdict"]["holds"] else "does not hold", wall_s=wall)
+                verdict="holds" if s["verdict"]["holds"] else "does not hold", wall_s=wall,
+                date=time.strftime("%Y-%m-%d"))
 
 
 def table(rows: list[dict]) -> str:
@@ -72,9 +75,13 @@ def main(argv=None) -> int:
                     help="only write the page's table from tuning_families.json")
     args = ap.parse_args(argv)
     stem = "tuning_families" + ("_speed_from_angle" if args.speed_from_angle else "")
+    path = os.path.join(HERE, stem + ".json")
+    saved = json.loads(open(path).read()) if os.path.exists(path) else None
+    if saved is not None:  # rows written before rows carried their date
+        for r in saved["rows"]:
+            r.setdefault("date", saved["date"])
     if args.from_json:
-        saved = json.loads(open(os.path.join(HERE, stem + ".json")).read())
-        rows, machine, date = saved["rows"], saved["machine"], saved["date"]
+        rows, machine = saved["rows"], saved["machine"]
     else:
         names = args.observers.split(",") if args.observers else tunable_observers()
         extra = ["--speed-from-angle"] if args.speed_from_angle else []
@@ -87,14 +94,20 @@ def main(argv=None) -> int:
                   f"{r['worst_rms_change_pct']:+.1f} %, {r['wall_s']:.0f} s", flush=True)
         machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python "
                    f"{platform.python_version()}")
-        date = time.strftime("%Y-%m-%d")
-        with open(os.path.join(HERE, stem + ".json"), "w") as f:
-            json.dump(dict(machine=machine, date=date, rows=rows), f, indent=1)
+        if args.observers and saved is not None:  # the other rows as measured before
+            new = {r["observer"]: r for r in rows}
+            rows = [new.pop(r["observer"], r) for r in saved["rows"]] + list(new.values())
+        with open(path, "w") as f:
+            json.dump(dict(machine=machine, date=max(r["date"] for r in rows), rows=rows),
+                      f, indent=1)
     text = table(rows)
     print(text)
-    if not args.speed_from_angle and not args.observers:
+    if not args.speed_from_angle:
         page = open(PAGE).read()
-        stamp = f"(`docs/figures/make_family_table.py`, {date}, {machine})"
+        dates = sorted({r["date"] for r in rows})
+        when = dates[0] if len(dates) == 1 else "; ".join(
+            f"{d}: {', '.join(r['observer'] for r in rows if r['date'] == d)}" for d in dates)
+        stamp = f"(`docs/figures/make_family_table.py`, {when}, {machine})"
         page = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END),
                       f"{BEGIN}\n{stamp}:\n\n{text}\n{END}", page, flags=re.S)
         open(PAGE, "w").write(page)
