@@ -207,6 +207,25 @@ def test_main_job_quick(tmp_path):
     obs = pj.observers.make_observer("eso", pj.preset("zhang750"), **d)
     for k, x in d.items():
         assert float(obs.design_parameters()[k]) == pytest.approx(x, rel=1e-12)
+    # the held-out check: `pmsmjax simulate` with the observer's inductances off by up to
+    # +-50 %, the paper's and the tuned design; one of its runs again as a user runs the
+    # command, in a process of its own, gives the same angle error
+    h = s["heldout_simulate"]
+    assert [(r["L_d"], r["L_q"]) for r in h["rows"]] == list(tg.report.MISMATCHES)
+    assert all(r[k]["rms_deg"] > 0 for r in h["rows"] for k in ("paper", "tuned"))
+    assert printed.count("held out, never trained on:") == 1
+    row = h["rows"][5]
+    assert (row["L_d"], row["L_q"]) == (0.5, 1.5)
+    sim = tmp_path / "sim"
+    cmd = [sys.executable, "-m", "pmsmjax", "simulate", "--motor-file", str(out / "motor.toml"),
+           "--observer", "eso", "--T-s", repr(p.T_s), "--noise", repr(p.noise_std), "--seed",
+           str(p.seed), "--t-end", repr(p.t_end), "--mismatch", "L_d=0.5", "--mismatch",
+           "L_q=1.5", "--design", str(out), "--no-plot", "--out", str(sim)]
+    done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    alone = json.loads((sim / "summary.json").read_text())["angle_error_deg"]
+    assert alone["rms"] == pytest.approx(row["tuned"]["rms_deg"], rel=1e-9)
+    assert alone["max_abs"] == pytest.approx(row["tuned"]["max_abs_deg"], rel=1e-9)
     print(f"main job (--quick): wall {s['wall_time_s']:.1f} s, validation better in "
           f"{acc['better']} of {acc['n']}, worst RMS {acc['worst_rms_change_pct']:+.1f} %")
 

@@ -27,6 +27,7 @@ from pmsmjax.cli import (
     add_speed_from_angle_option,
     finite_float,
     out_dir_transaction,
+    write_json,
 )
 from pmsmjax.observers import observer_names
 
@@ -181,7 +182,7 @@ def main(argv=None, prog: str = "python -m tuning") -> int:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
     from .pipeline import PEERS, tune
-    from .report import write_report
+    from .report import MISMATCHES, heldout_simulate, heldout_text, write_report
 
     t0 = time.perf_counter()
     report = tune(problem, progress=not args.no_progress, log=print,
@@ -189,8 +190,16 @@ def main(argv=None, prog: str = "python -m tuning") -> int:
     out = pathlib.Path(args.out)
     with out_dir_transaction(str(out)):  # a failed write leaves nothing half-written
         s = write_report(report, out, plot=not args.no_plot)
+        # held out: `pmsmjax simulate` with +-50 % inductance errors (tuning.report.corners)
+        print("held-out check: pmsmjax simulate, paper's and tuned design, "
+              f"{len(MISMATCHES)} inductance mismatches")
+        s["heldout_simulate"] = heldout_simulate(
+            out, problem, t_end=problem.t_end if args.quick else None)
+        write_json(out / "summary.json", s, indent=1)
     print()
     print(console_summary(s))
+    print()
+    print(heldout_text(s["heldout_simulate"]))
     print(f"wall time {time.perf_counter() - t0:.1f} s; wrote {out / 'summary.json'}")
     if not s["verdict"]["holds"]:
         print(f"warning: {out / 'gains.h'} holds a design that did NOT pass validation; "

@@ -1,6 +1,11 @@
 """The report: accounting, figures, gains tables and `summary.json` of a `TuningReport`;
 it knows nothing of how the designs were found."""
 
+from .corners import (
+    MISMATCHES as MISMATCHES,
+    heldout_simulate as heldout_simulate,
+    heldout_text as heldout_text,
+)
 from .export import gains_table as gains_table
 from .figures import PLOTS as PLOTS, plot_report as plot_report
 from .summary import (

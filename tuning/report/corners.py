@@ -1,0 +1,96 @@
+"""A held-out check the tuner never trains on: `pmsmjax simulate` itself, run as a user
+runs it, with the observer's inductances off by up to +-50 %.
+
+After the report is written, the command's default scenario (a speed ramp to 0.5 p.u.
+from standstill, the start-up the command chooses, a load step to 0.5 p.u. and back) runs
+on the tuned drive (`motor.toml` of the output folder) with the tuner's sampling period
+and current noise, once with the paper's design and once with the deployed one
+(`--design`, the gains table), at every point of `MISMATCHES`: the observer's L_d and
+L_q each x0.5, x1 or x1.5 of the plant's (the matched point, four single and four joint
+mismatches). The tuning sets stop at `TuningProblem.mismatch_range`; this grid reaches
+further, and its scenario is not one the tuner draws. Reported beside each other in
+`summary.json` (`heldout_simulate`) and on the console; it enters no verdict.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import itertools
+import json
+import pathlib
+import tempfile
+
+
+#: The check's (L_d, L_q) ratios, observer model / plant (-), the matched point first.
+MISMATCHES = tuple(p for p in itertools.product((1.0, 0.5, 1.5), repeat=2))
+
+
+def _simulate(argv: list[str]) -> dict:
+    """One in-process `pmsmjax simulate` (its output folder `--out` given in `argv`); the
+    run's summary.json, with the exit status."""
+    from pmsmjax.cli import main
+
+    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(
+            io.StringIO()):
+        rc = main(["simulate", *argv])
+    out = pathlib.Path(argv[argv.index("--out") + 1])
+    s = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() \
+        else {}
+    return dict(rc=rc, **s)
+
+
+def heldout_simulate(out, problem, *, t_end: float | None = None) -> dict:
+    """Run the check for the tuner's output folder `out` (its `motor.toml` and gains
+    table) and `problem` (a `TuningProblem`); `t_end` (s): the runs' length (default the
+    command's). Returns the table for `summary.json`."""
+    out = pathlib.Path(out)
+    common = ["--motor-file", str(out / "motor.toml"), "--observer", problem.observer,
+              "--T-s", repr(float(problem.T_s)), "--noise", repr(float(problem.noise_std)),
+              "--seed", str(int(problem.seed)), "--no-plot"]
+    if t_end is not None:
+        common += ["--t-end", repr(float(t_end))]
+    if problem.speed_from_angle is not None:
+        common += ["--speed-from-angle", repr(float(problem.speed_from_angle))]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, (k_d, k_q) in enumerate(MISMATCHES):
+            row = {"L_d": k_d, "L_q": k_q}
+            for label, extra in (("paper", []), ("tuned", ["--design", str(out)])):
+                s = _simulate([*common, *extra, "--mismatch", f"L_d={k_d!r}", "--mismatch",
+                               f"L_q={k_q!r}", "--out", f"{tmp}/{label}{k}"])
+                err = s.get("angle_error_deg") or {}
+                row[label] = {"rms_deg": err.get("rms"), "max_abs_deg": err.get("max_abs"),
+                              "lost_lock": bool((s.get("lock") or {}).get("lost")),
+                              "diverged": s.get("rc") == 1}
+            rows.append(row)
+    first = _simulate_text(problem, t_end)
+    return {"what": first, "mismatch": "observer model / plant ratio of L_d and L_q",
+            "rows": rows}
+
+
+def _simulate_text(problem, t_end) -> str:
+    return ("`pmsmjax simulate` (default scenario: ramp to 0.5 p.u., load step to 0.5 p.u. "
+            f"and back{'' if t_end is None else f', {t_end:g} s'}), T_s "
+            f"{float(problem.T_s):g} s, noise {float(problem.noise_std):g} A, paper's and "
+            "tuned design, the observer's L_d and L_q x0.5, 1, 1.5")
+
+
+def heldout_text(h: dict) -> str:
+    """The console's table of `heldout_simulate`'s result."""
+    lines = [f"held out, never trained on: {h['what']}",
+             f"{'L_d x':>6}{'L_q x':>7}{'paper RMS deg':>15}{'tuned RMS deg':>15}"
+             f"{'change':>9}"]
+
+    def cell(r):
+        if r["diverged"]:
+            return "diverged"
+        return f"{r['rms_deg']:.2f}" + (" lost" if r["lost_lock"] else "")
+
+    for row in h["rows"]:
+        p, t = row["paper"], row["tuned"]
+        change = ("-" if p["diverged"] or t["diverged"] or not p["rms_deg"] else
+                  f"{100 * (t['rms_deg'] / p['rms_deg'] - 1):+.0f} %")
+        lines.append(f"{row['L_d']:>6g}{row['L_q']:>7g}{cell(p):>15}{cell(t):>15}"
+                     f"{change:>9}")
+    return "\n".join(lines)
