@@ -61,6 +61,7 @@ from ._data._gains_table import (  # noqa: E402
     gains_table_constant as gains_table_constant,
     gains_table_scheduled as gains_table_scheduled,
     load_gains_table as load_gains_table,
+    speed_loop_text as speed_loop_text,
     verdict_text as verdict_text,
     verdict_warning as verdict_warning,
     write_gains_table as write_gains_table,

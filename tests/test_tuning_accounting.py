@@ -145,6 +145,42 @@ def test_the_verdict_is_stated_as_counted_in_gains_h():
             _table({"holds": True, "accounting": bad})
 
 
+def test_gains_h_and_simulate_say_which_speed_the_design_was_tuned_on(tmp_path, capsys):
+    """`speed_from_angle_Hz`: null (the observer's own speed), a tracking bandwidth (the
+    speed of its angle, `SpeedFromAngle`), or absent (a table from before: not recorded);
+    `pmsmjax simulate --design` warns when its speed loop is not the one tuned."""
+    from pmsmjax.cli.__main__ import main
+
+    verdict = {"holds": True, "baseline": BASELINE, "where_not": [], "accounting": COUNTS}
+    tracked = pj.gains_table_constant("eso", {"w2": 400.0}, {"w2": "rad/s"}, T_s=125e-6,
+                                      verdict=verdict, speed_from_angle_Hz=30.0)
+    text = gains_c_header(tracked)
+    assert (" * Speed loop: tuned with the speed loop on the speed of the observer's angle "
+            "(a tracking loop of 30 Hz, SpeedFromAngle): deploy the step with it (`pmsmjax "
+            "export-c --speed-from-angle 30`).\n") in text
+    assert "#define PMSMJAX_GAINS_SPEED_FROM_ANGLE_HZ 30\n" in text
+    own = pj.gains_table_constant("eso", {"w2": 400.0}, {"w2": "rad/s"}, T_s=125e-6,
+                                  verdict=verdict, speed_from_angle_Hz=None)
+    assert own["speed_from_angle_Hz"] is None
+    assert " * Speed loop: tuned with the speed loop on the observer's own speed " \
+           "estimate.\n" in gains_c_header(own)
+    assert "SPEED_FROM_ANGLE" not in gains_c_header(own)
+    assert "Speed loop" not in gains_c_header(_table(verdict))  # not recorded: no claim
+    for bad in (0.0, -5.0, float("inf"), True, "30"):
+        with pytest.raises(ValueError, match="speed_from_angle_Hz"):
+            pj.check_gains_table(dict(own, speed_from_angle_Hz=bad))
+    pj.write_gains_table(tracked, tmp_path / "tuned")
+    run = ["simulate", "--design", str(tmp_path / "tuned"), "--t-end", "0.05", "--no-plot",
+           "--out"]
+    assert main([*run, str(tmp_path / "a")]) == 0
+    err = capsys.readouterr().err
+    assert ("tuned with the speed loop on the speed of the observer's angle (a tracking "
+            "loop of 30 Hz, SpeedFromAngle); this run closes it on the observer's own "
+            "speed (pass --speed-from-angle 30)") in err
+    assert main([*run, str(tmp_path / "b"), "--speed-from-angle", "30"]) == 0
+    assert "speed loop" not in capsys.readouterr().err
+
+
 def test_gains_command_prints_the_counted_verdict(tmp_path, capsys):
     from pmsmjax.cli.__main__ import main
 
@@ -153,7 +189,7 @@ def test_gains_command_prints_the_counted_verdict(tmp_path, capsys):
     out = tmp_path / "check"
     assert main(["gains", "--design", str(tmp_path / "tuned"), "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert f"objective: cvar; tuner's verdict: {HOLDS}\n" in printed
+    assert f"objective: cvar; tuner's verdict: {HOLDS}\nspeed loop: not recorded\n" in printed
     assert "beat" not in printed
     r = json.loads((out / "gains_check.json").read_text())
     assert r["verdict_text"] == HOLDS and r["verdict"]["accounting"] == COUNTS

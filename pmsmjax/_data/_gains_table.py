@@ -40,10 +40,14 @@ counts under the names summary.json gives them (`VERDICT_COUNTS`: `n` runs, `bet
 `worse`: loss lower / higher than the baseline's by more than 0.1 %, `fraction_better`,
 `worst_rms_change_pct`, `new_lost_lock`: runs losing lock that the baseline holds).
 `verdict_text(verdict)` states it as counted (the tuner's last line, `gains.h`'s header
-comment, `pmsmjax gains`). A table whose verdict does not hold (or has none) is not a
-validated improvement: `gains.h` then emits a compiler warning (silenced by defining
-`PMSMJAX_GAINS_ACCEPT_UNVALIDATED`), and `verdict_warning(table)` gives the
-line the command line prints.
+comment, `pmsmjax gains`); `speed_from_angle_Hz`, the speed the design's speed loop was
+tuned on (null: the observer's own estimate; a number: the speed of its angle through a
+tracking loop of that bandwidth, Hz), stated in `gains.h` (`speed_loop_text`).
+
+A table whose verdict does not hold (or has none) is not a validated improvement:
+`gains.h` then emits a compiler warning (silenced by defining
+`PMSMJAX_GAINS_ACCEPT_UNVALIDATED`), and `verdict_warning(table)` gives the line the
+command line prints.
 """
 
 from __future__ import annotations
@@ -166,9 +170,12 @@ def gain_columns(schedule: AbstractGainSchedule, motor: PMSMParams, w_m) -> dict
     return {k: a[:, j] for j, k in enumerate(GAIN_COLUMNS)}
 
 
-def _provenance(T_s, objective, verdict) -> dict:
-    """The optional provenance keys (module docstring), checked."""
+def _provenance(T_s, objective, verdict, speed_from_angle_Hz=False) -> dict:
+    """The optional provenance keys (module docstring), checked (`speed_from_angle_Hz`:
+    False leaves the key out; None records the observer's own speed)."""
     out = {}
+    if speed_from_angle_Hz is not False:
+        out["speed_from_angle_Hz"] = _check_tracking(speed_from_angle_Hz, "gains table")
     if T_s is not None:
         if not (isinstance(T_s, int | float) and math.isfinite(T_s) and T_s > 0):
             raise ValueError(f"gains table: `T_s` (s) must be a finite number > 0; got "
@@ -179,6 +186,15 @@ def _provenance(T_s, objective, verdict) -> dict:
     if verdict is not None:
         out["verdict"] = _check_verdict(verdict, "gains table")
     return out
+
+
+def _check_tracking(hz, source: str):
+    if hz is not None and not (isinstance(hz, int | float) and not isinstance(hz, bool)
+                               and math.isfinite(hz) and hz > 0):
+        raise ValueError(f"{source}: `speed_from_angle_Hz` must be null (the speed loop "
+                         f"on the observer's own speed) or a tracking bandwidth > 0 (Hz); "
+                         f"got {hz!r}")
+    return None if hz is None else float(hz)
 
 
 def _check_verdict(verdict, source: str) -> dict:
@@ -262,16 +278,18 @@ def gains_table_scheduled(observer: str, schedule: TabulatedDesign, motor: PMSMP
 
 def gains_table_constant(observer: str, values: dict, units: dict, *, drive: str = "",
                    notes=(), T_s: float | None = None, objective: str | None = None,
-                   verdict: dict | None = None) -> dict:
+                   verdict: dict | None = None, speed_from_angle_Hz=False) -> dict:
     """The gains table of a constant design: `values` `{name: value}` (SI, `units`);
-    `T_s`, `objective`, `verdict` as for `gains_table_scheduled`."""
+    `T_s`, `objective`, `verdict` as for `gains_table_scheduled`; `speed_from_angle_Hz`:
+    the speed loop the design was tuned with (None: the observer's own speed; a number:
+    the speed of its angle, `SpeedFromAngle` at that bandwidth, Hz; False: not recorded)."""
     names = list(values)
     return {
         "format": FORMAT, "version": VERSION, "observer": observer, "kind": "constant",
         "drive": drive, "interpolation": "none: constant design parameters",
         "columns": names, "units": {n: units.get(n, "") for n in names},
         "rows": [[float(values[n]) for n in names]], "notes": list(notes),
-        **_provenance(T_s, objective, verdict),
+        **_provenance(T_s, objective, verdict, speed_from_angle_Hz),
     }
 
 
@@ -308,6 +326,8 @@ def check_gains_table(table: dict, source: str = "gains table") -> dict:
         fail(f"T_s {T_s!r}; allowed: a finite sampling period > 0 (s)")
     if "verdict" in table:
         _check_verdict(table["verdict"], source)
+    if "speed_from_angle_Hz" in table:
+        _check_tracking(table["speed_from_angle_Hz"], source)
     return table
 
 
@@ -382,6 +402,18 @@ def _c_string(s: str) -> str:
     return s.replace("\\", "\\\\").replace('"', "'")
 
 
+def speed_loop_text(table: dict) -> str:
+    """Which speed the design's speed loop was tuned on (`speed_from_angle_Hz`)."""
+    hz = table.get("speed_from_angle_Hz", False)
+    if hz is False:
+        return "not recorded"
+    if hz is None:
+        return "tuned with the speed loop on the observer's own speed estimate"
+    return (f"tuned with the speed loop on the speed of the observer's angle (a tracking "
+            f"loop of {hz:g} Hz, SpeedFromAngle): deploy the step with it "
+            f"(`pmsmjax export-c --speed-from-angle {hz:g}`)")
+
+
 def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
     """A C header with the table: `#define`s for the row count and one `static const`
     array per column (`PMSMJAX_GAINS_REAL`, default `float`), units and the
@@ -399,6 +431,8 @@ def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
                                      "not recorded"),
            f" * Tuner objective: {table.get('objective') or 'not recorded'}.",
            f" * Tuner verdict: {_c_comment(verdict_text(table.get('verdict')))}.",
+           *([f" * Speed loop: {speed_loop_text(table)}."] if "speed_from_angle_Hz" in
+             table else []),
            *([f" * Warning: {_c_comment(warning)}."] if warning is not None else []),
            " */",
            f"#ifndef {P}_H", f"#define {P}_H", ""]
@@ -414,6 +448,8 @@ def gains_c_header(table: dict, prefix: str = "pmsmjax_gains") -> str:
             f"#define {P}_VERDICT_HOLDS {0 if warning is not None else 1}"]
     if T_s is not None:
         out.append(f"#define {P}_T_S {T_s:.17g} /* s */")
+    if table.get("speed_from_angle_Hz") is not None:
+        out.append(f"#define {P}_SPEED_FROM_ANGLE_HZ {table['speed_from_angle_Hz']:.17g}")
     out.append("")
     for name in table["columns"]:
         unit = table.get("units", {}).get(name, "")

@@ -55,6 +55,17 @@ def observer_with_design(args, drive: pj.Drive, *, default: str) -> ObserverChoi
             and abs(float(args.T_s) - float(table["T_s"])) > 1e-9 * float(table["T_s"]):
         print(f"warning: --design {args.design} was tuned at T_s = {table['T_s']:g} s; "
               f"this run uses {float(args.T_s):g} s", file=sys.stderr)
+    if "speed_from_angle_Hz" in table and hasattr(args, "speed_from_angle"):
+        tuned, here = table["speed_from_angle_Hz"], args.speed_from_angle
+        if (tuned is None) != (here is None) or (tuned is not None and abs(
+                float(here) - tuned) > 1e-9 * tuned):
+            now = ("the observer's own speed" if here is None else
+                   f"the speed of its angle at {float(here):g} Hz")
+            print(f"warning: --design {args.design}: "
+                  f"{pj.speed_loop_text(table).split(':')[0]}; this run closes it on {now} "
+                  + ("(pass --speed-from-angle "
+                     f"{tuned:g})" if tuned is not None else "(leave out --speed-from-angle)"),
+                  file=sys.stderr)
     if table.get("drive") and table["drive"] != drive.name:
         print(f"note: --design {args.design} was tuned for drive {table['drive']!r}; this "
               f"run uses {drive.name!r} (pass its motor file with --motor-file)",

@@ -140,6 +140,7 @@ def gains_command(args: argparse.Namespace) -> int:
           f"{table.get('drive') or '?'}; {tuned_at}")
     print(f"objective: {table.get('objective') or 'not recorded'}; tuner's verdict: "
           f"{pj.verdict_text(v)}")
+    print(f"speed loop: {pj.speed_loop_text(table)}")
     if warning is not None:
         print(f"warning: {warning}", file=sys.stderr)
     mt, mp = np.asarray(check["max_abs_pole_tuned"]), np.asarray(check["max_abs_pole_paper"])

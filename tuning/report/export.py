@@ -34,4 +34,5 @@ def gains_table(report, name: str | None = None) -> dict:
                "accounting": {k: acc[k] for k in VOCABULARY}}
     return pj.gains_table_constant(problem.observer, values, units, drive=drive.name,
                                    notes=notes, T_s=float(problem.T_s),
-                                   objective="cvar", verdict=verdict)
+                                   objective="cvar", verdict=verdict,
+                                   speed_from_angle_Hz=problem.speed_from_angle)
