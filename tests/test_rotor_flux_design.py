@@ -5,6 +5,7 @@ machine, and the tuner's coordinates built from them."""
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -133,5 +134,9 @@ def test_the_tuner_searches_the_rotor_flux_observer_in_physical_terms(monkeypatc
                 narrowed += 1
                 assert max_real(j, beyond) > 0, (name, beyond)
     assert narrowed >= 3  # measured: w_gamma's lower, a_i's, c_theta's and k_c's upper
+    # the comparison job builds the space while it traces its runs: the same bounds
+    traced = []
+    jax.jit(lambda v: traced.append(tg.DesignSpace(problem).coordinates) or v)(0.0)
+    assert traced == [space.coordinates]
     with pytest.raises(ValueError, match="pass `drive=`"):
         RotorFluxObserver.design_from_tuning({"w_gamma": 100.0, "a_i": 50.0})

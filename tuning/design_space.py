@@ -188,30 +188,13 @@ class DesignSpace:
         rotor angle) is stable at every point of `SPECTRUM_SPEEDS_PU` x
         `SPECTRUM_IQ_PU` (MTPA d-current), scanned at `SPECTRUM_SCAN` log-spaced values
         between the rule's bounds; the bounds are the last stable values (module
-        docstring)."""
-        from pmsmjax import analysis, mtpa_i_d
-
-        drive = self._drive
-        m, coords = drive.three_phase_motor, self.coordinates
-        w, i_q = np.meshgrid(np.array(SPECTRUM_SPEEDS_PU) * drive.w_rated,
-                             np.array(SPECTRUM_IQ_PU) * drive.base.I_b)
-        w, i_q = jnp.asarray(w.ravel()), jnp.asarray(i_q.ravel())
-        i_dq = jnp.stack([mtpa_i_d(i_q, m), i_q], -1)
-
-        def worst(x):  # the largest real part over the operating points (1/s)
-            obs = self.observer(x)
-            A = jax.vmap(lambda w_, i_: analysis.linearization(obs, m, w_, i_))(w, i_dq)
-            return jnp.max(jnp.real(jnp.linalg.eigvals(A)))
-
-        x0 = np.array([c.paper for c in coords])
+        docstring). Concrete even where the space is built while a caller traces (the
+        comparison job builds it inside its jitted runs)."""
+        coords = self.coordinates
         grids = [np.unique(np.r_[np.geomspace(c.lo, c.hi, SPECTRUM_SCAN), c.paper])
                  for c in coords]
-        n = max(len(g) for g in grids)
-        X = np.repeat(x0[None], len(coords) * n, 0)
-        for j, g in enumerate(grids):
-            X[j * n:(j + 1) * n, j] = np.pad(g, (0, n - len(g)), mode="edge")
-        stable = np.asarray(jax.jit(jax.vmap(worst))(jnp.asarray(X))).reshape(
-            len(coords), n) < 0
+        with jax.ensure_compile_time_eval():
+            stable = self._scan_stable(grids)
         where = (f"stable linearisation (analysis.linearization, averaged over the angle) "
                  f"at speeds +-{'/'.join(f'{v:g}' for v in SPECTRUM_SPEEDS_PU if v > 0)} "
                  f"p.u. x i_q {min(SPECTRUM_IQ_PU):g}..{max(SPECTRUM_IQ_PU):g} p.u. (MTPA)")
@@ -231,6 +214,31 @@ class DesignSpace:
                 c, lo=float(g[lo]), hi=float(g[hi]),
                 why=c.why + f"; narrowed to the {where}, the others at the paper's values"))
         return tuple(out)
+
+    def _scan_stable(self, grids) -> np.ndarray:
+        """`(n_coords, n)` bool: stable at each value of each coordinate's scan `grids`
+        (padded to one length with their last value), the others at the paper's."""
+        from pmsmjax import analysis, mtpa_i_d
+
+        drive, coords = self._drive, self.coordinates
+        m = drive.three_phase_motor
+        w, i_q = np.meshgrid(np.array(SPECTRUM_SPEEDS_PU) * drive.w_rated,
+                             np.array(SPECTRUM_IQ_PU) * drive.base.I_b)
+        w, i_q = jnp.asarray(w.ravel()), jnp.asarray(i_q.ravel())
+        i_dq = jnp.stack([mtpa_i_d(i_q, m), i_q], -1)
+
+        def worst(x):  # the largest real part over the operating points (1/s)
+            obs = self.observer(x)
+            A = jax.vmap(lambda w_, i_: analysis.linearization(obs, m, w_, i_))(w, i_dq)
+            return jnp.max(jnp.real(jnp.linalg.eigvals(A)))
+
+        x0 = np.array([c.paper for c in coords])
+        n = max(len(g) for g in grids)
+        X = np.repeat(x0[None], len(coords) * n, 0)
+        for j, g in enumerate(grids):
+            X[j * n:(j + 1) * n, j] = np.pad(g, (0, n - len(g)), mode="edge")
+        return np.asarray(jax.jit(jax.vmap(worst))(jnp.asarray(X))).reshape(
+            len(coords), n) < 0
 
     # --- coordinates ------------------------------------------------------------------
     @property
