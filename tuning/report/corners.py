@@ -89,7 +89,9 @@ def heldout_text(h: dict) -> str:
 
     for row in h["rows"]:
         p, t = row["paper"], row["tuned"]
-        change = ("-" if p["diverged"] or t["diverged"] or not p["rms_deg"] else
+        # a lost or diverged run's RMS error is not an angle error: no change to state
+        gone = any(r["diverged"] or r["lost_lock"] for r in (p, t))
+        change = ("-" if gone or not p["rms_deg"] else
                   f"{100 * (t['rms_deg'] / p['rms_deg'] - 1):+.0f} %")
         lines.append(f"{row['L_d']:>6g}{row['L_q']:>7g}{cell(p):>15}{cell(t):>15}"
                      f"{change:>9}")
