@@ -140,3 +140,18 @@ def test_the_tuner_searches_the_rotor_flux_observer_in_physical_terms(monkeypatc
     assert traced == [space.coordinates]
     with pytest.raises(ValueError, match="pass `drive=`"):
         RotorFluxObserver.design_from_tuning({"w_gamma": 100.0, "a_i": 50.0})
+
+
+def test_a_paper_design_unstable_on_the_grid_keeps_the_rules_bounds(monkeypatch):
+    """Below about 0.13 p.u. at light load no rotor-flux design is stable (its module
+    docstring): with 0.05 p.u. in the grid the paper's design is not stable there, and
+    every coordinate keeps the bounds of its rule, saying why."""
+    problem = tg.TuningProblem.quick(observer="rotor-flux")
+    with monkeypatch.context() as patch:
+        patch.setattr(RotorFluxObserver, "tuning_spectral", False)
+        rules = tg.DesignSpace(problem).coordinates
+    monkeypatch.setattr(tg.design_space, "SPECTRUM_SPEEDS_PU", (0.05, 0.5))
+    kept = tg.DesignSpace(problem).coordinates
+    assert [(c.lo, c.hi) for c in kept] == [(c.lo, c.hi) for c in rules]
+    assert all(c.why.endswith("p.u. (MTPA): bounds kept") and "not stable" in c.why
+               for c in kept)

@@ -195,15 +195,15 @@ class DesignSpace:
                  for c in coords]
         with jax.ensure_compile_time_eval():
             stable = self._scan_stable(grids)
-        where = (f"stable linearisation (analysis.linearization, averaged over the angle) "
-                 f"at speeds +-{'/'.join(f'{v:g}' for v in SPECTRUM_SPEEDS_PU if v > 0)} "
+        where = (f"speeds +-{'/'.join(f'{v:g}' for v in SPECTRUM_SPEEDS_PU if v > 0)} "
                  f"p.u. x i_q {min(SPECTRUM_IQ_PU):g}..{max(SPECTRUM_IQ_PU):g} p.u. (MTPA)")
         out = []
         for j, (c, g) in enumerate(zip(coords, grids)):
             ok, k = stable[j, :len(g)], int(np.searchsorted(g, c.paper))
             if not ok[k]:
                 out.append(dataclasses.replace(
-                    c, why=c.why + f"; the paper's design is not a {where}: bounds kept"))
+                    c, why=c.why + f"; the paper's design is not stable at every point "
+                                   f"of {where}: bounds kept"))
                 continue
             lo, hi = k, k
             while lo > 0 and ok[lo - 1]:
@@ -212,7 +212,9 @@ class DesignSpace:
                 hi += 1
             out.append(dataclasses.replace(
                 c, lo=float(g[lo]), hi=float(g[hi]),
-                why=c.why + f"; narrowed to the {where}, the others at the paper's values"))
+                why=c.why + "; narrowed to where the linearised error dynamics "
+                            "(analysis.linearization, averaged over the angle) are stable at "
+                            f"{where}, the others at the paper's values"))
         return tuple(out)
 
     def _scan_stable(self, grids) -> np.ndarray:
