@@ -9,7 +9,9 @@ and current noise, once with the paper's design and once with the deployed one
 L_q each x0.5, x1 or x1.5 of the plant's (the matched point, four single and four joint
 mismatches). The tuning sets stop at `TuningProblem.mismatch_range`; this grid reaches
 further, and its scenario is not one the tuner draws. Reported beside each other in
-`summary.json` (`heldout_simulate`) and on the console; it enters no verdict.
+`summary.json` (`heldout_simulate`) and on the console; it enters no verdict, and a run
+that fails (a bad input, an exception) is reported as failed with its message instead of
+costing the job its report.
 """
 
 from __future__ import annotations
@@ -31,13 +33,17 @@ def _simulate(argv: list[str]) -> dict:
     run's summary.json, with the exit status."""
     from pmsmjax.cli import main
 
-    with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(
-            io.StringIO()):
-        rc = main(["simulate", *argv])
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(err):
+            rc = main(["simulate", *argv])
+    except Exception as e:  # a check that fails must not cost the job its report
+        return dict(rc=3, error=f"{type(e).__name__}: {e}")
     out = pathlib.Path(argv[argv.index("--out") + 1])
-    s = json.loads((out / "summary.json").read_text()) if (out / "summary.json").exists() \
-        else {}
-    return dict(rc=rc, **s)
+    if rc not in (0, 1) or not (out / "summary.json").exists():
+        lines = err.getvalue().strip().splitlines()
+        return dict(rc=rc, error=lines[-1] if lines else f"exit status {rc}")
+    return dict(rc=rc, **json.loads((out / "summary.json").read_text()))
 
 
 def heldout_simulate(out, problem, *, t_end: float | None = None) -> dict:
@@ -62,7 +68,7 @@ def heldout_simulate(out, problem, *, t_end: float | None = None) -> dict:
                 err = s.get("angle_error_deg") or {}
                 row[label] = {"rms_deg": err.get("rms"), "max_abs_deg": err.get("max_abs"),
                               "lost_lock": bool((s.get("lock") or {}).get("lost")),
-                              "diverged": s.get("rc") == 1}
+                              "diverged": s.get("rc") == 1, "error": s.get("error")}
             rows.append(row)
     first = _simulate_text(problem, t_end)
     return {"what": first, "mismatch": "observer model / plant ratio of L_d and L_q",
@@ -83,6 +89,8 @@ def heldout_text(h: dict) -> str:
              f"{'change':>9}"]
 
     def cell(r):
+        if r.get("error"):
+            return "failed"
         if r["diverged"]:
             return "diverged"
         return f"{r['rms_deg']:.2f}" + (" lost" if r["lost_lock"] else "")
@@ -90,9 +98,11 @@ def heldout_text(h: dict) -> str:
     for row in h["rows"]:
         p, t = row["paper"], row["tuned"]
         # a lost or diverged run's RMS error is not an angle error: no change to state
-        gone = any(r["diverged"] or r["lost_lock"] for r in (p, t))
+        gone = any(r["diverged"] or r["lost_lock"] or r.get("error") for r in (p, t))
         change = ("-" if gone or not p["rms_deg"] else
                   f"{100 * (t['rms_deg'] / p['rms_deg'] - 1):+.0f} %")
         lines.append(f"{row['L_d']:>6g}{row['L_q']:>7g}{cell(p):>15}{cell(t):>15}"
                      f"{change:>9}")
+    failed = {r[k]["error"] for r in h["rows"] for k in ("paper", "tuned") if r[k].get("error")}
+    lines += [f"failed: {e}" for e in sorted(failed)]
     return "\n".join(lines)
