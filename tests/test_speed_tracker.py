@@ -1,6 +1,7 @@
 """`SpeedFromAngle`: the speed a drive takes from an observer's angle estimate (its
 closed loop on the saturated preset: tests/test_saturated_analysis.py)."""
 
+import json
 import math
 
 import jax
@@ -93,3 +94,35 @@ def test_export_c_generates_the_tracked_speed(tmp_path, capsys):
     assert "speed from its angle (SpeedFromAngle)" in header
     assert f"k_p = 2 zeta w_track = {2 * w_t!r} rad/s" in header
     assert "trk_w" in header
+
+
+def test_replay_gives_the_tracked_speed(tmp_path, capsys):
+    """`pmsmjax replay --speed-from-angle HZ`: the replayed w_hat is the speed of the
+    observer's angle through the tracking loop, as `replay_estimates` of the wrapped
+    observer gives it (the same start the command chooses), and the first line and
+    stats.json say so; the angle is the observer's own."""
+    drive = pj.preset("zhang750")
+    w = 0.3 * float(drive.w_rated)
+    sc = pj.Scenario(t_end=0.15, w_m_ref=pj.Profile.constant(w))
+    traj = pj.simulate(drive, pj.FOC.from_drive(drive), pj.SensoredObserver(), sc, T_s=T_S,
+                       theta0=0.4, w_m0=w)
+    data = pj.RecordedData.from_trajectory(traj)
+    pj.save_recording(tmp_path / "run.npz", data)
+    outs = {}
+    for name, extra in (("own", []), ("tracked", ["--speed-from-angle", "20"])):
+        out = tmp_path / name
+        assert cli_main(["replay", "--data", str(tmp_path / "run.npz"), "--observer", "afo",
+                         "--theta0", "23", "--speed0", "0.3", *extra, "--no-plot", "--out",
+                         str(out)]) == 0
+        outs[name] = np.load(out / "replay.npz")
+    printed = capsys.readouterr().out
+    assert "speed from its angle (20 Hz tracking loop)" in printed
+    obs = make_observer("afo", drive)
+    ref = pj.replay_estimates(pj.SpeedFromAngle(obs, w_track=2 * math.pi * 20.0), data,
+                              theta0=math.radians(23.0), w0=w)
+    np.testing.assert_allclose(outs["tracked"]["w_hat"], np.asarray(ref.w_hat), rtol=0,
+                               atol=1e-9 * w)
+    np.testing.assert_array_equal(outs["tracked"]["theta_hat"], outs["own"]["theta_hat"])
+    assert np.max(np.abs(outs["tracked"]["w_hat"] - outs["own"]["w_hat"])) > 1e-3 * w
+    stats = json.loads((tmp_path / "tracked" / "stats.json").read_text())
+    assert stats["speed_from_angle_Hz"] == 20.0

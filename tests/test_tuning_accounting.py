@@ -175,7 +175,7 @@ def test_gains_h_and_simulate_say_which_speed_the_design_was_tuned_on(tmp_path, 
     assert main([*run, str(tmp_path / "a")]) == 0
     err = capsys.readouterr().err
     assert ("tuned with the speed loop on the speed of the observer's angle (a tracking "
-            "loop of 30 Hz, SpeedFromAngle); this run closes it on the observer's own "
+            "loop of 30 Hz, SpeedFromAngle); this run takes the observer's own "
             "speed (pass --speed-from-angle 30)") in err
     assert main([*run, str(tmp_path / "b"), "--speed-from-angle", "30"]) == 0
     assert "speed loop" not in capsys.readouterr().err

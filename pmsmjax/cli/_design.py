@@ -62,7 +62,7 @@ def observer_with_design(args, drive: pj.Drive, *, default: str) -> ObserverChoi
             now = ("the observer's own speed" if here is None else
                    f"the speed of its angle at {float(here):g} Hz")
             print(f"warning: --design {args.design}: "
-                  f"{pj.speed_loop_text(table).split(':')[0]}; this run closes it on {now} "
+                  f"{pj.speed_loop_text(table).split(':')[0]}; this run takes {now} "
                   + ("(pass --speed-from-angle "
                      f"{tuned:g})" if tuned is not None else "(leave out --speed-from-angle)"),
                   file=sys.stderr)

@@ -23,7 +23,12 @@ from ._drive_options import (
     initial_state_given,
     motor_text,
 )
-from ._observer_options import add_observer_options
+from ._observer_options import (
+    add_observer_options,
+    add_speed_from_angle_option,
+    speed_from_angle_text,
+    with_speed_from_angle,
+)
 from ._output import add_output_options, first_line, prepare_out_dir
 from ._runs import run_lock_status
 from ._values import CLIError, nonneg_float
@@ -53,6 +58,7 @@ def _replay_arguments(p: argparse.ArgumentParser) -> None:
                    help="statistics over the samples after this time (s, from the first "
                         "sample; default: half the record)")
     add_observer_options(p, default="eso", mismatch=True, scheduled=True)
+    add_speed_from_angle_option(p, "; the replayed w_hat is then that speed")
     add_design_option(p)
     add_output_options(p, None)
 
@@ -119,7 +125,8 @@ def replay_command(args: argparse.Namespace) -> int:
     if t_settle > duration:
         raise CLIError(f"--t-settle {t_settle:g}: the record lasts {duration:.6g} s; allowed: "
                        f"0 <= S <= {duration:.6g}")
-    print(first_line("replay", motor_text(drive, args), choice.describe(),
+    print(first_line("replay", motor_text(drive, args),
+                     choice.describe() + speed_from_angle_text(args),
                      f"{data.n} samples at T_s = {data.T_s:g} s from {args.data}"))
     log_warnings = pj.recording_warnings(data, drive, inverter=inverter)
     for msg in log_warnings:
@@ -145,7 +152,8 @@ def replay_command(args: argparse.Namespace) -> int:
         print(f"flying start: theta0 = {math.degrees(theta0):.4g} deg, w0 = {w0:.5g} rad/s "
               f"(back-EMF {float(fs.e_mag):.3g} V)")
     unknown = start in ("caught turning", "at rest")  # replay's own default start
-    est = pj.replay_estimates(choice.observer, data, theta0=None if unknown else theta0,
+    est = pj.replay_estimates(with_speed_from_angle(args, choice.observer), data,
+                              theta0=None if unknown else theta0,
                               w0=None if unknown else w0, inverter=inverter)
     theta_hat, w_hat = np.asarray(est.theta_hat), np.asarray(est.w_hat)
     extras = {k: np.asarray(v) for k, v in est.extras.items()}
@@ -178,6 +186,7 @@ def replay_command(args: argparse.Namespace) -> int:
         "observer": choice.name,
         "observer_details": choice.info(),
         "design_file": getattr(args, "design", None),
+        "speed_from_angle_Hz": args.speed_from_angle,
         "data": str(args.data),
         "T_s": data.T_s,
         "voltage": args.voltage,
