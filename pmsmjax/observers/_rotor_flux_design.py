@@ -73,6 +73,11 @@ TUNING_COORDINATES = {"w_gamma": ("rad/s", "tracking"), "a_i": ("1/s", "explicit
 TUNING_REPLACES = ("gamma", "c_alpha")
 
 
+def _rate(c_alpha, R_s, L):
+    """The current-error rate (1 + c_alpha) R_s / L (1/s) of the feedback c_alpha."""
+    return (1.0 + c_alpha) * R_s / L
+
+
 def _constants(drive):
     if drive is None:
         raise ValueError("RotorFluxObserver's tuning coordinates (w_gamma, a_i) are scaled "
@@ -105,7 +110,7 @@ def tuning_from_design(cls, design: dict, drive=None) -> dict:
     L_d, L_q, R_s, psi_f = _constants(drive)
     gamma, c_alpha = d.pop("gamma"), d.pop("c_alpha")
     d["w_gamma"] = gamma ** 0.5 * psi_f / L_q
-    d["a_i"] = (1.0 + c_alpha) * R_s / L_d
+    d["a_i"] = _rate(c_alpha, R_s, L_d)
     return d
 
 
@@ -113,7 +118,7 @@ def reduced_poles(gamma, c_alpha, k_c, motor, w):
     """The two roots of the module docstring's polynomial $m s^2 + c_1 s + c_0$ at
     electrical speed `w` (rad/s) for the non-salient reduction of `motor` (its `L_q`,
     `R_s`, `psi_f`), complex (2,)."""
-    L, a, aw = motor.L_q, (1.0 + c_alpha) * motor.R_s / motor.L_q, jnp.abs(w)
+    L, a, aw = motor.L_q, _rate(c_alpha, motor.R_s, motor.L_q), jnp.abs(w)
     D = a ** 2 + w ** 2
     k = gamma * motor.psi_f ** 2 / (L ** 2 * D)
     q = a ** 2 - w ** 2 - 2.0 * a * k_c * aw
@@ -125,5 +130,5 @@ def reduced_poles(gamma, c_alpha, k_c, motor, w):
 def self_damped_below(c_alpha, k_c, motor):
     """The electrical speed (rad/s) below which the speed law damps itself on the
     non-salient reduction: $a(\\sqrt{1 + k_c^2} - k_c)$ (module docstring)."""
-    a = (1.0 + c_alpha) * motor.R_s / motor.L_q
+    a = _rate(c_alpha, motor.R_s, motor.L_q)
     return a * (jnp.sqrt(1.0 + k_c ** 2) - k_c)

@@ -70,12 +70,12 @@ def heldout_simulate(out, problem, *, t_end: float | None = None) -> dict:
                               "lost_lock": bool((s.get("lock") or {}).get("lost")),
                               "diverged": s.get("rc") == 1, "error": s.get("error")}
             rows.append(row)
-    first = _simulate_text(problem, t_end)
-    return {"what": first, "mismatch": "observer model / plant ratio of L_d and L_q",
-            "rows": rows}
+    return {"what": _what(problem, t_end),
+            "mismatch": "observer model / plant ratio of L_d and L_q", "rows": rows}
 
 
-def _simulate_text(problem, t_end) -> str:
+def _what(problem, t_end) -> str:
+    """What the check ran, for the report and the console's first line of its table."""
     return ("`pmsmjax simulate` (default scenario: ramp to 0.5 p.u., load step to 0.5 p.u. "
             f"and back{'' if t_end is None else f', {t_end:g} s'}), T_s "
             f"{float(problem.T_s):g} s, noise {float(problem.noise_std):g} A, paper's and "
