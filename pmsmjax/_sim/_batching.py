@@ -29,6 +29,13 @@ value. `values_as_arrays(tree, dtype)` turns those floats into NumPy arrays of t
 dtype, which `filter_jit` traces, so a new value runs the compiled program again. A
 Python zero stays as it is: the code reads it as "absent" (no dead-time model, no
 quantisation, no feed-through term) and compiles a smaller program for it.
+
+`by_batch(single, many, plain)` is a function with one layout for a single run and
+another for a batch, where XLA's CPU code for the two differs: `vmap` alone cannot
+choose, since it sees no batch size. Its batching rule (`custom_vmap`) runs `single` on
+a batch of one as on no batch, `many` on larger batches; a rule of that kind has no
+reverse mode, so its derivatives (forward and reverse) are those of `plain`, which
+computes the same values.
 """
 
 from __future__ import annotations
@@ -70,3 +77,35 @@ def values_as_arrays(tree, dtype):
         return x
 
     return jax.tree_util.tree_map(one, tree)
+
+
+def by_batch(single, many, plain):
+    """`f(*args)`: `single(*args)` unbatched and on a batch of one under `vmap` (the
+    unbatched program); `many(axis_size, in_batched, *args)`, which returns every output
+    batched along axis 0, on a larger batch; derivatives those of `plain` (module
+    docstring). All three must compute the same values (to round-off)."""
+    every = lambda out: jax.tree_util.tree_map(lambda _: True, out)  # noqa: E731
+
+    @jax.custom_batching.custom_vmap
+    def batched(*a):
+        return single(*a)
+
+    @batched.def_vmap
+    def _rule(axis_size, in_batched, *a):
+        if axis_size == 1:  # through `batched`, so that an enclosing `vmap` chooses again
+            a = jax.tree_util.tree_map(lambda x, b: x[0] if b else x, list(a),
+                                       list(in_batched))
+            out = batched(*a)
+            return jax.tree_util.tree_map(lambda x: x[None], out), every(out)
+        out = many(axis_size, in_batched, *a)
+        return out, every(out)
+
+    @jax.custom_jvp
+    def f(*a):
+        return batched(*a)
+
+    @f.defjvp
+    def _jvp(primals, tangents):
+        return jax.jvp(plain, primals, tangents)
+
+    return f

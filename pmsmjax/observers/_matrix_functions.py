@@ -40,6 +40,8 @@ import math
 import jax
 import jax.numpy as jnp
 
+from .._sim._batching import by_batch
+
 
 def _pair_mul(x, y, d):
     """The product of two elements `aI + bN` of the algebra of a 2x2 matrix `N` with
@@ -167,7 +169,7 @@ def switched(branches, limits, native=()):
     that serves; `rho` is a bound held constant for differentiation).
 
     Plainly a `lax.switch`. Under `vmap` a switch on a batched index would evaluate
-    every branch (a select): a batching rule (`custom_vmap`) takes one branch for the
+    every branch (a select): a batching rule (`by_batch`) takes one branch for the
     whole batch instead, the one that serves its largest `rho`, so the cheaper branches
     are not paid for on top of it; it calls a branch whose index is in `native` on the
     batch directly (every argument with its batch axis first, unbatched scalars as they
@@ -186,18 +188,7 @@ def switched(branches, limits, native=()):
         return jax.lax.switch(index(a[-1]), [lambda o, b=b: b(*o) for b in branches],
                               a[:-1])
 
-    @jax.custom_batching.custom_vmap
-    def batched(*a):
-        return plain(*a)
-
-    @batched.def_vmap
-    def _rule(axis_size, in_batched, *a):
-        if axis_size == 1:  # a batch of one: the unbatched program
-            a = jax.tree_util.tree_map(lambda x, b: x[0] if b else x, list(a),
-                                       list(in_batched))
-            out = plain(*a)
-            return (jax.tree_util.tree_map(lambda x: x[None], out),
-                    jax.tree_util.tree_map(lambda _: True, out))
+    def many(axis_size, in_batched, *a):
         # native branches: unbatched scalars as they are (they broadcast), other
         # unbatched arguments with the batch axis; the others under `vmap`
         on = jax.tree_util.tree_map(
@@ -211,19 +202,10 @@ def switched(branches, limits, native=()):
                 return lambda o: b(*o[0])
             return lambda o: jax.vmap(b, in_axes=axes)(*o[1])
 
-        out = jax.lax.switch(jnp.max(index(a[-1])),
-                             [call(i, b) for i, b in enumerate(branches)], (on, a[:-1]))
-        return out, jax.tree_util.tree_map(lambda _: True, out)
+        return jax.lax.switch(jnp.max(index(a[-1])),
+                              [call(i, b) for i, b in enumerate(branches)], (on, a[:-1]))
 
-    @jax.custom_jvp
-    def f(*a):
-        return batched(*a)
-
-    @f.defjvp
-    def _jvp(primals, tangents):
-        return jax.jvp(plain, primals, tangents)
-
-    return f
+    return by_batch(plain, many, plain)
 
 
 #: The pair functions skip the doublings (`phi_pair` at `squarings=0`) while the bound
