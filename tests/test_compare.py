@@ -19,6 +19,8 @@ from tuning.compare import (
     CompareConfig,
     CompareInterrupted,
     aggregate,
+    lock_comparison,
+    markdown,
     run_comparison,
 )
 from tuning.compare.config import TRACE_SAMPLES
@@ -160,6 +162,79 @@ def test_every_metric_finite_or_flagged(job):
     assert m["harmonic_deg_per_pct"] == pytest.approx(want, rel=1e-9)
     md = (out / "comparison.md").read_text()
     assert md.count(f"| {OBSERVER} |") == 2
+
+
+def _where(speed, load, k=(1.0, 1.0, 1.0, 1.0), feasible=None):
+    w = dict(speed_pu=speed, load_pu=load, k_d=k[0], k_q=k[1], k_R=k[2], k_psi=k[3])
+    if feasible is not None:
+        w["feasible"] = feasible
+    return w
+
+
+def _entry(paper, tuned):
+    return {"designs": {"paper": dict(lost_lock=len(paper), lost_lock_where=paper),
+                        "tuned": dict(lost_lock=None if tuned is None else len(tuned),
+                                      lost_lock_where=tuned or [])}}
+
+
+def test_lock_comparison_accounting():
+    """Hand-built cases of `lock_comparison`: fewer; not fewer, with each run lost only
+    by the tuned design and its reason counted; none lost by either; none by the paper's
+    design; no tuned design. And its section in comparison.md."""
+    a, b = _where(0.1, 1.0), _where(-1.0, 0.0, (0.7, 1.3, 1.0, 1.0))
+    c = _where(0.05, 1.0, (1.0, 1.0, 1.5, 1.0), feasible=False)
+    d = _where(0.05, 0.0, feasible=True)
+    r = lock_comparison(_entry([a, b], [a]))
+    assert (r["paper"], r["tuned"], r["fewer"], r["why_not"]) == (2, 1, True, None)
+    assert r["only_paper"] == [b] and r["only_tuned"] == []
+    # the same grid point with the analysis's verdict attached is the same run
+    r = lock_comparison(_entry([dict(a, feasible=True)], [a, c, d]))
+    assert (r["paper"], r["tuned"], r["fewer"]) == (1, 3, False)
+    assert r["only_tuned"] == [c, d] and r["only_paper"] == []
+    assert r["why_not"] == ("2 runs lost only by the tuned design; 1 of them where the "
+                            "analysis finds no stable designed equilibrium for it (it "
+                            "cannot hold that point); 1 where it is feasible (lost on the "
+                            "way: at the start or the load step)")
+    r = lock_comparison(_entry([], []))
+    assert not r["fewer"] and r["why_not"].startswith("neither design loses a run")
+    r = lock_comparison(_entry([], [a]))
+    assert r["why_not"] == ("1 run lost only by the tuned design; 1 without the analysis; "
+                            "the paper's design loses none")
+    assert lock_comparison(_entry([a], None)) is None
+    summary = dict(motor="m", config=dict(noise_std=0.0, T_s=1e-4, t_end=0.1,
+                                          settle_band_deg=2.0, lock_deg=45.0,
+                                          harmonic_orders=[5], tuner="adam", tune_steps=2),
+                   grid=dict(n_runs=4, speeds_pu=[0.1], loads_pu=[0.0], cases=[{}]),
+                   skipped={}, observers={
+                       "x": dict(_entry([a], [a, c, d]), lock_comparison=lock_comparison(
+                           _entry([a], [a, c, d]))),
+                       "y": dict(_entry([a, b], []), lock_comparison=lock_comparison(
+                           _entry([a, b], [])))})
+    md = markdown(summary)
+    sec = md.split("## Lost lock: tuned against paper\n\n")[1].split("\n\n")[0].splitlines()
+    assert sec[0].startswith("- x: paper 1, tuned 3: not fewer; 2 runs lost only")
+    assert sec[1] == "  - 0.05 p.u., load 1, R 1.5; analysis: no stable designed equilibrium"
+    assert sec[2] == "  - 0.05 p.u., load 0, matched; analysis: feasible"
+    assert sec[3] == "- y: paper 2, tuned 0: fewer"
+
+
+def test_lock_comparison_from_the_saved_runs(job):
+    """comparison.json's lost-lock comparison recomputed from both designs' saved runs."""
+    config, out, summary = job
+    s = json.loads((out / "comparison.json").read_text())
+    lost = {}
+    for d in DESIGNS:
+        r = read_npz(out / "sweeps" / OBSERVER / d / "runs" / "result.npz")
+        at = r["lost_lock"].reshape(-1).astype(bool)
+        lost[d] = {(float(sp), float(ld), int(k)) for sp, ld, k in zip(
+            r["grid/speed_pu"].reshape(-1)[at], r["grid/load_pu"].reshape(-1)[at],
+            r["grid/case"].reshape(-1)[at])}
+    c = s["observers"][OBSERVER]["lock_comparison"]
+    assert (c["paper"], c["tuned"]) == (len(lost["paper"]), len(lost["tuned"]))
+    assert c["fewer"] == (len(lost["tuned"]) < len(lost["paper"]))
+    assert len(c["only_tuned"]) == len(lost["tuned"] - lost["paper"])
+    assert len(c["only_paper"]) == len(lost["paper"] - lost["tuned"])
+    assert "## Lost lock: tuned against paper" in (out / "comparison.md").read_text()
 
 
 def _strip_timing(path):

@@ -14,4 +14,8 @@ from .config import (
 from .job import CompareInterrupted as CompareInterrupted, run_comparison as run_comparison
 from .plots import plot_comparison as plot_comparison
 from .points import operating_current as operating_current
-from .report import aggregate as aggregate, markdown as markdown
+from .report import (
+    aggregate as aggregate,
+    lock_comparison as lock_comparison,
+    markdown as markdown,
+)

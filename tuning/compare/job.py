@@ -49,7 +49,7 @@ from .points import (
     _sweep_fns,
     harmonic_sensitivity,
 )
-from .report import aggregate, markdown
+from .report import aggregate, lock_comparison, markdown
 
 
 FORMAT = "pmsmjax-compare/1"
@@ -327,6 +327,7 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
         _run_workers(ctx, [n for n in ok if not ctx.entry_path(n).is_file()], jobs)
     for name in ok:
         entry, tim = observer_entry(ctx, name, units, class_name=ok[name])
+        entry["lock_comparison"] = lock_comparison(entry)
         observers[name] = entry
         timing["observers"][name] = tim
     timing["wall_s"] = time.perf_counter() - t_start

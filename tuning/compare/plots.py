@@ -19,7 +19,7 @@ import pathlib
 
 import numpy as np
 
-from .config import DESIGNS, TRACE_SAMPLES
+from .config import DESIGNS, TRACE_SAMPLES, case_label
 
 
 #: (key, label) of the bar charts.
@@ -38,11 +38,6 @@ def _runs(sweeps: pathlib.Path, name: str, design: str):
         return None
     with np.load(path) as f:
         return dict(f)
-
-
-def _case_label(c: dict) -> str:
-    parts = [f"{k[2:]} {v:g}" for k, v in c.items() if v != 1.0]
-    return ", ".join(parts) if parts else "matched"
 
 
 def hardest_point(summary: dict, out, sweeps=None) -> tuple[int, ...] | None:
@@ -102,7 +97,7 @@ def _maps(summary, sweeps, plt):
     fig, axes = plt.subplots(len(designs), len(names), squeeze=False, sharex=True,
                              sharey=True, figsize=(2.3 * len(names) + 1.5, 5.2))
     speeds = np.asarray(g["speeds_pu"])
-    cases = [_case_label(c) for c in g["cases"]]
+    cases = [case_label(c) for c in g["cases"]]
     im = None
     cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
     for i, d in enumerate(designs):
@@ -175,7 +170,7 @@ def _traces(summary, sweeps, plt):
             a2.plot(t, r["trace_w_err"][idx], **kw)
     speed = sorted(g["speeds_pu"])[idx[0]]
     load = g["loads_pu"][idx[1]]
-    case = _case_label(g["cases"][idx[2]])
+    case = case_label(g["cases"][idx[2]])
     a1.set_ylabel("angle error (deg)")
     a2.set_ylabel("speed-estimate error (rad/s)")
     a2.set_xlabel("t (s)")

@@ -9,7 +9,8 @@ are counted and located instead, their angle error is meaningless):
 - `settle_worst_s`, `settle_median_s`: over the runs that settled; `n_unsettled` counts
   the others;
 - `noise_median_rad_s`, `noise_worst_rad_s`;
-- `lost_lock`: count, and `lost_lock_where`: the grid points (speed, load, case);
+- `lost_lock`: count, and `lost_lock_where`: the grid points (speed, load, case), each
+  with `feasible`, the analysis's verdict at that point, when the analysis ran;
 - `feasible_fraction`: the fraction of the analysis grid (the same speeds, both signs,
   loads and mismatch cases, at constant speed and current) where the generic analysis
   (`pmsmjax.analysis.equilibria_traced`, or the family's own route) finds the designed
@@ -22,6 +23,13 @@ are counted and located instead, their angle error is meaningless):
   JSON: it is a measurement of this machine, not of the observer alone).
 
 A metric that cannot be computed is `null` in the JSON with its reason in `flags`.
+
+**Lost lock, tuned against paper** (`lock_comparison`, per observer in the JSON and a
+section of `comparison.md`): the two designs' counts, whether the tuned design loses
+fewer runs, and, where it does not, why: the runs only the tuned design loses, each
+with the reason the analysis gives (no stable designed equilibrium at that point: the
+design cannot hold it; or feasible there: lost on the way, at the start or the load
+step), or that the paper's design loses none.
 """
 
 from __future__ import annotations
@@ -30,7 +38,7 @@ import numpy as np
 
 import pmsmjax as pj
 
-from .config import CASE_NAMES, DESIGNS, CompareConfig
+from .config import CASE_NAMES, DESIGNS, CompareConfig, case_label
 
 
 def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dict:
@@ -44,11 +52,14 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
     static = np.asarray(runs["static_deg"]).reshape(-1)[keep]
     out = {"n_runs": int(lost.size), "lost_lock": int(lost.sum())}
     where = []
+    feasible = None if feas is None else np.asarray(feas["feasible"]).reshape(-1)
     for j in np.nonzero(lost)[0]:
         c = int(grid["case"][j])
         where.append(dict(speed_pu=float(grid["speed_pu"][j]),
                           load_pu=float(grid["load_pu"][j]),
                           **dict(zip(CASE_NAMES, config.cases[c]))))
+        if feasible is not None:
+            where[-1]["feasible"] = bool(feasible[j])
     out["lost_lock_where"] = where
 
     def put(name, values, fn, why):
@@ -81,6 +92,69 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
         out["analysis_failed"] = int(np.sum(np.asarray(feas["status"]).reshape(-1) < 0))
     out["flags"] = flags
     return out
+
+
+def _point(w: dict) -> tuple:
+    return (w["speed_pu"], w["load_pu"]) + tuple(w[k] for k in CASE_NAMES)
+
+
+def lock_comparison(entry: dict) -> dict | None:
+    """The tuned design's lost runs against the paper design's (module docstring), from
+    one observer's entry (`entry["designs"]`); None where a design has no runs (the
+    tuner was not run or failed: its reason is in that design's `flags`)."""
+    d = entry.get("designs", {})
+    if any(d.get(n, {}).get("lost_lock") is None for n in DESIGNS):
+        return None
+    paper, tuned = (d[n]["lost_lock_where"] for n in DESIGNS)
+    p_at, t_at = {_point(w) for w in paper}, {_point(w) for w in tuned}
+    only_tuned = [w for w in tuned if _point(w) not in p_at]
+    out = dict(paper=len(paper), tuned=len(tuned), fewer=len(tuned) < len(paper),
+               only_tuned=only_tuned,
+               only_paper=[w for w in paper if _point(w) not in t_at])
+    if out["fewer"]:
+        out["why_not"] = None
+    elif not paper and not tuned:
+        out["why_not"] = "neither design loses a run: none to lose fewer of"
+    else:
+        infeasible = sum(w.get("feasible") is False for w in only_tuned)
+        unknown = sum("feasible" not in w for w in only_tuned)
+        n = len(only_tuned)
+        why = [f"{n} run{'s' if n != 1 else ''} lost only by the tuned design"]
+        if infeasible:
+            why.append(f"{infeasible} of them where the analysis finds no stable designed "
+                       f"equilibrium for it (it cannot hold that point)")
+        if len(only_tuned) - infeasible - unknown:
+            why.append(f"{len(only_tuned) - infeasible - unknown} where it is feasible "
+                       f"(lost on the way: at the start or the load step)")
+        if unknown:
+            why.append(f"{unknown} without the analysis")
+        if not paper:
+            why.append("the paper's design loses none")
+        out["why_not"] = "; ".join(why)
+    return out
+
+
+def _lock_lines(summary: dict) -> list[str]:
+    lines = []
+    for name, e in summary["observers"].items():
+        if "lock_comparison" not in e:
+            continue
+        c = e["lock_comparison"]
+        if c is None:
+            lines.append(f"- {name}: no tuned design to compare (its flags say why)")
+            continue
+        head = f"- {name}: paper {c['paper']}, tuned {c['tuned']}"
+        if c["fewer"]:
+            lines.append(f"{head}: fewer")
+            continue
+        lines.append(f"{head}: not fewer; {c['why_not']}")
+        for w in c["only_tuned"]:
+            f = w.get("feasible")
+            why = ("" if f is None else "; analysis: feasible" if f
+                   else "; analysis: no stable designed equilibrium")
+            lines.append(f"  - {w['speed_pu']:g} p.u., load {w['load_pu']:g}, "
+                         f"{case_label(w)}{why}")
+    return lines
 
 
 COLUMNS = (
@@ -124,6 +198,9 @@ def markdown(summary: dict) -> str:
     if summary["skipped"]:
         lines += ["", "Not applicable to this motor: " + "; ".join(
             f"{k} ({v})" for k, v in summary["skipped"].items())]
+    lock = _lock_lines(summary)
+    if lock:
+        lines += ["", "## Lost lock: tuned against paper", ""] + lock
     flags = sorted({f"{n}/{d}: {k}: {v}" for n, e in summary["observers"].items()
                     for d, m in e["designs"].items() for k, v in m.get("flags", {}).items()})
     if flags:
@@ -152,4 +229,4 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["COLUMNS", "aggregate", "markdown"]
+__all__ = ["COLUMNS", "aggregate", "lock_comparison", "markdown"]
