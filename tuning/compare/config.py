@@ -69,14 +69,14 @@ CASES = (
     (1.2, 1.2, 1.3, 0.9),
 )
 CASE_NAMES = ("k_d", "k_q", "k_R", "k_psi")
+#: Samples kept of each run's angle and speed-estimate errors (for the time traces).
+TRACE_SAMPLES = 200
 
 
 def case_label(c: dict) -> str:
     """A mismatch case (`{"k_d": ..., ...}`) in words: `"d 0.7, q 1.3"`, or `"matched"`."""
     parts = [f"{k[2:]} {v:g}" for k, v in c.items() if k in CASE_NAMES and v != 1.0]
     return ", ".join(parts) if parts else "matched"
-#: Samples kept of each run's angle and speed-estimate errors (for the time traces).
-TRACE_SAMPLES = 200
 
 
 @dataclasses.dataclass(frozen=True)
