@@ -333,6 +333,62 @@ def test_config_errors():
         CompareConfig(cases=((1.0, 1.0, 1.0),))
     with pytest.raises(ValueError, match="tuner"):
         CompareConfig(tuner="sgd")
+    for bad in (0.0, -30.0, math.inf, "30", True):
+        with pytest.raises(ValueError, match=r"speed_from_angle=.*frequency > 0 \(Hz\)"):
+            CompareConfig(speed_from_angle=bad)
+
+
+def test_speed_from_angle_runs_and_tunes_with_the_tracked_speed():
+    """`speed_from_angle`: absent from the configuration's JSON (and fingerprint) unless
+    given; the tuner's problem takes it; each run's metrics are those of a direct
+    `simulate` whose controller takes the speed of `pmsmjax.SpeedFromAngle` (the runs
+    differ from those on the observer's own speed); the report's header says so."""
+    from tuning.compare.points import run_point
+
+    plain, tracked = tiny(), tiny(speed_from_angle=30)
+    assert "speed_from_angle" not in plain.to_dict()
+    assert tracked.to_dict()["speed_from_angle"] == 30.0
+    assert plain.fingerprint() != tracked.fingerprint()
+    assert tracked.tuning_problem(OBSERVER).speed_from_angle == 30.0
+    assert plain.tuning_problem(OBSERVER).speed_from_angle is None
+    assert CompareConfig.from_dict(tracked.to_dict()) == tracked
+    grid = tracked.grid(index=True)
+    pts = {k: jnp.asarray(v) for k, v in grid.items()}
+    run = lambda c: jax.jit(jax.vmap(lambda p: run_point(None, c, OBSERVER, p)))(pts)  # noqa
+    got, own = run(tracked), run(plain)
+    drive = tracked.drive()
+    foc = pj.FOC.from_drive(drive)
+    w_r = float(drive.w_rated)
+    q = lambda f: round(f * tracked.t_end / tracked.T_s) * tracked.T_s  # noqa: E731
+    cases = np.asarray(tracked.cases)[grid["case"]]
+
+    def one(j, speed, load, k):
+        obs = pj.SpeedFromAngle(pj.observers.make_observer(
+            OBSERVER, drive, motor=observer_model(drive, k[0], k[1], k[2], k[3])),
+            w_track=2 * math.pi * 30.0)
+        tau = load * float(drive.tau_rated) * jnp.sign(speed)
+        sc = pj.Scenario(t_end=tracked.t_end,
+                         w_m_ref=pj.Profile([q(VAL_RAMP[0]), q(VAL_RAMP[1])],
+                                            jnp.stack([tracked.start_frac * speed * w_r,
+                                                       speed * w_r])),
+                         tau_L=pj.Profile([q(VAL_LOAD_STEP)] * 2, jnp.stack([0 * tau, tau])))
+        key = jr.fold_in(jr.PRNGKey(tracked.seed), j.astype(jnp.uint32))
+        return pj.simulate(drive, foc, obs, sc, T_s=tracked.T_s,
+                           sensing=pj.Sensing(noise_std=tracked.noise_std), key=key,
+                           theta0=0.0, w_m0=tracked.start_frac * speed * w_r,
+                           theta_hat0=0.0, save_every=tracked.save_every, throw=False)
+
+    traj = jax.jit(jax.vmap(one))(jnp.arange(len(grid["case"])), pts["speed_pu"],
+                                  pts["load_pu"], jnp.asarray(cases))
+    want = jax.jit(lambda tr: run_metrics(tr, tracked))(traj)
+    for k in ("static_deg", "rms_deg", "noise_rad_s"):
+        np.testing.assert_allclose(got[k], want[k], rtol=1e-9, atol=1e-12, err_msg=k)
+    assert np.max(np.abs(np.asarray(got["noise_rad_s"]) - np.asarray(own["noise_rad_s"]))
+                  ) > 1e-3
+    md = markdown(dict(motor="zhang750", config=tracked.to_dict(), skipped={}, observers={},
+                       grid=dict(n_runs=8, speeds_pu=[0.5], loads_pu=[0.0, 1.0],
+                                 cases=[{}, {}])))
+    assert "takes the speed of the observer's angle (30 Hz tracking loop)" in md
 
 
 def test_figures(job):

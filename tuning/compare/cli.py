@@ -16,6 +16,7 @@ from pmsmjax.cli import (
     CLIError,
     ListOption,
     add_drive_options,
+    add_speed_from_angle_option,
     add_sweep_options,
     init_distributed,
     sweep_settings,
@@ -66,6 +67,8 @@ def build_parser(prog: str = "python -m tuning compare") -> argparse.ArgumentPar
                         "--num-processes")
     # the field's default, not `CompareConfig()`: building a configuration computes,
     # and under --coordinator nothing may start JAX's backend before jax.distributed
+    add_speed_from_angle_option(p, "; every run's speed loop takes it, and the tuner "
+                                   "tunes with it")
     add_sweep_options(p, default_chunk_size=CompareConfig.__dataclass_fields__[
         "chunk_size"].default)
     p.add_argument("--no-plot", action="store_true", help="do not write the figures")
@@ -115,7 +118,7 @@ def main(argv=None, prog: str = "python -m tuning compare") -> int:
         kw["observers"] = tuple(args.observers)
     kw["chunk_size"] = args.chunk_size
     for opt, field in (("tuner", "tuner"), ("tune_steps", "tune_steps"),
-                       ("analysis", "analysis")):
+                       ("analysis", "analysis"), ("speed_from_angle", "speed_from_angle")):
         v = getattr(args, opt)
         if v is not None:
             kw[field] = v

@@ -105,6 +105,10 @@ class CompareConfig:
       comparison's size is one chunk, evaluated at one vmap width).
     - `analysis`: run the generic equilibrium analysis on the grid (its compilation is the
       largest part of a small comparison; False: `feasible_fraction` is flagged).
+    - `speed_from_angle`: None (default), or the natural frequency (Hz) of a tracking
+      loop whose speed of the observer's angle closes every run's speed loop
+      (`pmsmjax.SpeedFromAngle`) in place of the observer's own speed estimate; the tuned
+      design is tuned with it too (`TuningProblem.speed_from_angle`).
     """
 
     motor: str = "zhang750"
@@ -128,6 +132,7 @@ class CompareConfig:
     harmonic_speeds_pu: tuple = (0.1, 0.5, 1.0)
     chunk_size: int | None = None
     analysis: bool = True
+    speed_from_angle: float | None = None
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -191,6 +196,13 @@ class CompareConfig:
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"`CompareConfig({name}=...)` must be a finite number > 0; "
                                  f"got {v!r}.")
+        f = self.speed_from_angle
+        if f is not None:
+            if isinstance(f, bool) or not isinstance(f, int | float) or not (
+                    math.isfinite(f) and f > 0):
+                raise ValueError(f"`CompareConfig(speed_from_angle=...)` must be None or a "
+                                 f"frequency > 0 (Hz); got {f!r}.")
+            set_("speed_from_angle", float(f))
         # the tuner's problem checks the rest (run length against the sampling period)
         self.tuning_problem(observer_names()[0])
 
@@ -209,11 +221,11 @@ class CompareConfig:
         return cls(**kw)
 
     def to_dict(self) -> dict:
-        """The fields as JSON values; `motor_file` and `set_params` only when given, so
-        that a preset job keeps the fingerprint (and resumes) it had before they
-        existed."""
+        """The fields as JSON values; `motor_file`, `set_params` and `speed_from_angle`
+        only when given, so that a preset job keeps the fingerprint (and resumes) it had
+        before they existed."""
         d = dataclasses.asdict(self)
-        for k, empty in (("motor_file", None), ("set_params", ())):
+        for k, empty in (("motor_file", None), ("set_params", ()), ("speed_from_angle", None)):
             if d[k] == empty:
                 del d[k]
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
@@ -247,7 +259,8 @@ class CompareConfig:
         evaluations of its training batch."""
         q = TuningProblem.quick(**self._drive_kw(), observer=observer, T_s=self.T_s,
                                 noise_std=self.noise_std, seed=self.seed)
-        return q.replace(budget=max(self.tune_steps, 2) * q.n_train)
+        return q.replace(budget=max(self.tune_steps, 2) * q.n_train,
+                         speed_from_angle=self.speed_from_angle)
 
     def grid(self, index: bool = False):
         """The common grid as a `SweepGrid` (axes: signed speed, load, case index);

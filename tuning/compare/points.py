@@ -109,7 +109,8 @@ def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
                        kind=jnp.full(1, 3), t_end=config.t_end)
     traj = simulate_set(lambda motor: space.observer(design, motor), drive,
                         pj.FOC.from_drive(drive), sset, T_s=config.T_s,
-                        noise_std=config.noise_std, save_every=config.save_every)
+                        noise_std=config.noise_std, save_every=config.save_every,
+                        speed_from_angle=config.speed_from_angle)
     out = jax.tree_util.tree_map(lambda a: a[0], run_metrics(traj, config))
     # decimated traces for the figures (at most about `TRACE_SAMPLES` samples)
     stride = max(1, traj.t.shape[-1] // TRACE_SAMPLES)

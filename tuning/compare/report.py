@@ -184,7 +184,10 @@ def markdown(summary: dict) -> str:
              f"{', '.join(f'{x:g}' for x in g['loads_pu'])} p.u. (step at 0.6 t_end), "
              f"{len(g['cases'])} observer-model mismatch cases (k_d, k_q, k_R, k_psi), "
              f"current noise {c['noise_std']:g} A, T_s = {c['T_s']:g} s, "
-             f"t_end = {c['t_end']:g} s.", "",
+             f"t_end = {c['t_end']:g} s." + (
+                 "" if c.get("speed_from_angle") is None else
+                 f" The speed loop takes the speed of the observer's angle "
+                 f"({c['speed_from_angle']:g} Hz tracking loop), in the tuning too."), "",
              "| observer | design | " + " | ".join(h for _, h, _ in COLUMNS)
              + " | observer step (us) |",
              "|---|---|" + "---|" * (len(COLUMNS) + 1)]
