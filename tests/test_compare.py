@@ -53,7 +53,8 @@ def job(tmp_path_factory):
 
 def _direct(config):
     """Every run of the grid with the paper design by direct `pmsmjax.simulate` calls
-    (vmapped over points; the scenario built here from `pmsmjax.Scenario`)."""
+    (vmapped over points; the scenario built here from `pmsmjax.Scenario`; the observer in
+    `pmsmjax.SpeedFromAngle` when the configuration asks for it)."""
     drive = config.drive()
     foc = pj.FOC.from_drive(drive)
     w_r = float(drive.w_rated)
@@ -65,6 +66,8 @@ def _direct(config):
     def one(j, speed, load, k):
         obs = pj.observers.make_observer(
             OBSERVER, drive, motor=observer_model(drive, k[0], k[1], k[2], k[3]))
+        if config.speed_from_angle is not None:
+            obs = pj.SpeedFromAngle(obs, w_track=2 * math.pi * config.speed_from_angle)
         tau = load * float(drive.tau_rated) * jnp.sign(speed)
         sc = pj.Scenario(t_end=config.t_end,
                          w_m_ref=pj.Profile([q(VAL_RAMP[0]), q(VAL_RAMP[1])],
@@ -356,30 +359,7 @@ def test_speed_from_angle_runs_and_tunes_with_the_tracked_speed():
     pts = {k: jnp.asarray(v) for k, v in grid.items()}
     run = lambda c: jax.jit(jax.vmap(lambda p: run_point(None, c, OBSERVER, p)))(pts)  # noqa
     got, own = run(tracked), run(plain)
-    drive = tracked.drive()
-    foc = pj.FOC.from_drive(drive)
-    w_r = float(drive.w_rated)
-    q = lambda f: round(f * tracked.t_end / tracked.T_s) * tracked.T_s  # noqa: E731
-    cases = np.asarray(tracked.cases)[grid["case"]]
-
-    def one(j, speed, load, k):
-        obs = pj.SpeedFromAngle(pj.observers.make_observer(
-            OBSERVER, drive, motor=observer_model(drive, k[0], k[1], k[2], k[3])),
-            w_track=2 * math.pi * 30.0)
-        tau = load * float(drive.tau_rated) * jnp.sign(speed)
-        sc = pj.Scenario(t_end=tracked.t_end,
-                         w_m_ref=pj.Profile([q(VAL_RAMP[0]), q(VAL_RAMP[1])],
-                                            jnp.stack([tracked.start_frac * speed * w_r,
-                                                       speed * w_r])),
-                         tau_L=pj.Profile([q(VAL_LOAD_STEP)] * 2, jnp.stack([0 * tau, tau])))
-        key = jr.fold_in(jr.PRNGKey(tracked.seed), j.astype(jnp.uint32))
-        return pj.simulate(drive, foc, obs, sc, T_s=tracked.T_s,
-                           sensing=pj.Sensing(noise_std=tracked.noise_std), key=key,
-                           theta0=0.0, w_m0=tracked.start_frac * speed * w_r,
-                           theta_hat0=0.0, save_every=tracked.save_every, throw=False)
-
-    traj = jax.jit(jax.vmap(one))(jnp.arange(len(grid["case"])), pts["speed_pu"],
-                                  pts["load_pu"], jnp.asarray(cases))
+    _, traj = _direct(tracked)
     want = jax.jit(lambda tr: run_metrics(tr, tracked))(traj)
     for k in ("static_deg", "rms_deg", "noise_rad_s"):
         np.testing.assert_allclose(got[k], want[k], rtol=1e-9, atol=1e-12, err_msg=k)
