@@ -18,6 +18,7 @@ import subprocess
 import sys
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -92,11 +93,14 @@ def _recount(out, p):
                        and not counts["new_lost_lock"])
     return counts, {"paper": loss_p, design["name"]: loss,
                     "worst_rms_change_pct": 100 * float(rms_change.max()),
-                    "rms_deg": (float(rms_p.mean()), float(rms.mean()))}
+                    "rms_deg": (float(rms_p.mean()), float(rms.mean())),
+                    "blocking": np.nonzero((rms_change > p.regression_tol)
+                                           | (lost & ~lost_p))[0].tolist()}
 
 
 def _check_recount(out, p, s):
-    """The summary's verdict, counts and validation losses against `_recount`."""
+    """The summary's verdict, counts and validation losses against `_recount` (returns
+    its counts, with the blocking runs' indices under `blocking`)."""
     mine, loss = _recount(out, p)
     acc, v = s["accounting"]["validation"], s["verdict"]
     assert {k: acc[k] for k in mine if k != "holds"} == {k: x for k, x in mine.items()
@@ -120,7 +124,7 @@ def _check_recount(out, p, s):
     for name in ("paper", s["default"]):
         assert s["designs"][name]["validation_loss"] == pytest.approx(
             float(np.mean(loss[name])), rel=3e-8), name
-    return mine
+    return dict(mine, blocking=loss["blocking"])
 
 
 def test_makefile_runs_the_tuner():
@@ -253,6 +257,27 @@ def test_main_job_whose_verdict_fails(tmp_path):
     v = s["verdict"]
     assert v["holds"] is False and s["default"] == "tuned"
     assert any("RMS angle error worse" in w for w in v["where_not"])
+    # the blocking runs, each measured in a sensored drive: the runs the recount finds,
+    # and the lowest speed of a sensored `pmsmjax.simulate` of the same scenario, in a
+    # plain loop over those runs
+    assert [r["run"] for r in v["blocking_runs"]] == mine["blocking"]
+    vset, drive = tg.validation_set(p), p.drive()
+    for r in v["blocking_runs"]:
+        j = r["run"]
+        one = jax.tree_util.tree_map(lambda a, j=j: a[j], vset)
+        tr = pj.simulate(drive, p.controller(), pj.SensoredObserver(),
+                         tg.scenarios.scenario(drive, one.s0, one.s1, one.t0, one.t1,
+                                               one.t_load, one.load_pu, vset.t_end),
+                         T_s=p.T_s, sensing=pj.Sensing(noise_std=p.noise_std * one.k_noise),
+                         key=one.keys, theta0=0.0, w_m0=one.s0 * float(drive.w_rated),
+                         theta_hat0=0.0, throw=False)
+        w = np.abs(np.asarray(tr.w_m))
+        assert r["lowest_speed_pu"] == pytest.approx(w.min() / float(drive.w_rated),
+                                                     rel=1e-9)
+        assert r["back_emf_V"] == pytest.approx(w.min() * float(drive.motor.psi_f), rel=1e-9)
+        assert r["rms_change_pct"] > 100 * p.regression_tol or r["new_lost_lock"]
+    assert any(w.startswith(f"the {len(mine['blocking'])} blocking runs in a sensored drive")
+               for w in v["where_not"])
     last = proc.stdout.strip().splitlines()[-1]
     assert last == "verdict: " + "; ".join([v["statement"], *v["where_not"]])
     assert v["statement"].startswith(f"does NOT hold: tuned better than the paper's design "

@@ -37,7 +37,14 @@ from .design_space import DesignSpace
 from .evaluate import Evaluator
 from .objective import BASELINE, VOCABULARY, accounting, holds, objective
 from .problem import TuningProblem
-from .scenarios import ScenarioSet, check_disjoint, heldout_set, training_set, validation_set
+from .scenarios import (
+    ScenarioSet,
+    check_disjoint,
+    heldout_set,
+    sensored_lowest_speed,
+    training_set,
+    validation_set,
+)
 from .search import STRATEGIES, SearchResult, gradient_search
 
 
@@ -158,6 +165,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"blocked: the paper's own design with its gains changed by 1e-9 (relative) "
             f"already fails the rule ({'; '.join(floor_why)}): runs in which it loses lock "
             f"are chaotic, so no design passes a per-run rule on them")
+    if not verdict["holds"]:
+        _blocking(problem, sets["validation"], metrics["validation"], verdict, log)
     # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
@@ -167,6 +176,40 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                         designs=designs, searches=searches, metrics=metrics,
                         objective=obj, accounting=acc, default=default, verdict=verdict,
                         wall_s=time.perf_counter() - t_start)
+
+
+def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log) -> None:
+    """The runs that block the verdict (the tuned design's RMS angle error worse than the
+    paper's by more than the tolerance, or lock lost that the paper's design holds),
+    each measured in a sensored drive of the same scenario (`sensored_lowest_speed`):
+    `verdict["blocking_runs"]`, and a line of `where_not` with their lowest speeds and
+    back-EMF."""
+    m, ref = metrics_val["tuned"], metrics_val["paper"]
+    rms_rel = np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1.0
+    new_lost = np.asarray(m.lost_lock) & ~np.asarray(ref.lost_lock)
+    worse = rms_rel > problem.regression_tol
+    runs = np.nonzero(worse | new_lost)[0]
+    if not runs.size:
+        verdict["blocking_runs"] = []
+        return
+    _say(log, f"measuring the {runs.size} blocking validation runs in a sensored drive")
+    rows = vset.table()
+    found = sensored_lowest_speed(problem, vset, runs)
+    for r in found:
+        j = r["run"]
+        r.update({k: rows[j][k] for k in ("s0", "s1", "k_d", "k_q", "k_R", "k_psi",
+                                          "k_noise")},
+                 rms_change_pct=float(100.0 * rms_rel[j]), new_lost_lock=bool(new_lost[j]))
+    verdict["blocking_runs"] = found
+    def span(key):
+        lo, hi = (f"{f(r[key] for r in found):.3g}" for f in (min, max))
+        return lo if lo == hi else f"{lo}-{hi}"
+
+    verdict["where_not"].append(
+        f"the {len(found)} blocking runs in a sensored drive (the true angle and speed): "
+        f"lowest speed {span('lowest_speed_pu')} p.u., back-EMF there "
+        f"{span('back_emf_V')} V; the rotor reverses in "
+        f"{sum(r['reverses'] for r in found)} of them")
 
 
 def _choose(acc_val: dict, vset: ScenarioSet) -> tuple[str, dict]:

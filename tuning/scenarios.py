@@ -270,5 +270,33 @@ def simulate_set(make_observer, drive: pj.Drive, foc: pj.FOC, sset: ScenarioSet,
                          sset.k_d, sset.k_q, sset.k_R, sset.k_psi, sset.k_noise, sset.keys)
 
 
+def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
+    """The runs `runs` (indices into `sset`) of `problem`'s drive and controller with the
+    sensored observer (the true angle and speed; the same noise), a reference no observer
+    can better: per run the lowest speed magnitude the rotor reaches after the start
+    (`lowest_speed_pu`, p.u. of rated), when (`t_s`, s), the back-EMF amplitude there
+    (`back_emf_V`, |w| psi_f, V), and whether the rotor reverses (`reverses`). Where that
+    speed is low, the back-EMF an observer reads is small against its model errors."""
+    runs = [int(j) for j in runs]
+    if not runs:
+        return []
+    drive = problem.drive()
+    idx = np.asarray(runs)
+    sub = jax.tree_util.tree_map(lambda a: a[idx], sset)
+    traj = simulate_set(lambda motor: pj.SensoredObserver(), drive, problem.controller(),
+                        sub, T_s=problem.T_s, noise_std=problem.noise_std, save_every=1)
+    w, t = np.asarray(traj.w_m), np.asarray(traj.t)
+    s1 = np.asarray(sub.s1)
+    w_r, psi_f = float(drive.w_rated), float(drive.motor.psi_f)
+    out = []
+    for j, run in enumerate(runs):
+        k = int(np.argmin(np.abs(w[j])))
+        out.append(dict(run=run, lowest_speed_pu=float(abs(w[j, k]) / w_r),
+                        t_s=float(t[j, k]), back_emf_V=float(abs(w[j, k]) * psi_f),
+                        reverses=bool(np.any(np.sign(w[j]) == -np.sign(s1[j])))))
+    return out
+
+
 __all__ = ["KINDS", "ScenarioSet", "check_disjoint", "heldout_set", "max_acceleration",
-           "observer_model", "scenario", "simulate_set", "training_set", "validation_set"]
+           "observer_model", "scenario", "sensored_lowest_speed", "simulate_set",
+           "training_set", "validation_set"]
