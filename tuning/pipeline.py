@@ -201,6 +201,7 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log)
                                           "k_noise")},
                  rms_change_pct=float(100.0 * rms_rel[j]), new_lost_lock=bool(new_lost[j]))
     verdict["blocking_runs"] = found
+
     def span(key):
         lo, hi = (f"{f(r[key] for r in found):.3g}" for f in (min, max))
         return lo if lo == hi else f"{lo}-{hi}"

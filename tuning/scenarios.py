@@ -273,7 +273,7 @@ def simulate_set(make_observer, drive: pj.Drive, foc: pj.FOC, sset: ScenarioSet,
 def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
     """The runs `runs` (indices into `sset`) of `problem`'s drive and controller with the
     sensored observer (the true angle and speed; the same noise), a reference no observer
-    can better: per run the lowest speed magnitude the rotor reaches after the start
+    can better: per run the lowest speed magnitude the rotor reaches in the run
     (`lowest_speed_pu`, p.u. of rated), when (`t_s`, s), the back-EMF amplitude there
     (`back_emf_V`, |w| psi_f, V), and whether the rotor reverses (`reverses`). Where that
     speed is low, the back-EMF an observer reads is small against its model errors."""
