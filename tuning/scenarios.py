@@ -275,8 +275,9 @@ def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
     sensored observer (the true angle and speed; the same noise), a reference no observer
     can better: per run the lowest speed magnitude the rotor reaches in the run
     (`lowest_speed_pu`, p.u. of rated), when (`t_s`, s), the back-EMF amplitude there
-    (`back_emf_V`, |w| psi_f, V), and whether the rotor reverses (`reverses`). Where that
-    speed is low, the back-EMF an observer reads is small against its model errors."""
+    (`back_emf_V`, |w| psi_f, V), the current amplitude there (`current_A`, A), and
+    whether the rotor reverses (`reverses`). Where that speed is low, the back-EMF an
+    observer reads is small against its model errors."""
     runs = [int(j) for j in runs]
     if not runs:
         return []
@@ -285,7 +286,7 @@ def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
     sub = jax.tree_util.tree_map(lambda a: a[idx], sset)
     traj = simulate_set(lambda motor: pj.SensoredObserver(), drive, problem.controller(),
                         sub, T_s=problem.T_s, noise_std=problem.noise_std, save_every=1)
-    w, t = np.asarray(traj.w_m), np.asarray(traj.t)
+    w, t, i = np.asarray(traj.w_m), np.asarray(traj.t), np.asarray(traj.i_dq)
     s1 = np.asarray(sub.s1)
     w_r, psi_f = float(drive.w_rated), float(drive.motor.psi_f)
     out = []
@@ -293,6 +294,7 @@ def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
         k = int(np.argmin(np.abs(w[j])))
         out.append(dict(run=run, lowest_speed_pu=float(abs(w[j, k]) / w_r),
                         t_s=float(t[j, k]), back_emf_V=float(abs(w[j, k]) * psi_f),
+                        current_A=float(np.linalg.norm(i[j, k])),
                         reverses=bool(np.any(np.sign(w[j]) == -np.sign(s1[j])))))
     return out
 

@@ -123,8 +123,8 @@ def lock_comparison(entry: dict) -> dict | None:
         if infeasible:
             why.append(f"{infeasible} of them where the analysis finds no stable designed "
                        f"equilibrium for it (it cannot hold that point)")
-        if len(only_tuned) - infeasible - unknown:
-            why.append(f"{len(only_tuned) - infeasible - unknown} where it is feasible "
+        if n - infeasible - unknown:
+            why.append(f"{n - infeasible - unknown} where it is feasible "
                        f"(lost on the way: at the start or the load step)")
         if unknown:
             why.append(f"{unknown} without the analysis")
