@@ -12,10 +12,11 @@ import importlib
 from pathlib import Path
 
 
-def lazy_exports(package: str, init_file: str, namespace: dict):
+def lazy_exports(package: str, init_file: str, namespace: dict, after_load=None):
     """`(__getattr__, __dir__)` for the package `package` whose `__init__` is `init_file`
     and whose globals are `namespace`: every name imported inside its `if TYPE_CHECKING:`
-    block is loaded from its module when first asked for, then kept in `namespace`."""
+    block is loaded from its module when first asked for, then kept in `namespace`;
+    `after_load()`, if given, runs after each such load."""
     tree = ast.parse(Path(init_file).read_text(encoding="utf-8"))
     table: dict[str, tuple[str, str | None]] = {}
     for node in tree.body:
@@ -38,6 +39,8 @@ def lazy_exports(package: str, init_file: str, namespace: dict):
         mod = importlib.import_module(spec[0], package)
         value = mod if spec[1] is None else getattr(mod, spec[1])
         namespace[name] = value
+        if after_load is not None:
+            after_load()
         return value
 
     def __dir__():

@@ -86,21 +86,39 @@ The test suite calls it after every test; a long notebook session or a script th
 compiles many designs in one process can call it between phases.
 """
 
-from ._lapack_pool import LAPACK_MIN_WORK, LapackCall, concurrent_lapack_calls
-from ._memory import memory_maps, release_compiled
-from ._settings import (
-    FAST_LOOP_FLAGS,
-    FULL_OPTIMISATION,
-    QUICK_COMPILE_FLAGS,
-    SAFE_FLAGS,
-    apply_xla_flags,
-    cache_dir,
-    cache_size,
-    clear_cache,
-    configure,
-    long_run_compiler_options,
-)
-from ._stored import STORED_SUBDIR, stored_call, stored_programs_dir
+from typing import TYPE_CHECKING
+
+from .._lazy import lazy_exports
+
+
+# Loaded on first use (`pmsmjax._lazy`): `import pmsmjax` sets the XLA flags from here
+# before anything imports JAX, and the command line's client runs without JAX.
+if TYPE_CHECKING:
+    from ._lapack_pool import (
+        LAPACK_MIN_WORK as LAPACK_MIN_WORK,
+        LapackCall as LapackCall,
+        concurrent_lapack_calls as concurrent_lapack_calls,
+    )
+    from ._memory import memory_maps as memory_maps, release_compiled as release_compiled
+    from ._settings import (
+        FAST_LOOP_FLAGS as FAST_LOOP_FLAGS,
+        FULL_OPTIMISATION as FULL_OPTIMISATION,
+        QUICK_COMPILE_FLAGS as QUICK_COMPILE_FLAGS,
+        SAFE_FLAGS as SAFE_FLAGS,
+        apply_xla_flags as apply_xla_flags,
+        cache_dir as cache_dir,
+        cache_size as cache_size,
+        clear_cache as clear_cache,
+        configure as configure,
+        long_run_compiler_options as long_run_compiler_options,
+    )
+    from ._stored import (
+        STORED_SUBDIR as STORED_SUBDIR,
+        stored_call as stored_call,
+        stored_programs_dir as stored_programs_dir,
+    )
+
+__getattr__, __dir__ = lazy_exports(__name__, __file__, globals())
 
 
 __all__ = [

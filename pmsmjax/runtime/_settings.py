@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import warnings
 from pathlib import Path
 
-import jax
 
-from ._stored import STORED_SUBDIR, set_stored_programs_dir
+# No JAX at module level: `import pmsmjax` sets the XLA flags (`apply_xla_flags`) before
+# anything imports JAX, and the command line's client (`pmsmjax.runtime._worker`) starts
+# without it.
 
 
 #: XLA flags `configure` adds for fast single runs (see the module docstring).
@@ -89,7 +91,42 @@ def clear_cache() -> int:
     return n
 
 
+#: `JAX_ENABLE_X64` as it was before `enable_x64` set it (None: unset), while set by it.
+_X64_ENV: list = []
+
+
+def enable_x64() -> None:
+    """What `import pmsmjax` does for float64: `jax_enable_x64` on. With JAX not yet
+    imported it sets `JAX_ENABLE_X64=1`, which JAX reads when it is imported (the same
+    setting, without importing JAX now); `settle_x64` puts the variable back once JAX is
+    in, so that child processes see the user's environment."""
+    if "jax" in sys.modules:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        return
+    if not _X64_ENV:
+        _X64_ENV.append(os.environ.get("JAX_ENABLE_X64"))
+    os.environ["JAX_ENABLE_X64"] = "1"
+
+
+def settle_x64() -> None:
+    """After JAX is imported: float64 on, and `JAX_ENABLE_X64` as the user had it."""
+    if not _X64_ENV or "jax" not in sys.modules:
+        return
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    before = _X64_ENV.pop()
+    if before is None:
+        os.environ.pop("JAX_ENABLE_X64", None)
+    else:
+        os.environ["JAX_ENABLE_X64"] = before
+
+
 def _backend_started() -> bool:
+    if "jax" not in sys.modules:  # not imported: nothing can have started
+        return False
     from jax._src import xla_bridge
 
     return xla_bridge.backends_are_initialized()
@@ -151,6 +188,10 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None) -> d
     Returns what was applied: `{"xla_flags": [...], "cache_dir": str | None,
     "backend_was_started": bool}`.
     """
+    import jax
+
+    from ._stored import STORED_SUBDIR, set_stored_programs_dir
+
     cache = _env_flag("PMSMJAX_CACHE", True) if cache is None else bool(cache)
     fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True) if fast_loops is None else bool(fast_loops)
     _, missing = _process_flags(fast_loops)
