@@ -9,6 +9,9 @@ import os
 # tests/test_runtime.py checks that both settings give the same numbers.
 # PMSMJAX_QUICK_COMPILE=0 runs the suite with the users' default.
 os.environ.setdefault("PMSMJAX_QUICK_COMPILE", "1")
+# Every `pmsmjax` process the suite starts runs its command itself and leaves no resident
+# worker behind (pmsmjax.runtime._worker); tests/test_worker.py turns it on for its own.
+os.environ.setdefault("PMSMJAX_WORKER", "0")
 
 import jax  # noqa: E402
 import jax.random as jr  # noqa: E402

@@ -43,7 +43,7 @@ def _options_of(parser) -> dict:
 def test_every_command_takes_a_drive_and_the_tuner_commands_are_listed():
     assert {"tune", "compare"} <= set(COMMANDS)
     for name, parser in _all_parsers().items():
-        if name == "cache":  # the compilation cache: no drive
+        if name in ("cache", "worker"):  # the compilation cache and the workers: no drive
             continue
         opts = _options_of(parser)
         assert {"--motor", "--motor-file", "--set"} <= set(opts), name

@@ -41,6 +41,7 @@ COMMAND_MODULES = (
     "_equilibria",
     "_certify",
     "_cache",
+    "_worker",
     "_response",
     "_export_c",
     "_motor",

@@ -1,0 +1,83 @@
+"""`pmsmjax worker`: the resident workers that run later commands (`pmsmjax.runtime._worker`):
+list them, or stop them."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+from ..runtime import _worker
+from ._command import Command
+
+
+def _arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--stop", action="store_true",
+                   help="stop every worker of this user (each finishes its command first)")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _workers() -> list[dict]:
+    rows = []
+    for info in sorted(_worker.socket_dir().glob("*.json")):
+        try:
+            row = json.loads(info.read_text())
+        except (OSError, ValueError):
+            continue
+        if _alive(int(row["pid"])):
+            rows.append(row)
+        else:  # ended without tidying (killed): its files go
+            info.unlink(missing_ok=True)
+            info.with_suffix(".sock").unlink(missing_ok=True)
+    return rows
+
+
+def _run(args: argparse.Namespace) -> int:
+    rows = _workers()
+    where = _worker.socket_dir()
+    if args.stop:
+        for row in rows:
+            (where / f"{row['key']}.sock").unlink(missing_ok=True)  # it stops within 1 s
+        end = time.time() + 5.0
+        while time.time() < end and any(_alive(int(r["pid"])) for r in rows):
+            time.sleep(0.1)
+        left = [r for r in rows if _alive(int(r["pid"]))]
+        print(f"stopped {len(rows) - len(left)} worker(s)"
+              + (f"; still running a command: pid {', '.join(str(r['pid']) for r in left)}"
+                 if left else ""))
+        return 0
+    state = "on" if _worker.enabled() else "off (PMSMJAX_WORKER=0)"
+    print(f"resident workers: {state}; sockets in {where}")
+    now = time.time()
+    for row in rows:
+        state = (f"running a command for {now - row['busy_since']:.0f} s"
+                 if row.get("busy_since") else f"idle {now - row['last_command']:.0f} s")
+        print(f"  pid {row['pid']}: {row['commands']} command(s), up {now - row['started']:.0f} "
+              f"s, {state} (stops after {row['idle_s']:.0f} s idle), {row['python']}")
+    if not rows:
+        print("  none running (the next command starts one when it ends)")
+    return 0
+
+
+COMMAND = Command(
+    name="worker",
+    help="list or stop the resident workers that run later commands",
+    description="A command run as `pmsmjax ...` hands itself to a resident worker (a "
+                "process that keeps JAX and the compiled programs loaded), or runs itself "
+                "and then starts one in the background. A worker stops after "
+                "PMSMJAX_WORKER_IDLE seconds without a command (default 900). Lists them, "
+                "or stops them (--stop). PMSMJAX_WORKER=0 runs every command in its own "
+                "process.",
+    add_arguments=_arguments,
+    run=_run,
+)

@@ -1,0 +1,464 @@
+"""The resident worker of the command line: a process that keeps JAX, pmsmjax and every
+program it has compiled in memory, and runs the `pmsmjax` commands that later processes
+hand to it.
+
+**Why a worker, not serialised executables.** A warm command (its programs in the
+persistent compilation cache) spends most of its time before it computes anything:
+starting Python and importing JAX, equinox and the command's modules (about 1.3 s on a
+2-core machine), then tracing or loading its programs. The compilation cache and the
+stored programs (`stored_call`) already remove XLA's compile and the tracing of the
+analyses; what is left is the import, which no file format removes. A process that has
+done it once and stays removes it for every later command.
+
+**How a command reaches it** (`run_or_serve`, the console script `pmsmjax` and `python
+-m pmsmjax`). The client imports nothing of JAX: it connects to the worker's Unix socket,
+hands it its standard input, output and error (the file descriptors themselves, so that
+progress bars, terminal widths, pipes and child processes behave as in the client), its
+arguments, working directory and environment, and waits for the exit status. Ctrl-C in
+the client interrupts the command in the worker, which then stops (a computation may still
+run in XLA's threads; the next command starts a new worker). It runs one command at a time:
+a client that finds it busy (no answer within `BUSY_WAIT_S`), or finds none, runs the
+command itself, and afterwards starts a worker in the background for the next one.
+
+**Which worker.** One per Python interpreter, pmsmjax source tree (every file's size and
+modification time: an edited or upgraded pmsmjax starts a new worker) and process
+settings (the environment variables that JAX, XLA, Python and pmsmjax read at start-up:
+`worker_key`). Its socket lives in a directory only the user can open (`socket_dir`).
+It stops after `PMSMJAX_WORKER_IDLE` seconds without a command (default 900), when
+its socket is removed, or with `pmsmjax worker --stop`.
+
+**Between commands** the worker puts back what a command may change of the process: the
+working directory, the environment, `sys.argv`, the standard streams, warning filters and
+the warnings already shown, matplotlib's settings and figures; and drops its compiled
+programs when the memory mappings pass half the system's limit (`release_compiled`).
+Commands that join a multi-process JAX run (`--coordinator`, `--num-processes`,
+`--process-id`) always run in the client.
+
+`PMSMJAX_WORKER=0` turns the worker off (every command in its own process, as before);
+the test suite does so, except for the tests of this module.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import signal
+import socket
+import stat
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ._settings import _env_flag
+
+
+#: Seconds a client waits for a worker to take its command before it runs it itself.
+BUSY_WAIT_S = 0.5
+#: Seconds without a command after which a worker stops (`PMSMJAX_WORKER_IDLE`).
+IDLE_S = 900.0
+#: Environment variables that fix a process's settings at start-up: a client whose
+#: values differ uses another worker.
+KEY_PREFIXES = ("JAX_", "XLA_", "PMSMJAX_", "PYTHON", "TF_", "CUDA_", "TPU_", "MPL",
+                "OMP_", "OPENBLAS_", "MKL_", "LD_")
+#: Options that join a multi-process run (`pmsmjax.cli._sweep_options`): never in a worker.
+IN_CLIENT_OPTIONS = ("--coordinator", "--num-processes", "--process-id")
+#: The longest socket folder: a Unix socket's path has at most 107 bytes on Linux (103
+#: on macOS), and the socket's own name takes 30 (`<key>.sock`).
+_MAX_DIR = 72
+_HEADER = struct.Struct("!Q")
+_STATUS = struct.Struct("!i")
+
+
+def enabled() -> bool:
+    """Whether commands use a resident worker (`PMSMJAX_WORKER`, on unless 0)."""
+    return _env_flag("PMSMJAX_WORKER", True)
+
+
+def socket_dir() -> Path:
+    """The directory of this user's worker sockets: `PMSMJAX_WORKER_DIR`, else
+    `$XDG_RUNTIME_DIR/pmsmjax`, else `pmsmjax-UID` in the temporary directory. Created
+    with mode 0700; one that another user owns, or others may open, is refused."""
+    if os.environ.get("PMSMJAX_WORKER_DIR"):
+        d = Path(os.environ["PMSMJAX_WORKER_DIR"]).expanduser()
+    elif os.environ.get("XDG_RUNTIME_DIR"):
+        d = Path(os.environ["XDG_RUNTIME_DIR"]) / "pmsmjax"
+    else:
+        d = Path(tempfile.gettempdir()) / f"pmsmjax-{os.getuid()}"
+    if len(os.fsencode(d)) > _MAX_DIR:
+        raise OSError(f"worker directory {d} is too long for a Unix socket path "
+                      f"({len(os.fsencode(d))} bytes; at most {_MAX_DIR}): set "
+                      "PMSMJAX_WORKER_DIR to a shorter one")
+    d.mkdir(mode=0o700, parents=True, exist_ok=True)
+    st = d.stat()
+    if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
+        raise PermissionError(f"worker directory {d} must belong to this user with mode "
+                              f"0700 (it has uid {st.st_uid}, mode "
+                              f"{oct(stat.S_IMODE(st.st_mode))})")
+    return d
+
+
+def _source_fingerprint() -> list:
+    """Every Python file of pmsmjax and tuning: path, size, modification time."""
+    rows = []
+    here = Path(__file__).resolve().parents[1]
+    for package in (here, here.parent / "tuning"):
+        for root, dirs, files in os.walk(package):
+            dirs[:] = sorted(d for d in dirs if d != "__pycache__")
+            for f in sorted(files):
+                if f.endswith(".py"):
+                    st = os.stat(os.path.join(root, f))
+                    rows.append((os.path.join(root, f), st.st_size, st.st_mtime_ns))
+    return rows
+
+
+def worker_key(env: dict | None = None) -> str:
+    """The identity of a worker that may run this process's commands (module docstring):
+    the interpreter, the source tree and the start-up settings in `env`."""
+    env = dict(os.environ) if env is None else env
+    settings = sorted((k, v) for k, v in env.items()
+                      if k.startswith(KEY_PREFIXES) and not k.startswith("PMSMJAX_WORKER")
+                      and k != "JAX_ENABLE_X64")  # pmsmjax sets float64 in every process
+    blob = json.dumps([sys.executable, sys.version, sys.flags.optimize, settings,
+                       _source_fingerprint()])
+    return hashlib.sha256(blob.encode()).hexdigest()[:24]
+
+
+def _paths(key: str) -> tuple[Path, Path]:
+    d = socket_dir()
+    return d / f"{key}.sock", d / f"{key}.json"
+
+
+# ---------------------------------------------------------------------------------------
+# The client
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
+    buf = b""
+    while len(buf) < n:
+        chunk = sock.recv(n - len(buf))
+        if not chunk:
+            return None
+        buf += chunk
+    return buf
+
+
+def _connect(path: Path) -> tuple[socket.socket, int] | None:
+    """A connection to the worker at `path` that has taken it (its pid), or None: no
+    worker, or one busy with another command."""
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.settimeout(BUSY_WAIT_S)
+        s.connect(str(path))
+        hello = _recv_exact(s, _STATUS.size)
+        if hello is None:
+            s.close()
+            return None
+        s.settimeout(None)
+        return s, _STATUS.unpack(hello)[0]
+    except OSError:  # no socket, a stale one, or a busy worker (timeout)
+        s.close()
+        return None
+
+
+def run_in_worker(argv: list[str], key: str) -> int | None:
+    """Run the command `argv` in the worker of `key`; its exit status, or None when no
+    worker took it (the caller runs it)."""
+    sock_path, _ = _paths(key)
+    conn = _connect(sock_path)
+    if conn is None:
+        return None
+    s, pid = conn
+    with s:
+        for f in (sys.stdout, sys.stderr):
+            f.flush()
+        payload = json.dumps({"argv": argv, "cwd": os.getcwd(),
+                              "env": dict(os.environ)}).encode()
+        try:
+            socket.send_fds(s, [_HEADER.pack(len(payload))], [0, 1, 2])
+            s.sendall(payload)
+        except OSError:
+            return None  # it went away before it started the command
+        interrupted = False
+        while True:
+            try:
+                status = _recv_exact(s, _STATUS.size)
+                break
+            except KeyboardInterrupt:  # Ctrl-C: interrupt the command, wait for its end
+                if interrupted:
+                    return 130
+                interrupted = True
+                try:
+                    os.kill(pid, signal.SIGINT)
+                except OSError:
+                    return 130
+    if status is None:
+        print("pmsmjax: the resident worker stopped during the command (run it again, or "
+              "with PMSMJAX_WORKER=0 in a process of its own)", file=sys.stderr)
+        return 1
+    return _STATUS.unpack(status)[0]
+
+
+def start_worker(key: str, env: dict) -> subprocess.Popen | None:
+    """Start a worker for `key` in the background (its own session, no terminal), with
+    the environment `env`; None if one already answers."""
+    sock_path, info_path = _paths(key)
+    if sock_path.exists():
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(sock_path))
+            return None  # alive (busy or not)
+        except OSError:
+            pass
+        finally:
+            probe.close()
+    log = open(info_path.with_suffix(".log"), "ab")
+    try:
+        return subprocess.Popen(
+            [sys.executable, "-m", "pmsmjax.runtime._worker", key], env=env,
+            stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True,
+            cwd=str(socket_dir()))
+    finally:
+        log.close()
+
+
+def run_or_serve(argv: list[str] | None = None) -> int:
+    """The console script: run `argv` (default `sys.argv[1:]`) in the resident worker
+    if one takes it, else here, then leave a worker for the next command (module
+    docstring)."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    use = enabled() and (not argv or argv[0] != "worker") and not any(
+        a.split("=")[0] in IN_CLIENT_OPTIONS for a in argv)
+    key = env = None
+    if use:
+        env = dict(os.environ)
+        try:
+            key = worker_key(env)
+            code = run_in_worker(argv, key)
+        except OSError as e:  # no usable socket directory: run here
+            print(f"pmsmjax: resident worker unavailable ({e}); PMSMJAX_WORKER=0 silences "
+                  "this", file=sys.stderr)
+            key = code = None
+        if code is not None:
+            return code
+    from ..cli import main
+
+    try:
+        return main(argv)
+    finally:
+        if key is not None:
+            try:
+                start_worker(key, env)
+            except OSError:
+                pass
+
+
+# ---------------------------------------------------------------------------------------
+# The worker
+
+
+def _streams(tty: tuple[bool, bool, bool]):
+    """New `sys.stdin`, `sys.stdout`, `sys.stderr` on descriptors 0, 1, 2, buffered as
+    Python buffers its own (line-buffered on a terminal; stderr written through)."""
+    import locale
+
+    enc = "utf-8" if sys.flags.utf8_mode else locale.getpreferredencoding(False)
+    enc = os.environ.get("PYTHONIOENCODING", "").split(":")[0] or enc
+    stdin = io.TextIOWrapper(io.BufferedReader(io.FileIO(0, "r", closefd=False)),
+                             encoding=enc)
+    stdout = io.TextIOWrapper(io.BufferedWriter(io.FileIO(1, "w", closefd=False)),
+                              encoding=enc, line_buffering=tty[1])
+    stderr = io.TextIOWrapper(io.BufferedWriter(io.FileIO(2, "w", closefd=False)),
+                              encoding=enc, errors="backslashreplace", line_buffering=True,
+                              write_through=True)
+    return stdin, stdout, stderr
+
+
+def _run_command(argv: list[str]) -> int:
+    """One command, as `python -m pmsmjax` would end it: its status, SystemExit's code, or
+    a traceback and 1 (130 after Ctrl-C)."""
+    import traceback
+
+    from ..cli import main
+
+    try:
+        return int(main(argv) or 0)
+    except SystemExit as e:
+        if e.code is None or isinstance(e.code, int):
+            return e.code or 0
+        print(e.code, file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        traceback.print_exc()
+        return 130
+    except BaseException:  # noqa: BLE001 - reported as Python reports it, the worker lives on
+        traceback.print_exc()
+        return 1
+
+
+def _serve_one(conn: socket.socket) -> int | None:
+    """Take one command from `conn`: its descriptors, arguments, directory and
+    environment; run it; send its status; put the process back as it was. Its status, or
+    None if the client had gone (it found the worker busy and ran the command itself)."""
+    import warnings
+
+    conn.sendall(_STATUS.pack(os.getpid()))
+    conn.settimeout(5.0)
+    msg, fds, _, _ = socket.recv_fds(conn, _HEADER.size, 3)
+    payload = (_recv_exact(conn, _HEADER.unpack(msg)[0])
+               if len(msg) == _HEADER.size and len(fds) == 3 else None)
+    if payload is None:
+        for fd in fds:
+            os.close(fd)
+        return None
+    conn.settimeout(None)
+    request = json.loads(payload)
+    saved_fds = [os.dup(k) for k in (0, 1, 2)]
+    saved = (sys.stdin, sys.stdout, sys.stderr, sys.argv, os.getcwd(), dict(os.environ))
+    code = 1
+    try:
+        for k, fd in enumerate(fds):
+            os.dup2(fd, k)
+            os.close(fd)
+        os.environ.clear()
+        os.environ.update(request["env"])
+        os.chdir(request["cwd"])
+        sys.argv = ["pmsmjax", *request["argv"]]
+        sys.stdin, sys.stdout, sys.stderr = _streams(tuple(os.isatty(k) for k in (0, 1, 2)))
+        with warnings.catch_warnings():  # its filters; entering resets what was shown
+            warnings.onceregistry.clear()
+            code = _run_command(request["argv"])
+    finally:
+        for f in (sys.stdout, sys.stderr):
+            try:
+                f.flush()
+            except (OSError, ValueError):
+                pass
+        sys.stdin, sys.stdout, sys.stderr, sys.argv, cwd, env = saved
+        for k, fd in enumerate(saved_fds):
+            os.dup2(fd, k)
+            os.close(fd)
+        os.chdir(cwd)
+        os.environ.clear()
+        os.environ.update(env)
+        _tidy()
+        try:
+            conn.sendall(_STATUS.pack(code))
+        except OSError:
+            pass
+    return code
+
+
+def _tidy() -> None:
+    """What a command leaves in the process: figures, matplotlib's settings, compiled
+    programs beyond half the mapping limit."""
+    if "matplotlib" in sys.modules:
+        import matplotlib
+        import matplotlib.pyplot as plt
+
+        plt.close("all")
+        matplotlib.rcParams.update(_MPL_DEFAULTS)
+    from . import release_compiled
+
+    release_compiled(1 / 2)
+
+
+_MPL_DEFAULTS: dict = {}
+
+
+def serve(key: str) -> None:
+    """The worker's loop (module docstring): bind the socket of `key`, load the command
+    line, answer commands one at a time until idle or replaced."""
+    sock_path, info_path = _paths(key)
+    idle_s = float(os.environ.get("PMSMJAX_WORKER_IDLE") or IDLE_S)
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    tmp = sock_path.with_name(f".{os.getpid()}.tmp")
+    listener.bind(str(tmp))
+    listener.listen(8)
+    try:
+        os.link(tmp, sock_path)  # fails if another worker (or a stale socket) is there
+    except FileExistsError:
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(sock_path))
+            tmp.unlink()
+            return  # another worker serves this key
+        except OSError:
+            sock_path.unlink(missing_ok=True)  # stale
+            os.link(tmp, sock_path)
+        finally:
+            probe.close()
+    tmp.unlink()
+    inode = sock_path.stat().st_ino
+    # loaded before the first command: what every command imports, and the settings
+    import matplotlib
+
+    matplotlib.use("Agg")
+    _MPL_DEFAULTS.update(matplotlib.rcParams.copy())
+    from ..cli.__main__ import build_parser
+    from . import configure
+
+    configure()
+    build_parser()
+    served = 0
+    interrupted = False
+    started = last = time.time()
+
+    from .._files import atomic_write
+
+    def write_info(busy_since=None):  # read by `pmsmjax worker` at any moment
+        atomic_write(info_path, json.dumps({
+            "pid": os.getpid(), "key": key, "python": sys.executable, "started": started,
+            "last_command": last, "commands": served, "idle_s": idle_s,
+            "busy_since": busy_since}))
+
+    write_info()
+    listener.settimeout(1.0)
+    try:
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                try:
+                    replaced = sock_path.stat().st_ino != inode
+                except OSError:
+                    replaced = True
+                if replaced or time.time() - last > idle_s:
+                    return
+                continue
+            except KeyboardInterrupt:  # a client's late Ctrl-C
+                continue
+            code = None
+            write_info(busy_since=time.time())
+            try:
+                with conn:
+                    code = _serve_one(conn)
+            except (OSError, ValueError, KeyboardInterrupt):
+                pass
+            served += code is not None
+            last = time.time()
+            write_info()
+            if code == 130:
+                # interrupted: a computation may still run in XLA's threads, and the
+                # process's state is not known; the next command starts a new worker
+                interrupted = True
+                return
+    finally:
+        listener.close()
+        try:
+            ours = sock_path.stat().st_ino == inode
+        except OSError:
+            ours = True  # removed: `pmsmjax worker --stop`
+        if ours:
+            sock_path.unlink(missing_ok=True)
+            info_path.unlink(missing_ok=True)
+        if interrupted:
+            os._exit(0)  # without waiting for the interrupted computation
+
+
+if __name__ == "__main__":
+    serve(sys.argv[1])

@@ -1,0 +1,185 @@
+"""The resident worker (`pmsmjax.runtime._worker`): a command run through it prints,
+writes and exits as the same command run in a process of its own; a busy worker leaves
+the command to the client; Ctrl-C interrupts the command and ends the worker; a worker
+serves only processes with its interpreter, source tree and start-up settings."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pmsmjax.runtime import _worker
+
+
+@pytest.fixture
+def worker_env():
+    # a short folder: a socket's path is limited to about 100 bytes, which pytest's
+    # temporary folders under xdist exceed
+    sockets = Path(tempfile.mkdtemp(prefix="pmsmjax-w"))
+    env = dict(os.environ, PMSMJAX_WORKER="1", PMSMJAX_WORKER_DIR=str(sockets),
+               PMSMJAX_WORKER_IDLE="120")
+    yield env
+    for sock in sockets.glob("*.sock"):
+        sock.unlink()  # its worker stops within a second
+    time.sleep(1.5)
+    shutil.rmtree(sockets, ignore_errors=True)
+
+
+def _pmsmjax(args, env, cwd, **kw):
+    return subprocess.run([sys.executable, "-m", "pmsmjax", *args], env=env, cwd=cwd,
+                          capture_output=True, text=True, timeout=300, **kw)
+
+
+def _info(env) -> list[dict]:
+    folder = env["PMSMJAX_WORKER_DIR"]
+    rows = []
+    for f in sorted(os.listdir(folder)):
+        if f.endswith(".json"):
+            try:
+                with open(os.path.join(folder, f)) as fh:
+                    rows.append(json.loads(fh.read()))
+            except (OSError, ValueError):  # being written or removed
+                pass
+    return rows
+
+
+def _wait_for_worker(env, timeout=90.0) -> dict:
+    end = time.time() + timeout
+    while time.time() < end:
+        rows = _info(env) if os.path.isdir(env["PMSMJAX_WORKER_DIR"]) else []
+        if rows:
+            return rows[0]
+        time.sleep(0.2)
+    logs = [p.read_text()[-3000:] for p in Path(env["PMSMJAX_WORKER_DIR"]).glob("*.log")]
+    raise AssertionError(f"no resident worker started; its log: {logs}")
+
+
+def test_commands_in_the_worker_equal_commands_in_their_own_process(worker_env, tmp_path):
+    alone = dict(worker_env, PMSMJAX_WORKER="0")
+    first = _pmsmjax(["equilibria", "--json"], worker_env, tmp_path)  # runs here, leaves one
+    assert first.returncode == 0, first.stderr
+    info = _wait_for_worker(worker_env)
+    assert info["commands"] == 0
+    cases = [
+        (["equilibria", "--json", "--observer", "leso", "--speed", "0.5"], "80", 0),
+        (["equilibria", "--observer", "nope"], "80", 2),  # bad input: one line on stderr
+        (["--help"], "60", 0),  # the environment reaches the command: --help wraps at
+        (["--help"], "150", 0),  # the client's COLUMNS
+    ]
+    for args, columns, code in cases:
+        env_w, env_a = (dict(e, COLUMNS=columns) for e in (worker_env, alone))
+        w, a = _pmsmjax(args, env_w, tmp_path), _pmsmjax(args, env_a, tmp_path)
+        assert (w.returncode, w.stdout, w.stderr) == (a.returncode, a.stdout, a.stderr)
+        assert w.returncode == code
+    assert _info(worker_env)[0]["commands"] == len(cases)  # all of them in the worker
+    # files land in the client's working directory, with the same numbers
+    (tmp_path / "w").mkdir()
+    (tmp_path / "a").mkdir()
+    run = ["simulate", "--t-end", "0.05", "--out", "out", "--no-plot"]
+    w, a = _pmsmjax(run, worker_env, tmp_path / "w"), _pmsmjax(run, alone, tmp_path / "a")
+    assert w.returncode == a.returncode == 0, (w.stderr, a.stderr)
+    assert _info(worker_env)[0]["commands"] == len(cases) + 1
+    with np.load(tmp_path / "w/out/trajectory.npz", allow_pickle=True) as fw, \
+            np.load(tmp_path / "a/out/trajectory.npz", allow_pickle=True) as fa:
+        assert sorted(fw.files) == sorted(fa.files)
+        for k in fw.files:
+            np.testing.assert_array_equal(fw[k], fa[k])
+    # standard input is the client's
+    piped = _pmsmjax(["convert", "--help"], worker_env, tmp_path, input="ignored")
+    assert piped.returncode == 0 and "usage: pmsmjax convert" in piped.stdout
+    listed = _pmsmjax(["worker"], worker_env, tmp_path)
+    assert f"pid {info['pid']}:" in listed.stdout
+    stopped = _pmsmjax(["worker", "--stop"], worker_env, tmp_path)
+    assert "stopped 1 worker(s)" in stopped.stdout
+    assert _info(worker_env) == []
+
+
+def test_a_busy_worker_leaves_the_command_to_the_client_and_ctrl_c_ends_it(worker_env,
+                                                                          tmp_path):
+    assert _pmsmjax(["equilibria"], worker_env, tmp_path).returncode == 0
+    pid = _wait_for_worker(worker_env)["pid"]
+    long = subprocess.Popen([sys.executable, "-m", "pmsmjax", "simulate", "--t-end", "5000",
+                             "--out", "long", "--no-plot"], env=worker_env, cwd=tmp_path,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    end = time.time() + 60
+    while not _info(worker_env)[0]["busy_since"]:
+        assert time.time() < end, "the worker did not take the long command"
+        time.sleep(0.1)
+    busy = _pmsmjax(["equilibria", "--json"], worker_env, tmp_path)
+    assert busy.returncode == 0 and json.loads(busy.stdout)["command"] == "equilibria"
+    row = _info(worker_env)[0]
+    assert row["busy_since"] and row["commands"] == 0  # it ran in the client
+    long.send_signal(signal.SIGINT)
+    _, err = long.communicate(timeout=60)
+    assert long.returncode == 130, err
+    assert "KeyboardInterrupt" in err
+    end = time.time() + 30
+    while time.time() < end:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        raise AssertionError("the interrupted worker did not stop")
+    assert _info(worker_env) == [] and not list(
+        Path(worker_env["PMSMJAX_WORKER_DIR"]).glob("*.sock"))
+
+
+def test_the_worker_key_follows_the_start_up_settings(monkeypatch):
+    base = {"HOME": "/h", "XLA_FLAGS": "--a", "PMSMJAX_CACHE_DIR": "/c"}
+    key = _worker.worker_key(base)
+    assert _worker.worker_key(dict(base, HOME="/other", PMSMJAX_WORKER_IDLE="5",
+                                   JAX_ENABLE_X64="0")) == key
+    for change in ({"XLA_FLAGS": "--b"}, {"PMSMJAX_CACHE_DIR": "/d"},
+                   {"JAX_PLATFORMS": "cpu"}, {"PYTHONPATH": "/p"}):
+        assert _worker.worker_key(dict(base, **change)) != key, change
+    rows = _worker._source_fingerprint()
+    assert any(r[0].endswith(os.path.join("runtime", "_worker.py")) for r in rows)
+    monkeypatch.setattr(_worker, "_source_fingerprint", lambda: rows[:-1])
+    assert _worker.worker_key(base) != key  # an edited source tree: another worker
+    open_dir = Path(tempfile.mkdtemp(prefix="pmsmjax-o"))  # short: see `worker_env`
+    os.chmod(open_dir, 0o755)
+    monkeypatch.setenv("PMSMJAX_WORKER_DIR", str(open_dir))
+    with pytest.raises(PermissionError, match="mode 0700"):
+        _worker.socket_dir()
+    open_dir.rmdir()
+    monkeypatch.setenv("PMSMJAX_WORKER_DIR", "/tmp/" + "x" * 80)
+    with pytest.raises(OSError, match="too long for a Unix socket"):
+        _worker.socket_dir()
+
+
+def test_import_pmsmjax_loads_no_jax_and_still_gives_float64():
+    """The client hands a command over without JAX: `import pmsmjax` loads none of it,
+    and float64 is on once JAX comes (through a name of pmsmjax, or imported first), with
+    the user's `JAX_ENABLE_X64` back in the environment."""
+    code = (
+        "import os, sys\n"
+        "import pmsmjax\n"
+        "assert 'jax' not in sys.modules, sorted(m for m in sys.modules if 'jax' in m)\n"
+        "import pmsmjax.runtime._worker\n"
+        "assert 'jax' not in sys.modules and 'numpy' not in sys.modules\n"
+        "pmsmjax.FOC\n"
+        "import jax.numpy as jnp\n"
+        "assert jnp.ones(2).dtype == jnp.float64\n"
+        "print(os.environ.get('JAX_ENABLE_X64'))\n")
+    for before, shown in ((None, "None"), ("0", "0")):
+        env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+        if before is not None:
+            env["JAX_ENABLE_X64"] = before
+        r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                           text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.strip() == shown
+    first = subprocess.run([sys.executable, "-c", "import jax, pmsmjax, jax.numpy as jnp; "
+                            "print(jnp.ones(1).dtype)"], capture_output=True, text=True,
+                           timeout=120)
+    assert first.stdout.strip() == "float64", first.stderr
