@@ -188,7 +188,8 @@ ONE_CORE_XLA_FLAGS = "--xla_cpu_multi_thread_eigen=false"
 
 def child_env(*, quick_compile: bool | None = None, cache: bool | str | None = None,
               pythonpath: str | None = None, xla_flags: str | None = None,
-              clear_xla_flags: bool = False, one_core: bool = False, **extra) -> dict:
+              clear_xla_flags: bool = False, one_core: bool = False, worker: bool = False,
+              **extra) -> dict:
     """The environment of a fresh measurement process.
 
     **Arguments:**
@@ -201,10 +202,13 @@ def child_env(*, quick_compile: bool | None = None, cache: bool | str | None = N
     - `xla_flags`: appended to `XLA_FLAGS` (after clearing it with `clear_xla_flags`).
     - `one_core`: single-threaded XLA and BLAS (pin the process with `run_child(...,
       pinned=True)`).
+    - `worker`: let `pmsmjax` commands use a resident worker (`PMSMJAX_WORKER`); off by
+      default, so that every command measured is a process of its own.
     - `extra`: further variables (a value None removes the variable).
     """
     env = dict(os.environ)
     env.setdefault("MPLBACKEND", "Agg")
+    env["PMSMJAX_WORKER"] = "1" if worker else "0"
     if quick_compile is not None:
         env["PMSMJAX_QUICK_COMPILE"] = "1" if quick_compile else "0"
     if cache is False:
