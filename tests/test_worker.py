@@ -104,8 +104,9 @@ def test_commands_in_the_worker_equal_commands_in_their_own_process(worker_env, 
 
 def test_a_busy_worker_leaves_the_command_to_the_client_and_ctrl_c_ends_it(worker_env,
                                                                           tmp_path):
-    assert _pmsmjax(["equilibria"], worker_env, tmp_path).returncode == 0
-    pid = _wait_for_worker(worker_env)["pid"]
+    started = _pmsmjax(["worker", "--start"], worker_env, tmp_path)
+    assert started.returncode == 0 and "takes commands" in started.stdout, started.stderr
+    pid = _info(worker_env)[0]["pid"]
     long = subprocess.Popen([sys.executable, "-m", "pmsmjax", "simulate", "--t-end", "5000",
                              "--out", "long", "--no-plot"], env=worker_env, cwd=tmp_path,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -152,6 +153,8 @@ def test_the_worker_key_follows_the_start_up_settings(monkeypatch):
     with pytest.raises(PermissionError, match="mode 0700"):
         _worker.socket_dir()
     open_dir.rmdir()
+    monkeypatch.setenv("PMSMJAX_WORKER", "maybe")  # a named error, not a traceback
+    assert _worker.run_or_serve(["--version"]) == 2
     monkeypatch.setenv("PMSMJAX_WORKER_DIR", "/tmp/" + "x" * 80)
     with pytest.raises(OSError, match="too long for a Unix socket"):
         _worker.socket_dir()

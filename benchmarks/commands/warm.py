@@ -4,7 +4,7 @@ without the resident worker (`pmsmjax.runtime._worker`).
 
 For each observer of the registry, on its paper's drive (`--motor`), the four commands
 first run once on their own (filling a fresh cache folder) and once through a worker
-(started by the first); then each is timed `--repeats` times through the worker and
+(`pmsmjax worker --start`); then each is timed `--repeats` times through the worker and
 `--repeats` times in a process of its own (`PMSMJAX_WORKER=0`). Wall time of the whole
 process (`python -m pmsmjax ...`); medians with the range. The workers live in a
 temporary socket folder and are stopped at the end.
@@ -22,7 +22,6 @@ import shutil
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from .. import _harness as h
@@ -54,14 +53,6 @@ def _wall(args: list[str], env: dict) -> float:
     return c.wall_s
 
 
-def _wait_for_worker(folder: Path, timeout: float = 120.0) -> None:
-    end = time.time() + timeout
-    while not list(folder.glob("*.json")):
-        if time.time() > end:
-            raise SystemExit(f"no resident worker started within {timeout:.0f} s")
-        time.sleep(0.1)
-
-
 def main(argv=None) -> int:
     ap = h.parser(__doc__, MODULE, quick_help="the ESO only, 3 repeats")
     ap.add_argument("--observers", default=None, metavar="A,B",
@@ -81,12 +72,12 @@ def main(argv=None) -> int:
             # the recording the replay reads: a sensored run of the paper's drive
             rec = ["simulate", "--motor", motor, "--t-end", "0.2", "--out",
                    str(tmp / name / "rec"), "--no-plot"]
-            _wall(rec, env)  # in its own process, then starts a worker
-            _wait_for_worker(tmp / "sockets")
+            _wall(rec, alone)
+            _wall(["worker", "--start"], env)
             for cmd in COMMANDS:
                 a = command(cmd, name, motor, tmp)
                 _wall(a, alone)  # fills the cache
-                _wall(a, env)  # through a worker (started by an earlier command)
+                _wall(a, env)  # the worker loads its programs
                 worker = [_wall(a, env) for _ in range(repeats)]
                 own = [_wall(a, alone) for _ in range(repeats)]
                 row = dict(observer=name, motor=motor, command=cmd,

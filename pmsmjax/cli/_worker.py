@@ -10,11 +10,34 @@ import time
 
 from ..runtime import _worker
 from ._command import Command
+from ._values import CLIError
 
 
 def _arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--stop", action="store_true",
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--start", action="store_true",
+                   help="start a worker for this environment now and wait until it takes "
+                        "commands (a script's first command is then fast too)")
+    g.add_argument("--stop", action="store_true",
                    help="stop every worker of this user (each finishes its command first)")
+
+
+def _start(timeout_s: float = 120.0) -> int:
+    if not _worker.enabled():
+        raise CLIError("PMSMJAX_WORKER=0: the resident worker is off in this environment")
+    key = _worker.worker_key()
+    _worker.start_worker(key, dict(os.environ))
+    info = _worker.socket_dir() / f"{key}.json"
+    end = time.time() + timeout_s
+    while not info.exists():
+        if time.time() > end:
+            print(f"pmsmjax worker: no worker answered within {timeout_s:.0f} s (its log: "
+                  f"{info.with_suffix('.log')})")
+            return 1
+        time.sleep(0.05)
+    print(f"worker pid {json.loads(info.read_text())['pid']} takes commands "
+          f"({_worker.socket_dir()})")
+    return 0
 
 
 def _alive(pid: int) -> bool:
@@ -43,6 +66,8 @@ def _workers() -> list[dict]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.start:
+        return _start()
     rows = _workers()
     where = _worker.socket_dir()
     if args.stop:
@@ -71,13 +96,13 @@ def _run(args: argparse.Namespace) -> int:
 
 COMMAND = Command(
     name="worker",
-    help="list or stop the resident workers that run later commands",
+    help="list, start or stop the resident workers that run later commands",
     description="A command run as `pmsmjax ...` hands itself to a resident worker (a "
                 "process that keeps JAX and the compiled programs loaded), or runs itself "
                 "and then starts one in the background. A worker stops after "
                 "PMSMJAX_WORKER_IDLE seconds without a command (default 900). Lists them, "
-                "or stops them (--stop). PMSMJAX_WORKER=0 runs every command in its own "
-                "process.",
+                "starts one now (--start) or stops them (--stop). PMSMJAX_WORKER=0 runs "
+                "every command in its own process.",
     add_arguments=_arguments,
     run=_run,
 )

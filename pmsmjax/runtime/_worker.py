@@ -11,8 +11,9 @@ analyses; what is left is the import, which no file format removes. A process th
 done it once and stays removes it for every later command.
 
 **How a command reaches it** (`run_or_serve`, the console script `pmsmjax` and `python
--m pmsmjax`). The client imports nothing of JAX: it connects to the worker's Unix socket,
-hands it its standard input, output and error (the file descriptors themselves, so that
+-m pmsmjax`; the worker's own loop is `pmsmjax.cli._serve`). The client imports nothing
+of JAX: it connects to the worker's Unix socket, hands it its standard input, output and
+error (the file descriptors themselves, so that
 progress bars, terminal widths, pipes and child processes behave as in the client), its
 arguments, working directory and environment, and waits for the exit status. Ctrl-C in
 the client interrupts the command in the worker, which then stops (a computation may still
@@ -41,7 +42,6 @@ the test suite does so, except for the tests of this module.
 from __future__ import annotations
 
 import hashlib
-import io
 import json
 import os
 import signal
@@ -51,7 +51,6 @@ import struct
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 from ._settings import _env_flag
@@ -70,8 +69,10 @@ IN_CLIENT_OPTIONS = ("--coordinator", "--num-processes", "--process-id")
 #: The longest socket folder: a Unix socket's path has at most 107 bytes on Linux (103
 #: on macOS), and the socket's own name takes 30 (`<key>.sock`).
 _MAX_DIR = 72
-_HEADER = struct.Struct("!Q")
-_STATUS = struct.Struct("!i")
+#: The protocol: a request's length before its JSON (sent with the three descriptors);
+#: the worker's pid (its answer on connect) and the command's exit status.
+HEADER = struct.Struct("!Q")
+STATUS = struct.Struct("!i")
 
 
 def enabled() -> bool:
@@ -128,7 +129,8 @@ def worker_key(env: dict | None = None) -> str:
     return hashlib.sha256(blob.encode()).hexdigest()[:24]
 
 
-def _paths(key: str) -> tuple[Path, Path]:
+def worker_paths(key: str) -> tuple[Path, Path]:
+    """The socket and the information file (pid, commands served, ...) of worker `key`."""
     d = socket_dir()
     return d / f"{key}.sock", d / f"{key}.json"
 
@@ -137,7 +139,8 @@ def _paths(key: str) -> tuple[Path, Path]:
 # The client
 
 
-def _recv_exact(sock: socket.socket, n: int) -> bytes | None:
+def recv_exact(sock: socket.socket, n: int) -> bytes | None:
+    """`n` bytes from `sock`, or None if it closed first."""
     buf = b""
     while len(buf) < n:
         chunk = sock.recv(n - len(buf))
@@ -154,12 +157,12 @@ def _connect(path: Path) -> tuple[socket.socket, int] | None:
     try:
         s.settimeout(BUSY_WAIT_S)
         s.connect(str(path))
-        hello = _recv_exact(s, _STATUS.size)
+        hello = recv_exact(s, STATUS.size)
         if hello is None:
             s.close()
             return None
         s.settimeout(None)
-        return s, _STATUS.unpack(hello)[0]
+        return s, STATUS.unpack(hello)[0]
     except OSError:  # no socket, a stale one, or a busy worker (timeout)
         s.close()
         return None
@@ -168,7 +171,7 @@ def _connect(path: Path) -> tuple[socket.socket, int] | None:
 def run_in_worker(argv: list[str], key: str) -> int | None:
     """Run the command `argv` in the worker of `key`; its exit status, or None when no
     worker took it (the caller runs it)."""
-    sock_path, _ = _paths(key)
+    sock_path, _ = worker_paths(key)
     conn = _connect(sock_path)
     if conn is None:
         return None
@@ -179,14 +182,14 @@ def run_in_worker(argv: list[str], key: str) -> int | None:
         payload = json.dumps({"argv": argv, "cwd": os.getcwd(),
                               "env": dict(os.environ)}).encode()
         try:
-            socket.send_fds(s, [_HEADER.pack(len(payload))], [0, 1, 2])
+            socket.send_fds(s, [HEADER.pack(len(payload))], [0, 1, 2])
             s.sendall(payload)
         except OSError:
             return None  # it went away before it started the command
         interrupted = False
         while True:
             try:
-                status = _recv_exact(s, _STATUS.size)
+                status = recv_exact(s, STATUS.size)
                 break
             except KeyboardInterrupt:  # Ctrl-C: interrupt the command, wait for its end
                 if interrupted:
@@ -200,13 +203,13 @@ def run_in_worker(argv: list[str], key: str) -> int | None:
         print("pmsmjax: the resident worker stopped during the command (run it again, or "
               "with PMSMJAX_WORKER=0 in a process of its own)", file=sys.stderr)
         return 1
-    return _STATUS.unpack(status)[0]
+    return STATUS.unpack(status)[0]
 
 
 def start_worker(key: str, env: dict) -> subprocess.Popen | None:
     """Start a worker for `key` in the background (its own session, no terminal), with
     the environment `env`; None if one already answers."""
-    sock_path, info_path = _paths(key)
+    sock_path, info_path = worker_paths(key)
     if sock_path.exists():
         probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
@@ -216,10 +219,15 @@ def start_worker(key: str, env: dict) -> subprocess.Popen | None:
             pass
         finally:
             probe.close()
+    # the worker imports this pmsmjax wherever it was started from (a checkout without
+    # installation too); its commands get the client's environment back
+    here = str(Path(__file__).resolve().parents[2])
+    env = dict(env, PYTHONPATH=os.pathsep.join(
+        [here] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]))
     log = open(info_path.with_suffix(".log"), "ab")
     try:
         return subprocess.Popen(
-            [sys.executable, "-m", "pmsmjax.runtime._worker", key], env=env,
+            [sys.executable, "-m", "pmsmjax.cli._serve", key], env=env,
             stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True,
             cwd=str(socket_dir()))
     finally:
@@ -231,7 +239,12 @@ def run_or_serve(argv: list[str] | None = None) -> int:
     if one takes it, else here, then leave a worker for the next command (module
     docstring)."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    use = enabled() and (not argv or argv[0] != "worker") and not any(
+    try:
+        on = enabled()
+    except ValueError as e:
+        print(f"pmsmjax: {e}", file=sys.stderr)
+        return 2
+    use = on and (not argv or argv[0] != "worker") and not any(
         a.split("=")[0] in IN_CLIENT_OPTIONS for a in argv)
     key = env = None
     if use:
@@ -255,210 +268,3 @@ def run_or_serve(argv: list[str] | None = None) -> int:
                 start_worker(key, env)
             except OSError:
                 pass
-
-
-# ---------------------------------------------------------------------------------------
-# The worker
-
-
-def _streams(tty: tuple[bool, bool, bool]):
-    """New `sys.stdin`, `sys.stdout`, `sys.stderr` on descriptors 0, 1, 2, buffered as
-    Python buffers its own (line-buffered on a terminal; stderr written through)."""
-    import locale
-
-    enc = "utf-8" if sys.flags.utf8_mode else locale.getpreferredencoding(False)
-    enc = os.environ.get("PYTHONIOENCODING", "").split(":")[0] or enc
-    stdin = io.TextIOWrapper(io.BufferedReader(io.FileIO(0, "r", closefd=False)),
-                             encoding=enc)
-    stdout = io.TextIOWrapper(io.BufferedWriter(io.FileIO(1, "w", closefd=False)),
-                              encoding=enc, line_buffering=tty[1])
-    stderr = io.TextIOWrapper(io.BufferedWriter(io.FileIO(2, "w", closefd=False)),
-                              encoding=enc, errors="backslashreplace", line_buffering=True,
-                              write_through=True)
-    return stdin, stdout, stderr
-
-
-def _run_command(argv: list[str]) -> int:
-    """One command, as `python -m pmsmjax` would end it: its status, SystemExit's code, or
-    a traceback and 1 (130 after Ctrl-C)."""
-    import traceback
-
-    from ..cli import main
-
-    try:
-        return int(main(argv) or 0)
-    except SystemExit as e:
-        if e.code is None or isinstance(e.code, int):
-            return e.code or 0
-        print(e.code, file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        traceback.print_exc()
-        return 130
-    except BaseException:  # noqa: BLE001 - reported as Python reports it, the worker lives on
-        traceback.print_exc()
-        return 1
-
-
-def _serve_one(conn: socket.socket) -> int | None:
-    """Take one command from `conn`: its descriptors, arguments, directory and
-    environment; run it; send its status; put the process back as it was. Its status, or
-    None if the client had gone (it found the worker busy and ran the command itself)."""
-    import warnings
-
-    conn.sendall(_STATUS.pack(os.getpid()))
-    conn.settimeout(5.0)
-    msg, fds, _, _ = socket.recv_fds(conn, _HEADER.size, 3)
-    payload = (_recv_exact(conn, _HEADER.unpack(msg)[0])
-               if len(msg) == _HEADER.size and len(fds) == 3 else None)
-    if payload is None:
-        for fd in fds:
-            os.close(fd)
-        return None
-    conn.settimeout(None)
-    request = json.loads(payload)
-    saved_fds = [os.dup(k) for k in (0, 1, 2)]
-    saved = (sys.stdin, sys.stdout, sys.stderr, sys.argv, os.getcwd(), dict(os.environ))
-    code = 1
-    try:
-        for k, fd in enumerate(fds):
-            os.dup2(fd, k)
-            os.close(fd)
-        os.environ.clear()
-        os.environ.update(request["env"])
-        os.chdir(request["cwd"])
-        sys.argv = ["pmsmjax", *request["argv"]]
-        sys.stdin, sys.stdout, sys.stderr = _streams(tuple(os.isatty(k) for k in (0, 1, 2)))
-        with warnings.catch_warnings():  # its filters; entering resets what was shown
-            warnings.onceregistry.clear()
-            code = _run_command(request["argv"])
-    finally:
-        for f in (sys.stdout, sys.stderr):
-            try:
-                f.flush()
-            except (OSError, ValueError):
-                pass
-        sys.stdin, sys.stdout, sys.stderr, sys.argv, cwd, env = saved
-        for k, fd in enumerate(saved_fds):
-            os.dup2(fd, k)
-            os.close(fd)
-        os.chdir(cwd)
-        os.environ.clear()
-        os.environ.update(env)
-        _tidy()
-        try:
-            conn.sendall(_STATUS.pack(code))
-        except OSError:
-            pass
-    return code
-
-
-def _tidy() -> None:
-    """What a command leaves in the process: figures, matplotlib's settings, compiled
-    programs beyond half the mapping limit."""
-    if "matplotlib" in sys.modules:
-        import matplotlib
-        import matplotlib.pyplot as plt
-
-        plt.close("all")
-        matplotlib.rcParams.update(_MPL_DEFAULTS)
-    from . import release_compiled
-
-    release_compiled(1 / 2)
-
-
-_MPL_DEFAULTS: dict = {}
-
-
-def serve(key: str) -> None:
-    """The worker's loop (module docstring): bind the socket of `key`, load the command
-    line, answer commands one at a time until idle or replaced."""
-    sock_path, info_path = _paths(key)
-    idle_s = float(os.environ.get("PMSMJAX_WORKER_IDLE") or IDLE_S)
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    tmp = sock_path.with_name(f".{os.getpid()}.tmp")
-    listener.bind(str(tmp))
-    listener.listen(8)
-    try:
-        os.link(tmp, sock_path)  # fails if another worker (or a stale socket) is there
-    except FileExistsError:
-        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            probe.connect(str(sock_path))
-            tmp.unlink()
-            return  # another worker serves this key
-        except OSError:
-            sock_path.unlink(missing_ok=True)  # stale
-            os.link(tmp, sock_path)
-        finally:
-            probe.close()
-    tmp.unlink()
-    inode = sock_path.stat().st_ino
-    # loaded before the first command: what every command imports, and the settings
-    import matplotlib
-
-    matplotlib.use("Agg")
-    _MPL_DEFAULTS.update(matplotlib.rcParams.copy())
-    from ..cli.__main__ import build_parser
-    from . import configure
-
-    configure()
-    build_parser()
-    served = 0
-    interrupted = False
-    started = last = time.time()
-
-    from .._files import atomic_write
-
-    def write_info(busy_since=None):  # read by `pmsmjax worker` at any moment
-        atomic_write(info_path, json.dumps({
-            "pid": os.getpid(), "key": key, "python": sys.executable, "started": started,
-            "last_command": last, "commands": served, "idle_s": idle_s,
-            "busy_since": busy_since}))
-
-    write_info()
-    listener.settimeout(1.0)
-    try:
-        while True:
-            try:
-                conn, _ = listener.accept()
-            except TimeoutError:
-                try:
-                    replaced = sock_path.stat().st_ino != inode
-                except OSError:
-                    replaced = True
-                if replaced or time.time() - last > idle_s:
-                    return
-                continue
-            except KeyboardInterrupt:  # a client's late Ctrl-C
-                continue
-            code = None
-            write_info(busy_since=time.time())
-            try:
-                with conn:
-                    code = _serve_one(conn)
-            except (OSError, ValueError, KeyboardInterrupt):
-                pass
-            served += code is not None
-            last = time.time()
-            write_info()
-            if code == 130:
-                # interrupted: a computation may still run in XLA's threads, and the
-                # process's state is not known; the next command starts a new worker
-                interrupted = True
-                return
-    finally:
-        listener.close()
-        try:
-            ours = sock_path.stat().st_ino == inode
-        except OSError:
-            ours = True  # removed: `pmsmjax worker --stop`
-        if ours:
-            sock_path.unlink(missing_ok=True)
-            info_path.unlink(missing_ok=True)
-        if interrupted:
-            os._exit(0)  # without waiting for the interrupted computation
-
-
-if __name__ == "__main__":
-    serve(sys.argv[1])

@@ -1,0 +1,220 @@
+"""The resident worker's loop (`serve`): the process that `pmsmjax.runtime._worker`
+starts and hands commands to (that module's docstring says what it keeps, what it puts
+back between commands and when it stops). `python -m pmsmjax.cli._serve KEY`."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import socket
+import sys
+import time
+
+from ..runtime._worker import HEADER, IDLE_S, STATUS, recv_exact, worker_paths
+
+
+def _streams(tty: tuple[bool, bool, bool]):
+    """New `sys.stdin`, `sys.stdout`, `sys.stderr` on descriptors 0, 1, 2, buffered as
+    Python buffers its own (line-buffered on a terminal; stderr written through)."""
+    import locale
+
+    enc = "utf-8" if sys.flags.utf8_mode else locale.getpreferredencoding(False)
+    enc = os.environ.get("PYTHONIOENCODING", "").split(":")[0] or enc
+    stdin = io.TextIOWrapper(io.BufferedReader(io.FileIO(0, "r", closefd=False)),
+                             encoding=enc)
+    stdout = io.TextIOWrapper(io.BufferedWriter(io.FileIO(1, "w", closefd=False)),
+                              encoding=enc, line_buffering=tty[1])
+    stderr = io.TextIOWrapper(io.BufferedWriter(io.FileIO(2, "w", closefd=False)),
+                              encoding=enc, errors="backslashreplace", line_buffering=True,
+                              write_through=True)
+    return stdin, stdout, stderr
+
+
+def _run_command(argv: list[str]) -> int:
+    """One command, as `python -m pmsmjax` would end it: its status, SystemExit's code, or
+    a traceback and 1 (130 after Ctrl-C)."""
+    import traceback
+
+    from ..cli import main
+
+    try:
+        return int(main(argv) or 0)
+    except SystemExit as e:
+        if e.code is None or isinstance(e.code, int):
+            return e.code or 0
+        print(e.code, file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        traceback.print_exc()
+        return 130
+    except BaseException:  # noqa: BLE001 - reported as Python reports it, the worker lives on
+        traceback.print_exc()
+        return 1
+
+
+def _serve_one(conn: socket.socket) -> int | None:
+    """Take one command from `conn`: its descriptors, arguments, directory and
+    environment; run it; send its status; put the process back as it was. Its status, or
+    None if the client had gone (it found the worker busy and ran the command itself)."""
+    import warnings
+
+    conn.sendall(STATUS.pack(os.getpid()))
+    conn.settimeout(5.0)
+    msg, fds, _, _ = socket.recv_fds(conn, HEADER.size, 3)
+    payload = (recv_exact(conn, HEADER.unpack(msg)[0])
+               if len(msg) == HEADER.size and len(fds) == 3 else None)
+    if payload is None:
+        for fd in fds:
+            os.close(fd)
+        return None
+    conn.settimeout(None)
+    request = json.loads(payload)
+    saved_fds = [os.dup(k) for k in (0, 1, 2)]
+    saved = (sys.stdin, sys.stdout, sys.stderr, sys.argv, os.getcwd(), dict(os.environ))
+    code = 1
+    try:
+        for k, fd in enumerate(fds):
+            os.dup2(fd, k)
+            os.close(fd)
+        os.environ.clear()
+        os.environ.update(request["env"])
+        os.chdir(request["cwd"])
+        sys.argv = ["pmsmjax", *request["argv"]]
+        sys.stdin, sys.stdout, sys.stderr = _streams(tuple(os.isatty(k) for k in (0, 1, 2)))
+        with warnings.catch_warnings():  # its filters; entering resets what was shown
+            warnings.onceregistry.clear()
+            code = _run_command(request["argv"])
+    finally:
+        for f in (sys.stdout, sys.stderr):
+            try:
+                f.flush()
+            except (OSError, ValueError):
+                pass
+        sys.stdin, sys.stdout, sys.stderr, sys.argv, cwd, env = saved
+        for k, fd in enumerate(saved_fds):
+            os.dup2(fd, k)
+            os.close(fd)
+        os.chdir(cwd)
+        os.environ.clear()
+        os.environ.update(env)
+        _tidy()
+        try:
+            conn.sendall(STATUS.pack(code))
+        except OSError:
+            pass
+    return code
+
+
+def _tidy() -> None:
+    """What a command leaves in the process: figures, matplotlib's settings, compiled
+    programs beyond half the mapping limit."""
+    if "matplotlib" in sys.modules:
+        import matplotlib
+        import matplotlib.pyplot as plt
+
+        plt.close("all")
+        matplotlib.rcParams.update(_MPL_DEFAULTS)
+    from ..runtime import release_compiled
+
+    release_compiled(1 / 2)
+
+
+_MPL_DEFAULTS: dict = {}
+
+
+def serve(key: str) -> None:
+    """The worker's loop (module docstring): bind the socket of `key`, load the command
+    line, answer commands one at a time until idle or replaced."""
+    sock_path, info_path = worker_paths(key)
+    idle_s = float(os.environ.get("PMSMJAX_WORKER_IDLE") or IDLE_S)
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    tmp = sock_path.with_name(f".{os.getpid()}.tmp")
+    listener.bind(str(tmp))
+    listener.listen(8)
+    try:
+        os.link(tmp, sock_path)  # fails if another worker (or a stale socket) is there
+    except FileExistsError:
+        probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            probe.connect(str(sock_path))
+            tmp.unlink()
+            return  # another worker serves this key
+        except OSError:
+            sock_path.unlink(missing_ok=True)  # stale
+            os.link(tmp, sock_path)
+        finally:
+            probe.close()
+    tmp.unlink()
+    inode = sock_path.stat().st_ino
+    # loaded before the first command: what every command imports, and the settings
+    import matplotlib
+
+    matplotlib.use("Agg")
+    _MPL_DEFAULTS.update(matplotlib.rcParams.copy())
+    from ..runtime import configure
+    from .__main__ import build_parser
+
+    configure()
+    build_parser()
+    served = 0
+    interrupted = False
+    started = last = time.time()
+
+    from .._files import atomic_write
+
+    def write_info(busy_since=None):  # read by `pmsmjax worker` at any moment
+        atomic_write(info_path, json.dumps({
+            "pid": os.getpid(), "key": key, "python": sys.executable, "started": started,
+            "last_command": last, "commands": served, "idle_s": idle_s,
+            "busy_since": busy_since}))
+
+    write_info()
+    listener.settimeout(1.0)
+    try:
+        while True:
+            try:
+                conn, _ = listener.accept()
+            except TimeoutError:
+                try:
+                    replaced = sock_path.stat().st_ino != inode
+                except OSError:
+                    replaced = True
+                if replaced or time.time() - last > idle_s:
+                    return
+                continue
+            except KeyboardInterrupt:  # a client's late Ctrl-C
+                continue
+            code = None
+            write_info(busy_since=time.time())
+            try:
+                with conn:
+                    code = _serve_one(conn)
+            except (OSError, ValueError, KeyboardInterrupt):
+                pass
+            served += code is not None
+            last = time.time()
+            write_info()
+            if code == 130:
+                # interrupted: a computation may still run in XLA's threads, and the
+                # process's state is not known; the next command starts a new worker
+                interrupted = True
+                return
+    finally:
+        listener.close()
+        try:
+            ours = sock_path.stat().st_ino == inode
+        except OSError:
+            ours = True  # removed: `pmsmjax worker --stop`
+        if ours:
+            sock_path.unlink(missing_ok=True)
+            info_path.unlink(missing_ok=True)
+            log = info_path.with_suffix(".log")
+            if log.exists() and log.stat().st_size == 0:
+                log.unlink()
+        if interrupted:
+            os._exit(0)  # without waiting for the interrupted computation
+
+
+if __name__ == "__main__":
+    serve(sys.argv[1])
