@@ -17,7 +17,9 @@ code):
   ("classified N designs in T s": tracing, loading the compiled code, the sweep; start-up
   and the command's own output files excluded) and its wall time, next to the API as a
   script calls it in a fresh process with the same cache (its first call: tracing,
-  loading the compiled code, the map), the two run in turn.
+  loading the compiled code, the map), the two run in turn; and "as a user times it":
+  the whole command minus the same command on 11 x 11 (fresh output folders, medians),
+  in a process of its own and through the resident worker.
 - `simulation`: the comparison job's run sweep (`tuning.compare`: one closed-loop
   simulation per point, the ESO's paper design, the `--quick` grid of 60 runs, or of
   `--runs` repetitions of it). "work": `jit(vmap(point))` over the grid in memory;
@@ -159,6 +161,8 @@ def feasibility(n_axis, repeats, tmp):
         if k:  # the first run fills the cache
             fresh.append((t_map, p.wall_s))
             fresh_api.append(float(q.stdout.split()[-1]))
+    user = {mode: _as_a_user_times_it(args, n_axis, repeats, tmp, worker=mode == "worker")
+            for mode in ("own", "worker")}
     t_fresh = statistics.median(t for t, _ in fresh)
     wall_fresh = statistics.median(w for _, w in fresh)
     t_fresh_api = statistics.median(fresh_api)
@@ -168,9 +172,37 @@ def feasibility(n_axis, repeats, tmp):
                 runner_over_work=t["ratio/runner"] / t["ratio/work"],
                 fresh_map_s=t_fresh, fresh_wall_s=wall_fresh, fresh_api_s=t_fresh_api,
                 fresh_command_over_api=fresh_ratio, work_s=t_work, runner_s=t_run,
+                user_own_s=user["own"], user_worker_s=user["worker"],
                 chunks=int(m.group(1)), chunk_size=int(m.group(2)),
                 compile_s=manifest.get("compile_seconds"),
                 runner_files=len(files), runner_bytes=nbytes)
+
+
+def _as_a_user_times_it(args, n_axis, repeats, tmp, *, worker):
+    """The map's time as a user measures it: the whole command (`python -m pmsmjax
+    feasibility`, a fresh output folder each run, the compilation cache filled) minus the
+    same command on an 11 x 11 grid, medians of `repeats` runs each, made in turn; in a
+    process of its own (`PMSMJAX_WORKER=0`) or through the resident worker."""
+    env = h.child_env(cache=os.path.join(tmp, "cache"), worker=worker,
+                      PMSMJAX_WORKER_DIR=os.path.join(tmp, "sockets"))
+    small = list(args)
+    small[small.index("--zeta1") + 1], small[small.index("--ratio") + 1] = "0:5:11", "0:2:11"
+    runs = {"big": [], "small": []}
+    if worker:
+        h.run_child([sys.executable, "-m", "pmsmjax", "worker", "--start"], env)
+    try:
+        for k in range(repeats + 1):
+            for name, a in (("big", args), ("small", small)):
+                out = os.path.join(tmp, f"user-{name}-{int(worker)}-{k}")
+                p = h.run_child([sys.executable, "-m", "pmsmjax", "feasibility", *a,
+                                 "--no-plot", "--out", out], env, timeout=1800)
+                if k:  # the first run of each fills the cache (and the worker)
+                    runs[name].append(p.wall_s)
+    finally:
+        if worker:
+            h.run_child([sys.executable, "-m", "pmsmjax", "worker", "--stop"], env,
+                        check=False)
+    return statistics.median(runs["big"]) - statistics.median(runs["small"])
 
 
 _FRESH_API = """
@@ -266,7 +298,12 @@ def main(argv=None) -> int:
                          f"({row['fresh_map_s']:.2f} s, wall {row['fresh_wall_s']:.1f} s), "
                          f"API's first call {n / row['fresh_api_s']:9.3g} /s "
                          f"({row['fresh_api_s']:.2f} s), "
-                         f"command/API rate {row['fresh_command_over_api']:.2f}")
+                         f"command/API rate {row['fresh_command_over_api']:.2f}; as a user "
+                         f"times it (whole command minus 11 x 11): own process "
+                         f"{row['user_own_s']:.2f} s, {row['api_s'] / row['user_own_s']:.2f} "
+                         f"of the API's warm rate; through the worker "
+                         f"{row['user_worker_s']:.2f} s, "
+                         f"{row['api_s'] / row['user_worker_s']:.2f}")
             print(line, flush=True)
     print(h.machine_line())
 
@@ -282,6 +319,9 @@ def main(argv=None) -> int:
         ("fresh command: map (s)", "fresh_map_s", ".2f"),
         ("fresh API: first call (s)", "fresh_api_s", ".2f"),
         ("command / API, fresh", "fresh_command_over_api", ".2f"),
+        ("as a user times it: own process / worker (s)",
+         lambda r: r.get("user_own_s") and f"{r['user_own_s']:.2f} / {r['user_worker_s']:.2f}",
+         ""),
         ("work (pt/s)", rate("work_s"), ".3g"), ("runner (pt/s)", rate("runner_s"), ".3g"),
         ("runner overhead", lambda r: f"{r['runner_over_work'] - 1:+.1%}", ""),
         ("chunks x size", lambda r: f"{r['chunks']} x {r['chunk_size']:,}", ""),
