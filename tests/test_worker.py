@@ -84,8 +84,15 @@ def test_commands_in_the_worker_equal_commands_in_their_own_process(worker_env, 
     (tmp_path / "w").mkdir()
     (tmp_path / "a").mkdir()
     run = ["simulate", "--t-end", "0.05", "--out", "out", "--no-plot"]
-    w, a = _pmsmjax(run, worker_env, tmp_path / "w"), _pmsmjax(run, alone, tmp_path / "a")
+
+    def umask():  # the client's file mode mask reaches the command too
+        os.umask(0o027)
+
+    w = _pmsmjax(run, worker_env, tmp_path / "w", preexec_fn=umask)
+    a = _pmsmjax(run, alone, tmp_path / "a", preexec_fn=umask)
     assert w.returncode == a.returncode == 0, (w.stderr, a.stderr)
+    modes = {os.stat(tmp_path / d / "out/trajectory.npz").st_mode & 0o777 for d in "wa"}
+    assert modes == {0o640}, modes
     assert _info(worker_env)[0]["commands"] == len(cases) + 1
     with np.load(tmp_path / "w/out/trajectory.npz", allow_pickle=True) as fw, \
             np.load(tmp_path / "a/out/trajectory.npz", allow_pickle=True) as fa:

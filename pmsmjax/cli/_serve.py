@@ -71,7 +71,8 @@ def _serve_one(conn: socket.socket) -> int | None:
     conn.settimeout(None)
     request = json.loads(payload)
     saved_fds = [os.dup(k) for k in (0, 1, 2)]
-    saved = (sys.stdin, sys.stdout, sys.stderr, sys.argv, os.getcwd(), dict(os.environ))
+    saved = (sys.stdin, sys.stdout, sys.stderr, sys.argv, os.getcwd(), dict(os.environ),
+             os.umask(int(request["umask"])))
     code = 1
     try:
         for k, fd in enumerate(fds):
@@ -91,7 +92,8 @@ def _serve_one(conn: socket.socket) -> int | None:
                 f.flush()
             except (OSError, ValueError):
                 pass
-        sys.stdin, sys.stdout, sys.stderr, sys.argv, cwd, env = saved
+        sys.stdin, sys.stdout, sys.stderr, sys.argv, cwd, env, umask = saved
+        os.umask(umask)
         for k, fd in enumerate(saved_fds):
             os.dup2(fd, k)
             os.close(fd)

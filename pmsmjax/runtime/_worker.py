@@ -13,9 +13,9 @@ done it once and stays removes it for every later command.
 **How a command reaches it** (`run_or_serve`, the console script `pmsmjax` and `python
 -m pmsmjax`; the worker's own loop is `pmsmjax.cli._serve`). The client imports nothing
 of JAX: it connects to the worker's Unix socket, hands it its standard input, output and
-error (the file descriptors themselves, so that
-progress bars, terminal widths, pipes and child processes behave as in the client), its
-arguments, working directory and environment, and waits for the exit status. Ctrl-C in
+error (the file descriptors themselves, so that progress bars, terminal widths, pipes and
+child processes behave as in the client), its arguments, working directory, file mode
+mask and environment, and waits for the exit status. Ctrl-C in
 the client interrupts the command in the worker, which then stops (a computation may still
 run in XLA's threads; the next command starts a new worker). It runs one command at a time:
 a client that finds it busy (no answer within `BUSY_WAIT_S`), or finds none, runs the
@@ -179,7 +179,9 @@ def run_in_worker(argv: list[str], key: str) -> int | None:
     with s:
         for f in (sys.stdout, sys.stderr):
             f.flush()
-        payload = json.dumps({"argv": argv, "cwd": os.getcwd(),
+        umask = os.umask(0)
+        os.umask(umask)
+        payload = json.dumps({"argv": argv, "cwd": os.getcwd(), "umask": umask,
                               "env": dict(os.environ)}).encode()
         try:
             socket.send_fds(s, [HEADER.pack(len(payload))], [0, 1, 2])
