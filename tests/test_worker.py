@@ -24,7 +24,11 @@ def worker_env():
     # a short folder: a socket's path is limited to about 100 bytes, which pytest's
     # temporary folders under xdist exceed
     sockets = Path(tempfile.mkdtemp(prefix="pmsmjax-w"))
-    env = dict(os.environ, PMSMJAX_WORKER="1", PMSMJAX_WORKER_DIR=str(sockets),
+    # the environment of a user's shell: without the variables that importing JAX (in
+    # this test process) sets, which `pmsmjax worker --start` must not count either
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("TF_CPP_MIN_LOG_LEVEL", "TPU_SKIP_MDS_QUERY")}
+    env.update(PMSMJAX_WORKER="1", PMSMJAX_WORKER_DIR=str(sockets),
                PMSMJAX_WORKER_IDLE="120")
     yield env
     for sock in sockets.glob("*.sock"):

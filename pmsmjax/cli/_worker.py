@@ -25,8 +25,8 @@ def _arguments(p: argparse.ArgumentParser) -> None:
 def _start(timeout_s: float = 120.0) -> int:
     if not _worker.enabled():
         raise CLIError("PMSMJAX_WORKER=0: the resident worker is off in this environment")
-    key = _worker.worker_key()
-    _worker.start_worker(key, dict(os.environ))
+    key = _worker.worker_key()  # as a command's client computes it
+    _worker.start_worker(key, _worker.start_environ())
     info = _worker.socket_dir() / f"{key}.json"
     end = time.time() + timeout_s
     while not info.exists():

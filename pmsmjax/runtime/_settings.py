@@ -93,13 +93,25 @@ def clear_cache() -> int:
 
 #: `JAX_ENABLE_X64` as it was before `enable_x64` set it (None: unset), while set by it.
 _X64_ENV: list = []
+#: The environment as the process had it when pmsmjax was first imported (`start_environ`).
+_START_ENVIRON: dict = {}
+
+
+def start_environ() -> dict:
+    """The environment variables as they were when pmsmjax was first imported, before
+    pmsmjax or JAX set any (importing JAX sets `TF_CPP_MIN_LOG_LEVEL`, for one): what
+    identifies a process's start-up settings (`pmsmjax.runtime._worker.worker_key`)."""
+    return dict(_START_ENVIRON or os.environ)
 
 
 def enable_x64() -> None:
-    """What `import pmsmjax` does for float64: `jax_enable_x64` on. With JAX not yet
+    """What `import pmsmjax` does for float64 (and, the first time, it keeps the
+    environment for `start_environ`): `jax_enable_x64` on. With JAX not yet
     imported it sets `JAX_ENABLE_X64=1`, which JAX reads when it is imported (the same
     setting, without importing JAX now); `settle_x64` puts the variable back once JAX is
     in, so that child processes see the user's environment."""
+    if not _START_ENVIRON:
+        _START_ENVIRON.update(os.environ)
     if "jax" in sys.modules:
         import jax
 

@@ -53,7 +53,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from ._settings import _env_flag
+from ._settings import _env_flag, start_environ
 
 
 #: Seconds a client waits for a worker to take its command before it runs it itself.
@@ -119,8 +119,9 @@ def _source_fingerprint() -> list:
 
 def worker_key(env: dict | None = None) -> str:
     """The identity of a worker that may run this process's commands (module docstring):
-    the interpreter, the source tree and the start-up settings in `env`."""
-    env = dict(os.environ) if env is None else env
+    the interpreter, the source tree and the start-up settings in `env` (default: the
+    environment before pmsmjax and JAX set anything, `start_environ`)."""
+    env = start_environ() if env is None else env
     settings = sorted((k, v) for k, v in env.items()
                       if k.startswith(KEY_PREFIXES) and not k.startswith("PMSMJAX_WORKER")
                       and k != "JAX_ENABLE_X64")  # pmsmjax sets float64 in every process
@@ -250,7 +251,7 @@ def run_or_serve(argv: list[str] | None = None) -> int:
         a.split("=")[0] in IN_CLIENT_OPTIONS for a in argv)
     key = env = None
     if use:
-        env = dict(os.environ)
+        env = start_environ()
         try:
             key = worker_key(env)
             code = run_in_worker(argv, key)
