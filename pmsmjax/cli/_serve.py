@@ -172,6 +172,7 @@ def serve(key: str) -> None:
             "busy_since": busy_since}))
 
     write_info()
+    info_path.with_suffix(".starting").unlink(missing_ok=True)  # clients stop waiting
     listener.settimeout(1.0)
     try:
         while True:

@@ -19,7 +19,8 @@ mask and environment, and waits for the exit status. Ctrl-C in
 the client interrupts the command in the worker, which then stops (a computation may still
 run in XLA's threads; the next command starts a new worker). It runs one command at a time:
 a client that finds it busy (no answer within `BUSY_WAIT_S`), or finds none, runs the
-command itself, and afterwards starts a worker in the background for the next one.
+command itself, and afterwards starts a worker in the background for the next one; a
+client that finds one still loading (started less than `START_WAIT_S` ago) waits for it.
 
 **Which worker.** One per Python interpreter, pmsmjax source tree (every file's size and
 modification time: an edited or upgraded pmsmjax starts a new worker) and process
@@ -51,6 +52,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from ._settings import _env_flag, start_environ
@@ -58,6 +60,8 @@ from ._settings import _env_flag, start_environ
 
 #: Seconds a client waits for a worker to take its command before it runs it itself.
 BUSY_WAIT_S = 0.5
+#: Seconds after its start during which a loading worker is waited for.
+START_WAIT_S = 15.0
 #: Seconds without a command after which a worker stops (`PMSMJAX_WORKER_IDLE`).
 IDLE_S = 900.0
 #: Environment variables that fix a process's settings at start-up: a client whose
@@ -169,11 +173,28 @@ def _connect(path: Path) -> tuple[socket.socket, int] | None:
         return None
 
 
+def _starting(key: str) -> bool:
+    """Whether a worker of `key` was started less than `START_WAIT_S` ago and is still
+    loading (`start_worker` leaves a `.starting` file with its pid; the worker removes it
+    when it takes commands)."""
+    path = worker_paths(key)[1].with_suffix(".starting")
+    try:
+        pid, started = (float(x) for x in path.read_text().split())
+        os.kill(int(pid), 0)
+    except (OSError, ValueError):
+        return False
+    return time.time() - started < START_WAIT_S
+
+
 def run_in_worker(argv: list[str], key: str) -> int | None:
     """Run the command `argv` in the worker of `key`; its exit status, or None when no
-    worker took it (the caller runs it)."""
+    worker took it (the caller runs it). A worker still loading is waited for: it is
+    ready sooner than this process would have imported what the command needs."""
     sock_path, _ = worker_paths(key)
     conn = _connect(sock_path)
+    while conn is None and not sock_path.exists() and _starting(key):
+        time.sleep(0.05)
+        conn = _connect(sock_path)
     if conn is None:
         return None
     s, pid = conn
@@ -227,14 +248,18 @@ def start_worker(key: str, env: dict) -> subprocess.Popen | None:
     here = str(Path(__file__).resolve().parents[2])
     env = dict(env, PYTHONPATH=os.pathsep.join(
         [here] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    if _starting(key):
+        return None  # another client started one a moment ago
     log = open(info_path.with_suffix(".log"), "ab")
     try:
-        return subprocess.Popen(
+        p = subprocess.Popen(
             [sys.executable, "-m", "pmsmjax.cli._serve", key], env=env,
             stdin=subprocess.DEVNULL, stdout=log, stderr=log, start_new_session=True,
             cwd=str(socket_dir()))
     finally:
         log.close()
+    info_path.with_suffix(".starting").write_text(f"{p.pid} {time.time()}")
+    return p
 
 
 def run_or_serve(argv: list[str] | None = None) -> int:
