@@ -80,8 +80,10 @@ STATUS = struct.Struct("!i")
 
 
 def enabled() -> bool:
-    """Whether commands use a resident worker (`PMSMJAX_WORKER`, on unless 0)."""
-    return _env_flag("PMSMJAX_WORKER", True)
+    """Whether commands use a resident worker (`PMSMJAX_WORKER`, on unless 0; off where
+    the system cannot pass file descriptors over a Unix socket, e.g. Windows)."""
+    return _env_flag("PMSMJAX_WORKER", True) and hasattr(socket, "send_fds") and hasattr(
+        socket, "AF_UNIX")
 
 
 def socket_dir() -> Path:
