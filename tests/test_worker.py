@@ -78,11 +78,14 @@ def test_commands_in_the_worker_equal_commands_in_their_own_process(worker_env, 
     (tmp_path / "a").mkdir()
     run = ["simulate", "--t-end", "0.05", "--out", "out", "--no-plot"]
 
-    def umask():  # the client's file mode mask reaches the command too
-        os.umask(0o027)
-
-    w = _pmsmjax(run, worker_env, tmp_path / "w", preexec_fn=umask)
-    a = _pmsmjax(run, alone, tmp_path / "a", preexec_fn=umask)
+    # the client's file mode mask reaches the command too (set here and inherited: a
+    # `preexec_fn` would fork this process, which JAX warns against)
+    mask = os.umask(0o027)
+    try:
+        w = _pmsmjax(run, worker_env, tmp_path / "w")
+        a = _pmsmjax(run, alone, tmp_path / "a")
+    finally:
+        os.umask(mask)
     assert w.returncode == a.returncode == 0, (w.stderr, a.stderr)
     modes = {os.stat(tmp_path / d / "out/trajectory.npz").st_mode & 0o777 for d in "wa"}
     assert modes == {0o640}, modes
