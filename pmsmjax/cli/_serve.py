@@ -100,11 +100,11 @@ def _serve_one(conn: socket.socket) -> int | None:
         os.chdir(cwd)
         os.environ.clear()
         os.environ.update(env)
-        _tidy()
-        try:
+        try:  # the client ends now; the tidying (seconds, when it drops programs) after
             conn.sendall(STATUS.pack(code))
         except OSError:
             pass
+        _tidy()
     return code
 
 
