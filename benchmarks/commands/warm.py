@@ -25,6 +25,7 @@ import tempfile
 from pathlib import Path
 
 from .. import _harness as h
+from .startup import timed
 
 
 MODULE = "benchmarks.commands.warm"
@@ -46,11 +47,8 @@ def command(name: str, observer: str, motor: str, tmp: Path) -> list[str]:
 
 
 def _wall(args: list[str], env: dict) -> float:
-    c = h.run_child([sys.executable, "-m", "pmsmjax", *args], env, check=False)
-    if c.returncode not in (0, 1):
-        raise SystemExit(f"pmsmjax {' '.join(args)} failed ({c.returncode}):\n"
-                         f"{c.stderr[-2000:]}")
-    return c.wall_s
+    """Wall time of `pmsmjax ARGS` in a fresh process (`startup.timed`)."""
+    return timed(["-m", "pmsmjax", *args], env)
 
 
 def main(argv=None) -> int:
