@@ -150,7 +150,9 @@ def test_equilibria_json_fig9_design(capsys):
     assert captured.err == ""
     w0, i0 = 0.5 * float(DRIVE.w_rated), np.zeros(2)
     # the CLI is analysis.equilibria of the default observer (the LESO) with this design
-    eq = analysis.equilibria(_leso(zeta1=0.5, ratio=0.5), DRIVE.motor, w0, i0)
+    # (with the command's Newton starts, n_starts = 64: one program with the mismatch
+    # test's reference below)
+    eq = analysis.equilibria(_leso(zeta1=0.5, ratio=0.5), DRIVE.motor, w0, i0, n_starts=64)
     valid = np.asarray(eq.valid)
     got = report["equilibria"]
     assert report["status"] == "ok" and len(got) == int(eq.n) == 2
@@ -191,9 +193,12 @@ EQUILIBRIUM_KEYS = {"theta_deg", "theta_rad", "designed", "stable", "tangent", "
 
 def test_equilibria_mismatch_json_schema(capsys):
     """`--observer leso --mismatch L_q=1.5 --json`: the schema of every observer, state
-    names and units from `observer.coordinates`; the designed equilibrium moves off 0."""
-    assert main(["equilibria", "--observer", "leso", "--mismatch", "L_q=1.5", "--i-q", "1",
-                 "--json"]) == 0
+    names and units from `observer.coordinates`; the designed equilibrium moves off 0.
+    The fixed-ratio design of `test_equilibria_json_fig9_design` (the module's one
+    equilibria program, command and API: a mismatch changes leaves only; the (38)
+    schedule's report is `test_equilibria_table_and_file`'s)."""
+    assert main(["equilibria", "--observer", "leso", "--zeta1", "0.5", "--ratio", "0.5",
+                 "--mismatch", "L_q=1.5", "--i-q", "1", "--json"]) == 0
     report = _strict_json(capsys.readouterr().out)
     assert {"command", "motor", "operating_point", "observer", "design", "status",
             "status_code", "n_equilibria", "n_nonzero", "feasibility_status", "feasibility",
@@ -207,7 +212,8 @@ def test_equilibria_mismatch_json_schema(capsys):
     assert obs["model"]["L_q_ratio"] == pytest.approx(1.5)
     assert obs["model"]["L_q"] == pytest.approx(1.5 * float(DRIVE.motor.L_q))
     assert obs["model"]["L_d_ratio"] == 1.0
-    assert report["design"]["schedule"] == "zhang38" and report["design"]["observer"] == "leso"
+    assert report["design"]["schedule"] == "fixed_ratio"
+    assert report["design"]["observer"] == "leso"
     assert report["status"] == "ok" and report["status_code"] == 0
     assert report["n_equilibria"] == len(report["equilibria"]) >= 1
     for e in report["equilibria"]:
@@ -218,7 +224,8 @@ def test_equilibria_mismatch_json_schema(capsys):
     assert len(designed) == 1 and abs(designed[0]["theta_deg"]) > 1  # static error
     m_hat = pj.replace_params(DRIVE, L_q=1.5 * float(DRIVE.motor.L_q)).motor
     # the command's call (with the grid's Newton starts, n_starts = 64)
-    eq = analysis.equilibria(_leso(motor=m_hat), DRIVE.motor, 0.5 * float(DRIVE.w_rated),
+    eq = analysis.equilibria(_leso(zeta1=0.5, ratio=0.5, motor=m_hat), DRIVE.motor,
+                             0.5 * float(DRIVE.w_rated),
                              np.array([0.0, 1.0]) * float(DRIVE.base.I_b), n_starts=64)
     np.testing.assert_array_equal([e["theta_rad"] for e in report["equilibria"]],
                                   np.asarray(eq.theta)[np.asarray(eq.valid)])
