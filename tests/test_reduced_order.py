@@ -5,8 +5,10 @@ step, its equilibria against a brute-force scan of the one-step map, convergence
 large angle error, the closed loop from standstill through a load step and a reversal on
 two presets, the PM-flux adaptation, and its design checks."""
 
+import functools
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +16,7 @@ import pytest
 
 import pmsmjax as pj
 from pmsmjax import analysis
+from pmsmjax._sim._batching import values_as_arrays
 from pmsmjax.observers import (
     Measurement,
     OperatingPoint,
@@ -22,7 +25,7 @@ from pmsmjax.observers import (
     make_observer,
 )
 
-from .helpers import start_load_reversal_run
+from .helpers import rot, start_load_reversal_run
 
 
 ZHANG = pj.preset("zhang750")
@@ -32,6 +35,20 @@ T_IPM = ReducedOrderObserver.paper_T_s  # 1/6600 s, the IPM preset's drive
 
 def _op(drive, w_pu, i_pu):
     return w_pu * float(drive.w_rated), jnp.asarray(i_pu) * float(drive.base.I_b)
+
+
+def _arrays(*trees):
+    """`trees` with their Python floats other than zero as arrays, as `simulate` passes
+    its parameters: compiled functions of the observer, the machine and the operating
+    point below then run one program for every value (zeros stay static, as there)."""
+    return values_as_arrays(trees, np.float64)
+
+
+@eqx.filter_jit
+def _rhs_jacobian(obs, m, w, i, x):
+    """The jacfwd Jacobian of `obs.error_rhs` at `x` (one compiled program; op by op, each
+    of its small operations compiled on its own)."""
+    return jax.jacfwd(lambda x: obs.error_rhs(x, OperatingPoint(w, i), m))(x)
 
 
 # ---------------------------------------------------------------------------------------
@@ -50,8 +67,7 @@ def test_linearised_poles_are_the_closed_form(drive):
     for w_pu, i_pu in ((0.5, (-0.2, 0.6)), (-0.3, (0.1, -0.9)), (1.2, (-0.5, 1.0)),
                        (0.05, (0.0, 0.3))):
         w, i = _op(drive, w_pu, i_pu)
-        op = OperatingPoint(w, i)
-        A = np.asarray(jax.jacfwd(lambda x: obs.error_rhs(x, op, m))(jnp.zeros(4)))
+        A = np.asarray(_rhs_jacobian(*_arrays(obs, m, w, i), jnp.zeros(4)))
         k1 = obs.sigma0 + obs.zeta_inf * abs(w)
         a = obs.alpha_o
         want = np.polymul([1.0, 2 * k1, w * w], [1.0, 2 * a, a * a])
@@ -81,12 +97,14 @@ def test_discrete_step_is_euler_of_the_error_dynamics():
     x0 = np.asarray(eq.x)[int(np.argmin(np.where(np.asarray(eq.valid),
                                                  np.abs(np.asarray(eq.theta)), 9.0)))]
     assert abs(x0[2]) > 0.05  # a real static error: mismatch matters
-    A = np.asarray(jax.jacfwd(lambda x: obs.error_rhs(x, op, m))(jnp.asarray(x0)))
+    A = np.asarray(_rhs_jacobian(*_arrays(obs, m, w, i), jnp.asarray(x0)))
     D = np.asarray(obs.error_scale(op, m))
     S = lambda M: M * D[None, :] / D[:, None]  # noqa: E731  (scaled, O(1) entries)
     rem = []
+    # the sampling period an argument: one compiled step for the three
+    step = jax.jit(lambda x, T_s: analysis.discrete_error_map(obs, m, w, i, T_s)(x))
     for T_s in (T_IPM, T_IPM / 2, T_IPM / 4):
-        fn = jax.jit(analysis.discrete_error_map(obs, m, w, i, T_s))
+        fn = functools.partial(step, T_s=jnp.asarray(T_s))
         h = 1e-6 * D
         Jd = np.stack([(np.asarray(fn(x0 + h[k] * np.eye(4)[k]))
                         - np.asarray(fn(x0 - h[k] * np.eye(4)[k]))) / (2 * h[k])
@@ -115,12 +133,48 @@ def _scan_fixed_points(obs, plant, w, i, T_s, n=721):
     function of the angle alone, whose sign changes bracket the fixed points (refined
     by bisection), and at each the angle component must be stationary too (then the
     rotor and the estimated frame agree). Returns `(angles, states, stable)`, the
-    stability from the step's Jacobian (all |z| < 1)."""
+    stability from the step's Jacobian (all |z| < 1). The compiled programs take the
+    observer, the machine and the operating point as arguments: both tests below run
+    them."""
+    args = _arrays(obs, plant, w, i, T_s)
+
+    def rest_v(th):  # in chunks of 8 angles: one compiled shape for the grid and brackets
+        th = np.asarray(th)
+        pad = np.resize(th, -(-len(th) // 8) * 8)
+        out = [_rest_v(*args, jnp.asarray(pad[j:j + 8])) for j in range(0, len(pad), 8)]
+        return jax.tree_util.tree_map(lambda *o: np.concatenate(o)[:len(th)], *out)
+
+    grid = np.linspace(-math.pi, math.pi, n)
+    r, _, g, _ = rest_v(grid)
+    assert np.max(g) < 1e-12  # the flux error solved at every angle
+    r = np.asarray(r)
+    k = np.flatnonzero(np.sign(r[:-1]) != np.sign(r[1:]))
+    lo, hi = np.asarray(grid)[k], np.asarray(grid)[k + 1]
+    r_lo = r[k]
+    for _ in range(45):
+        mid = 0.5 * (lo + hi)
+        rm = rest_v(mid)[0]
+        left = np.sign(rm) == np.sign(r_lo)
+        lo, hi = np.where(left, mid, lo), np.where(left, hi, mid)
+        r_lo = np.where(left, rm, r_lo)
+    _, xs, _, r_theta = rest_v(0.5 * (lo + hi))
+    assert np.max(np.abs(r_theta)) < 1e-12  # the angle stationary as well
+    stable = [bool(np.max(np.abs(np.linalg.eigvals(np.asarray(_step_jacobian(*args, x)))))
+                   < 1.0) for x in xs]
+    return np.asarray(0.5 * (lo + hi)), np.asarray(xs), stable
+
+
+@eqx.filter_jit
+def _rest_v(obs, plant, w, i, T_s, th):
+    """For each angle error of `th` (speed error 0): the speed component's residual
+    (scaled), the state whose flux error one step leaves unchanged in rotor coordinates
+    (Newton), that Newton's residual and the angle component's residual; see
+    `_scan_fixed_points`."""
     fn = analysis.discrete_error_map(obs, plant, w, i, T_s)
     D = obs.error_scale(OperatingPoint(w, i), plant)
 
     def state(z, th):
-        return jnp.concatenate([pj.rotate(z, th), jnp.stack([th, 0.0])])
+        return jnp.concatenate([pj.rotate(z, th), jnp.stack([th, jnp.zeros_like(th)])])
 
     def rest(th):
         def G(z):
@@ -132,25 +186,13 @@ def _scan_fixed_points(obs, plant, w, i, T_s, n=721):
         x1 = fn(x)
         return x1[3] / D[3], x, jnp.max(jnp.abs(G(z))), pj.wrap_angle(x1[2] - th)
 
-    rest_v = jax.jit(jax.vmap(rest))
-    grid = jnp.linspace(-math.pi, math.pi, n)
-    r, _, g, _ = rest_v(grid)
-    assert float(jnp.max(g)) < 1e-12  # the flux error solved at every angle
-    r = np.asarray(r)
-    k = np.flatnonzero(np.sign(r[:-1]) != np.sign(r[1:]))
-    lo, hi = np.asarray(grid)[k], np.asarray(grid)[k + 1]
-    r_lo = r[k]
-    for _ in range(45):
-        mid = 0.5 * (lo + hi)
-        rm = np.asarray(rest_v(jnp.asarray(mid))[0])
-        left = np.sign(rm) == np.sign(r_lo)
-        lo, hi = np.where(left, mid, lo), np.where(left, hi, mid)
-        r_lo = np.where(left, rm, r_lo)
-    _, xs, _, r_theta = rest_v(jnp.asarray(0.5 * (lo + hi)))
-    assert float(jnp.max(jnp.abs(r_theta))) < 1e-12  # the angle stationary as well
-    stable = [bool(np.max(np.abs(np.linalg.eigvals(np.asarray(jax.jacfwd(fn)(x)))))
-                   < 1.0) for x in xs]
-    return np.asarray(0.5 * (lo + hi)), np.asarray(xs), stable
+    return jax.vmap(rest)(th)
+
+
+@eqx.filter_jit
+def _step_jacobian(obs, plant, w, i, T_s, x):
+    """The jacfwd Jacobian of one real step (`analysis.discrete_error_map`) at `x`."""
+    return jax.jacfwd(analysis.discrete_error_map(obs, plant, w, i, T_s))(x)
 
 
 @pytest.mark.parametrize("w_pu, i_pu", [(0.3, (-0.3, 1.0)), (-0.5, (-0.3, -1.0))])
@@ -214,9 +256,12 @@ def test_converges_from_90_degrees_off(name, recordings):
     (the region of attraction shrinks with w / alpha_o), the -90 deg start locks."""
     drive, T_s, tr = recordings[name]
     obs = make_observer("reduced-order", drive)
-    if name == "zhang750":  # a second recording at 0.2 p.u.
+    if name == "zhang750":  # a second recording at 0.2 p.u., without load
         w = 0.2 * float(drive.w_rated)
-        sc = pj.Scenario(t_end=0.3, w_m_ref=pj.Profile.constant(w))
+        # shaped as the fixture's (0.6 s, a load step, here of zero): the same compiled
+        # simulation, and replays of the length the PM-flux test replays
+        sc = pj.Scenario(t_end=0.6, w_m_ref=pj.Profile.constant(w),
+                         tau_L=pj.Profile.steps([0.3], [0.0]))
         tr = pj.simulate(drive, pj.FOC.from_drive(drive), SensoredObserver(), sc,
                          w_m0=w, T_s=T_s)
     w = float(tr.w_m[0])
@@ -356,10 +401,12 @@ def test_step_runs_in_float32():
     # the steady state of the true machine at speed W, sampled each period
     u_dq = np.array([float(m.R_s) * i_dq[0] - W * float(m.L_q) * i_dq[1],
                      float(m.R_s) * i_dq[1] + W * (float(m.L_d) * i_dq[0] + float(m.psi_f))])
-    for k in range(400):
-        th = W * k * T_s
-        i_ab = np.asarray(pj.inv_park(i_dq, th))
-        u_ab = np.asarray(pj.inv_park(u_dq, th - 0.5 * W * T_s)) if k else np.zeros(2)
+    # (rotated by NumPy for all samples at once: op by op, each sample ran small programs)
+    th = W * T_s * np.arange(400)
+    i_all = np.einsum("kij,j->ki", rot(th).transpose(2, 0, 1), i_dq)
+    u_all = np.einsum("kij,j->ki", rot(th - 0.5 * W * T_s).transpose(2, 0, 1), u_dq)
+    u_all[0] = 0.0
+    for i_ab, u_ab in zip(i_all, u_all):
         s64, e64 = step64(s64, Measurement(jnp.asarray(i_ab), jnp.asarray(u_ab),
                                            jnp.nan, jnp.nan))
         s32, e32 = step32(s32, Measurement(jnp.asarray(i_ab, jnp.float32),
