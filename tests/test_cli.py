@@ -1,6 +1,8 @@
 """The `pmsmjax` command line, run in-process through `main([...])`."""
 
 import argparse
+import contextlib
+import io
 import json
 
 import numpy as np
@@ -13,7 +15,11 @@ from pmsmjax.observers import make_observer
 from .helpers import lock_status_loop, read_npz
 
 
-T_END = 0.2  # s: short enough to be quick, long enough to reach speed and draw current
+# s: the built-in default run's length (`simulate` without --t-end). The module's
+# recording is that run: test_simulate_default_run checks it as the default, the other
+# tests replay it and re-run its plant (12000 samples, run times well below a second;
+# one compiled program less than a separate shorter run)
+T_END = 1.5
 DRIVE = pj.preset("zhang750")
 
 SIMULATE_KEYS = {
@@ -22,11 +28,27 @@ SIMULATE_KEYS = {
 }
 
 
+def _main_printing(argv):
+    """`main(argv)` with its standard output captured (for module-scoped runs, where the
+    function-scoped `capsys` is not available): `(exit status, printed text)`."""
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        status = main(argv)
+    return status, buf.getvalue()
+
+
 @pytest.fixture(scope="module")
-def sim_dir(tmp_path_factory):
+def sim_run(tmp_path_factory):
+    """`pmsmjax simulate --out DIR`: the built-in default run; `(DIR, printed text)`."""
     out = tmp_path_factory.mktemp("simulate")
-    assert main(["simulate", "--t-end", str(T_END), "--out", str(out)]) == 0
-    return out
+    status, printed = _main_printing(["simulate", "--out", str(out)])
+    assert status == 0
+    return out, printed
+
+
+@pytest.fixture(scope="module")
+def sim_dir(sim_run):
+    return sim_run[0]
 
 
 def test_simulate_writes_files(sim_dir):
@@ -57,15 +79,26 @@ def test_simulate_writes_files(sim_dir):
     assert summary["final_speed"]["rad_s"] == pytest.approx(float(rec.w_m[-1]))
 
 
-def test_simulate_prints_summary(tmp_path, capsys):
-    assert main(["simulate", "--t-end", "0.05", "--scenario", "ramp", "--no-plot",
-                 "--out", str(tmp_path)]) == 0
-    out = capsys.readouterr().out
+@pytest.fixture(scope="module")
+def if_start_run(tmp_path_factory):
+    """A sensorless run from standstill at an unknown angle without a plot: `simulate
+    --observer c-leso --scenario ramp --t-end 0.6 --theta-hat0 114.59 --no-plot`;
+    `(DIR, printed text)`. One compiled program for the two tests that read it."""
+    out = tmp_path_factory.mktemp("if_start")
+    status, printed = _main_printing(["simulate", "--observer", "c-leso", "--scenario",
+                                      "ramp", "--t-end", "0.6", "--theta-hat0", "114.59",
+                                      "--no-plot", "--out", str(out)])
+    assert status == 0
+    return out, printed
+
+
+def test_simulate_prints_summary(if_start_run):
+    out_dir, out = if_start_run
     assert "compiling..." in out
     assert "final speed" in out
-    assert str(tmp_path / "summary.json") in out
-    assert not (tmp_path / "simulation.png").exists()
-    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert str(out_dir / "summary.json") in out
+    assert not (out_dir / "simulation.png").exists()
+    summary = json.loads((out_dir / "summary.json").read_text())
     assert summary["scenario"]["load_pu"] is None
 
 
@@ -152,8 +185,10 @@ def test_replay_observer_model_and_gains(sim_dir, tmp_path):
 def test_simulate_with_a_sensorless_observer(tmp_path, capsys):
     """`simulate --observer NAME` runs any observer of the registry in the loop; its
     extras go into trajectory.npz under their names."""
+    # 0.1 s: the length of the recording of test_replay_flying_start_..., whose lock
+    # judge (compiled for that length) runs again
     assert main(["simulate", "--observer", "eso", "--gain", "w2=400", "--scenario",
-                 "load-step", "--t-end", "0.05", "--no-plot", "--out", str(tmp_path)]) == 0
+                 "load-step", "--t-end", "0.1", "--no-plot", "--out", str(tmp_path)]) == 0
     assert "observer eso, w2 = 400" in capsys.readouterr().out
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["observer"] == "eso" and summary["status"] == "successful"
@@ -162,19 +197,20 @@ def test_simulate_with_a_sensorless_observer(tmp_path, capsys):
     assert traj["psi_ab_hat"].shape == (summary["steps"], 2)
 
 
-def test_simulate_starts_a_sensorless_drive_with_the_if_start(tmp_path, capsys):
+def test_simulate_starts_a_sensorless_drive_with_the_if_start(if_start_run, tmp_path):
     """`--startup auto` picks the I/f start for a sensorless observer from standstill
     (and none for a rotor that starts turning); from an unknown angle the C-LESO drive
     reaches the set-point."""
-    assert main(["simulate", "--observer", "c-leso", "--scenario", "ramp", "--t-end", "0.6",
-                 "--theta-hat0", "114.59", "--no-plot", "--out", str(tmp_path)]) == 0
-    assert "start-up: I/f" in capsys.readouterr().out
-    summary = json.loads((tmp_path / "summary.json").read_text())
+    out, printed = if_start_run
+    assert "start-up: I/f" in printed
+    summary = json.loads((out / "summary.json").read_text())
     assert summary["controller"]["startup"]["type"] == "I/f"
     assert summary["theta_hat0_deg"] == 114.59
     assert abs(summary["final_speed"]["pu"] - 0.5) < 0.01
-    assert main(["simulate", "--observer", "c-leso", "--scenario", "load-step", "--t-end",
-                 "0.02", "--no-plot", "--out", str(tmp_path / "b")]) == 0
+    # the turning rotor: the run of test_simulate_with_a_sensorless_observer (the ESO,
+    # load-step, 0.1 s), whose compiled program this one runs again
+    assert main(["simulate", "--observer", "eso", "--scenario", "load-step", "--t-end",
+                 "0.1", "--no-plot", "--out", str(tmp_path / "b")]) == 0
     summary = json.loads((tmp_path / "b" / "summary.json").read_text())
     # the rotor turns from the start: the catch, not the I/f start
     assert summary["controller"]["startup"] == {"type": "catch", "window_samples": 64}
@@ -220,7 +256,7 @@ def test_plant_reproduces_simulation(sim_dir, tmp_path):
     voltages from the same initial state, with the same RK4 step (1 substep per T_s): the
     two runs perform the same floating-point operations up to reordering by the compiler,
     so they agree to rounding level (~1e-15 relative per step, growing at most linearly
-    over 1600 stable steps). 1e-9 relative leaves a wide margin for that and is still far
+    over 12000 stable steps). 1e-9 relative leaves a wide margin for that and is still far
     below any modelling difference (4 substeps instead of 1 already differ by ~1e-6)."""
     out = tmp_path / "plant"
     assert main(["plant", "--data", str(sim_dir / "recording.npz"), "--substeps", "1",
@@ -271,7 +307,7 @@ def test_plant_csv_and_substeps(sim_dir, tmp_path, capsys):
 
 def test_plant_minimal_input(tmp_path):
     """Only t and u_ab: a locked-rotor-like start from rest with zero load, no comparison."""
-    n = 400
+    n = 12000  # the length of the module's recording: its plant program runs again
     t = np.arange(n) * 125e-6
     u_ab = np.tile([5.0, 0.0], (n, 1))  # a constant d-axis voltage at theta = 0
     path = tmp_path / "in.csv"
@@ -282,7 +318,7 @@ def test_plant_minimal_input(tmp_path):
     sim = pj.load_recording(out / "plant.npz")
     np.testing.assert_array_equal(sim.tau_L, 0.0)
     # d-axis voltage on a rotor at angle 0: no torque, the rotor stays put and
-    # i_d -> u / R_s (time constant L_d / R_s = 3.2 ms, 50 ms simulated).
+    # i_d -> u / R_s (time constant L_d / R_s = 3.2 ms, 1.5 s simulated).
     motor = pj.preset("zhang750").motor
     assert sim.i_ab[-1, 0] == pytest.approx(5.0 / motor.R_s, rel=1e-4)
     assert json.loads((out / "summary.json").read_text())["comparison_with_data"] == {}
@@ -428,7 +464,9 @@ def test_a_runaway_rotor_diverges_and_exits_1(tmp_path, capsys):
     are still written, the summary and stderr say "diverged", the exit status is 1; the
     recorded speed is the mechanical equation's (a trapezoid of the recorded torques, by
     NumPy), frozen at the last good sample, from which the next step leaves the bound."""
-    assert main(["simulate", "--scenario", "load-step", "--load", "-400", "--t-end", "0.03",
+    # 0.1 s: the length of the load-step recording of
+    # test_replay_flying_start_catches_a_turning_rotor, whose compiled program this runs
+    assert main(["simulate", "--scenario", "load-step", "--load", "-400", "--t-end", "0.1",
                  "--no-plot", "--out", str(tmp_path)]) == 1
     err = capsys.readouterr().err
     assert "pmsmjax simulate: the run diverged" in err and "20 w_rated" in err
@@ -487,12 +525,11 @@ def test_a_lost_lock_is_reported_with_its_time(tmp_path, capsys):
     assert f"the observer lost lock at t = {t_lost:.4g} s" in err
 
 
-def test_simulate_default_run(tmp_path, capsys):
+def test_simulate_default_run(sim_run):
     """`pmsmjax simulate` on its built-in default (it was the main job before gain
-    tuning became it): zhang750, sensored FOC, 1.5 s at T_s = 125 us."""
-    out = tmp_path / "results"
-    assert main(["simulate", "--out", str(out)]) == 0
-    printed = capsys.readouterr().out
+    tuning became it): zhang750, sensored FOC, 1.5 s at T_s = 125 us (the module's
+    recording, `sim_run`)."""
+    out, printed = sim_run
     assert "status: successful" in printed
 
     for name in ("trajectory.npz", "recording.npz", "summary.json", "simulation.png"):
