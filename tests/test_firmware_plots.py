@@ -5,6 +5,7 @@ versus speed) and the Bode plot of `pmsmjax response --plot`; the poles themselv
 
 import json
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,6 +15,7 @@ import pmsmjax as pj
 import tuning as tg
 from pmsmjax import analysis
 from pmsmjax.cli.__main__ import main
+from pmsmjax.cli._response import PLOT_ORDERS
 from pmsmjax.observers import make_observer
 
 from .helpers import scheduled_gains_table
@@ -65,17 +67,24 @@ def test_gains_command_compares_tuned_and_paper(table, tmp_path, capsys, monkeyp
     for k in ("G1_11", "G1_21", "g2_2", "g3_2", "k_p"):
         np.testing.assert_allclose(r["gains"][k]["tuned"], cols[k][rows], rtol=1e-9,
                                    atol=1e-9 * np.max(np.abs(cols[k])))
-    # the paper's gains: the paper design's own schedule
+    # the paper's gains: the paper design's own schedule; the poles at one speed, from
+    # the Jacobian of one observer step directly (one compiled program for both, instead
+    # of a hundred single operations)
     drive = cfg.drive()
     paper = make_observer("eso", drive)
     w = float(r["w_m"][5])
-    g = paper.linear_gains(jnp.asarray(w), jnp.zeros(2))
-    assert r["gains"]["G1_11"]["paper"][5] == pytest.approx(float(g.G1[0, 0]), rel=1e-12)
-    # the poles at one speed, from the Jacobian of one observer step directly
     tuned = pj.apply_gains_table(t, paper)
     i_a = jnp.asarray([0.0, 0.3 * float(drive.base.I_b)])
-    fn = analysis.discrete_error_map(tuned, drive.three_phase_motor, w, i_a, cfg.T_s)
-    z = np.linalg.eigvals(np.asarray(jax.jacfwd(fn)(jnp.zeros(tuned.coordinates.n))))
+
+    @eqx.filter_jit
+    def gain_and_step_jacobian(paper, tuned, w):
+        g = paper.linear_gains(w, jnp.zeros(2))
+        fn = analysis.discrete_error_map(tuned, drive.three_phase_motor, w, i_a, cfg.T_s)
+        return g.G1[0, 0], jax.jacfwd(fn)(jnp.zeros(tuned.coordinates.n))
+
+    G1_11, jac = gain_and_step_jacobian(paper, tuned, jnp.asarray(w))
+    assert r["gains"]["G1_11"]["paper"][5] == pytest.approx(float(G1_11), rel=1e-12)
+    z = np.linalg.eigvals(np.asarray(jac))
     assert r["max_abs_pole_tuned"][5] == pytest.approx(np.max(np.abs(z)), rel=1e-9)
     assert max(r["max_abs_pole_tuned"]) < 1 and max(r["max_abs_pole_paper"]) < 1
 
@@ -84,8 +93,11 @@ def test_response_plot(tmp_path, capsys, monkeypatch):
     """`response --plot` writes the Bode plot of a back-EMF observer (and the ripple
     curve of any observer); it needs --out."""
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    # the orders of the plot's ripple curve (-25..25): the table's ripple is then the same
+    # compiled program as the curve's (one harmonic balance compiled instead of two)
+    orders = [str(h) for h in PLOT_ORDERS]
     assert main(["response", "--motor", "li_dtp", "--observer", "fa-leso", "--speed", "0.5",
-                 "--plot", "--out", str(tmp_path / "r")]) == 0
+                 "--orders", *orders, "--plot", "--out", str(tmp_path / "r")]) == 0
     assert (tmp_path / "r" / "response.png").stat().st_size > 0
     from pmsmjax.cli import ObserverChoice
     from pmsmjax.cli._response import response_curves
@@ -94,8 +106,9 @@ def test_response_plot(tmp_path, capsys, monkeypatch):
     obs = make_observer("fa-leso", drive)
     choice = ObserverChoice("fa-leso", obs, drive.three_phase_motor, {}, None)
     c = response_curves(choice, drive, 0.5, (0.0, 0.0), [1, -5, 7], 1e-4)
-    # the ripple curve holds the orders the table prints
+    # the ripple curve holds the orders the table prints (all of them)
     rep = json.loads((tmp_path / "r" / "response.json").read_text())
+    assert [it["order"] for it in rep["orders"]] == list(PLOT_ORDERS)
     for it in rep["orders"]:
         k = c["orders"].index(it["order"])
         assert c["ripple_deg"][k] == pytest.approx(it["angle_ripple_deg_per_pct"],
