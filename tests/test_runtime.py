@@ -27,13 +27,22 @@ def env(tmp_path):
     return e
 
 
-def test_configure_in_a_fresh_process(env, tmp_path):
-    code = ("import pmsmjax as pj, jax, os, json\n"
+def test_configure_in_a_fresh_process(env, tmp_path, monkeypatch):
+    """The settings `configure()` applies in a fresh process, and the cache opted out of
+    (`PMSMJAX_CACHE=0`): JAX's own counters of the persistent cache (as in `_COUNTING`) see the
+    process's one compiled program written to the cache with it on, and no use of the
+    cache with it off, nor a cache folder made."""
+    code = ("import pmsmjax as pj, jax, jax.monitoring, os, json, collections\n"
+            "n = collections.Counter()\n"
+            "jax.monitoring.register_event_listener(lambda e, **kw: n.update([e]))\n"
             "r = pj.runtime.configure()\n"
             "jax.numpy.ones(3).block_until_ready()\n"
             "print(json.dumps(dict(r, flags=os.environ['XLA_FLAGS'],"
             " cache=jax.config.jax_compilation_cache_dir,"
-            " async_dispatch=jax.config.read('jax_cpu_enable_async_dispatch'))))\n")
+            " async_dispatch=jax.config.read('jax_cpu_enable_async_dispatch'),"
+            " store=pj.runtime._stored._STORE_DIR and str(pj.runtime._stored._STORE_DIR),"
+            " hits=n['/jax/compilation_cache/cache_hits'],"
+            " misses=n['/jax/compilation_cache/cache_misses'])))\n")
     res = _run(["-c", code], env)
     assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
@@ -44,16 +53,26 @@ def test_configure_in_a_fresh_process(env, tmp_path):
     assert out["async_dispatch"] is True
     assert out["cache"] == str(tmp_path / "cache") == out["cache_dir"]
     assert out["backend_was_started"] is False
+    assert out["hits"] == 0 and out["misses"] >= 1  # compiled and written to the cache
+    assert out["store"].startswith(str(tmp_path / "cache"))  # stored programs there too
+    assert any(p.is_file() for p in (tmp_path / "cache").rglob("*"))
     env["PMSMJAX_CACHE"] = "0"
     env["PMSMJAX_FAST_LOOPS"] = "0"
+    env["PMSMJAX_CACHE_DIR"] = str(tmp_path / "off")
     res = _run(["-c", code.replace("os.environ['XLA_FLAGS']",
                                    "os.environ.get('XLA_FLAGS', '')")], env)
+    assert res.returncode == 0, res.stderr
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out["cache"] is None and out["cache_dir"] is None
+    assert out["hits"] == out["misses"] == 0  # the cache is not used
+    assert out["store"] is None  # nor the stored programs (stored_call is off)
+    assert not (tmp_path / "off").exists()
     assert "small_while_loop" not in out["flags"]
-    env["PMSMJAX_CACHE"] = "maybe"
-    res = _run(["-c", code], env)
-    assert res.returncode != 0 and "PMSMJAX_CACHE='maybe'" in res.stderr
+    # a bad value is an error naming it, raised first, before configure() changes
+    # anything (so in this process, which has long been configured)
+    monkeypatch.setenv("PMSMJAX_CACHE", "maybe")
+    with pytest.raises(ValueError, match="PMSMJAX_CACHE='maybe'"):
+        pj.runtime.configure()
 
 
 def test_configure_after_the_backend_started_warns(monkeypatch):
@@ -114,16 +133,18 @@ def test_cache_is_filled_reused_and_cleared(env, tmp_path):
     # every program written by the first process is read back, none compiled again
     assert misses2 == 0 and hits2 >= misses1, (hits1, misses1, hits2, misses2)
     assert _cache_files(tmp_path / "cache") == before  # nothing written or rewritten
-    info = _run(["-m", "pmsmjax", "cache"], env)
-    assert info.returncode == 0 and f"({n} files" in info.stdout
-    assert str(tmp_path / "cache") in info.stdout
-    cleared = _run(["-m", "pmsmjax", "cache", "--clear"], env)
-    assert cleared.returncode == 0 and f"removed {n} files" in cleared.stdout
+    # `pmsmjax cache`, then `pmsmjax cache --clear`: the command line's own entry point,
+    # both in one process (neither compiles anything; a process each only imports JAX
+    # twice)
+    both = _run(["-c", "import sys\nfrom pmsmjax.cli.__main__ import main\n"
+                       "sys.exit(main(['cache']) or main(['cache', '--clear']))"], env)
+    assert both.returncode == 0, both.stderr
+    info, cleared = both.stdout.split("removed ")
+    assert f"({n} files" in info and str(tmp_path / "cache") in info
+    assert cleared.startswith(f"{n} files")
     assert not (tmp_path / "cache").exists()
-    env["PMSMJAX_CACHE"] = "0"
-    off = _run(cmd, env)
-    assert off.returncode == 0 and _hits_misses(off) == (0, 0)  # the cache is not used
-    assert not (tmp_path / "cache").exists()
+    # opting out (PMSMJAX_CACHE=0, read by configure() as this command calls it):
+    # test_configure_in_a_fresh_process, with JAX's counters
 
 
 # ---------------------------------------------------------------------------------------
@@ -210,24 +231,36 @@ r = pj.simulate(d, pj.FOC.from_drive(d), make_observer("eso", d), sc, w_m0=10.0)
 eq = jax.device_get(equilibria(obs, d.motor, 0.5 * float(d.w_rated),
                                np.array([0.0, 0.3 * float(d.base.I_b)])))
 v = np.asarray(eq.valid)
-json.dump(dict(flags=os.environ.get("XLA_FLAGS", ""),
-               theta_err=np.asarray(r.theta_err).tolist(), w_hat=np.asarray(r.w_hat).tolist(),
-               theta=np.asarray(eq.theta)[v].tolist(), stable=np.asarray(eq.stable)[v].tolist(),
-               status=int(eq.status)), open(sys.argv[1], "w"))
+with open(sys.argv[1], "w") as f:
+    json.dump(dict(flags=os.environ.get("XLA_FLAGS", ""),
+                   theta_err=np.asarray(r.theta_err).tolist(),
+                   w_hat=np.asarray(r.w_hat).tolist(), theta=np.asarray(eq.theta)[v].tolist(),
+                   stable=np.asarray(eq.stable)[v].tolist(), status=int(eq.status)), f)
 """
 
 
-def test_quick_compiles_give_the_same_numbers(env, tmp_path):
+def test_quick_compiles_give_the_same_numbers(env, tmp_path, monkeypatch):
     """The test suite compiles at LLVM's lowest optimisation level with XLA's older
     kernel emitters (`PMSMJAX_QUICK_COMPILE=1`, conftest.py); a user's process does not.
     The same closed-loop run (an ESO, 50 ms at half speed with a load step) and the same
-    equilibrium analysis (a mismatched LESO) in a fresh process under each setting: the
-    same numbers up to round-off, so what the suite checks holds for the default build."""
+    equilibrium analysis (a mismatched LESO) under each setting: the default in a fresh
+    process, the quick one in this process, the suite's own (in a fresh process too
+    where the suite runs without it): the same numbers up to round-off, so what the suite
+    checks holds for the default build."""
     out = {}
+    quick_here = set(pj.runtime._settings.QUICK_COMPILE_FLAGS) <= set(
+        os.environ.get("XLA_FLAGS", "").split())
     for quick in ("0", "1"):
-        e = dict(env, PMSMJAX_QUICK_COMPILE=quick, PMSMJAX_CACHE="0")
-        res = _run(["-c", _BOTH_SETTINGS, str(tmp_path / f"{quick}.json")], e)
-        assert res.returncode == 0, res.stderr
+        path = str(tmp_path / f"{quick}.json")
+        if quick == "1" and quick_here:
+            # the script as run with `python -c` (the same programs this process has
+            # compiled, or reads from its cache, under the same flags)
+            monkeypatch.setattr(sys, "argv", ["-c", path])
+            exec(compile(_BOTH_SETTINGS, "<_BOTH_SETTINGS>", "exec"), {"__name__": "x"})
+        else:
+            e = dict(env, PMSMJAX_QUICK_COMPILE=quick, PMSMJAX_CACHE="0")
+            res = _run(["-c", _BOTH_SETTINGS, path], e)
+            assert res.returncode == 0, res.stderr
         out[quick] = json.loads((tmp_path / f"{quick}.json").read_text())
     assert "--xla_backend_optimization_level=0" in out["1"]["flags"].split()
     assert "--xla_cpu_use_fusion_emitters=false" in out["1"]["flags"].split()
