@@ -321,10 +321,14 @@ def test_replay_gradient_matches_finite_differences(name, param):
         est = pj.replay_estimates(o, u_ab=u_ab, i_ab=i_ab, T_s=T_s, theta0=0.3, w0=w)
         return jnp.sum(est.extras["e_ab_hat"] ** 2) * 1e-4 + jnp.sum(est.theta_hat)
 
+    # the differences from the values of the same program (`value_and_grad`: its primal
+    # is the replay itself), compiled as one (not the loss, the forward and the
+    # transposed replay apart)
+    vg = jax.jit(jax.value_and_grad(loss))
     g0 = float(getattr(obs, param))
-    grad = float(jax.grad(loss)(g0))
+    grad = float(vg(g0)[1])
     h = 1e-5 * g0
-    fd = (float(loss(g0 + h)) - float(loss(g0 - h))) / (2 * h)
+    fd = (float(vg(g0 + h)[0]) - float(vg(g0 - h)[0])) / (2 * h)
     assert np.isfinite(grad) and abs(fd) > 0
     assert grad == pytest.approx(fd, rel=1e-5)
 
@@ -351,16 +355,25 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
     z750 = make_observer("gi-leso", pj.preset("zhang750"))
     cases = [(base, 1e-4), (base.with_design(w0=4.0 * base.w0, K_r=16.0 * base.K_r), 1e-4),
              (base, 5e-4), (base, 2e-3), (fixed, 1e-4), (z750, 1.25e-4)]
+    # each piece compiled once per observer structure and layout (T_s traced: a Python
+    # float would be static under filter_jit, one program per period)
     trans = eqx.filter_jit(lambda o, w, T, y, i0, dl, c: o._transition_c(w, T, y, i0, dl, c))
     parts = eqx.filter_jit(lambda o, w, T: (o._entries(w, T), o._complex_system(w)[0],
-                                            o._complex_scale(w)))
+                                            o._complex_scale(w),
+                                            o._norm_bound(o._entries(w, T))))
+    matvec = jax.jit(G._gi_matvec)
+    batch = eqx.filter_jit(lambda o, T, ws, y, i0, dl, c: jax.vmap(
+        lambda w, y, i0, dl, c: o._transition_c(w, T, y, i0, dl, c))(ws, y, i0, dl, c))
     rng = np.random.default_rng(11)
     branches = set()
     for obs, T_s in cases:
         Wd = float(DTP.w_rated if obs is not z750 else pj.preset("zhang750").w_rated)
+        # its gains as arrays: one program for every design and machine (Python floats
+        # are static under filter_jit)
+        oa = pj.astype(obs, jnp.float64)
         rows = []
         for w in np.array([-1.3, -1e-3, 0.0, 0.6, 1.0, 2.0]) * Wd + (obs is fixed) * obs.w_r:
-            k, Ao, d = parts(obs, jnp.asarray(w), jnp.asarray(T_s))
+            k, Ao, d, rho = parts(oa, jnp.asarray(w), jnp.asarray(T_s))
             X = np.asarray(Ao) * T_s - 1j * w * T_s * np.eye(4)
             # no block closed form: the characteristic polynomial is (29)'s denominator
             wr2 = max((abs(w) if obs.resonance == "estimated" else obs.w_r) ** 2,
@@ -372,11 +385,11 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
             # the derivation's pieces: the sparse product, the norm bound
             t = rng.normal(size=8)
             Xt = X @ (t[0::2] + 1j * t[1::2])
-            np.testing.assert_allclose(np.asarray(G._gi_matvec(k, jnp.asarray(t))),
+            np.testing.assert_allclose(np.asarray(matvec(k, jnp.asarray(t))),
                                        np.stack([Xt.real, Xt.imag], -1).ravel(), rtol=1e-13,
                                        atol=1e-15 * np.abs(X).max() * np.abs(t).max())
             d = np.asarray(d)
-            rho = float(obs._norm_bound(k))
+            rho = float(rho)
             assert rho == pytest.approx(np.max(np.sum(np.abs(X) * d / d[:, None], 1)),
                                         rel=1e-13)
             branches.add(int(np.searchsorted(F.ACTION_NORMS, rho)))
@@ -384,14 +397,14 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
             R = _reference_propagator(obs, w, T_s)
             v = rng.normal(size=14) * np.repeat([1.0, obs.w0, 1e-3, 1e-1, 1.0, 1e3, 1e2], 2)
             z = v[0::2] + 1j * v[1::2]
-            out = np.asarray(trans(obs, jnp.asarray(w), T_s, jnp.asarray(z[:4]), z[4], z[5],
-                                   z[6]))
+            out = np.asarray(trans(oa, jnp.asarray(w), jnp.asarray(T_s), jnp.asarray(z[:4]),
+                                   z[4], z[5], z[6]))
             err = np.abs(out - R @ v) / (np.abs(R) @ np.abs(v))
             assert np.max(err) < 1e-12, (T_s, w, rho, np.max(err))
             # the step's real layout gives the same numbers
             np.testing.assert_array_equal(
-                np.asarray(trans(obs, jnp.asarray(w), T_s, jnp.asarray(v[:8]), z[4], z[5],
-                                 z[6])), out)
+                np.asarray(trans(oa, jnp.asarray(w), jnp.asarray(T_s), jnp.asarray(v[:8]),
+                                 z[4], z[5], z[6])), out)
             # y + u + phi_2(X) v = e^X y + phi_1(X) g0 + phi_2(X) g1 (expm of [[X, I, 0],
             # [0, 0, I], [0, 0, 0]] has e^X, phi_1, phi_2 in its first block row), in the
             # units `_complex_scale` (an exact similarity; scipy does not balance)
@@ -411,8 +424,8 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
         # a batch under vmap: one branch serves every member
         ws, vs = np.array([r[0] for r in rows]), np.stack([r[1] for r in rows])
         zs = vs[:, 0::2] + 1j * vs[:, 1::2]
-        outs = np.asarray(jax.vmap(lambda w, y, i0, dl, c: obs._transition_c(
-            w, T_s, y, i0, dl, c))(ws, zs[:, :4], zs[:, 4], zs[:, 5], zs[:, 6]))
+        outs = np.asarray(batch(oa, jnp.asarray(T_s), ws, zs[:, :4], zs[:, 4], zs[:, 5],
+                                zs[:, 6]))
         for (w, v, R), o in zip(rows, outs):
             assert np.max(np.abs(o - R @ v) / (np.abs(R) @ np.abs(v))) < 1e-12, (T_s, w)
     assert branches == {0, 1, 2}
@@ -421,10 +434,11 @@ def test_gi_leso_transition_structure_and_branches_against_scipy():
     scale = np.array([1.0, base.w0, 1e-3, 1e-1, 1.0, 1e3, 1e2])
     wb = np.linspace(-1.5, 1.5, 300) * W
     zb = (rng.normal(size=(300, 7)) + 1j * rng.normal(size=(300, 7))) * scale
-    one = jax.jit(lambda w, z: base._transition_c(w, 1e-4, z[:4], z[4], z[5], z[6]))
-    ob = np.asarray(jax.jit(jax.vmap(one))(wb, zb))
+    T4, base = jnp.asarray(1e-4), pj.astype(base, jnp.float64)
+    ob = np.asarray(batch(base, T4, wb, zb[:, :4], zb[:, 4], zb[:, 5], zb[:, 6]))
     for j in (0, 127, 128, 299):
-        np.testing.assert_allclose(ob[j], np.asarray(one(wb[j], zb[j])), rtol=1e-14,
+        one = trans(base, jnp.asarray(wb[j]), T4, zb[j, :4], zb[j, 4], zb[j, 5], zb[j, 6])
+        np.testing.assert_allclose(ob[j], np.asarray(one), rtol=1e-14,
                                    atol=1e-15 * np.abs(ob[j]).max())
     # float32: the same transition to its round-off (degrees 6 and 14)
     for obs, T_s in cases[:3]:
