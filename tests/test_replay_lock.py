@@ -22,12 +22,16 @@ DRIVE = pj.preset("zhang750")
 W = float(DRIVE.w_rated)
 T_S = 1e-4
 THETA0 = 2.0  # rad: the rotor's angle at the first sample
-# (scenario, rotor speed at the first sample, constant-speed window (s) and its speed)
+# (scenario, rotor speed at the first sample, constant-speed window (s) and its speed).
+# All three as long as the reversal (0.8 s) and with speed profiles of four breakpoints:
+# one compiled simulation for the three recordings and one compiled replay per observer
+# for all three (instead of three); the constant-speed windows are those of the shorter
+# runs they replaced (the standstill run's 0.6 s, the turning run's 0.4 s)
 RECORDINGS = {
-    "standstill-then-ramp": (pj.Scenario(t_end=0.6, w_m_ref=pj.Profile(
+    "standstill-then-ramp": (pj.Scenario(t_end=0.8, w_m_ref=pj.Profile(
         [0.0, 0.1, 0.4, 0.6], [0.0, 0.0, 0.5 * W, 0.5 * W])), 0.0, (0.5, 0.6), 0.5 * W),
-    "turning": (pj.Scenario(t_end=0.4, w_m_ref=pj.Profile.constant(0.3 * W)), 0.3 * W,
-                (0.3, 0.4), 0.3 * W),
+    "turning": (pj.Scenario(t_end=0.8, w_m_ref=pj.Profile(
+        [0.0, 0.2, 0.5, 0.8], [0.3 * W] * 4)), 0.3 * W, (0.3, 0.4), 0.3 * W),
     "reversal": (pj.Scenario(t_end=0.8, w_m_ref=pj.Profile(
         [0.0, 0.2, 0.5, 0.8], [0.5 * W, 0.5 * W, -0.5 * W, -0.5 * W])), 0.5 * W,
         (0.7, 0.8), -0.5 * W),
