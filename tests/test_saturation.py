@@ -130,13 +130,14 @@ def test_single_runs_and_batches_evaluate_the_same_map():
     P = np.polynomial.polynomial
     cells = np.asarray(fm._cells)
     ref = []
+    g_d, g_q = np.asarray(fm.i_d), np.asarray(fm.i_q)  # the grid, in NumPy
     for i_d, i_q in np.asarray(x):
-        d = min(max(i_d, float(fm.i_d[0])), float(fm.i_d[-1]))
-        q = min(max(i_q, float(fm.i_q[0])), float(fm.i_q[-1]))
-        hd, hq = float(fm.i_d[1] - fm.i_d[0]), float(fm.i_q[1] - fm.i_q[0])
-        kd = min(int((d - float(fm.i_d[0])) // hd), fm.i_d.shape[0] - 2)
-        kq = min(int((q - float(fm.i_q[0])) // hq), fm.i_q.shape[0] - 2)
-        t, u = (d - float(fm.i_d[kd])) / hd, (q - float(fm.i_q[kq])) / hq
+        d = min(max(i_d, float(g_d[0])), float(g_d[-1]))
+        q = min(max(i_q, float(g_q[0])), float(g_q[-1]))
+        hd, hq = float(g_d[1] - g_d[0]), float(g_q[1] - g_q[0])
+        kd = min(int((d - float(g_d[0])) // hd), g_d.shape[0] - 2)
+        kq = min(int((q - float(g_q[0])) // hq), g_q.shape[0] - 2)
+        t, u = (d - float(g_d[kd])) / hd, (q - float(g_q[kq])) / hq
         c = cells[kd, kq]
         f_d, f_q = (P.polyval2d(t, u, c[x]) for x in (0, 1))
         l_dd, l_qd = (P.polyval2d(t, u, P.polyder(c[x], axis=0)) / hd for x in (0, 1))
@@ -144,9 +145,13 @@ def test_single_runs_and_batches_evaluate_the_same_map():
         ref.append([f_d + l_dd * (i_d - d) + l_dq * (i_q - q),
                     f_q + l_qd * (i_d - d) + l_qq * (i_q - q), l_dd, l_dq, l_qd, l_qq])
     ref = np.asarray(ref)
-    runs = {"unbatched": jnp.stack([ev(i) for i in x]), "batch of 5": jax.vmap(ev)(x),
-            "batch of 1": jnp.concatenate([jax.vmap(ev)(i[None]) for i in x]),
-            "nested": jax.vmap(jax.vmap(ev))(x[:, None]).reshape(5, 6)}
+    # each layout compiled once (jit picks the layout as the eager call does: by the
+    # batch of the traced call), instead of an eager program per operation
+    xn = np.asarray(x)
+    ev1, evb = jax.jit(ev), jax.jit(jax.vmap(ev))
+    runs = {"unbatched": np.stack([ev1(i) for i in xn]), "batch of 5": evb(xn),
+            "batch of 1": np.concatenate([evb(i[None]) for i in xn]),
+            "nested": np.asarray(jax.jit(jax.vmap(jax.vmap(ev)))(xn[:, None])).reshape(5, 6)}
     for name, out in runs.items():
         np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-15, err_msg=name)
 
@@ -157,12 +162,14 @@ def test_single_runs_and_batches_evaluate_the_same_map():
     assert sums(jax.vmap(ev), x) == 0 and sums(jax.vmap(jax.vmap(ev)), x[:, None]) == 0
     psi = lambda i: jnp.sum(ev(i)[:2] ** 2)  # noqa: E731
     h = 1e-6
-    for i in x[:3]:
-        fd = np.array([(psi(i + h * e) - psi(i - h * e)) / (2 * h) for e in jnp.eye(2)])
-        np.testing.assert_allclose(jax.grad(psi)(i), fd, rtol=1e-6)
-        np.testing.assert_allclose(jax.jacfwd(psi)(i), fd, rtol=1e-6)
-    np.testing.assert_allclose(jax.vmap(jax.grad(psi))(x[:3]),
-                               np.stack([jax.grad(psi)(i) for i in x[:3]]), rtol=1e-12)
+    psi_j, grad_j, jacfwd_j = jax.jit(psi), jax.jit(jax.grad(psi)), jax.jit(jax.jacfwd(psi))
+    for i in xn[:3]:
+        fd = np.array([(float(psi_j(i + h * e)) - float(psi_j(i - h * e))) / (2 * h)
+                       for e in np.eye(2)])
+        np.testing.assert_allclose(grad_j(i), fd, rtol=1e-6)
+        np.testing.assert_allclose(jacfwd_j(i), fd, rtol=1e-6)
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.grad(psi)))(xn[:3]),
+                               np.stack([grad_j(i) for i in xn[:3]]), rtol=1e-12)
 
 
 def test_constant_map_reproduces_the_constant_plant():
