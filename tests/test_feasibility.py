@@ -71,10 +71,15 @@ def test_table_I_is_feasible_everywhere_and_fig9_design():
     assert "feasible 97.6%, infeasible 0.0%, degenerate 2.4%" in fm.summary().splitlines()[0]
 
 
+# the error dynamics (11) with the operating point and gains as the solve's arguments
+_TERM = dfx.ODETerm(lambda t, x, args: analysis.eso_rhs(x, *args))
+
+
 def _simulate(motor, w0, i0, z1, ratio, x0, t1):
     g = eso_gains(psi_a(motor, i0), w0, z1, ratio * abs(w0), 1.0, W2)
-    term = dfx.ODETerm(lambda t, x, args: analysis.eso_rhs(x, w0, i0, g, motor))
-    sol = dfx.diffeqsolve(term, dfx.Tsit5(), 0.0, t1, None, x0,
+    # the speed, current, gains and end time as arrays: every call one compiled solve
+    sol = dfx.diffeqsolve(_TERM, dfx.Tsit5(), 0.0, jnp.asarray(t1), None, x0,
+                          args=(jnp.asarray(w0), jnp.asarray(i0), g, motor),
                           stepsize_controller=dfx.PIDController(rtol=1e-9, atol=1e-11),
                           max_steps=200_000)
     return np.asarray(sol.ys[-1])
@@ -95,7 +100,8 @@ def test_infeasible_design_keeps_its_static_error_and_feasible_design_converges(
     k = int(np.nanargmin(np.abs(np.asarray(eq.theta) - th_s)))
     assert bool(eq.stable[k])
     x_star = np.asarray(eq.x[k])
-    A = analysis.eso_linearization(w0, i0, g, SALIENT, x=eq.x[k])
+    # compiled (op by op, each of its some 50 small operations compiles on its own)
+    A = jax.jit(analysis.eso_linearization)(w0, i0, g, SALIENT, x=eq.x[k])
     decay = -float(analysis.max_real_eig(A))
     assert decay > 0
     x_end = _simulate(SALIENT, w0, i0, z1[iz], ratio[ir],
