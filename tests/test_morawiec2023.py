@@ -2,6 +2,7 @@
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -53,14 +54,18 @@ def test_field_weakening_against_brute_force_and_mtpa_below_the_voltage_limit():
     u = DRIVE.inverter.u_lim
     tau = jnp.linspace(-1.0, 1.0, 9) * DRIVE.tau_rated
     t_ = np.asarray(tau)
+    # the references at a speed: one compiled program for every speed below (instead of
+    # an eager program per operation and speed)
+    refs_at = jax.jit(lambda w: refs(tau, M, k, w=w, u_max=u))
     # below base speed: MTPA unchanged, and MTPA is the minimum current for the torque
     # (SciPy's bounded search to 1e-12 A; measured 1e-7 A, the search's flat minimum)
-    low = refs(tau, M, k, w=0.3 * DRIVE.w_rated, u_max=u)
-    np.testing.assert_allclose(np.asarray(low), np.asarray(mtpa(tau, M, k)), atol=1e-12)
+    low = refs_at(0.3 * DRIVE.w_rated)
+    np.testing.assert_allclose(np.asarray(low), np.asarray(jax.jit(mtpa)(tau, M, k)),
+                               atol=1e-12)
     np.testing.assert_allclose(np.asarray(low), [_mtpa_numpy(t) for t in t_], atol=1e-6)
     for w in (1.2, 1.5):
         we = w * DRIVE.w_rated
-        i = np.asarray(refs(tau, M, k, w=we, u_max=u))
+        i = np.asarray(refs_at(we))
         psi = np.hypot(M.L_d * i[:, 0] + M.psi_f, M.L_q * i[:, 1])
         assert np.all(we * psi <= 0.9 * u * (1 + 1e-9))
         assert np.all(np.hypot(i[:, 0], i[:, 1]) <= DRIVE.i_max * (1 + 1e-9))
@@ -76,13 +81,13 @@ def test_field_weakening_against_brute_force_and_mtpa_below_the_voltage_limit():
         # resolution of the largest torque: 0.618^50 of 10 A, 1e-9 relative at the kink)
         assert np.all(np.diff(np.abs(tq[t_ >= 0])) >= -1e-8 * DRIVE.tau_rated)
     # 1.5 p.u.: 0.25 p.u. is reached exactly; more is limited to the largest available
-    i = np.asarray(refs(tau, M, k, w=1.5 * DRIVE.w_rated, u_max=u))
+    i = np.asarray(refs_at(1.5 * DRIVE.w_rated))
     tq = k * i[:, 1] * (M.psi_f + (M.L_d - M.L_q) * i[:, 0])
     small = np.abs(t_) <= 0.25 * DRIVE.tau_rated
     np.testing.assert_allclose(tq[small], t_[small], rtol=1e-9, atol=1e-9)
     # 2 p.u. is beyond this preset's reach (assumed u_dc 560 V, i_max 10.6 A): even
     # i_d = -i_max leaves |w psi| above the limit, so the references go to the floor
-    i = np.asarray(refs(tau, M, k, w=2.0 * DRIVE.w_rated, u_max=u))
+    i = np.asarray(refs_at(2.0 * DRIVE.w_rated))
     np.testing.assert_allclose(i[:, 0], -DRIVE.i_max)
     np.testing.assert_allclose(i[:, 1], 0.0, atol=1e-12)
     with pytest.raises(ValueError, match="mtpa_fw.*speed"):
@@ -91,14 +96,13 @@ def test_field_weakening_against_brute_force_and_mtpa_below_the_voltage_limit():
         pj.CurrentRefs("fw", 0.0, 1.0)
     # differentiable in the speed: the derivative is the central difference's (step
     # 1e-3 rad/s: truncation ~1e-9 relative) and faster means more negative i_d
-    import jax
-
+    @jax.jit
     def i_d(w):
         return field_weakening(jnp.array([0.0, 5.0]), 10.0, M, k, w, 0.9 * u,
                                DRIVE.i_max)[0]
 
     w0, h = 1.3 * DRIVE.w_rated, 1e-3
-    g = float(jax.grad(i_d)(w0))
+    g = float(jax.jit(jax.grad(i_d))(w0))
     assert g < 0 and g == pytest.approx(float(i_d(w0 + h) - i_d(w0 - h)) / (2 * h),
                                         rel=1e-6)
 
