@@ -53,19 +53,24 @@ OPERATING_POINTS = [
 ]
 
 
+@jax.jit  # one program for every point (op by op, some 100 small ones)
+def _error_dynamics_at_origin(w0, i0, a, eta):
+    """(11) and its jacfwd Jacobian at the origin, and (15), with zhang2022's (38)."""
+    g = ESODesign.zhang38(WR, 2 * math.pi * 50)(M, w0, i0)
+    x0 = jnp.zeros(4)
+    f = lambda x: error_dynamics(x, w0, i0, g, M, a=a, eta=eta)  # noqa: E731
+    return f(x0), jax.jacfwd(f)(x0), error_matrix(w0, psi_a(M, i0), g)
+
+
 @pytest.mark.parametrize("w_pu,i0", OPERATING_POINTS)
 @pytest.mark.parametrize("a,eta_frac", [(1.0, 1.0), (0.5, 0.05), (0.25, 0.01)])
 def test_error_matrix_is_jacobian_of_error_dynamics(w_pu, i0, a, eta_frac):
     w0 = w_pu * WR
     i0 = jnp.asarray(i0)
-    design = ESODesign.zhang38(WR, 2 * math.pi * 50)
-    g = design(M, w0, i0)
     eta = eta_frac * M.psi_f
-    x0 = jnp.zeros(4)
+    f0, jac, A = _error_dynamics_at_origin(w0, i0, a, eta)
     # the origin is an equilibrium of (11) with exact parameters
-    assert np.max(np.abs(error_dynamics(x0, w0, i0, g, M, a=a, eta=eta))) < 1e-12
-    jac = jax.jacfwd(lambda x: error_dynamics(x, w0, i0, g, M, a=a, eta=eta))(x0)
-    A = error_matrix(w0, psi_a(M, i0), g)
+    assert np.max(np.abs(f0)) < 1e-12
     np.testing.assert_allclose(jac, A, rtol=1e-9, atol=1e-9 * float(jnp.max(jnp.abs(A))))
 
 
@@ -98,7 +103,7 @@ def test_poles_vmapped_over_speed():
     def eig(w):
         return jnp.linalg.eigvals(error_matrix(w, psi_a(M, i0), design(M, w, i0)))
 
-    ev = jax.vmap(eig)(w0)
+    ev = jax.jit(jax.vmap(eig))(w0)  # compiled (op by op, each small operation on its own)
     for w, e in zip(np.asarray(w0), np.asarray(ev)):
         want = np.r_[_char_roots(0.9, 0.7 * abs(w)), _char_roots(1.0, 2 * math.pi * 80)]
         np.testing.assert_allclose(_sorted(e), _sorted(want), rtol=1e-6, atol=1e-6)
@@ -405,6 +410,14 @@ def test_no_spurious_equilibrium_at_rated_speed(kind):
         assert np.max(np.abs(err[-1000:])) < 1e-3, err[-1]
 
 
+def _continuous_rhs(t, x, args):
+    """The continuous error dynamics (11) of `obs` at speed `w0` and rotor-frame current
+    `i_dq`, the gains scheduled at the estimated speed."""
+    obs, w0, i_dq, a, eta = args
+    i0 = pj.rotate(i_dq, x[2])  # the rotor-frame current seen in the estimator frame
+    return error_dynamics(x, w0, i0, obs.design(M, w0 - x[3], i0), M, a=a, eta=eta)
+
+
 @pytest.mark.parametrize("kind,w_pu,e0,converges", [
     ("eso", 1.0, 30.0, True), ("leso", 0.3, -30.0, True), ("leso", 0.3, 30.0, False)])
 def test_discrete_matches_continuous_large_signal(kind, w_pu, e0, converges):
@@ -428,13 +441,11 @@ def test_discrete_matches_continuous_large_signal(kind, w_pu, e0, converges):
     psi_true = pj.rotate(jnp.array([M.L_d * i_dq[0] + M.psi_f, M.L_q * i_dq[1]]), te0)
     x0 = jnp.concatenate([psi_true - psi_hat0, jnp.array([te0, 0.0])])
     a, eta = (obs.a, obs.eta) if kind == "eso" else (1.0, 1.0)
-
-    def f(t, x, args):
-        i0 = pj.rotate(i_dq, x[2])  # the rotor-frame current seen in the estimator frame
-        return error_dynamics(x, w0, i0, obs.design(M, w0 - x[3], i0), M, a=a, eta=eta)
-
     ts = jnp.asarray(t[::500])
-    sol = dfx.diffeqsolve(dfx.ODETerm(f), dfx.Tsit5(), 0.0, float(t[-1]), 1e-6, x0,
+    # the observer, speed and current as the solve's arguments: the two LESO runs are one
+    # compiled solve
+    sol = dfx.diffeqsolve(dfx.ODETerm(_continuous_rhs), dfx.Tsit5(), 0.0, float(t[-1]), 1e-6,
+                          x0, args=(obs, jnp.asarray(w0), i_dq, a, eta),
                           saveat=dfx.SaveAt(ts=ts),
                           stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-10),
                           max_steps=100000)
