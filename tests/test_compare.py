@@ -341,14 +341,18 @@ def test_config_errors():
             CompareConfig(speed_from_angle=bad)
 
 
-def test_speed_from_angle_runs_and_tunes_with_the_tracked_speed():
+def test_speed_from_angle_runs_and_tunes_with_the_tracked_speed(job):
     """`speed_from_angle`: absent from the configuration's JSON (and fingerprint) unless
     given; the tuner's problem takes it; each run's metrics are those of a direct
     `simulate` whose controller takes the speed of `pmsmjax.SpeedFromAngle` (the runs
-    differ from those on the observer's own speed); the report's header says so."""
+    differ from those on the observer's own speed: the job's runs of the paper design,
+    which test_metrics_equal_direct_simulate checks against direct runs); the report's
+    header says so."""
     from tuning.compare.points import run_point
 
-    plain, tracked = tiny(), tiny(speed_from_angle=30)
+    plain, out = job[0], job[1]
+    tracked = tiny(speed_from_angle=30)
+    assert plain == tiny()
     assert "speed_from_angle" not in plain.to_dict()
     assert tracked.to_dict()["speed_from_angle"] == 30.0
     assert plain.fingerprint() != tracked.fingerprint()
@@ -357,14 +361,14 @@ def test_speed_from_angle_runs_and_tunes_with_the_tracked_speed():
     assert CompareConfig.from_dict(tracked.to_dict()) == tracked
     grid = tracked.grid(index=True)
     pts = {k: jnp.asarray(v) for k, v in grid.items()}
-    run = lambda c: jax.jit(jax.vmap(lambda p: run_point(None, c, OBSERVER, p)))(pts)  # noqa
-    got, own = run(tracked), run(plain)
+    got = jax.jit(jax.vmap(lambda p: run_point(None, tracked, OBSERVER, p)))(pts)
+    own = read_npz(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz")
     _, traj = _direct(tracked)
     want = jax.jit(lambda tr: run_metrics(tr, tracked))(traj)
     for k in ("static_deg", "rms_deg", "noise_rad_s"):
         np.testing.assert_allclose(got[k], want[k], rtol=1e-9, atol=1e-12, err_msg=k)
-    assert np.max(np.abs(np.asarray(got["noise_rad_s"]) - np.asarray(own["noise_rad_s"]))
-                  ) > 1e-3
+    assert np.max(np.abs(np.asarray(got["noise_rad_s"])
+                         - np.asarray(own["noise_rad_s"]).reshape(-1))) > 1e-3
     md = markdown(dict(motor="zhang750", config=tracked.to_dict(), skipped={}, observers={},
                        grid=dict(n_runs=8, speeds_pu=[0.5], loads_pu=[0.0, 1.0],
                                  cases=[{}, {}])))
