@@ -30,7 +30,10 @@ def setup():
     obs = pj.observers.make_observer("eso", drive)
     s, l = (np.array(v) for v in zip(*HOLDS, LOST))
     w, tau = s * float(drive.w_rated), l * float(drive.tau_rated)
-    pts = jax.vmap(lambda a, b: saturated_operating_point(obs, drive, a, b))(w, tau)
+    # point by point, as `pmsmjax equilibria --load` calls it: one compiled program for
+    # these and the command's (test_cli_equilibria_on_the_map), not a batched one as well
+    pts = jax.tree_util.tree_map(lambda *v: np.stack(v), *jax.device_get(
+        [saturated_operating_point(obs, drive, a, b) for a, b in zip(w, tau)]))
     return drive, obs, w, tau, pts
 
 
@@ -75,6 +78,7 @@ def test_equilibrium_on_the_map(setup):
     a, eta = obs.feedback_parameters()
     mh = obs.motor
 
+    @jax.jit  # one program (op by op, each small operation would compile on its own)
     def rhs(x, w0, i0):
         gains = obs.linear_gains(w0, i0)
         psi = rotate(mag.flux_dq(rotate(i0, -x[2])), x[2])
