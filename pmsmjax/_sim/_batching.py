@@ -30,6 +30,11 @@ dtype, which `filter_jit` traces, so a new value runs the compiled program again
 Python zero stays as it is: the code reads it as "absent" (no dead-time model, no
 quantisation, no feed-through term) and compiles a smaller program for it.
 
+A `Drive`'s labels (`name`, `notes`, `T_s`: static strings and the commands' default
+period) are part of a program's key but not of its computation: `without_labels(tree)`
+resets them, so that drives which differ only in their labels (presets of one
+structure, a motor file beside the preset it came from) run one compiled program.
+
 `by_batch(single, many, plain)` is a function with one layout for a single run and
 another for a batch, where XLA's CPU code for the two differs: `vmap` alone cannot
 choose, since it sees no batch size. Its batching rule (`custom_vmap`) runs `single` on
@@ -66,6 +71,30 @@ def batched_like(carry, *deps):
                               jnp.broadcast_to(probe.astype(x.dtype), x.shape), x)
 
     return jax.tree_util.tree_map(one, carry)
+
+
+def without_labels(tree):
+    """`tree` with every `Drive` in it stripped of its labels (`name`, `notes`, `T_s`
+    at their defaults; module docstring): for the arguments of a jitted function that
+    reads none of them."""
+    import dataclasses
+
+    from .._plant._params import Drive
+
+    defaults = {f.name: f.default for f in dataclasses.fields(Drive)
+                if f.name in ("name", "notes", "T_s")}
+
+    def one(x):
+        if not isinstance(x, Drive) or all(getattr(x, k) == v for k, v in defaults.items()):
+            return x
+        # field by field, not through `Drive(...)`: the values were checked when `x` was
+        # made, and may be traced here
+        new = object.__new__(Drive)
+        for f in dataclasses.fields(Drive):
+            object.__setattr__(new, f.name, defaults.get(f.name, getattr(x, f.name)))
+        return new
+
+    return jax.tree_util.tree_map(one, tree, is_leaf=lambda x: isinstance(x, Drive))
 
 
 def values_as_arrays(tree, dtype):

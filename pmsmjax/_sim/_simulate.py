@@ -27,7 +27,7 @@ from .._plant._params import Drive, PMSMParams, scale_motor
 from .._plant._recheck import recheck
 from .._validate import NonFiniteInputError, check_positive, is_concrete
 from ..observers import AbstractObserver, Measurement
-from ._batching import batched_like, values_as_arrays
+from ._batching import batched_like, values_as_arrays, without_labels
 from ._dtypes import cast_floats, run_dtype
 from ._integrate import RK4, check_drive_step, integrate
 from ._scenario import Scenario
@@ -201,6 +201,7 @@ def simulate(
     dtype = run_dtype(drive, controller)
     for k in ("drive", "controller", "observer"):
         arguments[k] = values_as_arrays(arguments[k], dtype)
+    arguments["drive"] = without_labels(arguments["drive"])
     return _simulate(arguments)
 
 

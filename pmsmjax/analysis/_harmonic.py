@@ -88,7 +88,7 @@ import jax.numpy as jnp
 
 from .._frames import rotate
 from .._plant._params import Drive
-from .._sim._batching import values_as_arrays
+from .._sim._batching import values_as_arrays, without_labels
 from ..observers import AbstractObserver, Measurement, OperatingPoint, PlantPoint
 from ._args import check_observer
 from ._discrete import _true_flux_ab
@@ -287,7 +287,7 @@ def harmonic_ripple(observer: AbstractObserver, drive: Drive, op: OperatingPoint
     # the observer's and drive's Python floats as traced values: another design or
     # machine runs the compiled program again (pmsmjax._sim._batching.values_as_arrays)
     dtype = jnp.result_type(op.w_m, op.i_dq, float)
-    observer, drive = values_as_arrays((observer, drive), dtype)
+    observer, drive = values_as_arrays((observer, without_labels(drive)), dtype)
     return _harmonic_ripple(observer, drive, op, h, None if T_s is None else float(T_s))
 
 
