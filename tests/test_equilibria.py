@@ -1,6 +1,7 @@
 """Equilibria of the zhang2022 ESO error dynamics: quartic route (34)-(36) vs the general
 route, residuals, stability by Routh-Hurwitz vs eigenvalues."""
 
+import functools
 import math
 
 import equinox as eqx
@@ -49,21 +50,25 @@ def _both(motor, w0, i0, z1, ratio, frame):
     return jax.vmap(one)(w0, i0, z1, ratio)
 
 
+@jax.jit  # one program for both machines (their parameters are its inputs)
+def _rhs_at_roots(motor, x, w0, i0, z1, ratio):
+    return jax.vmap(jax.vmap(
+        lambda x, w0, i0, z1, ratio: analysis.eso_rhs(
+            x, w0, i0, _gains(motor, w0, i0, z1, ratio), motor),
+        (0, None, None, None, None)), (0, 0, 0, 0, 0))(x, w0, i0, z1, ratio)
+
+
 def _fd_max_real_eigenvalue(motor, w0, i0, z1, ratio, x):
     """Largest real part of the eigenvalues of the central-difference Jacobian of
     `eso_rhs` at each equilibrium `x` (n, 4 roots, 4), NaN where x is NaN."""
-    rhs = jax.jit(jax.vmap(jax.vmap(
-        lambda x, w0, i0, z1, ratio: analysis.eso_rhs(
-            x, w0, i0, _gains(motor, w0, i0, z1, ratio), motor),
-        (0, None, None, None, None)), (0, 0, 0, 0, 0)))
     x = np.nan_to_num(x)
     step = np.array([1e-7, 1e-7, 1e-7, 1e-3])  # V s, V s, rad, rad/s
     cols = []
     for k in range(4):
         e = np.zeros(4)
         e[k] = step[k]
-        fp = np.asarray(rhs(x + e, w0, i0, z1, ratio))
-        fm = np.asarray(rhs(x - e, w0, i0, z1, ratio))
+        fp = np.asarray(_rhs_at_roots(_arr(motor), x + e, w0, i0, z1, ratio))
+        fm = np.asarray(_rhs_at_roots(_arr(motor), x - e, w0, i0, z1, ratio))
         cols.append((fp - fm) / (2 * step[k]))
     J = np.stack(cols, -1)
     return np.linalg.eigvals(J).real.max(-1)
@@ -93,22 +98,35 @@ def test_quartic_and_general_route_agree(motor):
         assert np.any(np.asarray(q.nonprincipal & q.stable))
 
 
+@jax.jit
+def _printed_quartic(w0, i0, z1, ratio, theta):
+    """(35) as printed on `SALIENT` for each design: p, (34)'s left side at the angles
+    `theta` (n, k), and the quartic in t = tan(theta / 2) (36)."""
+    def one(w0, i0, z1, ratio, th):
+        p = analysis.quartic_coefficients(w0, i0, _gains(SALIENT, w0, i0, z1, ratio),
+                                          SALIENT)
+        return p, analysis.trig_poly(p, th), analysis.quartic_t_coefficients(p)
+    return jax.vmap(one)(w0, i0, z1, ratio, theta)
+
+
 def test_printed_coefficients_vanish_at_the_general_roots():
     """(35) as printed: the left side of (34) is zero at every equilibrium found by the
     general route (so the printed p's are right up to a common factor)."""
-    w0, i0, z1, ratio = _random_designs(50, seed=2)
-    sal = _arr(SALIENT)
-    run = jax.jit(lambda w0, i0, g: analysis.eso_equilibria(w0, i0, g, sal, n_grid=128))
-    for k in range(50):
-        g = _gains(SALIENT, w0[k], i0[k], z1[k], ratio[k])
-        eq = run(w0[k], i0[k], g)
-        p = analysis.quartic_coefficients(jnp.asarray(w0[k]), jnp.asarray(i0[k]), g, SALIENT)
-        th = np.asarray(eq.theta)[np.asarray(eq.valid)]
-        val = np.asarray(analysis.trig_poly(p, th))
-        assert np.all(np.abs(val) < 1e-11 * np.max(np.abs(np.asarray(p))))
+    # 200 designs: the shapes of test_quartic_and_general_route_agree, whose program
+    # gives the general route's equilibria
+    w0, i0, z1, ratio = _random_designs(200, seed=2)
+    eq = _both(_arr(SALIENT), w0, i0, z1, ratio, "observer")[1]
+    assert np.all(np.asarray(eq.status) == 0)
+    valid = np.asarray(eq.valid)
+    P, V, C = map(np.asarray, _printed_quartic(w0, i0, z1, ratio,
+                                               np.nan_to_num(np.asarray(eq.theta))))
+    for k in range(len(w0)):
+        p, th = P[k], np.asarray(eq.theta)[k][valid[k]]
+        val = V[k][valid[k]]
+        assert np.all(np.abs(val) < 1e-11 * np.max(np.abs(p)))
         # p5 = -p1 - p3, so t = 0 (theta = 0) is a root
-        assert abs(float(p[4] + p[0] + p[2])) < 1e-14 * float(jnp.max(jnp.abs(p)))
-        c = np.asarray(analysis.quartic_t_coefficients(p))
+        assert abs(p[4] + p[0] + p[2]) < 1e-14 * np.max(np.abs(p))
+        c = C[k]
         t = np.tan(th[np.abs(th) > 1e-9] / 2)
         assert np.all(np.abs(np.polyval(c, t)) < 1e-9 * np.max(np.abs(c)) * (1 + t ** 4))
 
@@ -179,10 +197,16 @@ def test_close_pair_detected_on_a_coarse_grid():
     n = np.asarray(analysis.classify_designs(SALIENT, w0, i0, z1s[:, None], ratios).n_nonzero)
     iz, ir = np.argwhere((n[:, :-1] == 1) & (n[:, 1:] == 3))[0]
     z1, lo, hi = z1s[iz], ratios[ir], ratios[ir + 1]
-    n_of = lambda r: int(analysis.classify_designs(SALIENT, w0, i0, z1, r).n_nonzero)  # noqa
-    for _ in range(24):  # pair separation ~ sqrt(hi - lo): small, but not rounding level
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if n_of(mid) == 1 else (lo, mid)
+    # narrow [lo, hi] to 0.05 / 39^5 = 6e-10 by 40-point sections (the grid's program:
+    # the same shapes), as 24 halvings would (3e-9): the pair's separation ~ sqrt(hi - lo)
+    # is then small, but not rounding level
+    for _ in range(5):
+        r = np.linspace(lo, hi, 40)
+        n = np.asarray(analysis.classify_designs(SALIENT, w0, i0, np.full((40, 1), z1),
+                                                 r).n_nonzero)[0]
+        j = int(np.argmax(n != 1))
+        assert n[0] == 1 and j > 0 and n[j] == 3, n
+        lo, hi = r[j - 1], r[j]
     g = _gains(SALIENT, w0, i0, z1, hi)
     ref = analysis.quartic_equilibria(w0, i0, g, SALIENT)
     assert int(ref.n) == 4
@@ -196,13 +220,19 @@ def test_close_pair_detected_on_a_coarse_grid():
 
 
 def test_linearization_at_origin_is_the_matrix_15():
-    for a, eta in [(1.0, 1.0), (0.5, 0.003)]:
+    # one compiled program per feedback (op by op: about 70 small ones); `a` and `eta`
+    # stay Python numbers, as a user passes them (a = 1.0 selects the linear feedback)
+    @functools.partial(jax.jit, static_argnums=(0, 1))
+    def both(a, eta):
         w0 = 0.3 * DRIVE.w_rated
         i0 = jnp.array([-0.3, 0.8]) * DRIVE.base.I_b
         g = _gains(M, w0, i0, 1.7, 0.9)
-        A = analysis.eso_linearization(w0, i0, g, M, a=a, eta=eta)
-        np.testing.assert_allclose(A, error_matrix(w0, psi_a(M, i0), g), rtol=1e-12,
-                                   atol=1e-9)
+        return (analysis.eso_linearization(w0, i0, g, M, a=a, eta=eta),
+                error_matrix(w0, psi_a(M, i0), g))
+
+    for a, eta in [(1.0, 1.0), (0.5, 0.003)]:
+        A, want = map(np.asarray, both(a, eta))
+        np.testing.assert_allclose(A, want, rtol=1e-12, atol=1e-9)
 
 
 def test_linearize_vmaps_over_operating_points_and_designs():
@@ -214,10 +244,14 @@ def test_linearize_vmaps_over_operating_points_and_designs():
         g = _gains(M, w0, i0, z, 0.8)
         return analysis.linearize(analysis.eso_rhs, jnp.zeros(4), w0, i0, g, M)
 
-    As = jax.vmap(lambda w: jax.vmap(lambda z: A(w, z))(z1))(speeds)
+    @jax.jit  # one program (op by op, the vmapped Jacobian compiled about 80 small ones)
+    def poles(speeds, z1):
+        As = jax.vmap(lambda w: jax.vmap(lambda z: A(w, z))(z1))(speeds)
+        return As, analysis.charpoly(As)
+
+    As, c = map(np.asarray, poles(speeds, z1))
     assert As.shape == (5, 3, 4, 4)
     # designed poles: flux s^2 + 2 z1 w1 s + w1^2, speed s^2 + 2 w2 s + w2^2
-    c = np.asarray(analysis.charpoly(As))
     w1 = 0.8 * np.asarray(speeds)[:, None]
     flux = np.stack([np.ones_like(w1 * z1), 2 * np.asarray(z1) * w1, w1 ** 2 + 0 * z1], -1)
     speed = np.array([1.0, 2 * W2, W2 ** 2])
@@ -227,12 +261,14 @@ def test_linearize_vmaps_over_operating_points_and_designs():
 
 @pytest.mark.parametrize("n", [2, 3, 4, 5])
 def test_routh_hurwitz_matches_eigenvalues(n, getkey):
-    A = jax.random.normal(getkey(), (4000, n, n)) - 0.6 * jnp.eye(n)
-    c = analysis.charpoly(A)
-    np.testing.assert_allclose(c, np.stack([np.poly(a) for a in np.asarray(A)]), rtol=1e-9,
+    @jax.jit  # one program per size (op by op: about 20 small ones)
+    def check(key):
+        A = jax.random.normal(key, (4000, n, n)) - 0.6 * jnp.eye(n)
+        return A, analysis.charpoly(A), analysis.is_hurwitz(A), analysis.max_real_eig(A)
+
+    A, c, rh, ev = map(np.asarray, check(getkey()))
+    np.testing.assert_allclose(c, np.stack([np.poly(a) for a in A]), rtol=1e-9,
                                atol=1e-9)
-    rh = np.asarray(analysis.is_hurwitz(A))
-    ev = np.asarray(analysis.max_real_eig(A))
     far = np.abs(ev) > 1e-8
     np.testing.assert_array_equal(rh[far], ev[far] < 0)
     assert 0.05 < rh.mean() < 0.95  # both outcomes are exercised
@@ -264,15 +300,18 @@ def test_equilibria_do_not_depend_on_the_speed_gains():
 
 
 def test_degenerate_points_report_status_not_errors():
+    # (the grid of test_close_pair_detected_on_a_coarse_grid, and its program: these
+    # statuses come from the reduction, before any grid)
+    kw = dict(n_grid=16)
     i0 = jnp.zeros(2)
     g = _gains(M, 100.0, i0, 1.0, 1.0)
-    eq = analysis.eso_equilibria(0.0, i0, g, M)  # w0 = 0
+    eq = analysis.eso_equilibria(0.0, i0, g, M, **kw)  # w0 = 0
     assert int(eq.status) == -1
     g0 = _gains(M, 100.0, i0, 1.0, 0.0)  # w1 = 0: det(w0 J + G1) = 0
-    assert int(analysis.eso_equilibria(100.0, i0, g0, M).status) == -1
+    assert int(analysis.eso_equilibria(100.0, i0, g0, M, **kw).status) == -1
     gn = _gains(M, 100.0, i0, 1.0, 1.0)
     gn = eqx.tree_at(lambda g: g.G1, gn, gn.G1 * jnp.nan)
-    assert int(analysis.eso_equilibria(100.0, i0, gn, M).status) == -1
+    assert int(analysis.eso_equilibria(100.0, i0, gn, M, **kw).status) == -1
 
 
 def test_bad_arguments_raise():
