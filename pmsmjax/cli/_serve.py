@@ -100,11 +100,10 @@ def _serve_one(conn: socket.socket) -> int | None:
         os.chdir(cwd)
         os.environ.clear()
         os.environ.update(env)
-        try:  # the client ends now; the tidying (seconds, when it drops programs) after
-            conn.sendall(STATUS.pack(code))
+        try:  # the client ends now; the tidying (seconds, when it drops programs) after,
+            conn.sendall(STATUS.pack(code))  # in the loop (`serve`)
         except OSError:
             pass
-        _tidy()
     return code
 
 
@@ -197,7 +196,10 @@ def serve(key: str) -> None:
                 pass
             served += code is not None
             last = time.time()
+            # no command running (a client that finds this waits for the tidying)
             write_info()
+            if code is not None:
+                _tidy()
             if code == 130:
                 # interrupted: a computation may still run in XLA's threads, and the
                 # process's state is not known; the next command starts a new worker

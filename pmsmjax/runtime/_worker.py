@@ -20,7 +20,8 @@ the client interrupts the command in the worker, which then stops (a computation
 run in XLA's threads; the next command starts a new worker). It runs one command at a time:
 a client that finds it busy (no answer within `BUSY_WAIT_S`), or finds none, runs the
 command itself, and afterwards starts a worker in the background for the next one; a
-client that finds one still loading (started less than `START_WAIT_S` ago) waits for it.
+client that finds one still loading (started less than `START_WAIT_S` ago), or tidying up
+after its last command (`TIDY_WAIT_S`), waits for it.
 
 **Which worker.** One per Python interpreter, pmsmjax source tree (every file's size and
 modification time: an edited or upgraded pmsmjax starts a new worker) and process
@@ -60,6 +61,9 @@ from ._settings import _env_flag, start_environ
 
 #: Seconds a client waits for a worker to take its command before it runs it itself.
 BUSY_WAIT_S = 0.5
+#: Seconds a client waits for a worker that runs no command (it is tidying up after the
+#: last one: dropping compiled programs takes seconds on a loaded machine).
+TIDY_WAIT_S = 10.0
 #: Seconds after its start during which a loading worker is waited for.
 START_WAIT_S = 15.0
 #: Seconds without a command after which a worker stops (`PMSMJAX_WORKER_IDLE`).
@@ -157,12 +161,12 @@ def recv_exact(sock: socket.socket, n: int) -> bytes | None:
     return buf
 
 
-def _connect(path: Path) -> tuple[socket.socket, int] | None:
-    """A connection to the worker at `path` that has taken it (its pid), or None: no
-    worker, or one busy with another command."""
+def _connect(path: Path, timeout: float = BUSY_WAIT_S) -> tuple[socket.socket, int] | None:
+    """A connection to the worker at `path` that has taken it (its pid) within `timeout`
+    seconds, or None: no worker, or one busy with another command."""
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
-        s.settimeout(BUSY_WAIT_S)
+        s.settimeout(timeout)
         s.connect(str(path))
         hello = recv_exact(s, STATUS.size)
         if hello is None:
@@ -173,6 +177,16 @@ def _connect(path: Path) -> tuple[socket.socket, int] | None:
     except OSError:  # no socket, a stale one, or a busy worker (timeout)
         s.close()
         return None
+
+
+def _running_command(key: str) -> bool:
+    """Whether the worker of `key` says that it runs a command (its information file;
+    when that cannot be read, it is taken to be busy)."""
+    try:
+        info = json.loads(worker_paths(key)[1].read_text())
+    except (OSError, ValueError):
+        return True
+    return info.get("busy_since") is not None
 
 
 def _starting(key: str) -> bool:
@@ -197,6 +211,8 @@ def run_in_worker(argv: list[str], key: str) -> int | None:
     while conn is None and not sock_path.exists() and _starting(key):
         time.sleep(0.05)
         conn = _connect(sock_path)
+    if conn is None and sock_path.exists() and not _running_command(key):
+        conn = _connect(sock_path, TIDY_WAIT_S)  # it is tidying up after the last one
     if conn is None:
         return None
     s, pid = conn
