@@ -30,12 +30,14 @@ measured values.
 
 import json
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import pmsmjax as pj
 from pmsmjax.observers import (
+    Measurement,
     SensoredObserver,
     make_observer,
     observer_names,
@@ -79,18 +81,11 @@ def _static(t, err_deg, window):
     return float(np.mean(err_deg[m]))
 
 
-def _estimates(obs, tr, drive):
-    """`pj.replay_estimates` of `obs` over the recording `tr` from its first angle and the
-    set speed (one compiled program per observer type and model, shared by the tests)."""
-    rec = pj.RecordedData.from_trajectory(tr)
-    return pj.replay_estimates(obs, rec, theta0=float(tr.theta[0]),
-                               w0=SPEED * float(drive.w_rated))
-
-
 def _replay(obs, tr, drive):
-    est = _estimates(obs, tr, drive)
-    err = np.degrees(np.asarray(pj.wrap_angle(np.asarray(tr.theta)
-                                              - np.asarray(est.theta_hat))))
+    rec = pj.RecordedData.from_trajectory(tr)
+    est = pj.replay_estimates(obs, rec, theta0=float(tr.theta[0]),
+                              w0=SPEED * float(drive.w_rated))
+    err = np.degrees(np.asarray(pj.wrap_angle(jnp.asarray(tr.theta) - est.theta_hat)))
     return np.asarray(tr.t), err
 
 
@@ -135,14 +130,20 @@ def test_scheduled_model_removes_the_saturation_error(name, recording, drive):
     assert abs(high_s - lag) < 0.2 * abs(high_c - lag)
 
 
-def _linear_map(motor, grid):
-    """A `FluxMap` of the constant model itself, psi_d = psi_f + L_d i_d, psi_q = L_q i_q,
-    on the grid of the map `grid` (the preset's: the scheduled observer on it then runs
-    the compiled program of the observer scheduled on the preset's map)."""
-    d, q = np.asarray(grid.i_d), np.asarray(grid.i_q)
+def _linear_map(motor, i_d=(-15.0, 10.0), i_q=(-25.0, 25.0)):
+    """A `FluxMap` of the constant model itself: psi_d = psi_f + L_d i_d, psi_q = L_q i_q."""
+    d, q = np.linspace(*i_d, 5), np.linspace(*i_q, 5)
     dd, qq = np.meshgrid(d, q, indexing="ij")
     return pj.FluxMap(d, q, float(motor.psi_f) + float(motor.L_d) * dd,
                       float(motor.L_q) * qq)
+
+
+def _run(obs, meas, T_s, theta0, w0):
+    """The estimates of `obs` over the measurements `meas` (one compiled scan)."""
+    def body(state, m):
+        state, est = obs.step(state, m, T_s)
+        return state, est
+    return jax.jit(lambda ms: jax.lax.scan(body, obs.init(theta0, w0), ms)[1])(meas)
 
 
 @pytest.mark.parametrize("name", observer_names())
@@ -152,39 +153,30 @@ def test_scheduled_on_a_constant_map_is_the_constant_observer(name, recording, d
     extras to 3e-11 (relative to their largest value) over 400 samples (50 ms) at high
     load."""
     const = make_observer(name, drive)
-    sched = const.with_magnetic(_linear_map(drive.motor, drive.motor.magnetic))
+    sched = const.with_magnetic(_linear_map(drive.motor))
     t = np.asarray(recording.t)
     k0 = int(np.searchsorted(t, HIGH[0]))
-    n = 400
-    # the recording from k0 on, followed by its beginning: a replay as long as the
-    # recording, so the program of the replays above (test_scheduled_model_removes_...;
-    # the map here has the preset map's grid) runs again; its first n samples are the
-    # 50 ms at high load compared
-    rec = pj.RecordedData.from_trajectory(recording)
-    rolled = pj.RecordedData(t=t, u_ab=np.roll(np.asarray(rec.u_ab), -k0, 0),
-                             i_ab=np.roll(np.asarray(rec.i_ab), -k0, 0))
+    ks = np.arange(k0, k0 + 400)
+    n = len(ks)
+    meas = Measurement(i_ab=jnp.asarray(np.asarray(recording.i_meas_ab)[ks]),
+                       u_ab=jnp.asarray(np.asarray(recording.u_ab)[ks - 1]),
+                       theta=jnp.full(n, jnp.nan), w_m=jnp.full(n, jnp.nan))
+    T_s = float(t[1] - t[0])
     w = SPEED * float(drive.w_rated)
-
-    def first_n(obs):
-        est = pj.replay_estimates(obs, rolled, theta0=float(recording.theta[k0]), w0=w)
-        return (np.asarray(est.theta_hat)[:n], np.asarray(est.w_hat)[:n],
-                {k: np.asarray(v)[:n] for k, v in est.extras.items()})
-
-    (th_c, w_c, x_c), (th_s, w_s, x_s) = first_n(const), first_n(sched)
-    diffs = {"theta_hat": float(np.max(np.abs(np.asarray(pj.wrap_angle(th_s - th_c))))),
-             "w_hat": float(np.max(np.abs(w_s - w_c))) / w}
-    for key, v in x_c.items():
-        diffs[key] = float(np.max(np.abs(x_s[key] - v)) / max(float(np.max(np.abs(v))),
-                                                              1e-300))
+    e_c = _run(const, meas, T_s, float(recording.theta[k0]), w)
+    e_s = _run(sched, meas, T_s, float(recording.theta[k0]), w)
+    diffs = {"theta_hat": float(jnp.max(jnp.abs(pj.wrap_angle(e_s.theta_hat
+                                                              - e_c.theta_hat)))),
+             "w_hat": float(jnp.max(jnp.abs(e_s.w_hat - e_c.w_hat))) / w}
+    for key, v in e_c.extras.items():
+        v = np.asarray(v)
+        diffs[key] = float(np.max(np.abs(np.asarray(e_s.extras[key]) - v))
+                           / max(float(np.max(np.abs(v))), 1e-300))
     print(f"{name}: scheduled on the constant map vs constant: {diffs}")
     assert diffs["theta_hat"] < 1e-12 and diffs["w_hat"] < 1e-12, diffs
     # the extras carry the rounding of the apparent inductance (a secant at small
-    # currents): the rotor-flux observer's lambda_ab_hat at the first sample (its initial
-    # state, the model at zero current) measured 4.6e-10 on this grid (9.2e-12 on a 5 x 5
-    # grid over +-25 A, 1.4e-9 on 26 x 41 points over the same range: the spline's
-    # rounding), after it 4e-14; the rest < 3e-14
-    bound = {"lambda_ab_hat": 1.4e-9}
-    assert all(v < bound.get(k, 3e-11) for k, v in diffs.items()), diffs
+    # currents): the rotor-flux observer's lambda_ab_hat measured 9.2e-12, the rest < 3e-14
+    assert max(diffs.values()) < 3e-11, diffs
 
 
 def test_default_is_the_constant_model_and_bad_models_are_named(drive):
