@@ -341,6 +341,27 @@ def test_vmap_equals_loop():
     assert dips[0] > dips[1] > dips[2] > 0
 
 
+def test_drives_that_differ_only_in_their_labels_run_one_program():
+    """A drive's name, notes and T_s do not enter the run: a relabelled drive runs the
+    compiled program of the original (no new entry in `_simulate`'s cache) to the same
+    numbers, and the labels of the caller's drive are left as they were."""
+    import dataclasses
+
+    from pmsmjax._sim._simulate import _simulate
+
+    first = _short_run(throw=False)
+    n = _simulate._cached._cache_size()
+    drive = eqx.tree_at(lambda d: d.mechanics.J, DRIVE, J_M)  # `_short_run`'s drive
+    other = dataclasses.replace(drive, name="relabelled", notes="a motor file", T_s=1e-4)
+    foc = pj.FOC.from_drive(drive, alpha_s=ALPHA_S, alpha_c=ALPHA_C)
+    again = pj.simulate(other, foc, pj.SensoredObserver(), SHORT, T_s=T_S, w_m0=300.0,
+                        throw=False)
+    assert _simulate._cached._cache_size() == n
+    assert tree_max_abs_diff(eqx.filter(first, eqx.is_array),
+                             eqx.filter(again, eqx.is_array)) == 0.0
+    assert (other.name, other.notes, other.T_s) == ("relabelled", "a motor file", 1e-4)
+
+
 def test_grad_matches_finite_differences():
     r"""d cost / d(alpha_s, alpha_c) by reverse mode vs central differences.
 

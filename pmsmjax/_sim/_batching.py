@@ -45,6 +45,8 @@ computes the same values.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -77,21 +79,19 @@ def without_labels(tree):
     """`tree` with every `Drive` in it stripped of its labels (`name`, `notes`, `T_s`
     at their defaults; module docstring): for the arguments of a jitted function that
     reads none of them."""
-    import dataclasses
+    from .._plant._params import Drive  # not at module level: the plant imports this
 
-    from .._plant._params import Drive
-
-    defaults = {f.name: f.default for f in dataclasses.fields(Drive)
-                if f.name in ("name", "notes", "T_s")}
+    labels = {f.name: f.default for f in dataclasses.fields(Drive)
+              if f.name in ("name", "notes", "T_s")}
 
     def one(x):
-        if not isinstance(x, Drive) or all(getattr(x, k) == v for k, v in defaults.items()):
+        if not isinstance(x, Drive) or all(getattr(x, k) == v for k, v in labels.items()):
             return x
         # field by field, not through `Drive(...)`: the values were checked when `x` was
         # made, and may be traced here
         new = object.__new__(Drive)
         for f in dataclasses.fields(Drive):
-            object.__setattr__(new, f.name, defaults.get(f.name, getattr(x, f.name)))
+            object.__setattr__(new, f.name, labels.get(f.name, getattr(x, f.name)))
         return new
 
     return jax.tree_util.tree_map(one, tree, is_leaf=lambda x: isinstance(x, Drive))
