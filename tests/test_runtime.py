@@ -35,12 +35,15 @@ def test_configure_in_a_fresh_process(env, tmp_path, monkeypatch):
     code = ("import pmsmjax as pj, jax, jax.monitoring, os, json, collections\n"
             "n = collections.Counter()\n"
             "jax.monitoring.register_event_listener(lambda e, **kw: n.update([e]))\n"
+            "import gc\n"
+            "gc_default = gc.get_threshold()\n"
             "r = pj.runtime.configure()\n"
             "jax.numpy.ones(3).block_until_ready()\n"
             "print(json.dumps(dict(r, flags=os.environ['XLA_FLAGS'],"
             " cache=jax.config.jax_compilation_cache_dir,"
             " async_dispatch=jax.config.read('jax_cpu_enable_async_dispatch'),"
             " store=pj.runtime._stored._STORE_DIR and str(pj.runtime._stored._STORE_DIR),"
+            " gc_default=gc_default, gc_now=gc.get_threshold(),"
             " hits=n['/jax/compilation_cache/cache_hits'],"
             " misses=n['/jax/compilation_cache/cache_misses'])))\n")
     res = _run(["-c", code], env)
@@ -53,11 +56,15 @@ def test_configure_in_a_fresh_process(env, tmp_path, monkeypatch):
     assert out["async_dispatch"] is True
     assert out["cache"] == str(tmp_path / "cache") == out["cache_dir"]
     assert out["backend_was_started"] is False
+    # fewer garbage collections: the collector's thresholds, set and reported
+    assert out["gc_now"] == out["gc_thresholds"] == list(pj.runtime.GC_THRESHOLDS)
+    assert out["gc_default"] != out["gc_now"]
     assert out["hits"] == 0 and out["misses"] >= 1  # compiled and written to the cache
     assert out["store"].startswith(str(tmp_path / "cache"))  # stored programs there too
     assert any(p.is_file() for p in (tmp_path / "cache").rglob("*"))
     env["PMSMJAX_CACHE"] = "0"
     env["PMSMJAX_FAST_LOOPS"] = "0"
+    env["PMSMJAX_GC"] = "0"
     env["PMSMJAX_CACHE_DIR"] = str(tmp_path / "off")
     res = _run(["-c", code.replace("os.environ['XLA_FLAGS']",
                                    "os.environ.get('XLA_FLAGS', '')")], env)
@@ -68,6 +75,7 @@ def test_configure_in_a_fresh_process(env, tmp_path, monkeypatch):
     assert out["store"] is None  # nor the stored programs (stored_call is off)
     assert not (tmp_path / "off").exists()
     assert "small_while_loop" not in out["flags"]
+    assert out["gc_now"] == out["gc_thresholds"] == out["gc_default"]  # Python's own
     # a bad value is an error naming it, raised first, before configure() changes
     # anything (so in this process, which has long been configured)
     monkeypatch.setenv("PMSMJAX_CACHE", "maybe")

@@ -65,6 +65,14 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   batch of 10,000 generic-route designs) passes `long_run_compiler_options()` to its
   `jit`: under quick compiles it is still compiled with full optimisation, and otherwise
   the option changes nothing.
+- **Fewer garbage collections.** Tracing, lowering and compiling are allocation-heavy
+  Python: a program's trace makes hundreds of thousands of short-lived containers, and a
+  process that has compiled many programs holds millions of live objects (a test
+  worker: 1.7 million), which every full collection scans. `configure` sets CPython's
+  collector thresholds to `GC_THRESHOLDS` (a youngest generation of 50,000 instead of
+  700): measured on two compile-bound test modules, collection time 6.5-6.9 s -> 0.9-1.0 s
+  and the run 134-140 s -> 125-126 s. Garbage is still collected, only in larger
+  batches. `PMSMJAX_GC=0` (or `configure(gc_thresholds=False)`) keeps Python's own.
 
 XLA reads its flags when the first computation starts the backend, so `configure` must
 run before any JAX computation; called later it keeps the backend as it is and warns.
@@ -103,6 +111,7 @@ if TYPE_CHECKING:
     from ._settings import (
         FAST_LOOP_FLAGS as FAST_LOOP_FLAGS,
         FULL_OPTIMISATION as FULL_OPTIMISATION,
+        GC_THRESHOLDS as GC_THRESHOLDS,
         QUICK_COMPILE_FLAGS as QUICK_COMPILE_FLAGS,
         SAFE_FLAGS as SAFE_FLAGS,
         apply_xla_flags as apply_xla_flags,
@@ -124,6 +133,7 @@ __getattr__, __dir__ = lazy_exports(__name__, __file__, globals())
 __all__ = [
     "FAST_LOOP_FLAGS",
     "FULL_OPTIMISATION",
+    "GC_THRESHOLDS",
     "LAPACK_MIN_WORK",
     "QUICK_COMPILE_FLAGS",
     "SAFE_FLAGS",
