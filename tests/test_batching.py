@@ -16,6 +16,14 @@ from pmsmjax._sim import _simulate
 from pmsmjax._sim._batching import batched_like
 
 
+def _trace_again(jitted):
+    """Make the next call of the library's jitted function `jitted` (an `eqx.filter_jit`)
+    trace again, by dropping its own compiled programs only: `jax.clear_caches()` would
+    drop every program the worker has compiled, which its later tests then compile
+    again."""
+    jitted._cached.clear_cache()
+
+
 def _count_calls(monkeypatch, module, *names):
     """A one-element list that counts the calls of `module.<name>` for each name (JAX's
     passes over a loop body, inside the test)."""
@@ -96,7 +104,7 @@ def test_vmapped_simulation_batches_its_step_fewer_times_with_the_same_numbers(
     for use in (True, False):
         if not use:
             monkeypatch.setattr(_simulate, "batched_like", lambda c, *deps: c)
-        jax.clear_caches()  # trace `simulate` again (its program is cached by shape)
+        _trace_again(_simulate._simulate)  # its program is cached by shape
         passes[0] = 0
         f = jax.jit(jax.vmap(one))
         f.lower(loads, keys)
@@ -132,7 +140,7 @@ def test_replay_gradient_linearises_its_step_fewer_times_with_the_same_gradient(
     for use in (True, False):
         if not use:
             monkeypatch.setattr(_replay, "batched_like", lambda c, *deps: c)
-        jax.clear_caches()
+        _trace_again(_replay._scan)
         count[0] = 0
         grads[use] = float(jax.grad(loss)(float(obs.w0)))
         counts[use] = count[0]
