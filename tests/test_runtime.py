@@ -164,25 +164,41 @@ linux_only = pytest.mark.skipif(pj.runtime.memory_maps() is None,
                                 reason="memory mappings are counted from /proc (Linux)")
 
 
-@linux_only
-def test_release_compiled_drops_the_mappings_of_compiled_programs():
-    import jax
-    import jax.numpy as jnp
+_RELEASE = """
+import json, math
+import jax, jax.numpy as jnp
+import pmsmjax as pj
+n0, limit = pj.runtime.memory_maps()
+keep = []
+for k in range(40):
+    f = jax.jit(lambda x, k=k: jnp.cos(x * k) + jnp.cumsum(x) * k)
+    f(jnp.ones(5)).block_until_ready()
+    keep.append(f)
+n1, _ = pj.runtime.memory_maps()
+below = pj.runtime.release_compiled(1.0)
+released = pj.runtime.release_compiled(0.0)
+n2, _ = pj.runtime.memory_maps()
+again = float(keep[3](jnp.ones(5))[0])
+print(json.dumps(dict(n0=n0, n1=n1, n2=n2, limit=limit, below=below, released=released,
+                      again=again)))
+"""
 
-    n0, limit = pj.runtime.memory_maps()
-    assert 0 < n0 < limit
-    keep = []
-    for k in range(40):
-        f = jax.jit(lambda x, k=k: jnp.cos(x * k) + jnp.cumsum(x) * k)
-        f(jnp.ones(5)).block_until_ready()
-        keep.append(f)
-    n1, _ = pj.runtime.memory_maps()
-    assert n1 - n0 >= 80          # a few mappings per kept program
-    assert not pj.runtime.release_compiled(1.0)   # far below the limit: nothing dropped
-    assert pj.runtime.release_compiled(0.0)
-    n2, _ = pj.runtime.memory_maps()
-    assert n1 - n2 >= 0.6 * (n1 - n0)   # (the rest: buffers and JAX internals)
-    assert float(keep[3](jnp.ones(5))[0]) == pytest.approx(math.cos(3.0) + 3.0)  # recompiles
+
+@linux_only
+def test_release_compiled_drops_the_mappings_of_compiled_programs(env):
+    """In a process of its own: a release drops every compiled program of the process
+    (`jax.clear_caches()`), which in a test worker would cost its later tests their
+    programs."""
+    res = _run(["-c", _RELEASE], env)
+    assert res.returncode == 0, res.stderr
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    assert 0 < out["n0"] < out["limit"]
+    assert out["n1"] - out["n0"] >= 80          # a few mappings per kept program
+    assert not out["below"]                      # far below the limit: nothing dropped
+    assert out["released"]
+    assert out["n1"] - out["n2"] >= 0.6 * (out["n1"] - out["n0"])  # (the rest: buffers
+    # and JAX internals)
+    assert out["again"] == pytest.approx(math.cos(3.0) + 3.0)  # compiled again
     with pytest.raises(ValueError, match="fraction"):
         pj.runtime.release_compiled(1.5)
 
