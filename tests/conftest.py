@@ -30,16 +30,27 @@ pmsmjax.runtime.configure()
 jax.config.update("jax_enable_x64", True)
 
 
+#: Tests between two counts of the worker's memory mappings: counting reads
+#: /proc/self/maps, about 2.7 ms per 5,000 mappings (a worker holds up to about 30,000).
+MAPS_EVERY = 5
+_tests_since_count = [0]
+
+
 @pytest.fixture(autouse=True)
 def _bounded_memory_maps():
     """A worker runs hundreds of tests and compiles thousands of programs, each holding
     memory mappings until dropped; at the system's limit (vm.max_map_count) the next
     compilation kills the worker (pmsmjax.runtime: "Long-running processes"). Drop the
-    compiled programs whenever half of the limit is used: a release costs 7 to 10 s, and
-    the later tests compile their shared programs again. The other half is far more than
-    one test adds (a whole worker's run reached about 30,000 mappings halfway, before
-    releases existed)."""
+    compiled programs whenever half of the limit is used, counted after every
+    `MAPS_EVERY`-th test: a release costs 7 to 10 s, and the later tests compile their
+    shared programs again. The other half is far more than `MAPS_EVERY` tests add (a
+    whole worker's run reached about 30,000 mappings halfway, before releases
+    existed)."""
     yield
+    _tests_since_count[0] += 1
+    if _tests_since_count[0] < MAPS_EVERY:
+        return
+    _tests_since_count[0] = 0
     if pmsmjax.runtime.release_compiled(1 / 2) and os.environ.get("PMSMJAX_RELEASE_LOG"):
         # where the suite's time goes: each release costs the later tests their programs
         with open(os.environ["PMSMJAX_RELEASE_LOG"], "a") as f:
