@@ -31,7 +31,8 @@ jax.config.update("jax_enable_x64", True)
 
 
 #: Tests between two counts of the worker's memory mappings: counting reads
-#: /proc/self/maps, about 2.7 ms per 5,000 mappings (a worker holds up to about 30,000).
+#: /proc/self/maps, about 2.7 ms per 5,000 mappings (a worker holds tens of thousands; in
+#: two of three cold runs of 11-30 one worker passed half the limit once, late in the run).
 MAPS_EVERY = 5
 _tests_since_count = [0]
 
