@@ -42,15 +42,40 @@ def jmul(x):
     return _vec(-x[..., 1], x[..., 0])
 
 
-# `rotate` and `wrap_angle` are jitted: called outside a trace (on a trajectory's arrays,
-# by metrics and replay), each of their operations would otherwise compile a program of
-# its own for every new shape; inside a trace the call is inlined.
+@jax.custom_jvp
+def cos_sin(theta):
+    """`(cos(theta), sin(theta))`, each evaluated once per element (used on hot paths).
+
+    XLA's CPU fusion counts `sin`/`cos` as cheap and recomputes them inside every fused
+    consumer of their result, and once per row of a stacked result: a rotation's two
+    components each computed both. Dividing by a runtime one (`theta - theta + 1`, exactly 1
+    for finite `theta`; NaN otherwise, where the results are NaN anyway) is an identity
+    that XLA counts as expensive, so it computes each value once and reuses it. The JVP
+    is written out so that derivatives reuse the same two values.
+    """
+    one = theta - theta + 1.0
+    return jnp.cos(theta) / one, jnp.sin(theta) / one
+
+
+@cos_sin.defjvp
+def _cos_sin_jvp(primals, tangents):
+    (theta,), (dtheta,) = primals, tangents
+    c, s = cos_sin(theta)
+    return (c, s), (-s * dtheta, c * dtheta)
+
+
+def _rotate_cs(x, c, s):
+    """exp(theta J) x from c = cos(theta), s = sin(theta)."""
+    return _vec(c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1])
+
+
+# `rotate`, `park` and `wrap_angle` are jitted: called outside a trace (on a trajectory's
+# arrays, by metrics and replay), each of their operations would otherwise compile a
+# program of its own for every new shape; inside a trace the call is inlined.
 @jax.jit
 def rotate(x, theta):
     """Rotate 2-vector(s) `x` by angle `theta` (rad): exp(theta J) x."""
-    x = jnp.asarray(x)
-    c, s = jnp.cos(theta), jnp.sin(theta)
-    return _vec(c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1])
+    return _rotate_cs(jnp.asarray(x), *cos_sin(theta))
 
 
 def rot_matrix(theta):
@@ -59,9 +84,12 @@ def rot_matrix(theta):
     return jnp.array([[c, -s], [s, c]])
 
 
+@jax.jit
 def park(x_ab, theta):
-    """Stationary -> rotating frame at angle `theta` (rad)."""
-    return rotate(x_ab, -theta)
+    """Stationary -> rotating frame at angle `theta` (rad): `rotate(x_ab, -theta)`, with the
+    cosine and sine of `theta` itself (shared with `inv_park` at the same angle)."""
+    c, s = cos_sin(theta)
+    return _rotate_cs(jnp.asarray(x_ab), c, -s)
 
 
 def inv_park(x_dq, theta):

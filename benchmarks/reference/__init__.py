@@ -4,7 +4,8 @@ against and check it with.
 - `closed_loop.c`: the closed loop of `benchmarks.throughput.simulate` as scalar C
   (`build_c` compiles it with `gcc -O3 -march=native` into `results/benchmarks/build/`,
   float64 and float32, each also with OpenMP over the drives; `c_simulate` calls it
-  through ctypes);
+  through ctypes); `build_c(observer=...)` builds the sensorless loop with the observer
+  step that `pmsmjax.firmware.export_c` generates;
 - `closed_loop_numpy.py`: the same algorithm on batched NumPy arrays;
 - `feasibility_numpy.py`: zhang2022's feasibility classification (Fig. 1) with
   NumPy/SciPy, point by point and batched (`benchmarks.throughput.feasibility`).
@@ -42,17 +43,31 @@ C_BUILDS = {
 }
 
 
-def build_c(verbose: bool = True) -> dict[str, str]:
+def build_c(verbose: bool = True, observer=None) -> dict[str, str]:
     """Compile `closed_loop.c` into `results/benchmarks/build/` (shared libraries for
-    ctypes; rebuilt when the source is newer); returns `{build name: library path}`."""
+    ctypes; rebuilt when the source is newer); returns `{build name: library path}`.
+
+    With `observer` (`(name, observer, T_s)`: an `AbstractObserver` of pmsmjax and the
+    sampling period, s) the loop is sensorless: `pmsmjax.firmware.export_c` writes the
+    observer's step in each precision and the loop is built with it (always rebuilt)."""
     BUILD.mkdir(parents=True, exist_ok=True)
     src = HERE / "closed_loop.c"
     out = {}
     for name, extra in C_BUILDS.items():
         lib = BUILD / f"closed_loop_{name}.so"
+        stale = not lib.exists() or lib.stat().st_mtime < src.stat().st_mtime
+        if observer is not None:
+            from pmsmjax.firmware import export_c
+
+            obs_name, obs, T_s = observer
+            gen = BUILD / f"{obs_name}_{name.split('_')[0]}"
+            export_c(obs, T_s, gen, float32=name.startswith("float32"))
+            lib = BUILD / f"closed_loop_{obs_name}_{name}.so"
+            extra = [*extra, "-DPMSM_SENSORLESS", f"-I{gen}"]
+            stale = True
         cmd = ["gcc", "-O3", "-march=native", "-shared", "-fPIC", *extra, str(src), "-o",
                str(lib), "-lm"]
-        if not lib.exists() or lib.stat().st_mtime < src.stat().st_mtime:
+        if stale:
             if verbose:
                 print("  $", " ".join(cmd))
             subprocess.run(cmd, check=True)

@@ -13,6 +13,11 @@
  * Compiled by benchmarks/reference/__init__.py: with -DREAL=double and -DREAL=float (then the
  * single-precision libm functions are used). Scalar loop over drives and time; with
  * -fopenmp the loop over drives is split over threads.
+ *
+ * With -DPMSM_SENSORLESS the loop is sensorless: the angle and speed come from the
+ * observer step that `pmsmjax export-c` generated (pmsm_observer.c, found on the include
+ * path, in the same precision), fed with the sampled current and the voltage applied over
+ * the previous period, as pmsmjax.simulate feeds its observer.
  */
 #include <math.h>
 
@@ -20,6 +25,12 @@
 #define REAL double
 #endif
 typedef REAL real;
+
+#ifdef PMSM_SENSORLESS
+#include "pmsm_observer.c"
+/* the generated step must be in the loop's precision */
+typedef char pmsm_real_is_real[(sizeof(pmsm_real) == sizeof(real)) ? 1 : -1];
+#endif
 
 #define IS_FLOAT (sizeof(real) == sizeof(float))
 #define SIN(x) (IS_FLOAT ? (real)sinf((float)(x)) : (real)sin((double)(x)))
@@ -73,6 +84,11 @@ static void run_one(const params_t *p, real w_final, int N, real *out) {
     real xs = 0, xd = 0, xq = 0;                 /* speed and current integrators */
     real ise = 0;
     int ok = 1;
+#ifdef PMSM_SENSORLESS
+    pmsm_obs_state obs;
+    real u_prev[2] = {0, 0};                     /* applied over the previous period */
+    pmsm_obs_init(&obs, 0, 0);                   /* the plant's initial angle and speed */
+#endif
     const real kp_s = (real)(2.0 * p->alpha_s * p->J_over_np);
     const real ki_s = (real)(p->alpha_s * p->alpha_s * p->J_over_np);
     const real Kp_d = (real)(p->alpha_c * p->cL_d), Kp_q = (real)(p->alpha_c * p->cL_q);
@@ -86,10 +102,17 @@ static void run_one(const params_t *p, real w_final, int N, real *out) {
         real t = (real)k * T_s;
         real w_ref = t >= (real)p->t_ramp ? w_final : (t / (real)p->t_ramp) * w_final;
         real tl = t >= (real)p->t_load ? (real)p->tau_load : 0;
-        /* sensing and observer (sensored): current to alpha-beta, angle wrapped */
+        /* sensing: current to alpha-beta */
         real c0 = COS(th), s0 = SIN(th);
         real ia = c0 * id - s0 * iq, ib = s0 * id + c0 * iq;
+#ifdef PMSM_SENSORLESS
+        /* observer: estimated angle and speed from current and previous voltage */
+        real i_meas[2] = {ia, ib}, th_hat, w_hat;
+        pmsm_obs_step(&obs, i_meas, u_prev, &th_hat, &w_hat);
+#else
+        /* sensored: the rotor's angle (wrapped) and speed */
         real th_hat = wrap_angle(th), w_hat = w;
+#endif
         real ch = COS(th_hat), sh = SIN(th_hat);
         real icd = ch * ia + sh * ib, icq = -sh * ia + ch * ib;
         /* speed PI with anti-windup */
@@ -114,6 +137,10 @@ static void run_one(const params_t *p, real w_final, int N, real *out) {
         real ang = th_hat + (real)0.5 * w_hat * T_s;
         real ca = COS(ang), sa = SIN(ang);
         real ua = ca * udl - sa * uql, ub = sa * udl + ca * uql;
+#ifdef PMSM_SENSORLESS
+        u_prev[0] = ua;
+        u_prev[1] = ub;
+#endif
         /* plant: RK4, n_sub steps, increments k = h f */
         ise += T_s * (w_ref - w) * (w_ref - w);
         real y0 = id, y1 = iq, y2 = th, y3 = w;

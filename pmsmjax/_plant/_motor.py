@@ -32,10 +32,9 @@ would have in a three-phase machine (derived from `vsd_matrix`, tested).
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 
-from .._frames import park
+from .._frames import cos_sin, park
 from ._inverter import dead_time_error_ab, dead_time_error_vsd
 from ._magnetic import solve2
 from ._params import (
@@ -48,28 +47,6 @@ from ._params import (
     _three_phase,
     _torque_factor,
 )
-
-
-@jax.custom_jvp
-def cos_sin(theta):
-    """`(cos(theta), sin(theta))`, each evaluated once per element (used on hot paths).
-
-    XLA's CPU fusion counts `sin`/`cos` as cheap and recomputes them inside every fused
-    consumer of their result; in a closed-loop RK4 step that multiplied the number of
-    evaluations by about four. Dividing by a runtime one (`theta - theta + 1`, exactly 1
-    for finite `theta`; NaN otherwise, where the results are NaN anyway) is an identity
-    that XLA counts as expensive, so it computes each value once and reuses it. The JVP
-    is written out so that derivatives reuse the same two values.
-    """
-    one = theta - theta + 1.0
-    return jnp.cos(theta) / one, jnp.sin(theta) / one
-
-
-@cos_sin.defjvp
-def _cos_sin_jvp(primals, tangents):
-    (theta,), (dtheta,) = primals, tangents
-    c, s = cos_sin(theta)
-    return (c, s), (-s * dtheta, c * dtheta)
 
 
 class PlantState(eqx.Module):
