@@ -367,6 +367,40 @@ def test_bad_arguments(tmp_path):
     assert np.isnan(out["y"][2]) and np.isfinite(out["y"][[0, 1, 3, 4]]).all()
 
 
+def test_a_product_grid_is_identified_by_its_axes(tmp_path):
+    """A grid from `grid_product` is hashed by its axes (16 kB instead of every point);
+    its arrays are read-only, and a grid whose arrays were replaced or extended is hashed
+    by its points: another product, or another grid, is still another sweep."""
+    from pmsmjax.analysis._sweep_spec import _hash_grid
+
+    grid = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.0]))
+    for a in (*grid.values(), *grid.axes.values()):
+        with pytest.raises(ValueError, match="read-only"):
+            a[0] = 7.0
+    assert grid.product_axes() is grid.axes
+    h = _hash_grid(dict(grid), grid.shape, grid.product_axes())
+    same = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.0]))
+    assert _hash_grid(dict(same), same.shape, same.product_axes()) == h
+    other = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.5]))
+    assert _hash_grid(dict(other), other.shape, other.product_axes()) != h
+    # float32 sweeps hash the axes as converted
+    assert _hash_grid(dict(grid), grid.shape, grid.product_axes(), np.float32) != h
+    changed = SweepGrid(dict(grid), shape=grid.shape, axes=grid.axes)
+    assert changed.product_axes() is None  # not made by grid_product
+    replaced = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.0]))
+    replaced["b"] = replaced["b"] * 2.0
+    extended = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.0]))
+    extended["index"] = np.arange(10)
+    assert replaced.product_axes() is None and extended.product_axes() is None
+    # a sweep begun on the product resumes on the same product, and refuses another
+    kw = dict(out_dir=tmp_path, progress=False, chunk_size=4)
+    first = run_sweep(simple_fn, grid, **kw)
+    again = run_sweep(simple_fn, same, **kw)
+    np.testing.assert_array_equal(again["y"], first["y"])
+    with pytest.raises(ValueError, match=r"differs in: grid\)"):
+        run_sweep(simple_fn, replaced, **kw)
+
+
 def test_mismatched_resume_raises(tmp_path):
     grid = {"a": np.linspace(0, 1, 10), "b": np.ones(10)}
     kw = dict(out_dir=tmp_path, progress=False)

@@ -21,7 +21,10 @@ class SweepGrid(dict):
     - `shape`: the grid shape, `tuple(len(a) for a in axes.values())`;
     - `axes`: the 1-D axis arrays it was built from.
 
-    [`run_sweep`][] reshapes its outputs from `(N, ...)` to `(*shape, ...)` for such grids.
+    [`run_sweep`][] reshapes its outputs from `(N, ...)` to `(*shape, ...)` for such grids,
+    and identifies the sweep by the axes rather than by every point (the arrays of a grid
+    from `grid_product` are read-only; a grid whose arrays were replaced is identified by
+    its points).
 
     !!! note
         JAX treats a `dict` subclass as a single leaf, not as a PyTree. Pass `dict(grid)`
@@ -35,6 +38,17 @@ class SweepGrid(dict):
         super().__init__(points)
         self.shape = tuple(int(s) for s in shape)
         self.axes = dict(axes)
+        self._made = None  # the arrays grid_product made (set there; see `product_axes`)
+
+    def product_axes(self) -> dict[str, np.ndarray] | None:
+        """The axes, if the grid still holds the read-only arrays `grid_product` made from
+        them (then the points are their product); otherwise None."""
+        made = getattr(self, "_made", None)
+        if (made is None or set(made) != set(self) or set(self.axes) != set(self)
+                or any(self[k] is not v or v.flags.writeable for k, v in made.items())
+                or any(a.flags.writeable for a in self.axes.values())):
+            return None
+        return self.axes
 
     def __repr__(self):
         axes = ", ".join(f"{k}: {len(v)}" for k, v in self.axes.items())
@@ -72,10 +86,14 @@ def grid_product(**axes) -> SweepGrid:
             )
         if a.size == 0:
             raise ValueError(f"`grid_product({name}=...)` is empty; every axis needs a value.")
-        arrays[name] = a
+        arrays[name] = np.array(a)  # a copy of its own (made read-only below)
     mesh = np.meshgrid(*arrays.values(), indexing="ij")
     points = {name: m.reshape(-1) for name, m in zip(arrays, mesh)}
-    return SweepGrid(points, shape=tuple(a.size for a in arrays.values()), axes=arrays)
+    for a in (*arrays.values(), *mesh, *points.values()):
+        a.flags.writeable = False  # the points stay the product of the axes
+    grid = SweepGrid(points, shape=tuple(a.size for a in arrays.values()), axes=arrays)
+    grid._made = dict(points)
+    return grid
 
 
 def _as_numeric(where: str, values) -> np.ndarray:

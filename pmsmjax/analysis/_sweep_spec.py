@@ -118,7 +118,8 @@ def _sweep_spec(fn, grid, *, out_dir, chunk_size, batch_size, metadata, mesh, dt
     ]
 
     parts = {
-        "grid": _hash_grid(host_grid, shape),
+        "grid": _hash_grid(host_grid, shape, grid.product_axes()
+                           if isinstance(grid, SweepGrid) else None, dtype),
         # the automatic size is chosen once and kept in the manifest and the chunk files
         "chunk_size": "auto" if auto else str(chunk_size),
         "outputs": _hash_text(
@@ -145,9 +146,19 @@ def _hash_text(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _hash_grid(host_grid, shape) -> str:
+def _hash_grid(host_grid, shape, axes=None, dtype=None) -> str:
+    """The grid's fingerprint: of its points, or of its axes for a product of them
+    (`SweepGrid.product_axes`; the points are then that product, and the axes converted
+    as the points were: a 2001 x 2001 x 1 grid hashes 16 kB instead of 96 MB)."""
     h = hashlib.sha256()
     h.update(json.dumps(list(shape) if shape is not None else None).encode())
+    if axes is not None:
+        h.update(b"product of axes")
+        for key in sorted(axes):  # each converted as its points were (`_validate_grid`)
+            a = _validate_grid({key: axes[key]}, dtype=dtype, allow_nonfinite=True)[0][key]
+            h.update(json.dumps([key, a.dtype.str, a.size]).encode())
+            h.update(memoryview(a).cast("B"))
+        return h.hexdigest()
     for key in sorted(host_grid):
         a = host_grid[key]
         h.update(json.dumps([key, a.dtype.str, a.size]).encode())

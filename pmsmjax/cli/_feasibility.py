@@ -241,6 +241,12 @@ def _point_key(choice, drive, x_name, y_name, i_pu) -> str:
     return h.hexdigest()
 
 
+def _small_ints(a: np.ndarray) -> np.ndarray:
+    """Counts as int8 where they fit (a quarter of the file's int32), else as int32."""
+    return a.astype(np.int8 if a.size == 0 or (a.min() >= 0 and a.max() <= 127)
+                    else np.int32, copy=False)
+
+
 def _map(choice, drive, speeds, x, y, i_pu, settings):
     """The `FeasibilityMap` over `speeds` (p.u.), evaluated point by point by `run_sweep`
     (chunked, resumable, sharded over every device of every process); `(map, chunk
@@ -257,9 +263,9 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
 
         def point(p):
             # what the command writes, in its units and types (the angles in degrees,
-            # the counts as int32): the sweep holds and stores no more than that
+            # the status codes -1..2 as int8): the sweep holds and stores no more than that
             res = fn(p)
-            return {"design_status": res.status.astype(jnp.int32),
+            return {"design_status": res.status.astype(jnp.int8),
                     "n_nonzero": res.n_nonzero.astype(jnp.int32),
                     "stable_theta_deg": jnp.degrees(res.stable_theta),
                     "principal_stable": res.principal_stable,
@@ -342,9 +348,8 @@ def feasibility_command(args: argparse.Namespace) -> int:
     # FeasibilityMap arrays are (speed, load, x, y); the file's are (speed, y, x), so that
     # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
     per_design = {
-        "status": status[:, 0].transpose(0, 2, 1).astype(np.int32, copy=False),
-        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1).astype(np.int32,
-                                                                              copy=False),
+        "status": status[:, 0].transpose(0, 2, 1).astype(np.int8, copy=False),
+        "n_nonzero": _small_ints(np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1)),
         "stable_theta_deg": np.asarray(fm.stable_theta_deg)[:, 0].transpose(0, 2, 1),
         "principal_stable": np.asarray(fm.principal_stable)[:, 0].transpose(0, 2, 1),
         "principal_theta_deg": np.asarray(fm.principal_theta_deg)[:, 0].transpose(0, 2, 1),
@@ -414,8 +419,9 @@ COMMAND = Command(
         "matched ESO/LESO, the generic equilibria route otherwise, e.g. with observer-model "
         "mismatch). Writes DIR/feasibility.npz (no pickled objects) with x (NX,), y (NY,), "
         "x_name, y_name (also the axes under their names, e.g. zeta1, ratio), status (NY, "
-        "NX) ints (0 feasible, 1 infeasible, 2 no equilibrium, -1 degenerate or failed), "
-        "n_nonzero (number of equilibria other than the designed one), stable_theta_deg "
+        "NX) int8 (0 feasible, 1 infeasible, 2 no equilibrium, -1 degenerate or failed), "
+        "n_nonzero (number of equilibria other than the designed one; int8), "
+        "stable_theta_deg "
         "(angle of the stable non-designed equilibrium closest to 0, deg; NaN if none), "
         "principal_stable, principal_theta_deg (NY, NX), and the inputs: speed (p.u.), i_dq "
         "(p.u.), observer, observer_class, the other design parameters (e.g. zeta2, w2), "
