@@ -293,6 +293,15 @@ def test_rotations_evaluate_each_sine_and_cosine_once():
     state = jax.vmap(lambda t: obs.init(theta0=t, w0=100.0))(th)
     meas = pj.observers.Measurement(i_ab=x, u_ab=x * 3.0, theta=th, w_m=th)
     assert _trig_counts(jax.vmap(lambda s, m: obs.step(s, m, 1e-4)), state, meas) == (3, 2)
+    # li-fa-leso's LESOs: the pair of the hold's half angle and the pair at the PLL's
+    # predicted angle (shared with the model's d current), one sine of them in two fused
+    # loops (five pairs before)
+    dtp = pj.preset("li_dtp")
+    for name in ("c-leso", "gi-leso", "fa-leso"):
+        obs = pj.observers.make_observer(name, dtp)
+        state = jax.vmap(lambda t: obs.init(theta0=t, w0=100.0))(th)
+        assert _trig_counts(jax.vmap(lambda s, m: obs.step(s, m, 1e-4)), state, meas) == (
+            3, 2), name
 
 
 def test_rotation_derivatives_against_finite_differences():

@@ -79,7 +79,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import back_emf_angle, rotate, wrap_angle
+from .._frames import back_emf_angle, cos_sin, rotate, wrap_angle
 from .._plant._params import PMSMParams
 from .._validate import check_positive
 from ._base import (
@@ -203,7 +203,8 @@ class AbstractBackEMFLESO(AbstractObserver):
         the d current of `i_ab` (A) on the axis at `theta` (rad)."""
         # park(i_ab, theta)'s d component, written with cos and sin of `theta` (which the
         # PLL computes too: one evaluation for both)
-        i_d = i_ab[..., 0] * jnp.cos(theta) + i_ab[..., 1] * jnp.sin(theta)
+        c, s = cos_sin(theta)
+        i_d = i_ab[..., 0] * c + i_ab[..., 1] * s
         return self.motor.extended_flux(i_d)
 
     # --- running ----------------------------------------------------------------------
@@ -313,8 +314,8 @@ class AbstractBackEMFLESO(AbstractObserver):
         # (one cosine and sine of the half angle serve the hold and the transition's
         # turn e^{j w_hat T} = h^2)
         half = 0.5 * T * w_hat
-        sin_h = jnp.sin(half)
-        h = jax.lax.complex(jnp.cos(half), sin_h)
+        cos_h, sin_h = cos_sin(half)
+        h = jax.lax.complex(cos_h, sin_h)
         small = jnp.abs(half) < 1e-4  # sin(x)/x = 1 - x^2/6 + x^4/120: below round-off
         half_s = jnp.where(small, 1.0, half)
         sinc = jnp.where(small, 1.0 - half * half / 6.0, sin_h / half_s)

@@ -420,9 +420,11 @@ def _gi_taylor(k, v, order: int):
     layout) with an optional batch axis first (`switched`'s `native`; the entries `k`
     batched alike or scalars): inside, the components first, each product a vector
     operation over the batch per component; a batch over `_GI_CHUNK_BYTES` in chunks
-    (`lax.map`, the last padded with zeros)."""
+    (`lax.map`, the last padded with zeros). Two degrees a pass: replay on `li_dtp`
+    (float64, EPYC) 2.7 -> 3.9 M samples/s at batch 1, 4.2 -> 4.3 M at batch 256; three or
+    more a pass fall to 2.8 M at batch 256 (XLA fuses across the degrees)."""
     def run(k, v):
-        return phi2_action(functools.partial(_gi_matvec, k), v.T, order).T
+        return phi2_action(functools.partial(_gi_matvec, k), v.T, order, unroll=2).T
 
     c = _GI_CHUNK_BYTES // (8 * v.dtype.itemsize)
     if v.ndim < 2 or v.shape[0] <= c:

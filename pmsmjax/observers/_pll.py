@@ -121,7 +121,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._frames import wrap_angle
+from .._frames import cos_sin, wrap_angle
 from .._validate import check_positive
 
 
@@ -174,7 +174,7 @@ class QuadraturePLL(eqx.Module):
         """Normalised phase-detector output (rad, ~ sin of the angle error) for the
         estimated back-EMF `e_ab_hat` (V), angle `theta_hat` (rad), speed `w_hat` (rad/s)
         and model extended flux `psi_ex_hat` (V s)."""
-        e_perp, e_q = _components(e_ab_hat, jnp.cos(theta_hat), jnp.sin(theta_hat))
+        e_perp, e_q = _components(e_ab_hat, *cos_sin(theta_hat))
         return self._detector(e_perp, e_q, w_hat, psi_ex_hat)
 
     def _detector(self, e_perp, e_q, w_hat, psi_ex_hat):
@@ -200,7 +200,7 @@ class QuadraturePLL(eqx.Module):
         `w_e` (rad/s) between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one
         period `T_s` (s) apart, at the angle estimate `theta_hat` (rad) and model
         extended flux `psi_ex_hat` (V s) (see "Acquisition" in the module docstring)."""
-        _, e_q = _components(e_ab_hat, jnp.cos(theta_hat), jnp.sin(theta_hat))
+        _, e_q = _components(e_ab_hat, *cos_sin(theta_hat))
         return self._gate(e_prev, e_ab_hat, e_q, psi_ex_hat, T_s)
 
     def _gate(self, e_prev, e_ab_hat, e_q, psi_ex_hat, T_s):
@@ -236,7 +236,7 @@ class QuadraturePLL(eqx.Module):
         theta_pred = theta_prev + T_s * w_prev
         psi = psi_ex_fn(theta_pred)
         # the angle's cosine and sine once, for the detector and the gate
-        e_perp, e_q = _components(e_ab_hat, jnp.cos(theta_pred), jnp.sin(theta_pred))
+        e_perp, e_q = _components(e_ab_hat, *cos_sin(theta_pred))
         eps = self._detector(e_perp, e_q, w_prev, psi)
         w_k = w_prev + T_s * k_i * eps
         if e_prev is not None:
