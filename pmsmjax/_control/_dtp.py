@@ -8,6 +8,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._frames import cos_sin
 from .._validate import check_positive
 from ._controllers import FOCOutput, FOCState
 from ._limits import _limited_pi
@@ -54,16 +55,16 @@ class XYCurrentController(eqx.Module):
         """`i_ref` (A, anti-synchronous frame), `i_xy` (A, stationary x-y), `theta_hat`
         (rad) of the sample, `theta_u` (rad) the advanced angle of the output, `w_hat`
         (rad/s). Returns `(state, u_xy)` (V, stationary x-y)."""
-        c, s = jnp.cos(theta_hat), jnp.sin(theta_hat)
+        c, s = cos_sin(theta_hat)
         i_x, i_y = _rot(c, s, i_xy[..., 0], i_xy[..., 1])  # anti-synchronous frame
         e_x, e_y = i_ref[..., 0] - i_x, i_ref[..., 1] - i_y
         Kp = self.alpha_xy * self.L_xy
         Ki = self.alpha_xy * self.R_s
         Kr = self.alpha_r * Kp
-        c6, s6 = jnp.cos(6 * theta_hat), jnp.sin(6 * theta_hat)
+        c6, s6 = cos_sin(6 * theta_hat)
         ep = _rot(c6, -s6, e_x, e_y)  # error in the +6 theta frame (5th harmonic)
         en = _rot(c6, s6, e_x, e_y)   # error in the -6 theta frame (7th harmonic)
-        cu6, su6 = jnp.cos(6 * theta_u), jnp.sin(6 * theta_u)
+        cu6, su6 = cos_sin(6 * theta_u)
         xp, xn = state.x_h[..., 0, :], state.x_h[..., 1, :]
         hp = _rot(cu6, su6, xp[..., 0], xp[..., 1])
         hn = _rot(cu6, -su6, xn[..., 0], xn[..., 1])
@@ -74,7 +75,7 @@ class XYCurrentController(eqx.Module):
                                         (e_x, e_y), (Kp, Kp), Ki, self.u_max, T_s)
         x_h = jnp.stack([xp + T_s * Kr * jnp.stack(ep, -1),
                          xn + T_s * Kr * jnp.stack(en, -1)], -2)
-        cu, su = jnp.cos(theta_u), jnp.sin(theta_u)
+        cu, su = cos_sin(theta_u)
         u_xy = jnp.stack(_rot(cu, -su, ul_x, ul_y), -1)  # back to stationary x-y
         return XYCurrentControllerState(x_I=x_I, x_h=x_h), u_xy
 
@@ -168,7 +169,7 @@ class DualCurrentControl(eqx.Module):
 
         s_state, i_ref, tau_ref = foc._references(state, w_hat, w_ref, T_s,
                                                   i_ref_override, speed_mode)
-        c, s = jnp.cos(theta_hat), jnp.sin(theta_hat)
+        c, s = cos_sin(theta_hat)
         if self.mode == "vsd":
             i_dq = jnp.stack(_rot(c, -s, i_ab[..., 0], i_ab[..., 1]), -1)
             c_state, u = foc.current.step(state.current, i_ref, i_dq, w_hat, T_s)
@@ -183,7 +184,7 @@ class DualCurrentControl(eqx.Module):
             x_state, u2 = foc.current.step(state.dual, i_ref, i2, w_hat, T_s)
             u = 0.5 * (u1 + u2)
             d = 0.5 * (u1 - u2)
-            cu, su = jnp.cos(theta_u), jnp.sin(theta_u)
+            cu, su = cos_sin(theta_u)
             dx, dy = _rot(cu, su, d[..., 0], d[..., 1])  # stationary
             u_xy = jnp.stack([dx, -dy], -1)  # conj
         new = FOCState(current=c_state, speed=s_state, dual=x_state)

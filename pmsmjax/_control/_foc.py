@@ -27,6 +27,7 @@ import math
 import equinox as eqx
 import jax.numpy as jnp
 
+from .._frames import cos_sin
 from .._plant._params import Drive, PMSMParams
 from ._controllers import (
     CurrentController,
@@ -210,7 +211,7 @@ class FOC(eqx.Module):
             # the open-loop current (i_d, i_q_if) in the controller frame (i_d: the
             # stabiliser's, 0 without it)
             i_d_if = self.startup.damping_current(su)
-            c_off, s_off = jnp.cos(su.off), jnp.sin(su.off)
+            c_off, s_off = cos_sin(su.off)
             i_if = jnp.stack([c_off * i_d_if - s_off * i_q_if, s_off * i_d_if + c_off * i_q_if])
             i_ref = (1.0 - s) * i_if + s * i_ref
         c_state, u = self.current.step(state.current, i_ref, i_dq, w_hat, T_s)

@@ -18,6 +18,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
+from .._frames import cos_sin
 from .._validate import check_finite, check_positive, is_concrete
 from ._magnetic import AbstractMagneticModel
 
@@ -126,7 +127,7 @@ class PMSMParams(eqx.Module):
                             self.harmonics.phase):
             ang = (h - 1) * theta + ph
             amp = self.psi_f * a / abs(h)
-            psi = psi + amp * jnp.stack([jnp.cos(ang), jnp.sin(ang)], axis=-1)
+            psi = psi + amp * jnp.stack(cos_sin(ang), axis=-1)
         return psi
 
     def dpsi_pm_dq_dtheta(self, theta):

@@ -152,7 +152,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._frames import jmul, park, rotate, wrap_angle
+from .._frames import cos_sin, jmul, park, rotate, wrap_angle
 from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive, is_concrete
 from ._base import (
@@ -314,7 +314,8 @@ class NonlinearFluxObserver(AbstractObserver):
     def _target(self, psi_f, i_ab, theta):
         """Target magnitude $\\psi_f + (L_d - L_q)i_d$ (V s), $i_d$ of `i_ab` (A) in the
         frame at `theta` (rad)."""
-        i_d = i_ab[..., 0] * jnp.cos(theta) + i_ab[..., 1] * jnp.sin(theta)
+        c, s = cos_sin(theta)
+        i_d = i_ab[..., 0] * c + i_ab[..., 1] * s
         return psi_f + (self.motor.L_d - self.motor.L_q) * i_d
 
     def _psi_f(self, state_psi_f):

@@ -116,7 +116,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import back_emf_angle, rotate, wrap_angle
+from .._frames import back_emf_angle, cos_sin, rotate, wrap_angle
 from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive, is_concrete
 from ._base import (
@@ -154,7 +154,7 @@ def polar(i_ab, phi_hold=0.0):
 def projections(u_ab, phi):
     """stumper (11)-(12): `(u_P, u_O)` (V) of `u_ab` (V) on the current direction `phi`
     (rad) and (with the paper's sign) on its normal."""
-    c, s = jnp.cos(phi), jnp.sin(phi)
+    c, s = cos_sin(phi)
     return u_ab[..., 0] * c + u_ab[..., 1] * s, u_ab[..., 0] * s - u_ab[..., 1] * c
 
 

@@ -153,7 +153,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._frames import rotate, rotation_between, wrap_angle
+from .._frames import cos_sin, rotate, rotation_between, wrap_angle
 from .._plant._params import Drive, PMSMParams
 from .._validate import check_positive
 from . import _rotor_flux_design as _design
@@ -213,7 +213,7 @@ def gamma_pu_for(drive: Drive) -> float:
 def l_functions(motor: PMSMParams, theta):
     """`(L1, L3, L4)` of morawiec2023 (12)-(13)/(36)-(38) at angle `theta` (rad), 1/H:
     the entries of the inverse stationary-frame inductance matrix."""
-    c, s = jnp.cos(theta), jnp.sin(theta)
+    c, s = cos_sin(theta)
     L1 = c * c / motor.L_d + s * s / motor.L_q
     L3 = 0.5 * (1.0 / motor.L_d - 1.0 / motor.L_q) * jnp.sin(2.0 * theta)
     L4 = s * s / motor.L_d + c * c / motor.L_q
@@ -226,7 +226,7 @@ def rotor_flux_ab(motor: PMSMParams, theta, i_ab):
     L0 = 0.5 * (motor.L_d + motor.L_q)
     L2 = 0.5 * (motor.L_d - motor.L_q)
     r = motor.L_d / motor.L_q
-    c2, s2 = jnp.cos(2.0 * theta), jnp.sin(2.0 * theta)
+    c2, s2 = cos_sin(2.0 * theta)
     i_a, i_b = i_ab[..., 0], i_ab[..., 1]
     i_a2 = i_a * c2 + i_b * s2                       # (39)
     i_b2 = -i_a * s2 + i_b * c2                      # (40)
@@ -251,7 +251,7 @@ def torque_ab(motor: PMSMParams, theta, i_ab):
     corrected to $(L_d - L_q) i_d i_q$ (the printed $i_\\alpha i_\\beta$ is not invariant
     under rotation): $\\tfrac32 n_p(\\psi_{f\\alpha} i_\\beta - \\psi_{f\\beta} i_\\alpha
     + (L_d - L_q) i_d i_q)$."""
-    c, s = jnp.cos(theta), jnp.sin(theta)
+    c, s = cos_sin(theta)
     i_a, i_b = i_ab[..., 0], i_ab[..., 1]
     i_d, i_q = c * i_a + s * i_b, c * i_b - s * i_a
     return 1.5 * motor.n_p * (motor.psi_f * (c * i_b - s * i_a)
@@ -262,7 +262,7 @@ def stator_flux_ab(motor: PMSMParams, theta, i_ab):
     """Stator flux $L_{ab}(\\theta) i + \\psi_f e^{\\theta J}[1,0]^T$ (V s, stationary)."""
     L0 = 0.5 * (motor.L_d + motor.L_q)
     L2 = 0.5 * (motor.L_d - motor.L_q)
-    c2, s2 = jnp.cos(2.0 * theta), jnp.sin(2.0 * theta)
+    c2, s2 = cos_sin(2.0 * theta)
     i_a, i_b = i_ab[..., 0], i_ab[..., 1]
     return jnp.stack([(L0 + L2 * c2) * i_a + L2 * s2 * i_b + motor.psi_f * jnp.cos(theta),
                       L2 * s2 * i_a + (L0 - L2 * c2) * i_b + motor.psi_f * jnp.sin(theta)],
@@ -280,7 +280,7 @@ def current_from_flux_ab(motor: PMSMParams, theta, psi_ab):
 def _dflux_dtheta(motor: PMSMParams, theta, i_ab):
     """$\\partial\\psi_s/\\partial\\theta$ at constant current (V s/rad)."""
     L2 = 0.5 * (motor.L_d - motor.L_q)
-    c2, s2 = jnp.cos(2.0 * theta), jnp.sin(2.0 * theta)
+    c2, s2 = cos_sin(2.0 * theta)
     i_a, i_b = i_ab[..., 0], i_ab[..., 1]
     return jnp.stack([2 * L2 * (-s2 * i_a + c2 * i_b) - motor.psi_f * jnp.sin(theta),
                       2 * L2 * (c2 * i_a + s2 * i_b) + motor.psi_f * jnp.cos(theta)], -1)
@@ -289,7 +289,7 @@ def _dflux_dtheta(motor: PMSMParams, theta, i_ab):
 def _inductance_ab(motor: PMSMParams, theta):
     L0 = 0.5 * (motor.L_d + motor.L_q)
     L2 = 0.5 * (motor.L_d - motor.L_q)
-    c2, s2 = jnp.cos(2.0 * theta), jnp.sin(2.0 * theta)
+    c2, s2 = cos_sin(2.0 * theta)
     return (L0 + L2 * c2, L2 * s2, L0 - L2 * c2)
 
 
