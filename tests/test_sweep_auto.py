@@ -226,13 +226,23 @@ def done(info):
     if info.index == stop:
         raise KeyboardInterrupt
 
+def leave(code):
+    # both processes leave together: the coordination service of process 0 aborted once
+    # in its gRPC shutdown while process 1 was still leaving (a check in server.cc)
+    from jax.experimental import multihost_utils
+    multihost_utils.sync_global_devices("leave")
+    jax.distributed.shutdown()
+    sys.exit(code)
+
 try:
     out = run_sweep(sweep_fn, make_grid(), out_dir=sys.argv[3], batch_size=1,
                     progress=False, on_chunk_done=done)
 except KeyboardInterrupt:
-    sys.exit(3)
+    leave(3)
 np.savez(sys.argv[3] + f"_{jax.process_index()}.npz", **out)
 print([(i.start, i.stop, i.loaded) for i in infos])
+sys.stdout.flush()
+leave(0)
 """
 
 
