@@ -53,10 +53,12 @@ def _run_command(argv: list[str]) -> int:
         return 1
 
 
-def _serve_one(conn: socket.socket) -> int | None:
+def _serve_one(conn: socket.socket, finished=None) -> int | None:
     """Take one command from `conn`: its descriptors, arguments, directory and
-    environment; run it; send its status; put the process back as it was. Its status, or
-    None if the client had gone (it found the worker busy and ran the command itself)."""
+    environment; run it; put the process back as it was; call `finished()` (the worker's
+    information then says the command is done, before the client can read it); send its
+    status. Its status, or None if the client had gone (it found the worker busy and ran
+    the command itself)."""
     import warnings
 
     conn.sendall(STATUS.pack(os.getpid()))
@@ -100,6 +102,11 @@ def _serve_one(conn: socket.socket) -> int | None:
         os.chdir(cwd)
         os.environ.clear()
         os.environ.update(env)
+        if finished is not None:
+            try:
+                finished()
+            except OSError:  # its information file: the status goes to the client all the same
+                pass
         try:  # the client ends now; the tidying (seconds, when it drops programs) after,
             conn.sendall(STATUS.pack(code))  # in the loop (`serve`)
         except OSError:
@@ -187,17 +194,26 @@ def serve(key: str) -> None:
                 continue
             except KeyboardInterrupt:  # a client's late Ctrl-C
                 continue
-            code = None
+            code, done = None, []
             write_info(busy_since=time.time())
+
+            def finished():
+                # before the client has its status: the count it may read is this
+                # command's, and a client that comes next finds no command running
+                # (it waits for the tidying)
+                nonlocal served, last
+                served, last = served + 1, time.time()
+                write_info()
+                done.append(True)
+
             try:
                 with conn:
-                    code = _serve_one(conn)
+                    code = _serve_one(conn, finished)
             except (OSError, ValueError, KeyboardInterrupt):
                 pass
-            served += code is not None
-            last = time.time()
-            # no command running (a client that finds this waits for the tidying)
-            write_info()
+            if not done:  # the client had gone, or the command's set-up failed
+                last = time.time()
+                write_info()
             if code is not None:
                 _tidy()
             if code == 130:
