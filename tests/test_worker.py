@@ -189,3 +189,57 @@ def test_import_pmsmjax_loads_no_jax_and_still_gives_float64():
                             "print(jnp.ones(1).dtype)"], capture_output=True, text=True,
                            timeout=120)
     assert first.stdout.strip() == "float64", first.stderr
+
+
+def test_a_client_waits_for_a_worker_that_has_bound_its_socket_but_is_still_loading(
+        tmp_path, monkeypatch):
+    """A worker binds its socket first (to hold its key) and accepts commands only once
+    loaded; until then its `.starting` file stands. A client that comes in between waits
+    for it instead of running the command itself (before: it found the socket, no answer
+    within half a second and no information file, took the worker for busy and ran the
+    command itself)."""
+    import socket as so
+    import threading
+
+    sockets = Path(tempfile.mkdtemp(prefix="pmsmjax-w"))
+    monkeypatch.setenv("PMSMJAX_WORKER_DIR", str(sockets))
+    key = "loading"
+    sock_path, info_path = _worker.worker_paths(key)
+    listener = so.socket(so.AF_UNIX, so.SOCK_STREAM)
+    listener.bind(str(sock_path))
+    listener.listen(8)
+    starting = info_path.with_suffix(".starting")
+    starting.write_text(f"{os.getpid()} {time.time()}")
+    LOAD_S = 1.5
+    got = {}
+
+    def worker():  # loads, then takes commands; connections made meanwhile were dropped
+        time.sleep(LOAD_S)
+        starting.unlink()
+        while True:
+            conn, _ = listener.accept()
+            with conn:
+                try:
+                    conn.sendall(_worker.STATUS.pack(os.getpid()))
+                    conn.settimeout(2.0)
+                    msg, fds, _, _ = so.recv_fds(conn, _worker.HEADER.size, 3)
+                except OSError:
+                    continue
+                for fd in fds:
+                    os.close(fd)
+                if len(msg) < _worker.HEADER.size:
+                    continue  # a client that had given up
+                got.update(json.loads(_worker.recv_exact(conn, _worker.HEADER.unpack(msg)[0])))
+                conn.sendall(_worker.STATUS.pack(7))
+                return
+
+    thread = threading.Thread(target=worker, daemon=True)
+    thread.start()
+    t0 = time.time()
+    try:
+        assert _worker.run_in_worker(["equilibria"], key) == 7  # the worker's status
+    finally:
+        listener.close()
+        shutil.rmtree(sockets, ignore_errors=True)
+    assert time.time() - t0 >= LOAD_S and got["argv"] == ["equilibria"]
+    thread.join(5)

@@ -208,7 +208,9 @@ def run_in_worker(argv: list[str], key: str) -> int | None:
     ready sooner than this process would have imported what the command needs."""
     sock_path, _ = worker_paths(key)
     conn = _connect(sock_path)
-    while conn is None and not sock_path.exists() and _starting(key):
+    # a loading worker has bound its socket already (to hold the key) but accepts only
+    # once loaded (its `.starting` file is gone then): wait for it, socket or not
+    while conn is None and _starting(key):
         time.sleep(0.05)
         conn = _connect(sock_path)
     if conn is None and sock_path.exists() and not _running_command(key):
