@@ -243,3 +243,32 @@ def test_a_client_waits_for_a_worker_that_has_bound_its_socket_but_is_still_load
         shutil.rmtree(sockets, ignore_errors=True)
     assert time.time() - t0 >= LOAD_S and got["argv"] == ["equilibria"]
     thread.join(5)
+
+
+def test_an_interrupt_that_library_code_swallows_is_delivered_again(monkeypatch):
+    """Ctrl-C while a command compiles can land in library code that catches every
+    exception (JAX's bare `except:` right after a compile): the worker delivers it again
+    while the command runs on, so the command still ends with 130."""
+    import threading
+
+    import pmsmjax.cli
+    from pmsmjax.cli import _serve
+
+    swallowed = []
+
+    def command(argv):
+        try:
+            time.sleep(10)  # the Ctrl-C arrives here ...
+        except:  # noqa: E722 - ... and is swallowed, as by a bare except
+            swallowed.append(True)
+        time.sleep(20)  # without a second delivery the command runs on to its end
+        return 0
+
+    monkeypatch.setattr(pmsmjax.cli, "main", command)
+    monkeypatch.setattr(_serve, "REDELIVER_S", 0.5)
+    threading.Timer(0.3, signal.pthread_kill, (threading.main_thread().ident,
+                                               signal.SIGINT)).start()
+    t0 = time.monotonic()
+    assert _serve._run_command(["simulate"]) == 130
+    assert swallowed and time.monotonic() - t0 < 5.0
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # put back

@@ -4,11 +4,14 @@ back between commands and when it stops). `python -m pmsmjax.cli._serve KEY`."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import os
+import signal
 import socket
 import sys
+import threading
 import time
 
 from ..runtime._worker import HEADER, IDLE_S, STATUS, recv_exact, worker_paths
@@ -31,15 +34,67 @@ def _streams(tty: tuple[bool, bool, bool]):
     return stdin, stdout, stderr
 
 
+#: After Ctrl-C, the seconds a command may run on before the interrupt is delivered again,
+#: and how many times at most: library code that catches every exception can swallow the
+#: first one (JAX's bare `except:` around reading an executable's layouts and memory
+#: kinds, right after a compile that the Ctrl-C arrived during). The client waits for the
+#: command's end, so a swallowed interrupt would leave the command running on.
+REDELIVER_S = 5.0
+REDELIVER_MAX = 3
+
+
+@contextlib.contextmanager
+def _interrupts_repeated():
+    """Within the block (the main thread), Ctrl-C raises KeyboardInterrupt as usual, and
+    again every `REDELIVER_S` while the block has not ended, at most `REDELIVER_MAX`
+    times more."""
+    first: list[float] = []
+    ended = threading.Event()
+
+    if threading.current_thread() is not threading.main_thread():
+        yield  # signals reach the main thread only
+        return
+
+    def on_sigint(signum, frame):
+        if ended.is_set():
+            return  # a delivery again that came as the block ended
+        if not first:
+            first.append(time.monotonic())
+        raise KeyboardInterrupt
+
+    main = threading.main_thread().ident
+
+    def watch():
+        again = 0
+        while not ended.wait(0.1):
+            if first and again < REDELIVER_MAX and (
+                    time.monotonic() - first[0] > REDELIVER_S * (again + 1)):
+                again += 1
+                # to the main thread, whose system call (a sleep, a wait) it interrupts
+                signal.pthread_kill(main, signal.SIGINT)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    watcher = threading.Thread(target=watch, name="interrupt-again", daemon=True)
+    watcher.start()
+    try:
+        yield
+    finally:
+        ended.set()
+        watcher.join()
+        signal.signal(signal.SIGINT, previous)
+
+
 def _run_command(argv: list[str]) -> int:
     """One command, as `python -m pmsmjax` would end it: its status, SystemExit's code, or
-    a traceback and 1 (130 after Ctrl-C)."""
+    a traceback and 1 (130 after Ctrl-C, which is delivered again if the command runs on:
+    `_interrupts_repeated`)."""
     import traceback
 
     from ..cli import main
 
     try:
-        return int(main(argv) or 0)
+        with _interrupts_repeated():
+            return int(main(argv) or 0)
     except SystemExit as e:
         if e.code is None or isinstance(e.code, int):
             return e.code or 0
