@@ -38,16 +38,19 @@ def _streams(tty: tuple[bool, bool, bool]):
 #: and how many times at most: library code that catches every exception can swallow the
 #: first one (JAX's bare `except:` around reading an executable's layouts and memory
 #: kinds, right after a compile that the Ctrl-C arrived during). The client waits for the
-#: command's end, so a swallowed interrupt would leave the command running on.
+#: command's end, so a swallowed interrupt would leave the command running on. The
+#: handler is the worker's own while a command runs: a worker started by a process that
+#: ignores SIGINT (a script's background job) inherits the ignoring, and would never see
+#: the Ctrl-C its clients forward.
 REDELIVER_S = 5.0
 REDELIVER_MAX = 3
 
 
 @contextlib.contextmanager
 def _interrupts_repeated():
-    """Within the block (the main thread), Ctrl-C raises KeyboardInterrupt as usual, and
-    again every `REDELIVER_S` while the block has not ended, at most `REDELIVER_MAX`
-    times more."""
+    """Within the block (the main thread), Ctrl-C raises KeyboardInterrupt, whatever
+    SIGINT's handler was before, and again every `REDELIVER_S` while the block has not
+    ended, at most `REDELIVER_MAX` times more; the handler is put back after."""
     first: list[float] = []
     ended = threading.Event()
 
