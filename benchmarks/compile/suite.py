@@ -51,7 +51,7 @@ def _is_eager(name: str) -> bool:
 
 def profile(paths: list[str], workers: int) -> dict:
     """Run the suite (or `paths`) cold with the plugin; the measured figures."""
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as tmp:  # a late writer
         prof = Path(tmp) / "profile"
         prof.mkdir()
         env = h.child_env(cache=str(Path(tmp) / "cache"),
