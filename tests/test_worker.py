@@ -35,7 +35,8 @@ def worker_env():
     # test worker at times; a client that ignores it never forwards it)
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     yield env
-    signal.signal(signal.SIGINT, previous)
+    if previous is not None:  # None: a handler not set from Python, left as it is
+        signal.signal(signal.SIGINT, previous)
     for sock in sockets.glob("*.sock"):
         sock.unlink()  # its worker stops within a second
     time.sleep(1.5)
