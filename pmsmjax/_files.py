@@ -1,7 +1,7 @@
 """Files written by the library and its commands: the one atomic write (a temporary file
 in the same folder, then `os.replace`, so a reader never sees half a file and an
-interrupted run leaves the old file) and the one JSON sanitiser (JSON has no NaN and no
-NumPy types)."""
+interrupted run leaves the old file), the one `.npz` writer and the one JSON sanitiser
+(JSON has no NaN and no NumPy types)."""
 
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import json
 import math
 import os
 import uuid
+import zipfile
 from collections.abc import Callable
 from typing import IO
 
@@ -45,6 +46,40 @@ def atomic_write(path, data: bytes | str | Callable[[IO[bytes]], None], *,
         raise
     if durable:
         fsync_dir(d)
+
+
+#: Arrays from this size (bytes) on are written from their own memory (`save_npz`).
+_NPZ_DIRECT_BYTES = 1 << 16
+
+
+def save_npz(file, arrays: dict, *, zip_file: zipfile.ZipFile | None = None) -> None:
+    """Write `arrays` (name -> array) as `np.savez` does: an uncompressed zip of `.npy`
+    members that `np.load` reads (no pickled objects). `file`: a path or an open binary
+    file; or `zip_file`, an open `zipfile.ZipFile` to add the members to (`file` None).
+
+    `np.savez` copies every array in pieces of up to 16 MiB before writing them, and in a
+    fresh process every piece is new memory the system must map (a 4 M-point map's 76 MB
+    cost it 0.03-0.05 s more than the write). Here a C-contiguous array of at least
+    `_NPZ_DIRECT_BYTES` is written from its own memory; smaller ones, and those of other
+    layouts, as `np.savez` writes them."""
+    if zip_file is None:
+        with zipfile.ZipFile(file, mode="w", compression=zipfile.ZIP_STORED,
+                             allowZip64=True) as zf:
+            save_npz(None, arrays, zip_file=zf)
+        return
+    for name, a in arrays.items():
+        a = np.asanyarray(a)
+        if a.dtype.hasobject:
+            raise ValueError(f"`save_npz`: {name!r} holds Python objects ({a.dtype}); "
+                             "the files hold plain arrays only.")
+        with zip_file.open(f"{name}.npy", "w", force_zip64=True) as f:
+            if (a.nbytes >= _NPZ_DIRECT_BYTES and a.flags.c_contiguous and a.ndim
+                    and a.dtype.names is None):  # a short header: format 1.0
+                np.lib.format.write_array_header_1_0(
+                    f, np.lib.format.header_data_from_array_1_0(a))
+                f.write(memoryview(a.reshape(-1).view(np.uint8)))
+            else:
+                np.lib.format.write_array(f, a, allow_pickle=False)
 
 
 def fsync_dir(folder: str) -> None:

@@ -144,9 +144,8 @@ def read_npz(path) -> dict:
     """Every array of the NPZ archive at `path`, read, with the archive closed. An archive
     left open (`np.load` without `with`) is closed by the garbage collector whenever it
     runs, and pytest then fails the test running at that moment with the
-    `ResourceWarning`. For archives the tests' own runs wrote: pickled (object) arrays
-    are read too, as the command line's `trajectory.npz` holds one."""
-    with np.load(path, allow_pickle=True) as f:
+    `ResourceWarning`. No archive the package writes holds a pickled (object) array."""
+    with np.load(path, allow_pickle=False) as f:
         return {k: f[k] for k in f.files}
 
 

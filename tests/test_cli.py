@@ -66,8 +66,10 @@ def test_simulate_writes_files(sim_dir):
     assert summary["max_current"]["A"] > 0
 
     traj = read_npz(sim_dir / "trajectory.npz")
-    fields = {f for f in pj.Trajectory.__dataclass_fields__} - {"extras"}
-    assert fields <= set(traj)  # extras: under their own names (none when sensored)
+    # extras: under their own names (none when sensored); the x-y subspace only for a dual
+    # three-phase drive
+    fields = {f for f in pj.Trajectory.__dataclass_fields__} - {"extras", "i_xy", "u_xy"}
+    assert fields <= set(traj) and not {"i_xy", "u_xy"} & set(traj)
     assert traj["t"].shape == (summary["steps"],)
     assert traj["i_dq"].shape == (summary["steps"], 2)
     assert int(traj["status"]) == 0

@@ -314,3 +314,45 @@ def test_constructor_and_require_messages():
         data.require(("i_ab", "w_m"))
     with pytest.raises(ValueError, match="must be a `RecordedData`"):
         pj.save_recording("x.npz", {"t": t})
+
+
+def test_npz_files_read_as_np_savez_writes_them(tmp_path):
+    """`save_npz` (every `.npz` the package writes) against NumPy's own `np.savez`: the
+    same members, dtypes, shapes and bytes, for arrays written from their own memory
+    (large, C-contiguous) and as NumPy writes them (small, strided, Fortran-ordered,
+    0-d, empty, structured, strings), to a path, an open file and an open zip."""
+    import zipfile
+
+    from pmsmjax._files import _NPZ_DIRECT_BYTES, save_npz
+
+    rng = np.random.default_rng(1)
+    big = _NPZ_DIRECT_BYTES // 8 + 3
+    arrays = {
+        "f8": rng.normal(size=big), "f4_2d": rng.normal(size=(big // 4, 4)).astype(np.float32),
+        "i8": rng.integers(-100, 100, size=big).astype(np.int8),
+        "b": rng.normal(size=_NPZ_DIRECT_BYTES + 1) > 0,
+        "c16": rng.normal(size=big) + 1j * rng.normal(size=big),
+        "u_big": np.array(["ab", "c\u00e9"] * (_NPZ_DIRECT_BYTES // 8)),
+        "strided": rng.normal(size=2 * big)[::2], "fortran": np.asfortranarray(
+            rng.normal(size=(300, 300))), "scalar": np.float64(2.5), "zero_d": np.array(7),
+        "empty": np.zeros((0, 3)), "text": np.str_("observer"),
+        "rec": np.zeros(3, dtype=[("a", "<f8"), ("b", "<i4")]),
+        "big_endian": rng.normal(size=big).astype(">f8"),
+    }
+    np.savez(tmp_path / "ref.npz", **arrays)
+    save_npz(tmp_path / "path.npz", arrays)
+    with open(tmp_path / "file.npz", "wb") as f:
+        save_npz(f, arrays)
+    with zipfile.ZipFile(tmp_path / "zip.npz", "w", zipfile.ZIP_STORED, allowZip64=True) as z:
+        save_npz(None, arrays, zip_file=z)
+    with np.load(tmp_path / "ref.npz", allow_pickle=False) as ref:
+        want = {k: ref[k] for k in ref.files}
+    for name in ("path", "file", "zip"):
+        with np.load(tmp_path / f"{name}.npz", allow_pickle=False) as got:
+            assert got.files == list(want), name
+            for k, a in want.items():
+                b = got[k]
+                assert (b.dtype, b.shape) == (a.dtype, a.shape), (name, k)
+                assert b.tobytes() == a.tobytes(), (name, k)
+    with pytest.raises(ValueError, match="'obj' holds Python objects"):
+        save_npz(tmp_path / "obj.npz", {"obj": np.array([{}, None], dtype=object)})

@@ -96,8 +96,8 @@ def test_commands_in_the_worker_equal_commands_in_their_own_process(worker_env, 
     modes = {os.stat(tmp_path / d / "out/trajectory.npz").st_mode & 0o777 for d in "wa"}
     assert modes == {0o640}, modes
     assert _info(worker_env)[0]["commands"] == len(cases) + 1
-    with np.load(tmp_path / "w/out/trajectory.npz", allow_pickle=True) as fw, \
-            np.load(tmp_path / "a/out/trajectory.npz", allow_pickle=True) as fa:
+    with np.load(tmp_path / "w/out/trajectory.npz", allow_pickle=False) as fw, \
+            np.load(tmp_path / "a/out/trajectory.npz", allow_pickle=False) as fa:
         assert sorted(fw.files) == sorted(fa.files)
         for k in fw.files:
             np.testing.assert_array_equal(fw[k], fa[k])

@@ -28,6 +28,8 @@ import zipfile
 import equinox as eqx
 import numpy as np
 
+from .._files import save_npz
+
 
 #: The span (s) of the centred difference that derives a speed from a logged angle
 #: (`centred_speed`) where a log has no speed: convert's layout default, identify's.
@@ -453,8 +455,7 @@ def save_recording(path, data: RecordedData) -> None:
     ext = _extension(path)
     arrays = data.arrays()
     if ext == ".npz":
-        with open(path, "wb") as f:
-            np.savez(f, **arrays)
+        save_npz(path, arrays)
         return
     header, columns = [], []
     for name, a in arrays.items():

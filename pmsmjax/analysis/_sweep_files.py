@@ -1,6 +1,6 @@
 """The files of a sweep in its `out_dir` ([`run_sweep`][]). Each is written atomically (to
 a hidden temporary file in the same folder, then `os.replace`); the chunk files and
-`result.npz` are flushed to the disk (`np.savez`, uncompressed):
+`result.npz` are flushed to the disk (`save_npz`: uncompressed, as `np.savez` writes):
 
 - `chunk_000000.npz`, `chunk_000001.npz`, ...: the outputs of the points of one chunk
   (padding removed), plus `__fingerprint__`, `__metadata__` (the user metadata as JSON),
@@ -41,7 +41,7 @@ import zipfile
 import jax
 import numpy as np
 
-from .._files import atomic_write, fsync_dir
+from .._files import atomic_write, fsync_dir, save_npz
 
 
 _FORMAT = "pmsmjax-sweep/1"
@@ -89,7 +89,7 @@ def _write_chunk(out_dir, i, arrays, fingerprint, metadata_json, start, stop, ch
         "__stop__": np.array(stop),
     }
     atomic_write(os.path.join(out_dir, _chunk_name(i)),
-                 lambda f: np.savez(f, **arrays, **meta), durable=True)
+                 lambda f: save_npz(f, {**arrays, **meta}), durable=True)
 
 
 def _load_outputs(path, out_names, fingerprint, what: str) -> dict[str, np.ndarray]:
@@ -189,8 +189,9 @@ def _grid_arrays(host_grid, shape) -> dict[str, np.ndarray]:
 
 
 class _ResultFile:
-    """`result.npz` (as `np.savez` writes it: uncompressed `.npy` members of a zip file),
-    written in parts to a hidden temporary file that is renamed when complete."""
+    """`result.npz` (uncompressed `.npy` members of a zip file, as `np.savez` writes it;
+    by `save_npz`), written in parts to a hidden temporary file that is renamed when
+    complete."""
 
     def __init__(self, out_dir):
         self.path = os.path.join(out_dir, _RESULT)
@@ -209,9 +210,7 @@ class _ResultFile:
         self.started = writer.submit(self.write, arrays)
 
     def write(self, arrays):
-        for name, a in arrays.items():
-            with self.zip.open(name + ".npy", "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, np.asanyarray(a), allow_pickle=False)
+        save_npz(None, arrays, zip_file=self.zip)
 
     def commit(self, arrays, *, durable):
         """Write the rest, close, flush to the disk if `durable`, and rename."""

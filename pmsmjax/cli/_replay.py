@@ -11,7 +11,7 @@ import numpy as np
 
 import pmsmjax as pj
 
-from .._files import write_json
+from .._files import save_npz, write_json
 from ._command import Command
 from ._design import add_design_option, observer_with_design
 from ._drive_options import (
@@ -168,8 +168,7 @@ def replay_command(args: argparse.Namespace) -> int:
                           w_m=data.w_m, tau_L=data.tau_L, theta_hat=theta_hat, w_hat=w_hat)
     # The recorded-data arrays (`pj.load_recording` reads them back) and every extra of the
     # Estimate under its name; plain arrays, no pickled objects.
-    with open(files["data"], "wb") as f:
-        np.savez(f, **rec.arrays(), **extras)
+    save_npz(files["data"], {**rec.arrays(), **extras})
     stats = pj.replay_stats(data.t, theta_hat, w_hat, data.theta, data.w_m, t_settle=t_settle)
     finite = bool(np.all(np.isfinite(theta_hat)) and np.all(np.isfinite(w_hat)))
     if data.theta is not None:

@@ -15,7 +15,7 @@ import numpy as np
 
 import pmsmjax as pj
 
-from .._files import write_json
+from .._files import save_npz, write_json
 from ._command import Command
 from ._design import add_design_option, observer_with_design
 from ._drive_options import (
@@ -194,15 +194,17 @@ def simulate_command(args: argparse.Namespace) -> int:
         observer_u_dt=args.observer_u_dt)
 
     ok = bool(traj.ok)
+    # every array of the trajectory (a three-phase drive has no x-y current: no `i_xy`,
+    # where NumPy pickled a None before)
     arrays = {f.name: np.asarray(getattr(traj, f.name)) for f in dataclasses.fields(traj)
-              if f.name not in ("status", "extras")}
+              if f.name not in ("status", "extras") and getattr(traj, f.name) is not None}
     arrays.update({k: np.asarray(v) for k, v in traj.extras.items()})
     files = {
         "trajectory": os.path.join(out, "trajectory.npz"),
         "recording": os.path.join(out, "recording.npz"),
         "summary": os.path.join(out, "summary.json"),
     }
-    np.savez(files["trajectory"], **arrays, status=np.asarray(traj.status._value))
+    save_npz(files["trajectory"], {**arrays, "status": np.asarray(traj.status._value)})
     pj.save_recording(files["recording"], pj.RecordedData.from_trajectory(traj))
     if not args.no_plot:
         from pmsmjax.plotting import plot_trajectory
