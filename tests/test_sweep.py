@@ -113,6 +113,13 @@ def test_matches_vmap_and_trims_padding(tmp_path):
         r = np.asarray(ref[k])
         assert out[k].shape == (*grid.shape, *r.shape[1:])
         np.testing.assert_allclose(out[k].reshape(r.shape), r, rtol=1e-12, atol=0)
+    # The product grid's points are made on the devices from its axes; the same points
+    # sent from the host (a plain dict) give the same outputs bit for bit.
+    sent = run_sweep(sweep_fn, dict(grid), out_dir=tmp_path / "sent", chunk_size=16,
+                     progress=False, mesh=cpu_mesh(),
+                     metadata={"model": "dq + filter", "T": T})
+    for k in ref:
+        assert sent[k].tobytes() == out[k].tobytes(), k
     # Chunks of 16 points; the last one (105 = 6 * 16 + 9) has 9 real points.
     assert [(i.index, i.start, i.stop) for i in infos] == [
         (i, 16 * i, min(16 * i + 16, 105)) for i in range(7)
@@ -383,8 +390,6 @@ def test_a_product_grid_is_identified_by_its_axes(tmp_path):
     assert _hash_grid(dict(same), same.shape, same.product_axes()) == h
     other = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.5]))
     assert _hash_grid(dict(other), other.shape, other.product_axes()) != h
-    # float32 sweeps hash the axes as converted
-    assert _hash_grid(dict(grid), grid.shape, grid.product_axes(), np.float32) != h
     changed = SweepGrid(dict(grid), shape=grid.shape, axes=grid.axes)
     assert changed.product_axes() is None  # not made by grid_product
     replaced = grid_product(a=np.linspace(0, 1, 5), b=np.array([1.0, 2.0]))
@@ -399,6 +404,9 @@ def test_a_product_grid_is_identified_by_its_axes(tmp_path):
     np.testing.assert_array_equal(again["y"], first["y"])
     with pytest.raises(ValueError, match=r"differs in: grid\)"):
         run_sweep(simple_fn, replaced, **kw)
+    # a float32 sweep hashes the axes as converted: another sweep
+    with pytest.raises(ValueError, match=r"differs in: grid"):
+        run_sweep(simple_fn, grid, dtype=np.float32, **kw)
 
 
 def test_mismatched_resume_raises(tmp_path):

@@ -28,9 +28,10 @@ the source of truth while a sweep runs, and running a complete sweep again reads
 **Several hosts.** Start the same script on every host and call
 `jax.distributed.initialize()` before any other JAX call (on SLURM or Cloud TPU it finds
 the coordinator itself; otherwise pass `coordinator_address="host0:1234"`,
-`num_processes=P` and `process_id=p`). Every process must build the same grid. Each process
-places the slices of every chunk that belong to its own devices
-(`jax.make_array_from_callback`), the chunk runs SPMD over all devices, and the outputs are
+`num_processes=P` and `process_id=p`). Every process must build the same grid. The points
+of a product grid (`grid_product`) are made on the devices from its axes; of any other
+grid, each process places the slices of every block that belong to its own devices
+(`jax.make_array_from_callback`). The chunk runs SPMD over all devices, and the outputs are
 gathered on every process (`multihost_utils.process_allgather`). Only process 0 writes
 files and shows the progress bar; its decisions on resuming and its automatic chunk size
 are broadcast to the others.
@@ -104,8 +105,9 @@ class ChunkInfo:
     - `seconds`: wall time of the chunk (s); `None` when loaded.
     - `n_nonfinite`: points of the chunk with a NaN or inf in any output.
     - `n_failed`: points with a non-zero `status` output; `None` if `fn` returns no status.
-    - `input_sharding`, `output_sharding`: the actual shardings of the chunk's device input
-      and output arrays (one leaf each); `None` when loaded.
+    - `input_sharding`, `output_sharding`: the shardings of the chunk's points on the
+      devices (those of a product grid are made there, from its axes) and of its output
+      arrays (one leaf each); `None` when loaded.
     """
 
     index: int
@@ -347,7 +349,7 @@ def _compute(spec, block, scan, manifest, old_chunks, results, progress, on_chun
         t0 = time.perf_counter()
         compiled = _compiled_chunk_fn(spec.fn, spec.closed_jaxpr, spec.out_treedef,
                                       spec.parts["fn"], spec.mesh, block, spec.batch_size,
-                                      spec.host_grid)
+                                      spec.host_grid, spec.axes, spec.shape)
         manifest["compile_seconds"] = time.perf_counter() - t0
         pbar = _make_pbar(progress and is_writer, spec.n_points, n_done_points)
         devices = _Devices(spec, compiled, block, results, pbar, manifest)
@@ -391,12 +393,12 @@ def _compute(spec, block, scan, manifest, old_chunks, results, progress, on_chun
 def _first_block(spec, devices, block, manifest):
     """The automatic chunk size: time the first block, then make a chunk as many blocks as
     last about `_AUTO_CHUNK_SECONDS`, within `_AUTO_CHUNK_BYTES` of outputs; process 0
-    decides for all. Returns `(stop, inputs, leaves, t)`: the first block's end, its
-    device inputs and outputs, and when it began (`time.perf_counter`, s)."""
+    decides for all. Returns `(stop, in_sharding, leaves, t)`: the first block's end, the
+    sharding of its points, its outputs, and when it began (`time.perf_counter`, s)."""
     n_points = spec.n_points
     e0 = min(block, n_points)
     t_first = time.perf_counter()
-    inputs0, out0 = devices.dispatch(0, 0, e0)
+    in_sharding0, out0 = devices.dispatch(0, 0, e0)
     leaves0 = devices.collect(0, 0, e0, out0)
     seconds = time.perf_counter() - t_first
     size = _auto_chunk_size(n_points, block, seconds, spec.out_bytes)
@@ -405,7 +407,7 @@ def _first_block(spec, devices, block, manifest):
     manifest["chunk_size"] = size
     manifest["n_chunks"] = math.ceil(n_points / size)
     manifest["first_block_seconds"] = seconds
-    return e0, inputs0, leaves0, t_first
+    return e0, in_sharding0, leaves0, t_first
 
 
 def _plan_blocks(spec, manifest, todo, block, first):
@@ -431,20 +433,20 @@ def _run_blocks(devices, chunks, queue):
         while queue and len(in_flight) < _DEPTH:
             i, s, e = queue.popleft()
             try:
-                inputs, out = devices.dispatch(i, s, e)
+                in_sharding, out = devices.dispatch(i, s, e)
             except Exception:
                 while in_flight:  # keep the blocks started before, which did succeed
                     _next_block(devices, chunks, in_flight)
                 raise
-            in_flight.append((i, s, e, inputs, out))
+            in_flight.append((i, s, e, in_sharding, out))
         _next_block(devices, chunks, in_flight)
 
 
 def _next_block(devices, chunks, in_flight):
     """Wait for the oldest block on the devices and hand it to its chunk."""
-    i, s, e, inputs, out = in_flight.popleft()
+    i, s, e, in_sharding, out = in_flight.popleft()
     leaves = devices.collect(i, s, e, out)
-    chunks.block_done(i, s, e, inputs, leaves)
+    chunks.block_done(i, s, e, in_sharding, leaves)
 
 
 class _Chunks:
@@ -474,13 +476,13 @@ class _Chunks:
         self.n_chunks, self.remaining = n_chunks, remaining
         self.last = todo[-1] if todo else None
         self.t_begin, self.last_manifest_write = t_begin, t_start
-        # chunk -> device inputs and outputs of its first block
+        # chunk -> the sharding of the points and the outputs of its first block
         self.io = {} if first is None else {0: first[1:3]}
         self.prev = None  # (info, extra, future of the file write) of the last finished chunk
 
-    def block_done(self, i, s, e, inputs, leaves):
+    def block_done(self, i, s, e, in_sharding, leaves):
         """The block [s, e) of chunk i is collected; the chunk is done with its last."""
-        self.io.setdefault(i, (inputs, leaves))
+        self.io.setdefault(i, (in_sharding, leaves))
         self.remaining[i] -= e - s
         if self.remaining[i] == 0:
             self.chunk_done(i)
@@ -491,12 +493,12 @@ class _Chunks:
         n = stop - start
         chunk = [r[start:stop] for r in self.results]
         n_nonfinite, n_failed = self.bad.pop(i)
-        inputs, leaves = self.io.pop(i)
+        in_sharding, leaves = self.io.pop(i)
         now = time.perf_counter()
         seconds, self.t_begin = now - self.t_begin, now
         info = ChunkInfo(
             i, start, stop, False, seconds, n_nonfinite, n_failed,
-            input_sharding=next(iter(inputs.values())).sharding,
+            input_sharding=in_sharding,
             output_sharding=leaves[0].sharding if leaves else None,
         )
         extra = {

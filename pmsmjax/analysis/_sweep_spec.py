@@ -10,6 +10,7 @@ import collections
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import re
 from collections.abc import Callable
@@ -23,6 +24,10 @@ from jax.sharding import Mesh
 from ._sweep_grid import SweepGrid, _canonical_metadata, _validate_grid
 
 
+# Product grids up to this many points are made on the devices from their axes with
+# 32-bit point indices where JAX has no 64-bit integers (float64 off); larger ones are
+# then sent to the devices point by point.
+_MAX_INDEXED_POINTS = 2**31 - 2**24
 # Hashes of the printed jaxprs kept (`_hash_jaxpr`), as many as compiled sweep functions
 # (`pmsmjax.analysis._sweep_devices`).
 _JAXPR_CACHE_SIZE = 8
@@ -35,6 +40,9 @@ class _SweepSpec:
     - `fn`, `closed_jaxpr`: the per-point function, and its trace on one abstract point.
     - `host_grid`: the checked grid, a `dict` of 1-D NumPy arrays of length `n_points`;
       `shape`: the grid shape of a `SweepGrid`, else None.
+    - `axes`: for a product of axes (`SweepGrid.product_axes`), the checked axes, from
+      which the devices make each block's points themselves; else None (the points are
+      sent to the devices block by block).
     - `out_names`, `out_specs`, `out_treedef`: the outputs' names in the files, their
       per-point shapes and dtypes, and the PyTree structure that `fn` returns;
       `status_leaves`: the indices of the integer `status` outputs.
@@ -49,6 +57,7 @@ class _SweepSpec:
     closed_jaxpr: Any
     host_grid: dict[str, np.ndarray]
     shape: tuple[int, ...] | None
+    axes: dict[str, np.ndarray] | None
     n_points: int
     out_names: list[str]
     out_specs: list[jax.ShapeDtypeStruct]
@@ -78,7 +87,18 @@ def _sweep_spec(fn, grid, *, out_dir, chunk_size, batch_size, metadata, mesh, dt
     if not callable(fn):
         raise TypeError(f"`run_sweep(fn=...)` must be callable; got {type(fn).__name__}.")
     shape = grid.shape if isinstance(grid, SweepGrid) else None
-    host_grid, n_points = _validate_grid(grid, dtype=dtype, allow_nonfinite=allow_nonfinite)
+    product = grid.product_axes() if isinstance(grid, SweepGrid) else None
+    if product is None:
+        axes = None
+        host_grid, n_points = _validate_grid(grid, dtype=dtype,
+                                             allow_nonfinite=allow_nonfinite)
+    else:
+        # the points are the product of the axes: the axes are checked and converted (a
+        # 2001 x 2001 grid: 4,002 values instead of 8 M), the points take their dtypes
+        axes = {k: _validate_grid({k: a}, dtype=dtype, allow_nonfinite=allow_nonfinite)[0][k]
+                for k, a in product.items()}
+        host_grid = {k: np.ascontiguousarray(grid[k], dtype=axes[k].dtype) for k in grid}
+        n_points = math.prod(shape)
     auto = chunk_size is None
     if not auto:
         if isinstance(chunk_size, bool) or not isinstance(chunk_size, int | np.integer):
@@ -118,8 +138,7 @@ def _sweep_spec(fn, grid, *, out_dir, chunk_size, batch_size, metadata, mesh, dt
     ]
 
     parts = {
-        "grid": _hash_grid(host_grid, shape, grid.product_axes()
-                           if isinstance(grid, SweepGrid) else None, dtype),
+        "grid": _hash_grid(host_grid, shape, axes),
         # the automatic size is chosen once and kept in the manifest and the chunk files
         "chunk_size": "auto" if auto else str(chunk_size),
         "outputs": _hash_text(
@@ -131,6 +150,8 @@ def _sweep_spec(fn, grid, *, out_dir, chunk_size, batch_size, metadata, mesh, dt
     fingerprint = _hash_text(json.dumps(parts, sort_keys=True))
     return _SweepSpec(
         fn=fn, closed_jaxpr=closed_jaxpr, host_grid=host_grid, shape=shape,
+        axes=axes if axes is None or n_points <= _MAX_INDEXED_POINTS
+        or jax.config.jax_enable_x64 else None,  # 32-bit indices would overflow
         n_points=n_points, out_names=out_names, out_specs=out_specs, out_treedef=out_treedef,
         status_leaves=status_leaves, parts=parts, fingerprint=fingerprint,
         metadata_json=metadata_json, auto=auto, chunk_size=chunk_size, batch_size=batch_size,
@@ -146,21 +167,18 @@ def _hash_text(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _hash_grid(host_grid, shape, axes=None, dtype=None) -> str:
+def _hash_grid(host_grid, shape, axes=None) -> str:
     """The grid's fingerprint: of its points, or of its axes for a product of them
-    (`SweepGrid.product_axes`; the points are then that product, and the axes converted
-    as the points were: a 2001 x 2001 x 1 grid hashes 16 kB instead of 96 MB)."""
+    (`SweepGrid.product_axes`, converted as the points were; the points are then that
+    product: a 2001 x 2001 x 1 grid hashes 16 kB instead of 96 MB)."""
     h = hashlib.sha256()
     h.update(json.dumps(list(shape) if shape is not None else None).encode())
+    arrays = host_grid
     if axes is not None:
         h.update(b"product of axes")
-        for key in sorted(axes):  # each converted as its points were (`_validate_grid`)
-            a = _validate_grid({key: axes[key]}, dtype=dtype, allow_nonfinite=True)[0][key]
-            h.update(json.dumps([key, a.dtype.str, a.size]).encode())
-            h.update(memoryview(a).cast("B"))
-        return h.hexdigest()
-    for key in sorted(host_grid):
-        a = host_grid[key]
+        arrays = axes
+    for key in sorted(arrays):
+        a = arrays[key]
         h.update(json.dumps([key, a.dtype.str, a.size]).encode())
         h.update(memoryview(a).cast("B"))  # the bytes of `a.tobytes()`, without a copy
     return h.hexdigest()
@@ -232,16 +250,19 @@ def _output_names(out_paths) -> list[str]:
 
 def _count_bad(arrays, status_leaves, n) -> tuple[int, int | None]:
     """Points (of the first `n`) with a non-finite output, and with a non-zero status."""
+    def per_point(flags):  # (n, ...) -> (n,): any flag of the point (one per point: as is)
+        return flags if flags.ndim == 1 else flags.reshape(n, -1).any(axis=1)
+
     nonfinite = np.zeros(n, dtype=bool)
     for a in arrays:
         if np.issubdtype(a.dtype, np.inexact):
-            nonfinite |= ~np.isfinite(a.reshape(n, -1)).all(axis=1)
+            nonfinite |= per_point(~np.isfinite(a))
     if not status_leaves:
-        return int(nonfinite.sum()), None
+        return int(np.count_nonzero(nonfinite)), None
     failed = np.zeros(n, dtype=bool)
     for i in status_leaves:
-        failed |= (arrays[i].reshape(n, -1) != 0).any(axis=1)
-    return int(nonfinite.sum()), int(failed.sum())
+        failed |= per_point(arrays[i] != 0)
+    return int(np.count_nonzero(nonfinite)), int(np.count_nonzero(failed))
 
 
 def _output_tree(results, shape, out_treedef):
