@@ -13,7 +13,7 @@ import time
 import jax
 import numpy as np
 
-from .._files import json_safe, json_text
+from .._files import json_safe, json_text, save_npz
 from ._command import Command
 from ._drive_options import add_drive_options, drive_from_args, motor_text
 from ._observer_options import MODEL_PARAMETERS, add_observer_options, observer_from_args
@@ -241,12 +241,6 @@ def _point_key(choice, drive, x_name, y_name, i_pu) -> str:
     return h.hexdigest()
 
 
-def _small_ints(a: np.ndarray) -> np.ndarray:
-    """Counts as int8 where they fit (a quarter of the file's int32), else as int32."""
-    return a.astype(np.int8 if a.size == 0 or (a.min() >= 0 and a.max() <= 127)
-                    else np.int32, copy=False)
-
-
 def _map(choice, drive, speeds, x, y, i_pu, settings):
     """The `FeasibilityMap` over `speeds` (p.u.), evaluated point by point by `run_sweep`
     (chunked, resumable, sharded over every device of every process); `(map, chunk
@@ -263,10 +257,12 @@ def _map(choice, drive, speeds, x, y, i_pu, settings):
 
         def point(p):
             # what the command writes, in its units and types (the angles in degrees,
-            # the status codes -1..2 as int8): the sweep holds and stores no more than that
+            # the status codes -1..2 as int8, the counts of non-principal equilibria as
+            # int8 where their slots, `theta`'s, fit): the sweep holds and stores no more
             res = fn(p)
+            count = jnp.int8 if res.theta.shape[-1] < 127 else jnp.int32
             return {"design_status": res.status.astype(jnp.int8),
-                    "n_nonzero": res.n_nonzero.astype(jnp.int32),
+                    "n_nonzero": res.n_nonzero.astype(count),
                     "stable_theta_deg": jnp.degrees(res.stable_theta),
                     "principal_stable": res.principal_stable,
                     "principal_theta_deg": jnp.degrees(res.principal_theta)}
@@ -349,7 +345,7 @@ def feasibility_command(args: argparse.Namespace) -> int:
     # rows follow y (zhang2022 Fig. 1: ratio vertical, zeta1 horizontal)
     per_design = {
         "status": status[:, 0].transpose(0, 2, 1).astype(np.int8, copy=False),
-        "n_nonzero": _small_ints(np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1)),
+        "n_nonzero": np.asarray(fm.n_nonzero)[:, 0].transpose(0, 2, 1),
         "stable_theta_deg": np.asarray(fm.stable_theta_deg)[:, 0].transpose(0, 2, 1),
         "principal_stable": np.asarray(fm.principal_stable)[:, 0].transpose(0, 2, 1),
         "principal_theta_deg": np.asarray(fm.principal_theta_deg)[:, 0].transpose(0, 2, 1),
@@ -377,7 +373,7 @@ def feasibility_command(args: argparse.Namespace) -> int:
         if k not in inputs and k not in per_design and np.ndim(v) == 0:
             inputs[k] = np.float64(v)  # the fixed design parameters, e.g. zeta2, w2
     files = {"data": os.path.join(out, "feasibility.npz")}
-    np.savez(files["data"], **per_design, **inputs)
+    save_npz(files["data"], {**per_design, **inputs})
 
     plot_note = ""
     if not args.no_plot:
@@ -392,12 +388,12 @@ def feasibility_command(args: argparse.Namespace) -> int:
     print(sweep_line)
     for i, s in enumerate(speeds):
         st = status[i, 0]
-        counts = ", ".join(f"{STATUS[c]} {int(np.sum(st == c))}" for c in (0, 1, 2, -1))
-        line = f"speed {s:g} p.u.: {counts}"
-        th = np.asarray(fm.stable_theta_deg)[i, 0]
-        th = th[np.isfinite(th)]
-        if th.size:
-            line += f"; static error of infeasible designs {th.min():.3g}..{th.max():.3g} deg"
+        counts = {c: int(np.count_nonzero(st == c)) for c in (0, 1, 2, -1)}
+        line = f"speed {s:g} p.u.: " + ", ".join(f"{STATUS[c]} {n}" for c, n in counts.items())
+        if counts[1]:  # the static errors: finite exactly at the infeasible designs
+            th = np.asarray(fm.stable_theta_deg)[i, 0]
+            line += (f"; static error of infeasible designs {np.nanmin(th):.3g}.."
+                     f"{np.nanmax(th):.3g} deg")
         if s == 0.0:
             line += " (standstill)"
         print(line)
