@@ -63,6 +63,7 @@ from ._lock import (
     lock_basin as lock_basin,
     lock_time as lock_time,
 )
+from ._noise import SensorNoise as SensorNoise, sensor_noise as sensor_noise
 from ._quartic import (
     quartic_coefficients as quartic_coefficients,
     quartic_equilibria as quartic_equilibria,
