@@ -30,35 +30,70 @@ def _wrap(x):
     return np.angle(np.exp(1j * x))
 
 
-@pytest.mark.parametrize("name, motor, sigma", [("eso", "zhang750", 0.05),
-                                                ("c-leso", "li_dtp", 0.05)])
-def test_noise_and_static_error_against_noisy_replays(name, motor, sigma):
+def _noisy_replays(name, motor, sigma, speed_pu, seeds=16, n=8000):
+    """`(analysis, true angles, clean replay, noisy replays)` of `name`'s paper design on
+    `motor` at `speed_pu` with i_q = 0.5 p.u. and `sigma` A of noise per axis."""
     import jax
 
     drive = pj.preset(motor)
     obs = make_observer(name, drive)
-    w, T_s, n, seeds = 0.5 * float(drive.w_rated), 1e-4, 8000, 16
+    w, T_s = speed_pu * float(drive.w_rated), 1e-4
     i0 = np.array([0.0, 0.5 * float(drive.base.I_b)])
     res = analysis.sensor_noise(obs, drive, analysis.OperatingPoint(w, i0), T_s, sigma)
     assert bool(res.stable) and float(res.spectral_radius) < 1
     t, u_ab, i_ab, th = _recording(drive, w, i0, T_s, n)
     clean = [np.asarray(a) for a in pj.replay(obs, t, u_ab, i_ab, theta0=0.0, w0=w)]
     noise = sigma * np.random.default_rng(3).standard_normal((seeds, n, 2))
-    th_n, w_n = (np.asarray(a) for a in jax.vmap(
-        lambda v: pj.replay(obs, t, u_ab, i_ab + v, theta0=0.0, w0=w))(noise))
-    k0 = n // 2  # settled (the slowest mode: spectral radius below 0.9975 here)
-    assert float(res.spectral_radius) ** k0 < 1e-8
-    # the static error of the clean replay, settled to 1e-9 rad
-    static = _wrap(th[k0:] - clean[0][k0:])
-    np.testing.assert_allclose(static, float(res.theta_static), atol=1e-9)
-    # the noise: RMS over seeds; the tolerance is three standard errors of the seeds'
-    # mean square (their spread measured here; below 10 % for the check to mean something)
+    noisy = [np.asarray(a) for a in jax.vmap(
+        lambda v: pj.replay(obs, t, u_ab, i_ab + v, theta0=0.0, w0=w))(noise)]
+    return res, th, clean, noisy, w
+
+
+def _rms_and_tolerance(x):
+    """RMS over the seeds (rows) and three standard errors of it, relative, from the
+    seeds' spread of the mean square (below 10 % for the check to mean something)."""
+    ms = np.mean(x ** 2, axis=1)
+    rel = 3 * ms.std(ddof=1) / np.sqrt(len(ms)) / ms.mean() / 2
+    assert rel < 0.1
+    return np.sqrt(ms.mean()), rel
+
+
+# The FA-LESO's case failed before the PLL's acquisition assist took its direction from
+# the speed estimate (pmsmjax.observers._pll): its replays were 140 times noisier than
+# the first-order figure and its speed estimate 9 rad/s low.
+@pytest.mark.parametrize("name, motor", [("eso", "zhang750"), ("c-leso", "li_dtp"),
+                                         ("fa-leso", "li_dtp")])
+def test_noise_and_static_error_against_noisy_replays(name, motor):
+    res, th, clean, (th_n, w_n), w = _noisy_replays(name, motor, 0.05, 0.5)
+    k0 = len(th) // 2
+    # the static error of the clean replay, where its start has decayed below 1e-9 rad
+    # (the FA-LESO's slowest mode, spectral radius 0.999992, has not: its own check is
+    # the noise's, on the difference to the clean replay)
+    if float(res.spectral_radius) ** k0 < 1e-9:
+        np.testing.assert_allclose(_wrap(th[k0:] - clean[0][k0:]), float(res.theta_static),
+                                   atol=1e-9)
     for got, want in ((_wrap(th_n[:, k0:] - clean[0][k0:]), float(res.theta_rms)),
                       (w_n[:, k0:] - clean[1][k0:], float(res.w_rms))):
-        ms = np.mean(got ** 2, axis=1)
-        rel = 3 * ms.std(ddof=1) / np.sqrt(seeds) / ms.mean() / 2  # of the RMS
-        assert rel < 0.1
-        np.testing.assert_allclose(np.sqrt(ms.mean()), want, rtol=rel)
+        rms, rel = _rms_and_tolerance(got)
+        np.testing.assert_allclose(rms, want, rtol=rel)
+
+
+def test_the_li_observers_keep_the_angle_at_low_speed_under_noise():
+    """At 0.1 p.u. with 0.05 A of noise (0.6 % of the base current) the C-LESO lost the
+    angle (75-110 deg RMS, as did the GI- and FA-LESO) while the assist's gate took its
+    direction from one sample's rotation. Now it holds, and what second order leaves
+    (the back-EMF is a fifth of 0.5 p.u.'s) is small against the first-order noise:
+    measured, a speed bias of 0.29 of the first-order speed noise, the mean angle 0.08
+    of the first-order angle noise off the static error, the angle noise 4.2 % above the
+    first-order figure; checked at 0.5, 0.25 and 10 % (the old code misses each by
+    orders of magnitude)."""
+    res, th, clean, (th_n, w_n), w = _noisy_replays("c-leso", "li_dtp", 0.05, 0.1)
+    k0 = len(th) // 2
+    assert abs(np.mean(w_n[:, k0:] - clean[1][k0:])) < 0.5 * float(res.w_rms)
+    err = _wrap(th[k0:] - th_n[:, k0:])
+    assert abs(err.mean() - float(res.theta_static)) < 0.25 * float(res.theta_rms)
+    rms, _ = _rms_and_tolerance(_wrap(th_n[:, k0:] - clean[0][k0:]))
+    np.testing.assert_allclose(rms, float(res.theta_rms), rtol=0.1)
 
 
 def test_the_c_leso_lag_is_its_equilibrium_and_noise_scales_with_sigma():
