@@ -58,11 +58,19 @@ def _rms_and_tolerance(x):
     return np.sqrt(ms.mean()), rel
 
 
-# The FA-LESO's case failed before the PLL's acquisition assist took its direction from
-# the speed estimate (pmsmjax.observers._pll): its replays were 140 times noisier than
-# the first-order figure and its speed estimate 9 rad/s low.
-@pytest.mark.parametrize("name, motor", [("eso", "zhang750"), ("c-leso", "li_dtp"),
-                                         ("fa-leso", "li_dtp")])
+#: The known defect the analysis found (docs/tuning.md, "What the analysis found"): the
+#: li observers' PLL assist takes its gate's direction from one sample's rotation of the
+#: back-EMF estimate, which noise flips, and so rectifies noise into a speed bias. A fix
+#: that keeps the closed-loop validation's low-speed runs is open; these cases pass with
+#: one (measured: the gate's direction from the speed estimate passes both).
+ASSIST_RECTIFIES = pytest.mark.xfail(strict=True, reason="the PLL assist rectifies noise "
+                                     "(docs/tuning.md, 'What the analysis found')")
+
+
+@pytest.mark.parametrize("name, motor", [
+    ("eso", "zhang750"), ("c-leso", "li_dtp"),
+    # replays 140 times noisier than first order, the speed estimate 9 rad/s low
+    pytest.param("fa-leso", "li_dtp", marks=ASSIST_RECTIFIES)])
 def test_noise_and_static_error_against_noisy_replays(name, motor):
     res, th, clean, (th_n, w_n), w = _noisy_replays(name, motor, 0.05, 0.5)
     k0 = len(th) // 2
@@ -78,15 +86,16 @@ def test_noise_and_static_error_against_noisy_replays(name, motor):
         np.testing.assert_allclose(rms, want, rtol=rel)
 
 
+@ASSIST_RECTIFIES
 def test_the_li_observers_keep_the_angle_at_low_speed_under_noise():
-    """At 0.1 p.u. with 0.05 A of noise (0.6 % of the base current) the C-LESO lost the
-    angle (75-110 deg RMS, as did the GI- and FA-LESO) while the assist's gate took its
-    direction from one sample's rotation. Now it holds, and what second order leaves
-    (the back-EMF is a fifth of 0.5 p.u.'s) is small against the first-order noise:
-    measured, a speed bias of 0.29 of the first-order speed noise, the mean angle 0.08
-    of the first-order angle noise off the static error, the angle noise 4.2 % above the
-    first-order figure; checked at 0.5, 0.25 and 10 % (the old code misses each by
-    orders of magnitude)."""
+    """At 0.1 p.u. with 0.05 A of noise (0.6 % of the base current) the C-LESO loses the
+    angle (75-110 deg RMS, as do the GI- and FA-LESO) while the assist's gate takes its
+    direction from one sample's rotation. With the direction from the speed estimate it
+    held, and what second order leaves (the back-EMF is a fifth of 0.5 p.u.'s) was small
+    against the first-order noise: measured, a speed bias of 0.29 of the first-order
+    speed noise, the mean angle 0.08 of the first-order angle noise off the static error,
+    the angle noise 4.2 % above the first-order figure; checked at 0.5, 0.25 and 10 %
+    (the present assist misses each by orders of magnitude)."""
     res, th, clean, (th_n, w_n), w = _noisy_replays("c-leso", "li_dtp", 0.05, 0.1)
     k0 = len(th) // 2
     assert abs(np.mean(w_n[:, k0:] - clean[1][k0:])) < 0.5 * float(res.w_rms)

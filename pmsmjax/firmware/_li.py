@@ -354,7 +354,7 @@ _PLL = """    if (s->started) {
                          ? PMSM_R(1.0) : adot) / PMSM_OBS_T_S;
         prod = PMSM_SQRT(n2p * n2 + tiny);
         mg = prod / (prod + (psi_ex * PMSM_WMIN) * (psi_ex * PMSM_WMIN));
-        g = PMSM_R(0.5) * mg * (PMSM_R(1.0) - PMSM_TANH(s->w / PMSM_WMIN) * e_q
+        g = PMSM_R(0.5) * mg * (PMSM_R(1.0) - PMSM_TANH(w_e / PMSM_WMIN) * e_q
                                 / PMSM_SQRT(n2 + tiny));
         w += (PMSM_OBS_T_S * PMSM_FLL * PMSM_WPLL) * g * (w_e - s->w);
         theta = pmsm_wrap(th_p + PMSM_OBS_T_S * k_p * e_pll);

@@ -92,35 +92,17 @@ of $\pi/T_s$; valid for $|\omega| T_s < \pi/2$), pulls the speed estimate toward
 $$\hat\omega_k \mathrel{+}= T_s\,k_f\,g_k\,(\omega_e - \hat\omega_{k-1}),\qquad
 g = \frac{m}{2}\Big(1 - \sigma\frac{\hat e_q}{|\hat e|}\Big),\quad
 m = \frac{|\hat e_{k-1}||\hat e_k|}{|\hat e_{k-1}||\hat e_k| + (\hat\psi_{ex}
-\omega_{min})^2},\quad \sigma = \tanh(\hat\omega_{k-1}/\omega_{min}),$$
+\omega_{min})^2},\quad \sigma = \tanh(\omega_e/\omega_{min}),$$
 
 $k_f$ = `fll` $\cdot\,\omega_{pll}$ (`fll = 0` switches it off), $\hat e_q = -\hat
 e_\alpha\sin\hat\theta^- + \hat e_\beta\cos\hat\theta^-$ the component along the
-estimated q axis ($= \omega\psi_{ex}\cos\tilde\theta$). With $\hat\omega$ of the
-sign of $\omega$ the gate $g$ is $\approx(1 - \cos\tilde\theta)/2$ at speed: 0 at
-lock, 1 at the false lock $\tilde\theta = \pi$, 1/2 on average while the angle slips;
-with the wrong sign it is $(1 + \cos\tilde\theta)/2$, and $\tilde\theta$ then turns at
-$2\omega$, so it is open half the time; at $\hat\omega = 0$ it is $m/2$. $m$ fades it
-out where the back-EMF (and so $\omega_e$) is too small to be trusted. From
-$\hat\omega = 0$ (or any sign) the speed estimate is pulled to $\omega$ within a few
-$1/k_f$, and then the PI loop locks the phase at $\tilde\theta = 0$ (the false lock at
-$\pi$ is unstable once $\hat\omega$ has the sign of $\omega$).
-
-*The gate's direction comes from the speed estimate, not from $\omega_e$.* $\omega_e$ is
-one sample's rotation divided by $T_s$: the back-EMF estimate's angle noise per sample
-times $\sqrt2/T_s$ (tens to hundreds of rad/s at a few tenths of a degree and
-$T_s$ = 100 us). With $\sigma = \tanh(\omega_e/\omega_{min})$, as this assist first had
-it, every sample whose noise flipped the sign of $\omega_e$ opened the gate fully at
-lock and pulled $\hat\omega$ towards that negative rotation: current-sensor noise was
-rectified into a speed bias. Measured in replays of noisy recordings on `li_dtp`
-(constant speed, i_q = 0.5 p.u.): the FA-LESO's speed estimate 9.4 rad/s low at
-0.5 p.u. with 0.05 A of noise per axis (0.6 % of the base current) and 80 rad/s low at
-0.1 A, its angle 3.7 and 23 deg off; at 0.1 p.u. the C-, GI- and FA-LESO all lost the
-angle (84-110 deg RMS) at 0.05 A. With $\sigma$ from $\hat\omega$ (filtered by the
-loop) the three hold at 0.1 p.u. (0.2-2.3 deg, the C-LESO's lag included) and follow
-`analysis.sensor_noise`'s first-order noise at 0.5 p.u.; at every equilibrium the two
-are the same ($\hat\omega = \omega_e = \omega$), and the acquisition from any angle
-and a zero or wrong-signed speed estimate is unchanged (tested).
+estimated q axis ($= \omega\psi_{ex}\cos\tilde\theta$). The gate $g$ is
+$\approx(1 - \cos\tilde\theta)/2$ at speed: 0 at lock, 1 at the false lock
+$\tilde\theta = \pi$, 1/2 on average while the angle slips; $m$ fades it out where the
+back-EMF (and so $\omega_e$) is too small to be trusted. From $\hat\omega = 0$ (or any
+sign) the speed estimate is pulled to $\omega$ within a few $1/k_f$, and then the PI
+loop locks the phase at $\tilde\theta = 0$ (the false lock at $\pi$ is unstable once
+$\hat\omega$ has the sign of $\omega$).
 
 *What the analysis sees.* At every equilibrium of the error dynamics $\hat\omega =
 \omega$ and $\hat e$ turns at $\omega$, so $\omega_e - \hat\omega = 0$: the assist
@@ -213,16 +195,15 @@ class QuadraturePLL(eqx.Module):
         k_p, k_i = self.gains()
         return w_hat + k_p * eps, k_i * eps
 
-    def fll_gate(self, e_prev, e_ab_hat, theta_hat, w_hat, psi_ex_hat, T_s):
+    def fll_gate(self, e_prev, e_ab_hat, theta_hat, psi_ex_hat, T_s):
         """The assist's `(g, w_e)`: gate `g` in [0, 1] and the back-EMF's rotation rate
         `w_e` (rad/s) between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one
-        period `T_s` (s) apart, at the angle estimate `theta_hat` (rad), speed estimate
-        `w_hat` (rad/s, the gate's direction) and model extended flux `psi_ex_hat` (V s)
-        (see "Acquisition" in the module docstring)."""
+        period `T_s` (s) apart, at the angle estimate `theta_hat` (rad) and model
+        extended flux `psi_ex_hat` (V s) (see "Acquisition" in the module docstring)."""
         _, e_q = _components(e_ab_hat, *cos_sin(theta_hat))
-        return self._gate(e_prev, e_ab_hat, e_q, w_hat, psi_ex_hat, T_s)
+        return self._gate(e_prev, e_ab_hat, e_q, psi_ex_hat, T_s)
 
-    def _gate(self, e_prev, e_ab_hat, e_q, w_hat, psi_ex_hat, T_s):
+    def _gate(self, e_prev, e_ab_hat, e_q, psi_ex_hat, T_s):
         """`fll_gate` from the back-EMF's component `e_q` along the estimated q axis; the
         two-element sums written out (a reduction is a kernel of its own on the CPU)."""
         a0, a1, b0, b1 = e_prev[..., 0], e_prev[..., 1], e_ab_hat[..., 0], e_ab_hat[..., 1]
@@ -242,7 +223,7 @@ class QuadraturePLL(eqx.Module):
         e_min2 = (psi_ex_hat * self.w_min) ** 2
         prod = jnp.sqrt(n2_prev * n2 + tiny)
         m = prod / (prod + e_min2)
-        sigma = jnp.tanh(w_hat / self.w_min)  # not w_e: one sample's noise flips it
+        sigma = jnp.tanh(w_e / self.w_min)
         g = 0.5 * m * (1.0 - sigma * e_q / jnp.sqrt(n2 + tiny))
         return g, w_e
 
@@ -259,7 +240,7 @@ class QuadraturePLL(eqx.Module):
         eps = self._detector(e_perp, e_q, w_prev, psi)
         w_k = w_prev + T_s * k_i * eps
         if e_prev is not None:
-            g, w_e = self._gate(e_prev, e_ab_hat, e_q, w_prev, psi, T_s)
+            g, w_e = self._gate(e_prev, e_ab_hat, e_q, psi, T_s)
             w_k = w_k + (T_s * self.fll * self.w_pll) * g * (w_e - w_prev)
         return wrap_angle(theta_pred + T_s * k_p * eps), w_k
 
