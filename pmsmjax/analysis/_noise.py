@@ -163,10 +163,16 @@ def _sensor_noise(observer, plant, w, i_dq, T_s, sigma):
     v0 = jnp.zeros(2, w.dtype)
     x = jnp.asarray(observer.designed_error(OperatingPoint(w, i_dq), plant), w.dtype)
     n = x.shape[0]
-    eye = jnp.eye(n, dtype=w.dtype)
-    for _ in range(_NEWTON_STEPS):  # the fixed point x = F(x, 0, 0)
-        Phi = jax.jacfwd(lambda v: fn(v, v0, v0)[0])(x)
-        x = x - jnp.linalg.solve(Phi - eye, fn(x, v0, v0)[0] - x)
+
+    def newton(_, x):  # towards the fixed point x = F(x, 0, 0); one trace of the step
+        def residual(v):
+            r = fn(v, v0, v0)[0] - v
+            return r, r
+
+        J, r = jax.jacfwd(residual, has_aux=True)(x)
+        return x - jnp.linalg.solve(J, r)
+
+    x = jax.lax.fori_loop(0, _NEWTON_STEPS, newton, x)
     (Phi, Psi, Gam), (C, E, D) = jax.jacfwd(fn, argnums=(0, 1, 2))(x, v0, v0)
     # the state with the remembered noise: z_k = (x_k, v_k), z_{k+1} = (x_{k+1}, v_{k+1})
     zero = jnp.zeros((2, n + 2), w.dtype)
