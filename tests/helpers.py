@@ -108,9 +108,10 @@ def scheduled_gains_table(drive, T_s, *, w2_factor=1.2, zeta2=1.1, verdict=None)
 
 
 def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3,
-                     acquire_s=50e-3):
+                     acquire_s=50e-3, start_locked=False):
     """`pmsmjax.lock_status` of one run by a plain loop over the samples (an independent
-    reference): `(acquired, t_acquired, lost, t_lost)`."""
+    reference): `(acquired, t_acquired, lost, t_lost)`; `start_locked`: the run starts in
+    lock (acquired at its first sample, any window out of lock is a loss)."""
     import math
 
     import numpy as np
@@ -127,9 +128,12 @@ def lock_status_loop(t, theta_err, *, ok=True, lock_deg=45.0, dwell_s=10e-3,
     m = max(1, int(round(acquire_s / dt)))
     acq = next((j for j in range(len(means))
                 if all(means[i] <= lim for i in range(j, min(j + m, len(means))))), None)
+    first = acq + 1 if acq is not None else None
+    if start_locked:
+        acq, first = 0, 0
     lost_j = None
     if acq is not None:
-        lost_j = next((j for j in range(acq + 1, len(means)) if means[j] > lim), None)
+        lost_j = next((j for j in range(first, len(means)) if means[j] > lim), None)
     first_bad = next((j for j in range(n) if bad[j]), None)
     if first_bad is not None or not ok:
         end = first_bad if first_bad is not None else n - 1

@@ -126,7 +126,8 @@ def test_metrics_equal_direct_simulate(job):
             settle = t[j][outside[-1] + 1] - t0
         assert runs["settle_s"][j] == pytest.approx(settle, abs=1e-12, nan_ok=True)
         ref = lock_status_loop(t[j], np.asarray(traj.theta_err)[j],
-                               ok=bool(np.asarray(traj.ok)[j]), lock_deg=config.lock_deg)
+                               ok=bool(np.asarray(traj.ok)[j]), lock_deg=config.lock_deg,
+                               start_locked=True)
         assert bool(runs["lost_lock"][j]) == ref[2]
     # the tiny grid is not trivial: the mismatched case moves the static error
     assert np.ptp(runs["static_deg"]) > 0.1

@@ -51,12 +51,29 @@ def test_constructed_cases():
     never = np.full(1000, 2.5)
     g = _check(t, never)
     assert not g["acquired"] and not g["lost"]
+    # a run that starts in lock (the observer on the true angle): the same slips are losses
+    g = _check(t, late, start_locked=True)  # out of lock from the first sample
+    assert g["acquired"] and g["t_acquired"] == 0.0
+    assert g["lost"] and g["t_lost"] == 0.0
+    g = _check(t, never, start_locked=True)
+    assert g["lost"] and g["t_lost"] == 0.0
+    slips_at_once = np.zeros(1000)
+    slips_at_once[12:340] = 2.0  # slips within 12 ms, back from 0.34 s (li, 0.1 p.u.)
+    g = _check(t, slips_at_once)  # as an acquisition: acquired late, never lost
+    assert not g["lost"] and g["t_acquired"] == pytest.approx(0.34, abs=5e-3)
+    g = _check(t, slips_at_once, start_locked=True)
+    # the first 10 ms window above 45 deg starts at 6 ms: 4 of its samples at 2 rad
+    assert g["lost"] and g["t_lost"] == pytest.approx(0.006)
     nan = e.copy()
     nan[700] = np.nan
     g = _check(t, nan)
     assert g["lost"] and g["t_lost"] == pytest.approx(0.7)
     g = _check(t, e, ok=False)  # a diverged run lost lock
     assert g["lost"]
+    for case in (e, spike, slip, nan):  # where the run starts in lock, the same verdicts
+        a, b = _check(t, case), _check(t, case, start_locked=True)
+        assert bool(a["lost"]) == bool(b["lost"])
+        np.testing.assert_allclose(a["t_lost"], b["t_lost"], equal_nan=True)
     wrapped = e + 2 * math.pi  # the error is wrapped first
     assert not _check(t, wrapped)["lost"]
     spin = np.zeros(1000)
@@ -77,6 +94,7 @@ def test_random_sequences_and_batches():
         es.append(e)
         _check(t, e, dwell_s=5e-3)
         _check(t, e, dwell_s=5e-3, acquire_s=20e-3)
+        _check(t, e, dwell_s=5e-3, start_locked=True)
     es = np.stack(es)
     batch = jax.jit(lambda t, e: pj.lock_status(t, e, dwell_s=5e-3))(
         np.broadcast_to(t, es.shape), es)

@@ -80,7 +80,8 @@ def _recount(out, p):
         loss = np.where(ok, loss, np.maximum(loss, 180 / p.theta_unit_deg
                                              + p.w_peak * 180 / p.peak_unit_deg))
         lost = np.array([lock_status_loop(np.asarray(tr.t[j]), th[j], ok=bool(ok[j]),
-                                          lock_deg=p.lock_deg)[2] for j in range(vset.n)])
+                                          lock_deg=p.lock_deg, start_locked=True)[2]
+                         for j in range(vset.n)])
         res.append((loss, rms, lost))
     (loss_p, rms_p, lost_p), (loss, rms, lost) = res
     rms_change = rms / rms_p - 1

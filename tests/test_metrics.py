@@ -127,10 +127,18 @@ def test_run_metrics_against_numpy():
         out = np.nonzero((t >= 0.01 - 1e-9) & (np.abs(d - d[win].mean()) > 1.0))[0]
         settle = t[out[-1] + 1] - 0.01 if out.size else 0.0
         assert m["settle_s"][j] == pytest.approx(settle, abs=1e-12)
-        ref = lock_status_loop(t, th[j], ok=bool(ok[j]), lock_deg=30.0)
+        ref = lock_status_loop(t, th[j], ok=bool(ok[j]), lock_deg=30.0, start_locked=True)
         assert bool(m["lost_lock"][j]) == ref[2]
         assert bool(m["ok"][j]) == (j == 0)
     assert not m["lost_lock"][0] and m["lost_lock"][1] and m["lost_lock"][2]
+    # the runs start with the observer on the true angle: one that slips at once and only
+    # settles back after 80 ms lost lock, though judged as an acquisition it was not
+    slip = np.where(t < 0.08, 1.0, 0.0)
+    one = types.SimpleNamespace(t=jnp.asarray(t), theta_err=jnp.asarray(slip),
+                                w_m=jnp.zeros(n), w_hat=jnp.zeros(n), ok=jnp.asarray(True))
+    assert bool(pj.run_metrics(one, lock_deg=30.0)["lost_lock"])
+    assert lock_status_loop(t, slip, lock_deg=30.0, start_locked=True)[2]
+    assert not lock_status_loop(t, slip, lock_deg=30.0)[2]
     th_deg, w, ok_ = pj.run_errors(traj)
     assert float(th_deg[1, 300]) == 180.0 and bool(ok_[0]) and not bool(ok_[1])
     # differentiable: the static error's gradient wrt an offset of the error is 1

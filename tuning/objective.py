@@ -13,8 +13,9 @@ own, made of the same errors (`pmsmjax.run_errors`):
   the last `pmsmjax.STATIC_WINDOW` = 20 % of the run, by time);
 - `noise_rad_s`: standard deviation of $\tilde\omega$ over the static window
   (electrical);
-- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
-  the mean $|\tilde\theta|$ over 10 ms above `lock_deg` after lock, or the run diverged);
+- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`
+  with `start_locked`: the mean $|\tilde\theta|$ over any 10 ms of the run above
+  `lock_deg`, the observer having started on the true angle, or the run diverged);
   `out_of_lock`: the fraction of samples above `lock_deg`, smooth (a logistic of width
   2 deg), which is what the objective differentiates.
 

@@ -28,7 +28,7 @@ def measure(name: str) -> None:
     own = simulate_set(lambda m: pj.observers.make_observer(name, drive, motor=m), drive,
                        problem.controller(), sset, T_s=problem.T_s,
                        noise_std=problem.noise_std, save_every=1)
-    lost = np.asarray(pj.lock_status(own.t, own.theta_err,
+    lost = np.asarray(pj.lock_status(own.t, own.theta_err, start_locked=True,
                                      ok=np.asarray(own.status._value) == 0)["lost"])
     s1, w_own = np.asarray(sset.s1), np.asarray(own.w_m)
     R_s = float(drive.motor.R_s)

@@ -22,6 +22,8 @@ A time, not a count of samples: the same part of the run whatever the sampling p
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,9 +49,10 @@ LOCK_ACQUIRE_S = 50e-3
 
 # The array metrics below are jitted: outside a trace (on a finished run's arrays) each
 # of their operations would otherwise compile a program of its own for every new shape.
-@jax.jit
+@functools.partial(jax.jit, static_argnames="start_locked")
 def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
-                dwell_s: float = LOCK_DWELL_S, acquire_s: float = LOCK_ACQUIRE_S) -> dict:
+                dwell_s: float = LOCK_DWELL_S, acquire_s: float = LOCK_ACQUIRE_S,
+                start_locked: bool = False) -> dict:
     r"""Whether an observer acquired and kept lock: **the one definition of loss of lock**
     (`simulate` and `replay` summaries, the tuner, the comparison job).
 
@@ -65,6 +68,14 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
     mean, not "every sample above": an estimate that spins through every angle is out of
     lock although some of its samples pass near the true angle.
 
+    *A run that starts in lock* (`start_locked` True: the observer starts on the true
+    angle and speed, as every run of the tuner and of the comparison does) acquired lock
+    at its first sample by construction: there is nothing to acquire, and a slip in its
+    first window is a loss, not an acquisition's overshoot. Judged as an acquisition
+    instead, such a run that slipped at once and settled back only after a long slip
+    (the li observers at 0.1 p.u.: out of lock from 12 ms to 0.34 s) would count as
+    acquired late and never lost.
+
     Why these numbers: at 45 deg the current control, which runs in the estimated frame,
     produces cos 45 = 71 % of the torque per ampere it intends and as much again in the
     wrong axis; beyond that a speed loop pushes the error further (at 90 deg the torque
@@ -75,7 +86,8 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
 
     **Arguments:** `t` (s), `theta_err` (rad, wrapped or not), samples on the last axis,
     any leading batch axes (NumPy or JAX arrays; jit and vmap safe); `ok`: the run did
-    not diverge (a bool or an array of the batch shape).
+    not diverge (a bool or an array of the batch shape); `start_locked`: the run starts
+    in lock (above; a Python bool).
 
     **Returns:** a dict of arrays with the batch shape: `acquired` (bool), `t_acquired`
     (s; NaN if never), `lost` (bool), `t_lost` (s; NaN if not lost).
@@ -105,9 +117,13 @@ def lock_status(t, theta_err, *, ok=True, lock_deg: float = LOCK_DEG,
                           jnp.cumsum(inside, -1)], -1)
     stop = jnp.minimum(idx + m[..., None], n_whole[..., None])
     held = (jnp.take_along_axis(ci, jnp.clip(stop, 0, n), -1) - ci[..., :n]) == stop - idx
-    j_acq = jnp.min(jnp.where(whole & (inside > 0) & held, idx, big), -1)
-    j_lost = jnp.min(jnp.where(whole & (mean > lim) & (idx > j_acq[..., None]), idx, big),
-                     -1)
+    if start_locked:
+        j_acq = jnp.zeros(th.shape[:-1], jnp.int32)
+        after = idx >= 0
+    else:
+        j_acq = jnp.min(jnp.where(whole & (inside > 0) & held, idx, big), -1)
+        after = idx > j_acq[..., None]
+    j_lost = jnp.min(jnp.where(whole & (mean > lim) & after, idx, big), -1)
     j_bad = jnp.min(jnp.where(~fin, idx, big), -1)
     ok = jnp.asarray(ok) & (j_bad == big)
     j_lost = jnp.where(ok, j_lost, jnp.minimum(j_lost, jnp.where(j_bad < big, j_bad,
@@ -320,7 +336,9 @@ def run_metrics(traj, *, lock_deg: float = LOCK_DEG, settle_from=None,
     - `settle_s`: settling time (`settling_time`), from `settle_from` until
       the angle error stays within `settle_band_deg` of `static_deg` for good (0 if it never
       leaves the band; NaN if the last sample is outside it);
-    - `lost_lock`: the run lost lock (`lock_status` with `lock_deg`);
+    - `lost_lock`: the run lost lock (`lock_status` with `lock_deg`; a run that starts
+      in lock, `start_locked`, as the tuner's and the comparison's runs do: the observer
+      starts on the true angle and speed);
     - `ok`: the run did not diverge and every sample is finite.
 
     The square roots carry 1e-12 (a finite gradient at 0); jit, vmap and grad safe.
@@ -346,7 +364,7 @@ def _run_metrics(t, theta_err, w_m, w_hat, ok, lock_deg, settle_from, settle_ban
     static = _window_mean(th, win)
     noise, _ = _window_std(w_err, win)
     settle = settling_time(t, th - static[..., None], settle_band_deg, settle_from)
-    lost = lock_status(t, theta_err, ok=ok, lock_deg=lock_deg)["lost"]
+    lost = lock_status(t, theta_err, ok=ok, lock_deg=lock_deg, start_locked=True)["lost"]
     return dict(static_deg=static, rms_deg=_safe_sqrt(jnp.mean(th ** 2, -1)),
                 max_abs_deg=jnp.max(jnp.abs(th), -1), settle_s=settle, noise_rad_s=noise,
                 lost_lock=lost, ok=ok)

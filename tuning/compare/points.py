@@ -17,10 +17,10 @@ $\tilde\omega = \omega - \hat\omega$, rad/s, on the saved samples):
   last sample is outside the band (never settled);
 - `noise_rad_s`: speed-estimate noise, the standard deviation of $\tilde\omega$ over the
   static window;
-- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`:
-  the mean $|\tilde\theta|$ over 10 ms above `lock_deg`, default 45 deg, after lock was
-  acquired, or the run diverged or produced a non-finite sample, which counts as
-  180 deg).
+- `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`
+  with `start_locked`: every run starts with the observer on the true angle): the mean
+  $|\tilde\theta|$ over any 10 ms of the run above `lock_deg`, default 45 deg, or the run
+  diverged or produced a non-finite sample, which counts as 180 deg).
 """
 
 from __future__ import annotations
