@@ -31,12 +31,11 @@ $$P = \Phi_z P\Phi_z^T + \sigma^2\Gamma_z\Gamma_z^T,\qquad
 solved exactly as $(I - \Phi_z\otimes\Phi_z)\,\mathrm{vec}P = \sigma^2\,\mathrm{vec}\,
 \Gamma_z\Gamma_z^T$. The RMS angle and speed-estimate noise are the square roots of its
 diagonal: first order in $\sigma$, valid while the noise keeps the observer near $x^*$.
-Measured against noisy replays (tests): the ESO and the C-LESO agree at 0.05 A and
-0.5 p.u. The li observers' PLL assist does not: it rectifies the noise into a speed bias
-(the FA-LESO's replays on `li_dtp` at 0.5 p.u. and 0.05 A are 140 times noisier than
-the first-order figure, its speed estimate 9.4 rad/s low; docs/tuning.md, "What the
-analysis found"), so for them the figures hold with the assist off (`fll = 0`) or at
-noise levels where the per-sample rotation keeps its sign.
+Measured against noisy replays (tests): the ESO, the C-LESO and the FA-LESO agree at
+0.05 A and 0.5 p.u., and the C-LESO at 0.1 p.u. (its speed estimate biased by 0.29 of
+the first-order speed noise there: second order). This analysis found the li
+observers' PLL assist rectifying noise into a speed bias while it took its direction
+from one sample's rotation (`pmsmjax.observers.QuadraturePLL`, "The gate's direction").
 """
 
 from __future__ import annotations

@@ -339,7 +339,7 @@ _PLL = """    if (s->started) {
                 + e_perp * fade * (pmsm_sign(e_q) - pmsm_sign(s->w)) / (psi * PMSM_WMIN);
         w = s->w + PMSM_OBS_T_S * k_i * e_pll;
         /* frequency-locked-loop assist: the back-EMF's rotation since the last sample,
-           gated off near lock */
+           gated off near lock, the gate's direction from the speed estimate */
         x2p = @X2_OLD@;
         e_prev[0] = -PMSM_LQ * x2p.re;
         e_prev[1] = -PMSM_LQ * x2p.im;
@@ -354,7 +354,7 @@ _PLL = """    if (s->started) {
                          ? PMSM_R(1.0) : adot) / PMSM_OBS_T_S;
         prod = PMSM_SQRT(n2p * n2 + tiny);
         mg = prod / (prod + (psi_ex * PMSM_WMIN) * (psi_ex * PMSM_WMIN));
-        g = PMSM_R(0.5) * mg * (PMSM_R(1.0) - PMSM_TANH(w_e / PMSM_WMIN) * e_q
+        g = PMSM_R(0.5) * mg * (PMSM_R(1.0) - PMSM_TANH(s->w / PMSM_WMIN) * e_q
                                 / PMSM_SQRT(n2 + tiny));
         w += (PMSM_OBS_T_S * PMSM_FLL * PMSM_WPLL) * g * (w_e - s->w);
         theta = pmsm_wrap(th_p + PMSM_OBS_T_S * k_p * e_pll);

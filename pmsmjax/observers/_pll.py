@@ -92,7 +92,7 @@ of $\pi/T_s$; valid for $|\omega| T_s < \pi/2$), pulls the speed estimate toward
 $$\hat\omega_k \mathrel{+}= T_s\,k_f\,g_k\,(\omega_e - \hat\omega_{k-1}),\qquad
 g = \frac{m}{2}\Big(1 - \sigma\frac{\hat e_q}{|\hat e|}\Big),\quad
 m = \frac{|\hat e_{k-1}||\hat e_k|}{|\hat e_{k-1}||\hat e_k| + (\hat\psi_{ex}
-\omega_{min})^2},\quad \sigma = \tanh(\omega_e/\omega_{min}),$$
+\omega_{min})^2},\quad \sigma = \tanh(\hat\omega_{k-1}/\omega_{min}),$$
 
 $k_f$ = `fll` $\cdot\,\omega_{pll}$ (`fll = 0` switches it off), $\hat e_q = -\hat
 e_\alpha\sin\hat\theta^- + \hat e_\beta\cos\hat\theta^-$ the component along the
@@ -104,14 +104,37 @@ sign) the speed estimate is pulled to $\omega$ within a few $1/k_f$, and then th
 loop locks the phase at $\tilde\theta = 0$ (the false lock at $\pi$ is unstable once
 $\hat\omega$ has the sign of $\omega$).
 
+*The gate's direction* $\sigma$ is the sense in which the PLL believes the rotor
+turns, from its speed estimate before the step. The gate opens where the back-EMF's
+q component disagrees with it: at the false lock, where the speed has reversed and its
+estimate has not yet, and, from a speed estimate of the wrong sign, at every angle but
+$\tilde\theta = \pi$, which such an estimate does not hold (the angle error then turns
+at $\omega - \hat\omega$, so the gate averages $m/2$ and pulls the estimate over).
+Earlier versions took the direction from one sample's rotation,
+$\tanh(\omega_e/\omega_{min})$. That rotation is the difference of two noisy back-EMF
+angles divided by $T_s$: with current-sensor noise its sign flips from sample to sample,
+and the gate opened exactly on the samples whose $\omega_e$ read against the rotation and
+pulled the speed estimate towards them, a rectifier. On `li_dtp` with 0.05 A of noise it
+biased the FA-LESO's speed estimate by -9.4 rad/s (3.7 deg) at 0.5 p.u. and cost the
+C-LESO the angle at 0.1 p.u.; in the closed-loop validation runs (0.02 A) the li
+observers slipped within 12 ms of the start of most 0.1 p.u. runs and the FA-LESO lost
+0.4 and 0.5 p.u. runs. The speed estimate before the step holds none of the new
+sample's noise: measured at 0.1 p.u. with 0.05 A, the bias left is 0.29 of the
+first-order speed noise (`analysis.sensor_noise`'s tests), and no closed-loop
+validation run above 0.1 p.u. is lost (docs/tuning.md, "The low-speed limit").
+
 *What the analysis sees.* At every equilibrium of the error dynamics $\hat\omega =
 \omega$ and $\hat e$ turns at $\omega$, so $\omega_e - \hat\omega = 0$: the assist
 adds nothing there, and the equilibria of `pmsmjax.analysis` are those of the PI loop.
 At an equilibrium with the lock in the direction of rotation (the designed branch,
-$\hat e$ along $+\sigma$ times the estimated q axis) $g$ is itself zero and
-quadratic in the deviation, so the assist's term is of third order: the linearised
-error dynamics are exactly those of the PI loop (`rates`), and the error model
-(`error_rhs` of the observers) leaves it out. Only at the unstable false lock
+$\hat e$ along $\mathrm{sign}\,\omega$ times the estimated q axis) $g$ is
+$\frac{m}{2}(1 - \tanh(|\omega|/\omega_{min}))$ plus terms quadratic in the deviation
+(the factor $1 - \tanh$ is $4\cdot 10^{-9}$ at $|\omega| = 10\,\omega_{min}$, 0.036 at
+$2\,\omega_{min}$). Above a
+few $\omega_{min}$ the assist's term is therefore of third order and the linearised
+error dynamics are those of the PI loop (`rates`); the error model (`error_rhs` of the
+observers) leaves it out at every speed (the replay's linearisation,
+`analysis.sensor_noise`, keeps it). Only at the unstable false lock
 ($\tilde\theta = \pi$, $g = 1$) does it change the linearisation (it adds damping to
 $\hat\omega$; the lock stays a saddle, $\det = -k_pk_f - k_i < 0$).
 """
@@ -195,17 +218,13 @@ class QuadraturePLL(eqx.Module):
         k_p, k_i = self.gains()
         return w_hat + k_p * eps, k_i * eps
 
-    def fll_gate(self, e_prev, e_ab_hat, theta_hat, psi_ex_hat, T_s):
-        """The assist's `(g, w_e)`: gate `g` in [0, 1] and the back-EMF's rotation rate
-        `w_e` (rad/s) between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one
-        period `T_s` (s) apart, at the angle estimate `theta_hat` (rad) and model
-        extended flux `psi_ex_hat` (V s) (see "Acquisition" in the module docstring)."""
-        _, e_q = _components(e_ab_hat, *cos_sin(theta_hat))
-        return self._gate(e_prev, e_ab_hat, e_q, psi_ex_hat, T_s)
-
-    def _gate(self, e_prev, e_ab_hat, e_q, psi_ex_hat, T_s):
-        """`fll_gate` from the back-EMF's component `e_q` along the estimated q axis; the
-        two-element sums written out (a reduction is a kernel of its own on the CPU)."""
+    def _gate(self, e_prev, e_ab_hat, e_q, psi_ex_hat, T_s, w_hat):
+        """The assist's gate `g` in [0, 1], the back-EMF's rotation rate `w_e` (rad/s)
+        between the estimated back-EMFs `e_prev` and `e_ab_hat` (V) one period `T_s` (s)
+        apart, for the back-EMF's component `e_q` (V) along the estimated q axis, the
+        model extended flux `psi_ex_hat` (V s) and the speed estimate `w_hat` (rad/s)
+        (see "Acquisition" in the module docstring); the two-element sums written out (a
+        reduction is a kernel of its own on the CPU)."""
         a0, a1, b0, b1 = e_prev[..., 0], e_prev[..., 1], e_ab_hat[..., 0], e_ab_hat[..., 1]
         dot = a0 * b0 + a1 * b1
         cross = a0 * b1 - a1 * b0
@@ -223,7 +242,7 @@ class QuadraturePLL(eqx.Module):
         e_min2 = (psi_ex_hat * self.w_min) ** 2
         prod = jnp.sqrt(n2_prev * n2 + tiny)
         m = prod / (prod + e_min2)
-        sigma = jnp.tanh(w_e / self.w_min)
+        sigma = jnp.tanh(w_hat / self.w_min)
         g = 0.5 * m * (1.0 - sigma * e_q / jnp.sqrt(n2 + tiny))
         return g, w_e
 
@@ -240,7 +259,7 @@ class QuadraturePLL(eqx.Module):
         eps = self._detector(e_perp, e_q, w_prev, psi)
         w_k = w_prev + T_s * k_i * eps
         if e_prev is not None:
-            g, w_e = self._gate(e_prev, e_ab_hat, e_q, psi, T_s)
+            g, w_e = self._gate(e_prev, e_ab_hat, e_q, psi, T_s, w_prev)
             w_k = w_k + (T_s * self.fll * self.w_pll) * g * (w_e - w_prev)
         return wrap_angle(theta_pred + T_s * k_p * eps), w_k
 
