@@ -158,6 +158,11 @@ def test_main_job_quick(tmp_path):
             "new_lost_lock"} <= set(acc) and s["vocabulary"] == tg.VOCABULARY
     assert s["deprecated_keys"]["replaced_by"] == {"improved": "better",
                                                    "improved_frac": "fraction_better"}
+    # the ESO reads its angle from flux: the low-speed rule sets no run apart
+    rule = v["low_speed_rule"]
+    assert rule["limit_pu"] == 0.0 == s["problem"]["low_speed_limit_pu"]
+    assert rule["runs"] == [] and acc["beyond_limit"] == 0 and acc["n"] == 2 * 2 * 3
+    assert rule["lowest_speed_pu"] == [None] * acc["n"]
     assert {"improved", "improved_frac"} <= set(acc)
     assert acc["improved_frac"] == acc["fraction_better"]
     for name, row in s["designs"].items():

@@ -16,7 +16,7 @@ import pytest
 
 import pmsmjax as pj
 import tuning as tg
-from pmsmjax._data._gains_table import VERDICT_COUNTS, gains_c_header
+from pmsmjax._data._gains_table import VERDICT_COUNTS, VERDICT_OPTIONAL, gains_c_header
 from tuning.__main__ import console_summary, verdict_line
 from tuning.objective import BASELINE, BETTER
 
@@ -91,13 +91,44 @@ def test_worst_rms_change_and_the_rules_thresholds():
                                         "than 10 % (worst +11.0 %)")
 
 
+def test_runs_beyond_the_low_speed_rule_are_counted_apart():
+    """Six runs, runs 2 and 4 beyond the low-speed rule (decided before tuning): run 2
+    worse by 50 % in RMS and newly losing lock, run 4 lost by both. Counted over runs 0, 1,
+    3, 5 (better: 0, 1, 5; run 3 a tie), the verdict holds; without the rule it does
+    not."""
+    ref = _metrics(np.ones(6), rms=np.full(6, 2.0), lost=[0, 0, 0, 0, 1, 0])
+    m = _metrics([0.5, 0.5, 3.0, 1.0, 0.9, 0.5], rms=[1.0, 1.0, 3.0, 2.1, 2.0, 1.0],
+                 lost=[0, 0, 1, 0, 1, 0])
+    beyond = np.array([False, False, True, False, True, False])
+    a = tg.accounting(m, ref, 0.1, beyond)
+    assert (a["n"], a["better"], a["worse"], a["new_lost_lock"]) == (4, 3, 0, 0)
+    assert a["fraction_better"] == 3 / 4 and a["beyond_limit"] == 2
+    assert a["worst_run"] == 3 and a["worst_rms_change_pct"] == pytest.approx(5.0)
+    assert a["mean_rms_deg"] == pytest.approx(5.1 / 4) and a["mean_rms_deg_reference"] == 2.0
+    assert (a["lost_lock"], a["lost_lock_reference"]) == (0, 0)
+    assert (a["lost_lock_beyond"], a["lost_lock_beyond_reference"]) == (2, 1)
+    assert tg.holds(a) == (True, [])
+    every = tg.accounting(m, ref, 0.1)
+    assert every["n"] == 6 and every["beyond_limit"] == 0 and every["worst_run"] == 2
+    assert not tg.holds(every)[0]
+    assert pj.verdict_text({"holds": True, "baseline": BASELINE,
+                            "accounting": {k: a[k] for k in tg.VOCABULARY}}) == (
+        "holds: tuned better than the paper's design in 3 of 4 validation runs (2 more "
+        "beyond the observer's low-speed limit, counted apart); worst RMS change +5.0 %; "
+        "no new lost lock")
+    with pytest.raises(ValueError, match="one bool per run"):
+        tg.accounting(m, ref, 0.1, beyond[:5])
+    with pytest.raises(ValueError, match="leaves no run"):
+        tg.accounting(m, ref, 0.1, np.ones(6, bool))
+
+
 def test_the_vocabulary_and_the_deprecated_keys():
     """One definition per key: the accounting has every key of the vocabulary (and the
     gains table's verdict records the same), and each deprecated key names one of them."""
     a = tg.accounting(_metrics([0.5, 2.0]), _metrics([1.0, 1.0]), 0.1)
     assert tuple(tg.VOCABULARY) == ("n", "better", "worse", "fraction_better",
-                                    "worst_rms_change_pct", "new_lost_lock")
-    assert tuple(tg.VOCABULARY) == VERDICT_COUNTS
+                                    "worst_rms_change_pct", "new_lost_lock", "beyond_limit")
+    assert tuple(tg.VOCABULARY) == VERDICT_COUNTS + VERDICT_OPTIONAL
     assert set(tg.VOCABULARY) <= set(a)
     assert "0.1 %" in tg.VOCABULARY["better"] and "0.1 %" in tg.VOCABULARY["worse"]
     assert tg.DEPRECATED_KEYS == {"improved": "better", "improved_frac": "fraction_better"}
@@ -140,7 +171,8 @@ def test_the_verdict_is_stated_as_counted_in_gains_h():
     assert " * Tuner verdict: holds (no counts recorded).\n" in gains_c_header(old)
     assert pj.verdict_text(None) == "not recorded"
     for bad in ({"n": 88}, dict(COUNTS, better="74"), dict(COUNTS, n=True),
-                dict(COUNTS, worst_rms_change_pct=float("nan"))):
+                dict(COUNTS, worst_rms_change_pct=float("nan")),
+                dict(COUNTS, beyond_limit=-1), dict(COUNTS, beyond_limit=2.5)):
         with pytest.raises(ValueError, match="verdict.accounting"):
             _table({"holds": True, "accounting": bad})
 
@@ -214,10 +246,19 @@ def test_console_leads_with_the_rms_angle_error_and_uses_the_vocabulary():
     lines = text.splitlines()
     assert lines[0] == ("RMS angle error (deg), mean over the 88 validation runs: paper "
                         "design 5.73, tuned (tuned) 2.76")
+    apart = _summary()
+    apart["accounting"]["validation"] = dict(apart["accounting"]["validation"], n=66,
+                                             beyond_limit=22)
+    assert console_summary(apart).splitlines()[0] == (
+        "RMS angle error (deg), mean over the 66 validation runs (22 more beyond the "
+        "observer's low-speed limit, counted apart: `verdict.low_speed_rule`): paper "
+        "design 5.73, tuned (tuned) 2.76")
     head = lines[2].split()
     assert head[:3] == ["design", "RMS", "deg"]
-    assert [k for k in tg.VOCABULARY if k != "n" and k != "fraction_better"] == \
-        [h for h in head if h in tg.VOCABULARY]
+    # every count but n, the fraction and the low-speed rule's (in the lead line when
+    # it sets runs apart) is a column
+    assert [k for k in tg.VOCABULARY if k not in ("n", "fraction_better", "beyond_limit")] \
+        == [h for h in head if h in tg.VOCABULARY]
     assert "loss" not in lines[0] + lines[2]  # no loss shown as if it were degrees
     assert "train objective: " in text and "(dimensionless, not degrees" in text
     hybrid = next(ln for ln in lines if ln.startswith("hybrid")).split()

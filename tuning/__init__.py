@@ -39,6 +39,7 @@ from .objective import (
 )
 from .pipeline import TuningReport as TuningReport, tune as tune
 from .problem import (
+    LOW_SPEED_LIMIT_PU as LOW_SPEED_LIMIT_PU,
     SEARCHES as SEARCHES,
     VALIDATION_CASES as VALIDATION_CASES,
     TuningProblem as TuningProblem,
@@ -56,6 +57,7 @@ from .scenarios import (
     ScenarioSet as ScenarioSet,
     check_disjoint as check_disjoint,
     heldout_set as heldout_set,
+    low_speed_runs as low_speed_runs,
     simulate_set as simulate_set,
     training_set as training_set,
     validation_set as validation_set,

@@ -138,6 +138,9 @@ VOCABULARY = {
     "worst_rms_change_pct": "the largest change of a run's RMS angle error against the "
                             "paper design's on the same run (%, positive: worse)",
     "new_lost_lock": "runs that lose lock where the paper design holds it",
+    "beyond_limit": "validation runs the low-speed rule, fixed before tuning, puts beyond "
+                    "the observer's class (a sensored drive turns slower there than the "
+                    "class's limit); every other count is over the remaining runs",
 }
 #: The reference's name in the reports (the verdict's baseline).
 BASELINE = "the paper's design"
@@ -147,7 +150,7 @@ BASELINE = "the paper's design"
 DEPRECATED_KEYS = {"improved": "better", "improved_frac": "fraction_better"}
 
 
-def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
+def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None) -> dict:
     """Per-metric comparison of `m` with `ref` over the same runs (plain numbers): first
     the RMS angle error (deg, mean over the runs: `mean_rms_deg`, and the reference's
     `mean_rms_deg_reference`), then the keys of `VOCABULARY` (`better`, `worse`: loss
@@ -156,28 +159,47 @@ def accounting(m: Metrics, ref: Metrics, tol: float) -> dict:
     details: the tolerance (%), runs whose RMS angle error is worse by more than `tol`
     (relative), the worst run's index, lock lost by each design, the median loss change
     (%), and the `DEPRECATED_KEYS` (`improved`: loss lower by more than `tol`;
-    `improved_frac` = `fraction_better`)."""
+    `improved_frac` = `fraction_better`).
+
+    `beyond`: a boolean per run, the runs the low-speed rule puts beyond the observer's
+    class (`tuning.low_speed_runs`, decided before tuning): every count above is over the
+    other runs (`n` of them; `worst_run` indexes all runs), and `beyond_limit`,
+    `lost_lock_beyond`, `lost_lock_beyond_reference` count those apart. None: no run."""
     import numpy as np
 
-    loss, loss_r = np.asarray(m.loss), np.asarray(ref.loss)
-    rms, rms_r = np.asarray(m.rms_deg), np.asarray(ref.rms_deg)
-    lost, lost_r = np.asarray(m.lost_lock), np.asarray(ref.lost_lock)
+    n_all = np.asarray(m.loss).size
+    out = np.zeros(n_all, bool) if beyond is None else np.asarray(beyond, bool)
+    if out.shape != (n_all,):
+        raise ValueError(f"`accounting(beyond=...)` must hold one bool per run ({n_all}); "
+                         f"got shape {out.shape}.")
+    keep = np.nonzero(~out)[0]
+    if not keep.size:
+        raise ValueError("`accounting`: the low-speed rule leaves no run to compare (every "
+                         "run is beyond the observer's class).")
+    loss, loss_r = np.asarray(m.loss)[keep], np.asarray(ref.loss)[keep]
+    rms, rms_r = np.asarray(m.rms_deg)[keep], np.asarray(ref.rms_deg)[keep]
+    lost_all, lost_r_all = np.asarray(m.lost_lock), np.asarray(ref.lost_lock)
+    lost, lost_r = lost_all[keep], lost_r_all[keep]
     rel = loss / loss_r - 1.0
     rms_rel = rms / rms_r - 1.0
     worst = int(np.argmax(rms_rel))
     better = int(np.sum(rel < -BETTER))
+    n = int(keep.size)
     return {"mean_rms_deg": float(np.mean(rms)),
             "mean_rms_deg_reference": float(np.mean(rms_r)),
-            "n": int(loss.size), "better": better, "worse": int(np.sum(rel > BETTER)),
-            "fraction_better": better / int(loss.size),
+            "n": n, "better": better, "worse": int(np.sum(rel > BETTER)),
+            "fraction_better": better / n,
             "worst_rms_change_pct": float(100.0 * rms_rel[worst]),
             "new_lost_lock": int(np.sum(lost & ~lost_r)),
             "tolerance_pct": 100.0 * tol,
-            "rms_worse_than_tol": int(np.sum(rms_rel > tol)), "worst_run": worst,
+            "rms_worse_than_tol": int(np.sum(rms_rel > tol)), "worst_run": int(keep[worst]),
             "lost_lock": int(np.sum(lost)), "lost_lock_reference": int(np.sum(lost_r)),
             "median_loss_change_pct": float(100.0 * np.median(rel)),
+            "beyond_limit": int(np.sum(out)),
+            "lost_lock_beyond": int(np.sum(lost_all[out])),
+            "lost_lock_beyond_reference": int(np.sum(lost_r_all[out])),
             # deprecated (DEPRECATED_KEYS), kept one release
-            "improved": int(np.sum(rel < -tol)), "improved_frac": better / int(loss.size)}
+            "improved": int(np.sum(rel < -tol)), "improved_frac": better / n}
 
 
 def holds(acc: dict, min_frac: float = 0.75) -> tuple[bool, list[str]]:

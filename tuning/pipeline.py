@@ -9,6 +9,11 @@ simulations (`tuning.search`), polishes the chosen strategy's design towards bot
 the tracking-versus-noise front, scores every design on the held-out and validation runs
 and returns a `TuningReport` (`tuning.report` turns it into files).
 
+**The low-speed rule** (`TuningProblem.low_speed_limit_pu`, `low_speed_runs`): before
+any search, every validation run is run once in a sensored drive; a run that takes it
+slower than the observer class's limit is set apart, and the validation accounting
+counts the other runs (`accounting(beyond=...)`, `verdict.low_speed_rule`).
+
 **The rule's floor.** The paper's design is also scored with its coordinates changed by
 1e-9 (relative), `paper-perturbed`: where even that fails the validation rule, the runs in
 which the paper's design loses lock are chaotic (the angle error after lock loss depends
@@ -41,6 +46,7 @@ from .scenarios import (
     ScenarioSet,
     check_disjoint,
     heldout_set,
+    low_speed_runs,
     sensored_lowest_speed,
     training_set,
     validation_set,
@@ -110,6 +116,13 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
               + ("" if problem.speed_from_angle is None else
                  f"; the speed loop on the speed of the observer's angle "
                  f"({problem.speed_from_angle:g} Hz tracking loop)"))
+    # the low-speed rule, before any search: validation runs beyond the observer's class
+    beyond, lowest = low_speed_runs(problem, sets["validation"])
+    if beyond.any():
+        _say(log, f"low-speed rule: {int(beyond.sum())} of {beyond.size} validation runs "
+                  f"turn slower than {problem.low_speed_limit_pu:g} p.u. in a sensored "
+                  f"drive (lowest {np.nanmin(lowest):.3g} p.u.), beyond an observer that "
+                  f"reads its angle from a back-EMF: counted apart")
     evs = {k: Evaluator(problem, space, s) for k, s in sets.items()}
     ev = evs["train"]
     z0 = space.to_unconstrained(space.paper_point())
@@ -151,9 +164,14 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             m = floor if n == FLOOR else jax.tree_util.tree_map(lambda a, i=i: a[i], many)
             metrics[split][n] = m
             obj[split][n] = float(objective(m, e.reference, problem)[0])
-            acc[split][n] = accounting(m, e.reference, problem.regression_tol)
+            acc[split][n] = accounting(m, e.reference, problem.regression_tol,
+                                       beyond if split == "validation" else None)
     designs[FLOOR] = None
     default, verdict = _choose(acc["validation"], sets["validation"])
+    verdict["low_speed_rule"] = {
+        "limit_pu": float(problem.low_speed_limit_pu),
+        "rule": LOW_SPEED_RULE, "runs": [int(j) for j in np.nonzero(beyond)[0]],
+        "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in lowest]}
     fa = acc["validation"][FLOOR]
     # the per-run parts of the rule (a perturbation is not meant to be better)
     floor_why = [w for w in holds(fa)[1] if not w.startswith("better in")]
@@ -166,7 +184,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"already fails the rule ({'; '.join(floor_why)}): runs in which it loses lock "
             f"are chaotic, so no design passes a per-run rule on them")
     if not verdict["holds"]:
-        _blocking(problem, sets["validation"], metrics["validation"], verdict, log)
+        _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
+                  beyond)
     # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
@@ -178,9 +197,11 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                         wall_s=time.perf_counter() - t_start)
 
 
-def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log) -> None:
+def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
+              beyond) -> None:
     """The runs that block the verdict (the tuned design's RMS angle error worse than the
-    paper's by more than the tolerance, or lock lost that the paper's design holds),
+    paper's by more than the tolerance, or lock lost that the paper's design holds, among
+    the runs the low-speed rule keeps, not `beyond`),
     each measured in a sensored drive of the same scenario (`sensored_lowest_speed`):
     `verdict["blocking_runs"]`, and a line of `where_not` with their lowest speeds and
     back-EMF."""
@@ -188,7 +209,7 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log)
     rms_rel = np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1.0
     new_lost = np.asarray(m.lost_lock) & ~np.asarray(ref.lost_lock)
     worse = rms_rel > problem.regression_tol
-    runs = np.nonzero(worse | new_lost)[0]
+    runs = np.nonzero((worse | new_lost) & ~beyond)[0]
     if not runs.size:
         verdict["blocking_runs"] = []
         return
@@ -233,7 +254,14 @@ def _choose(acc_val: dict, vset: ScenarioSet) -> tuple[str, dict]:
 RULE = ("better than the paper's design (validation loss lower by more than 0.1 %) in at "
         "least 75 % of the "
         "validation runs, no run's RMS angle error worse by more than the tolerance, no "
-        "run losing lock that the paper's design holds")
+        "run losing lock that the paper's design holds; runs beyond the observer's class "
+        "by the low-speed rule counted apart")
+#: The low-speed rule, as the report states it (`TuningProblem.low_speed_limit_pu`).
+LOW_SPEED_RULE = ("written before tuning: a validation run in which the sensored drive "
+                  "(the same controller on the true angle and speed, the same noise) turns "
+                  "slower than `limit_pu` of rated speed is beyond an observer that reads "
+                  "its angle from a back-EMF (a phase detector whose gain falls with the "
+                  "true speed); its class's limit, 0 for the others")
 
 
 __all__ = ["FRONT", "PEERS", "TuningReport", "tune"]

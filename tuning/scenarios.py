@@ -299,6 +299,20 @@ def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
     return out
 
 
-__all__ = ["KINDS", "ScenarioSet", "check_disjoint", "heldout_set", "max_acceleration",
-           "observer_model", "scenario", "sensored_lowest_speed", "simulate_set",
-           "training_set", "validation_set"]
+def low_speed_runs(problem, sset: ScenarioSet) -> tuple[np.ndarray, np.ndarray]:
+    """The low-speed rule (`TuningProblem.low_speed_limit_pu`, fixed before tuning): per
+    run of `sset`, whether the sensored drive (`sensored_lowest_speed`: the same
+    controller on the true angle and speed, the same noise) turns slower than the limit
+    at some sample, and that lowest speed (p.u. of rated; NaN where the limit is 0 and
+    nothing is simulated). Returns `(beyond, lowest_pu)`."""
+    limit = float(problem.low_speed_limit_pu)
+    if limit <= 0:
+        return np.zeros(sset.n, bool), np.full(sset.n, np.nan)
+    lowest = np.array([r["lowest_speed_pu"]
+                       for r in sensored_lowest_speed(problem, sset, range(sset.n))])
+    return lowest < limit, lowest
+
+
+__all__ = ["KINDS", "ScenarioSet", "check_disjoint", "heldout_set", "low_speed_runs",
+           "max_acceleration", "observer_model", "scenario", "sensored_lowest_speed",
+           "simulate_set", "training_set", "validation_set"]

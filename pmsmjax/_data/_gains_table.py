@@ -91,6 +91,9 @@ DESIGN_COLUMNS = {"w_m": "rad/s", "zeta1": "-", "w1": "rad/s", "zeta2": "-", "w2
 #: definitions of `tuning.objective.VOCABULARY`).
 VERDICT_COUNTS = ("n", "better", "worse", "fraction_better", "worst_rms_change_pct",
                   "new_lost_lock")
+#: Counts a verdict records where they apply (a table written before them has none):
+#: `beyond_limit`, the validation runs the low-speed rule counts apart.
+VERDICT_OPTIONAL = ("beyond_limit",)
 GAIN_COLUMNS = {"G1_11": "1/s", "G1_12": "1/s", "G1_21": "1/s", "G1_22": "1/s",
                 "g2_1": "rad/s per V s", "g2_2": "rad/s per V s",
                 "g3_1": "rad/s^2 per V s", "g3_2": "rad/s^2 per V s",
@@ -216,6 +219,13 @@ def _check_verdict(verdict, source: str) -> dict:
             raise ValueError(f"{source}: `verdict.accounting` must give a finite number for "
                              f"each of {', '.join(VERDICT_COUNTS)}; got {a!r}")
         out["accounting"] = {k: a[k] for k in VERDICT_COUNTS}
+        for k in VERDICT_OPTIONAL:
+            if k not in a:
+                continue
+            if isinstance(a[k], bool) or not isinstance(a[k], int) or a[k] < 0:
+                raise ValueError(f"{source}: `verdict.accounting.{k}` must be an integer "
+                                 f">= 0; got {a[k]!r}")
+            out["accounting"][k] = a[k]
     return out
 
 
@@ -233,9 +243,12 @@ def verdict_text(verdict: dict | None) -> str:
         return f"{word} (no counts recorded)"
     k = int(a["new_lost_lock"])
     lost = "no new lost lock" if k == 0 else f"{k} new lost lock{'s' if k > 1 else ''}"
+    b = int(a.get("beyond_limit") or 0)
+    apart = (f" ({b} more beyond the observer's low-speed limit, counted apart)" if b
+             else "")
     return (f"{word}: tuned better than {verdict.get('baseline') or 'the paper design'} "
-            f"in {int(a['better'])} of {int(a['n'])} validation runs; worst RMS change "
-            f"{a['worst_rms_change_pct']:+.1f} %; {lost}")
+            f"in {int(a['better'])} of {int(a['n'])} validation runs{apart}; worst RMS "
+            f"change {a['worst_rms_change_pct']:+.1f} %; {lost}")
 
 
 def verdict_warning(table: dict) -> str | None:

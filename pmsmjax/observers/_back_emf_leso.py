@@ -170,6 +170,7 @@ class AbstractBackEMFLESO(AbstractObserver):
     motor: eqx.AbstractVar[PMSMParams]
     pll: eqx.AbstractVar[QuadraturePLL]
     n_s: ClassVar[int] = 2
+    angle_from_back_emf: ClassVar[bool] = True
     tunable_kinds: ClassVar[dict[str, str]] = {"w0": "estimator", "w_pll": "tracking",
                                                "zeta_pll": "damping"}
     extras: ClassVar[dict[str, str]] = _EXTRAS

@@ -52,15 +52,19 @@ def summary(report) -> dict:
     """The content of summary.json (plain Python types)."""
     p, space = report.problem, report.space
     acc = report.accounting
+    # the validation runs the verdict counts: those the low-speed rule keeps
+    kept = {s: slice(None) for s in SPLITS}
+    kept["validation"] = np.setdiff1d(np.arange(report.sets["validation"].n),
+                                      report.verdict.get("low_speed_rule", {}).get("runs", []))
     designs = {}
     for name, x in report.designs.items():
-        row = {f"{s}_rms_deg": float(np.mean(np.asarray(report.metrics[s][name].rms_deg)))
-               for s in SPLITS}
+        row = {f"{s}_rms_deg": float(np.mean(np.asarray(
+            report.metrics[s][name].rms_deg)[kept[s]])) for s in SPLITS}
         row |= {f"{s}_objective": report.objective[s][name] for s in SPLITS}
         row |= {f"{s}_loss": float(np.mean(np.asarray(report.metrics[s][name].loss)))
                 for s in SPLITS}
         row["validation_lost_lock"] = int(np.sum(np.asarray(
-            report.metrics["validation"][name].lost_lock)))
+            report.metrics["validation"][name].lost_lock)[kept["validation"]]))
         if x is None:
             row["coordinates"] = None
             row["description"] = ("the paper's published design" if name == "paper" else
@@ -118,7 +122,8 @@ def summary(report) -> dict:
             "on the estimate, nothing imposed); training, held-out and validation runs "
             "share no speed, mismatch value or noise key (`disjoint`).",
             "rms_angle_error_deg and designs.*.*_rms_deg: each run's RMS angle error "
-            "(deg), mean over the split's runs: the metric to read first.",
+            "(deg), mean over the split's runs (validation: the runs the low-speed rule "
+            "keeps, `verdict.low_speed_rule`): the metric to read first.",
             "Loss of a run (dimensionless): RMS angle error / theta_unit + w_peak * smooth "
             "peak / peak_unit + w_noise * speed-estimate noise / noise_unit; "
             "designs.*.*_loss is its mean over the split's runs; *_objective the tuner's "
