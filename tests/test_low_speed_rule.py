@@ -11,8 +11,9 @@ from tuning.scenarios import scenario
 
 def test_the_rule_on_a_small_case():
     """li's drive, the nominal case at +-0.1 and +-0.4 p.u.: the load step takes the
-    sensored drive to about 1 % of rated speed at +-0.1 p.u. (beyond a back-EMF observer's
-    limit, 5 %) and nowhere near it at +-0.4 p.u. (its ramp starts at 0.24 p.u.)."""
+    sensored drive to about 1 % of rated speed at +-0.1 p.u. (below the li observers'
+    declared limit, 5 %) and nowhere near it at +-0.4 p.u. (its ramp starts at 0.24
+    p.u.)."""
     p = tg.TuningProblem(observer="c-leso", val_speeds_pu=(0.1, 0.4),
                          val_cases=tg.VALIDATION_CASES[:1])
     vset = tg.validation_set(p)
@@ -32,7 +33,7 @@ def test_the_rule_on_a_small_case():
     np.testing.assert_allclose(lowest, ref, rtol=1e-9)
     assert beyond.tolist() == (np.abs(s1) < 0.2).tolist(), (s1, lowest)
     assert np.all(lowest[np.abs(s1) < 0.2] < 0.02) and np.all(lowest[np.abs(s1) > 0.2] > 0.2)
-    # an observer that reads its angle from flux: no limit, nothing simulated
+    # an observer that declares no limit (the ESO): nothing simulated
     q = tg.TuningProblem(val_speeds_pu=(0.1, 0.4), val_cases=tg.VALIDATION_CASES[:1])
     none, nan = tg.low_speed_runs(q, tg.validation_set(q))
     assert not none.any() and np.all(np.isnan(nan))

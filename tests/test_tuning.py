@@ -50,7 +50,7 @@ def test_problem_rejects_bad_input_by_name():
     assert tg.TuningProblem(observer="c-leso").motor == "li_dtp"
     # the low-speed rule's limit: the class's (back-EMF observers), none for the others
     assert tg.TuningProblem(observer="c-leso").low_speed_limit_pu == 0.05
-    assert q.low_speed_limit_pu == 0.05 and tg.TuningProblem().low_speed_limit_pu == 0.0
+    assert q.low_speed_limit_pu == 0.0 == tg.TuningProblem().low_speed_limit_pu
     assert tg.TuningProblem(observer="c-leso", low_speed_limit_pu=0).low_speed_limit_pu == 0
     for bad in (-0.1, 1.0, float("nan"), "0.05"):
         with pytest.raises(ValueError, match="low_speed_limit_pu"):

@@ -39,7 +39,6 @@ from .objective import (
 )
 from .pipeline import TuningReport as TuningReport, tune as tune
 from .problem import (
-    LOW_SPEED_LIMIT_PU as LOW_SPEED_LIMIT_PU,
     SEARCHES as SEARCHES,
     VALIDATION_CASES as VALIDATION_CASES,
     TuningProblem as TuningProblem,

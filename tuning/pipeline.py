@@ -121,8 +121,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     if beyond.any():
         _say(log, f"low-speed rule: {int(beyond.sum())} of {beyond.size} validation runs "
                   f"turn slower than {problem.low_speed_limit_pu:g} p.u. in a sensored "
-                  f"drive (lowest {np.nanmin(lowest):.3g} p.u.), beyond an observer that "
-                  f"reads its angle from a back-EMF: counted apart")
+                  f"drive (lowest {np.nanmin(lowest):.3g} p.u.), below the limit the "
+                  f"observer's class declares: counted apart")
     evs = {k: Evaluator(problem, space, s) for k, s in sets.items()}
     ev = evs["train"]
     z0 = space.to_unconstrained(space.paper_point())
@@ -259,9 +259,9 @@ RULE = ("better than the paper's design (validation loss lower by more than 0.1 
 #: The low-speed rule, as the report states it (`TuningProblem.low_speed_limit_pu`).
 LOW_SPEED_RULE = ("written before tuning: a validation run in which the sensored drive "
                   "(the same controller on the true angle and speed, the same noise) turns "
-                  "slower than `limit_pu` of rated speed is beyond an observer that reads "
-                  "its angle from a back-EMF (a phase detector whose gain falls with the "
-                  "true speed); its class's limit, 0 for the others")
+                  "slower than `limit_pu` of rated speed is beyond the observer's class, "
+                  "whose declared limit it is (`low_speed_limit_pu`: li's PLL observers "
+                  "0.05, below which their PLL's loop gain fades; 0 for the others)")
 
 
 __all__ = ["FRONT", "PEERS", "TuningReport", "tune"]

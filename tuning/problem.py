@@ -28,18 +28,6 @@ from pmsmjax.observers import (
 )
 
 
-#: The low-speed rule's limit for an observer that reads its angle from a back-EMF
-#: (`TuningProblem.low_speed_limit_pu`; p.u. of rated speed): 5 % of rated speed, the
-#: floor below which li-fa-leso's PLL design freezes its normalisation (`w_min`, the
-#: paper designs' own statement of where the back-EMF stops carrying the angle). Measured
-#: (docs/tuning.md, "The low-speed limit"): on `li_dtp` every validation run whose
-#: sensored speed falls below it reaches 0.010-0.011 p.u. under its load step, and each of
-#: the four back-EMF observers loses every one of them with its paper's design (the li
-#: observers with the PLL's floor at 0.01 p.u. too), while zhang2022's ESO, a flux
-#: observer, holds them all; no other validation run comes near it (the lowest: 0.24
-#: p.u.).
-LOW_SPEED_LIMIT_PU = 0.05
-
 #: Sampling period (s) of the presets that are no registered observer's paper drive: the
 #: saturated 3.5 kW IPMSM runs on morawiec2023's drive.
 OTHER_T_S = {"ipm3k5_sat": 1 / 6600}
@@ -135,9 +123,8 @@ class TuningProblem:
       tuning. A validation run in which the sensored drive (the same controller on the
       true angle and speed, the same noise: `tuning.low_speed_runs`) turns slower than
       this is beyond the observer's class: the verdict's counts leave it out and the
-      report lists it apart. None (default): `LOW_SPEED_LIMIT_PU` for an observer that
-      reads its angle from a back-EMF (its class's `angle_from_back_emf`), 0 (no run)
-      for the others.
+      report lists it apart. None (default): the limit the observer's class declares
+      (`low_speed_limit_pu`: 0.05 for li's PLL observers, 0, no run, for the others).
 
     **Design space** (`tuning.design_space`)
 
@@ -277,8 +264,8 @@ class TuningProblem:
         if any(len(r) != 5 or min(r) <= 0 for r in self.val_cases):
             _bad("val_cases", self.val_cases, "rows (k_d, k_q, k_R, k_psi, k_noise) > 0")
         if self.low_speed_limit_pu is None:
-            set_("low_speed_limit_pu", LOW_SPEED_LIMIT_PU if observer_class(
-                self.observer).angle_from_back_emf else 0.0)
+            set_("low_speed_limit_pu",
+                 float(observer_class(self.observer).low_speed_limit_pu))
         v = self.low_speed_limit_pu
         if not (isinstance(v, (int, float)) and math.isfinite(v) and 0 <= v < 1):
             _bad("low_speed_limit_pu", v, "None or a speed 0 <= v < 1 (p.u. of rated)")
@@ -336,5 +323,5 @@ class TuningProblem:
         return cls(**kw)
 
 
-__all__ = ["LOW_SPEED_LIMIT_PU", "OTHER_T_S", "SEARCHES", "TuningProblem", "VALIDATION_CASES",
+__all__ = ["OTHER_T_S", "SEARCHES", "TuningProblem", "VALIDATION_CASES",
            "sampling_period"]

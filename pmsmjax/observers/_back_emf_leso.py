@@ -90,7 +90,7 @@ from ._base import (
     PlantPoint,
 )
 from ._matrix_functions import phi_pair_apply
-from ._pll import PLL_UNITS, QuadraturePLL
+from ._pll import PLL_UNITS, W_MIN_PU, QuadraturePLL
 
 
 def blk(a, b=0.0):
@@ -170,7 +170,12 @@ class AbstractBackEMFLESO(AbstractObserver):
     motor: eqx.AbstractVar[PMSMParams]
     pll: eqx.AbstractVar[QuadraturePLL]
     n_s: ClassVar[int] = 2
-    angle_from_back_emf: ClassVar[bool] = True
+    #: The PLL design's floor, `W_MIN_PU` (below it the loop gain fades: `QuadraturePLL`,
+    #: "Low speed and zero speed"); on `li_dtp` every validation run that takes a
+    #: sensored drive below it reaches 1 % of rated speed under its load step, and each
+    #: li observer loses all of them with its paper's design, with the floor at 0.01 p.u.
+    #: too (docs/tuning.md, "The low-speed limit").
+    low_speed_limit_pu: ClassVar[float] = W_MIN_PU
     tunable_kinds: ClassVar[dict[str, str]] = {"w0": "estimator", "w_pll": "tracking",
                                                "zeta_pll": "damping"}
     extras: ClassVar[dict[str, str]] = _EXTRAS

@@ -195,13 +195,11 @@ class AbstractObserver(eqx.Module):
     #: invariant, and the angle-resolved analyses (`analysis.harmonic_ripple`,
     #: `analysis.input_matrix`) evaluate them at one angle.
     angle_dependent: ClassVar[bool] = False
-    #: Whether the observer reads the rotor angle from the direction of an estimated
-    #: back-EMF through a PLL or a tracking loop (li-fa-leso's observers, stumper's
-    #: parallel model): an amplitude that vanishes with the speed, so that the phase
-    #: detector's gain falls with the true speed and inverts where it passes through zero
-    #: before its estimate does. The tuner's low-speed rule is written for this class
-    #: (`tuning.TuningProblem.low_speed_limit_pu`, `tuning.low_speed_runs`).
-    angle_from_back_emf: ClassVar[bool] = False
+    #: The speed (p.u. of rated) below which the observer's design does not claim to hold
+    #: the angle: the tuner's low-speed rule sets apart the validation runs that take a
+    #: sensored drive slower than this (`tuning.TuningProblem.low_speed_limit_pu`,
+    #: `tuning.low_speed_runs`). 0: no limit declared, every run is judged.
+    low_speed_limit_pu: ClassVar[float] = 0.0
     #: The preset of the observer's paper's drive (`pmsmjax.preset` name): the machine
     #: the tuner, the benchmarks and the docs figures run it on by default. None: no
     #: paper drive (e.g. the sensored pass-through); such an observer runs on `zhang750`.

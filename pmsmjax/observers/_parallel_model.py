@@ -229,7 +229,6 @@ class ParallelModelObserver(AbstractObserver):
 
     paper_motor: ClassVar[str | None] = "stumper_mt5"
     paper_T_s: ClassVar[float | None] = 62.5e-6
-    angle_from_back_emf: ClassVar[bool] = True
     tunable_kinds: ClassVar[dict[str, str]] = {"T_LP": "time"}
     #: the tracking filter (37)-(38), s^2 + v2 s + v1: the tuner searches w_tf, zeta_tf
     tuning_coordinates: ClassVar[dict[str, tuple[str, str]]] = {

@@ -157,6 +157,8 @@ PLL_UNITS = {
 }
 #: The frequency-locked-loop assist's gain, k_f = fll * w_pll (see the module docstring).
 DEFAULT_FLL = 2.0
+#: The default design's normalisation floor `w_min`, as a fraction of the rated speed.
+W_MIN_PU = 0.05
 
 
 class QuadraturePLL(eqx.Module):
@@ -183,7 +185,7 @@ class QuadraturePLL(eqx.Module):
         check_positive("QuadraturePLL", "fll", self.fll, "-", allow_zero=True)
 
     @classmethod
-    def for_speed(cls, w_rated, w_pll_pu=0.4, zeta_pll=1.0, w_min_pu=0.05):
+    def for_speed(cls, w_rated, w_pll_pu=0.4, zeta_pll=1.0, w_min_pu=W_MIN_PU):
         """The default design for a drive of rated electrical speed `w_rated` (rad/s):
         `w_pll = 0.4 w_rated` (126 rad/s = 20 Hz on `li_dtp`, well below the observers'
         bandwidths there), critically damped, `w_min = 0.05 w_rated`."""
