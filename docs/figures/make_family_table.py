@@ -45,22 +45,31 @@ def run_one(name: str, out: str, extra: list[str]) -> dict:
                 tuned_rms_deg=a["mean_rms_deg"], better=a["better"], n=a["n"],
                 worst_rms_change_pct=a["worst_rms_change_pct"],
                 lost_lock_paper=a["lost_lock_reference"], lost_lock_tuned=a["lost_lock"],
-                new_lost_lock=a["new_lost_lock"],
+                new_lost_lock=a["new_lost_lock"], beyond_limit=a.get("beyond_limit", 0),
+                lost_lock_beyond=a.get("lost_lock_beyond", 0),
+                lost_lock_beyond_reference=a.get("lost_lock_beyond_reference", 0),
                 verdict="holds" if s["verdict"]["holds"] else "does not hold", wall_s=wall,
                 date=time.strftime("%Y-%m-%d"))
 
 
+def _beyond(r: dict) -> str:
+    """The runs the low-speed rule set apart, and their lost locks (paper -> tuned)."""
+    b = r.get("beyond_limit", 0)
+    return (f"{b} (lost {r['lost_lock_beyond_reference']} -> {r['lost_lock_beyond']})" if b
+            else "0")
+
+
 def table(rows: list[dict]) -> str:
     out = ["| observer | motor | paper RMS (deg) | tuned RMS (deg) | `better` | "
-           "`worst_rms_change_pct` | lost lock paper -> tuned (`new_lost_lock`) | verdict "
-           "| wall |",
-           "|---|---|---:|---:|---:|---:|---|---|---:|"]
+           "`worst_rms_change_pct` | lost lock paper -> tuned (`new_lost_lock`) | "
+           "`beyond_limit` | verdict | wall |",
+           "|---|---|---:|---:|---:|---:|---|---:|---|---:|"]
     for r in rows:
         out.append(f"| {r['observer']} | {r['motor']} | {r['paper_rms_deg']:.2f} | "
                    f"{r['tuned_rms_deg']:.2f} | {r['better']}/{r['n']} | "
                    f"{r['worst_rms_change_pct']:+.1f} % | {r['lost_lock_paper']} -> "
-                   f"{r['lost_lock_tuned']} ({r['new_lost_lock']} new) | {r['verdict']} | "
-                   f"{r['wall_s']:.0f} s |")
+                   f"{r['lost_lock_tuned']} ({r['new_lost_lock']} new) | "
+                   f"{_beyond(r)} | {r['verdict']} | {r['wall_s']:.0f} s |")
     return "\n".join(out)
 
 
