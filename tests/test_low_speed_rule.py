@@ -37,3 +37,37 @@ def test_the_rule_on_a_small_case():
     q = tg.TuningProblem(val_speeds_pu=(0.1, 0.4), val_cases=tg.VALIDATION_CASES[:1])
     none, nan = tg.low_speed_runs(q, tg.validation_set(q))
     assert not none.any() and np.all(np.isnan(nan))
+
+
+def test_blocking_runs_reuse_the_rules_sensored_records():
+    """Where the rule measured every run, the blocking runs' report takes its records
+    instead of simulating them again: the same numbers as measured afresh (a run worse by
+    more than the tolerance at +0.4 p.u., kept by the rule, and one at +0.1 p.u., beyond
+    it, which is not a blocking run)."""
+    from tuning.pipeline import _blocking
+    from tuning.scenarios import _low_speed
+
+    p = tg.TuningProblem(observer="c-leso", val_speeds_pu=(0.1, 0.4),
+                         val_cases=tg.VALIDATION_CASES[:1])
+    vset = tg.validation_set(p)
+    beyond, _, records = _low_speed(p, vset)
+    s1 = np.asarray(vset.s1)
+    ones = np.ones(vset.n)
+    rms = np.where(np.isclose(s1, 0.4) | np.isclose(s1, 0.1), 1.5, 1.0)  # +50 %
+
+    def metrics(r):
+        z = np.zeros(vset.n)
+        return tg.Metrics(rms_deg=r, peak_deg=z, static_deg=z, noise_rad_s=z,
+                          out_of_lock=z, lost_lock=z.astype(bool), ok=ones.astype(bool),
+                          loss=ones)
+
+    m = {"tuned": metrics(rms), "paper": metrics(ones)}
+    reused, fresh = {"where_not": []}, {"where_not": []}
+    _blocking(p, vset, m, reused, lambda *a: None, beyond, records)
+    _blocking(p, vset, m, fresh, lambda *a: None, beyond)
+    assert [r["run"] for r in reused["blocking_runs"]] == [int(np.argmax(np.isclose(s1, 0.4)))]
+    assert reused["where_not"] == fresh["where_not"]
+    for a, b in zip(reused["blocking_runs"], fresh["blocking_runs"]):
+        assert a.keys() == b.keys()
+        for k in a:
+            np.testing.assert_allclose(a[k], b[k], rtol=1e-9)

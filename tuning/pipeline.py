@@ -44,9 +44,9 @@ from .objective import BASELINE, VOCABULARY, accounting, holds, objective
 from .problem import TuningProblem
 from .scenarios import (
     ScenarioSet,
+    _low_speed,
     check_disjoint,
     heldout_set,
-    low_speed_runs,
     sensored_lowest_speed,
     training_set,
     validation_set,
@@ -117,7 +117,7 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                  f"; the speed loop on the speed of the observer's angle "
                  f"({problem.speed_from_angle:g} Hz tracking loop)"))
     # the low-speed rule, before any search: validation runs beyond the observer's class
-    beyond, lowest = low_speed_runs(problem, sets["validation"])
+    beyond, lowest, sensored = _low_speed(problem, sets["validation"])
     if beyond.any():
         _say(log, f"low-speed rule: {int(beyond.sum())} of {beyond.size} validation runs "
                   f"turn slower than {problem.low_speed_limit_pu:g} p.u. in a sensored "
@@ -185,7 +185,7 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"are chaotic, so no design passes a per-run rule on them")
     if not verdict["holds"]:
         _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
-                  beyond)
+                  beyond, sensored)
     # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
@@ -198,13 +198,14 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
 
 
 def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
-              beyond) -> None:
+              beyond, sensored=None) -> None:
     """The runs that block the verdict (the tuned design's RMS angle error worse than the
     paper's by more than the tolerance, or lock lost that the paper's design holds, among
     the runs the low-speed rule keeps, not `beyond`),
     each measured in a sensored drive of the same scenario (`sensored_lowest_speed`):
     `verdict["blocking_runs"]`, and a line of `where_not` with their lowest speeds and
-    back-EMF."""
+    back-EMF. `sensored`: the low-speed rule's records of every run, where it measured
+    them (not simulated again)."""
     m, ref = metrics_val["tuned"], metrics_val["paper"]
     rms_rel = np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1.0
     new_lost = np.asarray(m.lost_lock) & ~np.asarray(ref.lost_lock)
@@ -213,9 +214,12 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
     if not runs.size:
         verdict["blocking_runs"] = []
         return
-    _say(log, f"measuring the {runs.size} blocking validation runs in a sensored drive")
     rows = vset.table()
-    found = sensored_lowest_speed(problem, vset, runs)
+    if sensored is None:
+        _say(log, f"measuring the {runs.size} blocking validation runs in a sensored drive")
+        found = sensored_lowest_speed(problem, vset, runs)
+    else:
+        found = [dict(sensored[j]) for j in runs]
     for r in found:
         j = r["run"]
         r.update({k: rows[j][k] for k in ("s0", "s1", "k_d", "k_q", "k_R", "k_psi",

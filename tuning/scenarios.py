@@ -305,12 +305,18 @@ def low_speed_runs(problem, sset: ScenarioSet) -> tuple[np.ndarray, np.ndarray]:
     controller on the true angle and speed, the same noise) turns slower than the limit
     at some sample, and that lowest speed (p.u. of rated; NaN where the limit is 0 and
     nothing is simulated). Returns `(beyond, lowest_pu)`."""
+    return _low_speed(problem, sset)[:2]
+
+
+def _low_speed(problem, sset: ScenarioSet):
+    """`low_speed_runs` and the sensored records it measured (`sensored_lowest_speed` of
+    every run; None where the limit is 0), which the report reuses for blocking runs."""
     limit = float(problem.low_speed_limit_pu)
     if limit <= 0:
-        return np.zeros(sset.n, bool), np.full(sset.n, np.nan)
-    lowest = np.array([r["lowest_speed_pu"]
-                       for r in sensored_lowest_speed(problem, sset, range(sset.n))])
-    return lowest < limit, lowest
+        return np.zeros(sset.n, bool), np.full(sset.n, np.nan), None
+    found = sensored_lowest_speed(problem, sset, range(sset.n))
+    lowest = np.array([r["lowest_speed_pu"] for r in found])
+    return lowest < limit, lowest, found
 
 
 __all__ = ["KINDS", "ScenarioSet", "check_disjoint", "heldout_set", "low_speed_runs",
