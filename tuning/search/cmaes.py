@@ -19,8 +19,9 @@ SIGMA0 = 0.5
 
 def cmaes_search(ev, z0, *, budget: int, population: int = 8, key=None,
                  progress: bool = False, name: str = "cmaes", **_) -> SearchResult:
-    """CMA-ES from `z0` for `budget // (population * ev.cost)` generations (at least
-    one); returns the best design evaluated."""
+    """CMA-ES from `z0`: `z0` itself, then `(budget - ev.cost) // (population *
+    ev.cost)` generations (at least one); returns the best design evaluated, `z0`
+    included."""
     from evosax.algorithms import CMA_ES
 
     key = jax.random.PRNGKey(0) if key is None else key
@@ -29,8 +30,12 @@ def cmaes_search(ev, z0, *, budget: int, population: int = 8, key=None,
     params = es.default_params.replace(std_init=SIGMA0)
     key, k = jax.random.split(key)
     state = es.init(k, z0, params)
-    gens = max(1, budget // (population * ev.cost))
+    # the start is a candidate too: a search never returns a design worse on its own
+    # objective than the one it started from (the paper's), which a generation drawn
+    # around it may all be (one evaluation of the budget)
     tr = Tracker(name, z0)
+    tr.record(z0, float(ev.value(z0)), ev.cost)
+    gens = max(1, (budget - ev.cost) // (population * ev.cost))
     with progress_bar(gens * population * ev.cost, name, progress) as bar:
         for _ in range(gens):
             key, k_ask, k_tell = jax.random.split(key, 3)
