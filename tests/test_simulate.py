@@ -475,6 +475,45 @@ def test_divergence_under_vmap_is_isolated():
     assert np.all(np.isfinite(np.asarray(batch.w_m[1])))
 
 
+class RunawayObserver(pj.SensoredObserver):
+    """The encoder's angle, and a speed estimate that grows by `growth` per step from the
+    true speed: the speed estimate of an observer that has diverged while its angle is
+    still bounded (morawiec2023's observer with some designs under mismatch: the speed
+    law runs away while the torque limit holds the rotor)."""
+
+    growth: jax.Array = 1.0
+
+    def init(self, theta0=0.0, w0=0.0):
+        return jnp.asarray(1.0)
+
+    def step(self, state, meas, T_s):
+        return state * self.growth, pj.Estimate(theta_hat=pj.wrap_angle(meas.theta),
+                                                w_hat=meas.w_m * state)
+
+
+def test_a_speed_estimate_that_runs_away_is_a_divergence():
+    """A run whose speed estimate leaves the bound of the rotor's speed (20 times rated)
+    diverged, though its angle and the plant stay finite; one whose estimate stays
+    inside does not. Independent of the observer's internals: the recorded estimate's
+    largest magnitude decides."""
+    foc = pj.FOC.from_drive(DRIVE, alpha_s=ALPHA_S, alpha_c=ALPHA_C)
+    w_bound = 20.0 * float(DRIVE.w_rated)
+    seen = []
+    for growth in (1.0, 1.002, 1.2):
+        tr = pj.simulate(DRIVE, foc, RunawayObserver(growth=jnp.asarray(growth)), SHORT,
+                         T_s=T_S, w_m0=300.0, throw=False)
+        w_hat = np.asarray(tr.w_hat)
+        reached = np.max(np.abs(w_hat[np.isfinite(w_hat)])) >= w_bound
+        assert bool(tr.ok) is (not reached), (growth, np.max(np.abs(w_hat)))
+        seen.append(bool(reached))
+        assert bool(np.asarray(tr.status == pj.RESULTS.diverged)) is bool(reached)
+        assert np.all(np.isfinite(np.asarray(tr.i_dq))), growth
+    assert seen == [False, False, True], seen  # constant, growing but inside, beyond the bound
+    with pytest.raises(eqx.EquinoxRuntimeError, match="estimate"):
+        jax.block_until_ready(pj.simulate(DRIVE, foc, RunawayObserver(growth=1.2), SHORT,
+                                          T_s=T_S, w_m0=300.0).w_m)
+
+
 def test_divergence_raises_with_throw():
     with pytest.raises(eqx.EquinoxRuntimeError, match="diverged"):
         tr = _garbage_run(jnp.asarray(1.0), throw=True)

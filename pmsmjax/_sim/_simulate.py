@@ -83,6 +83,11 @@ def _finite_bounded(y: PlantState, i_bound, w_bound):
     return ok
 
 
+def _estimate_bounded(est, w_bound):
+    """The observer's estimate is finite and its speed within `w_bound` (the plant's)."""
+    return jnp.isfinite(est.theta_hat) & (jnp.abs(est.w_hat) < w_bound)
+
+
 def _rotate(c, s, x, y):
     """Components of the vector (x, y) rotated by the angle with cosine c and sine s."""
     return c * x - s * y, s * x + c * y
@@ -127,7 +132,9 @@ def simulate(
     - `i_dq0`: initial current in rotor coordinates (A).
     - `save_every`: keep every n-th sample in the trajectory (must divide the number of
       steps); the integrals `ise_*` always use every sample.
-    - `throw`: raise if the run diverged; with `False` the status is returned instead
+    - `throw`: raise if the run diverged (a state non-finite, a current above 20 times
+      `drive.i_max`, the rotor's speed or the observer's speed estimate above 20 times
+      `drive.w_rated`); with `False` the status is returned instead
       (use this under `vmap` for sweeps).
     - `observer_u_dt`: the inverter error (V) that the drive's dead-time compensation
       assumes when it hands the observer its voltage: the observer sees the commanded
@@ -362,8 +369,10 @@ def _simulate(arguments: dict) -> Trajectory:
                           (u_xy_apply[..., 0], u_xy_apply[..., 1]),
                           free=0.0 if imposed else 1.0)
         y_new = integrate(plant._rates, y, args, T_s, solver=solver, n_substeps=n_substeps)
-        good = checkpoint_name(carry["ok"] & _finite_bounded(y_new, i_bound, w_bound),
-                               _OK_NAME)
+        # diverged: the plant's state, or the observer's estimate (a speed estimate that
+        # runs away while the torque limit keeps the rotor bounded), out of its bounds
+        good = checkpoint_name(carry["ok"] & _finite_bounded(y_new, i_bound, w_bound)
+                               & _estimate_bounded(est, w_bound), _OK_NAME)
         y_next = jax.tree_util.tree_map(lambda a, b: jnp.where(good, a, b), y_new, y)
         theta_err = wrap_angle(y.theta - est.theta_hat)
         ise = tuple(a + T_s * b for a, b in zip(carry["ise"], (
@@ -439,6 +448,7 @@ def _simulate(arguments: dict) -> Trajectory:
     if throw:
         traj = eqx.error_if(
             traj, ~carry["ok"],
-            "simulate: the run diverged (a state became non-finite or out of bounds); "
+            "simulate: the run diverged (a state or the observer's estimate became "
+            "non-finite or out of bounds); "
             "pass throw=False to get the status per run instead.")
     return traj

@@ -12,7 +12,8 @@ class RESULTS(eqx.Enumeration):
     successful = ""
     diverged = (
         "The simulation diverged: a state became non-finite or left the physical bounds "
-        "(|i| > 20 i_max or |w_m| > 20 w_rated). The state was frozen at the last good "
+        "(|i| > 20 i_max, |w_m| or the observer's speed estimate |w_hat| > 20 "
+        "w_rated). The state was frozen at the last good "
         "sample. Pass `throw=False` to inspect `Trajectory.status` per run."
     )
 
