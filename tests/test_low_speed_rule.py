@@ -9,6 +9,23 @@ import tuning as tg
 from tuning.scenarios import scenario
 
 
+def _lowest_one_by_one(p, sset):
+    """The lowest speed (p.u. of rated) of each run of `sset` in a sensored drive, one
+    `pmsmjax.simulate` at a time, not through the tuner's batch."""
+    drive, foc = p.drive(), p.controller()
+    w_r = float(drive.w_rated)
+    out = []
+    for j in range(sset.n):
+        sc = scenario(drive, sset.s0[j], sset.s1[j], sset.t0[j], sset.t1[j],
+                      sset.t_load[j], sset.load_pu[j], sset.t_end)
+        tr = pj.simulate(drive, foc, pj.SensoredObserver(), sc, T_s=p.T_s,
+                         sensing=pj.Sensing(noise_std=p.noise_std * float(sset.k_noise[j])),
+                         key=sset.keys[j], theta0=0.0, w_m0=float(sset.s0[j]) * w_r,
+                         theta_hat0=0.0, save_every=1, throw=False)
+        out.append(np.min(np.abs(np.asarray(tr.w_m))) / w_r)
+    return np.asarray(out)
+
+
 def test_the_rule_on_a_small_case():
     """li's drive, the nominal case at +-0.1 and +-0.4 p.u.: the load step takes the
     sensored drive to about 1 % of rated speed at +-0.1 p.u. (below the li observers'
@@ -19,18 +36,7 @@ def test_the_rule_on_a_small_case():
     vset = tg.validation_set(p)
     beyond, lowest = tg.low_speed_runs(p, vset)
     s1 = np.asarray(vset.s1)
-    drive, foc = p.drive(), p.controller()
-    w_r = float(drive.w_rated)
-    ref = []
-    for j in range(vset.n):  # one run at a time, not through the tuner's batch
-        sc = scenario(drive, vset.s0[j], vset.s1[j], vset.t0[j], vset.t1[j],
-                         vset.t_load[j], vset.load_pu[j], vset.t_end)
-        tr = pj.simulate(drive, foc, pj.SensoredObserver(), sc, T_s=p.T_s,
-                         sensing=pj.Sensing(noise_std=p.noise_std * float(vset.k_noise[j])),
-                         key=vset.keys[j], theta0=0.0, w_m0=float(vset.s0[j]) * w_r,
-                         theta_hat0=0.0, save_every=1, throw=False)
-        ref.append(np.min(np.abs(np.asarray(tr.w_m))) / w_r)
-    np.testing.assert_allclose(lowest, ref, rtol=1e-9)
+    np.testing.assert_allclose(lowest, _lowest_one_by_one(p, vset), rtol=1e-9)
     assert beyond.tolist() == (np.abs(s1) < 0.2).tolist(), (s1, lowest)
     assert np.all(lowest[np.abs(s1) < 0.2] < 0.02) and np.all(lowest[np.abs(s1) > 0.2] > 0.2)
     # an observer that declares no limit (the ESO): nothing simulated
@@ -71,3 +77,27 @@ def test_blocking_runs_reuse_the_rules_sensored_records():
         assert a.keys() == b.keys()
         for k in a:
             np.testing.assert_allclose(a[k], b[k], rtol=1e-9)
+
+
+def test_the_search_sets_leave_out_the_runs_beyond_the_rule():
+    """The training set the search sees obeys the rule the validation accounting states:
+    for li's C-LESO (limit 0.05 p.u.) every reversal of the training set passes through
+    zero speed in the sensored drive and is left out, and so is any other run slower than
+    the limit there, each checked against `pmsmjax.simulate` run by run; the kept runs
+    are the others, unchanged and in order. The ESO (no limit) keeps every run."""
+    from tuning.scenarios import _keep_within
+
+    p = tg.TuningProblem(observer="c-leso", n_train=9)
+    tset = tg.training_set(p)
+    kept, n_out = _keep_within(p, tset, "train")
+    lowest = _lowest_one_by_one(p, tset)
+    out = lowest < p.low_speed_limit_pu
+    reversal = np.asarray(tset.kind) == 1
+    assert reversal.any() and np.all(out[reversal]), (lowest, np.asarray(tset.kind))
+    assert not out.all()
+    assert n_out == int(out.sum()) and kept.n == tset.n - n_out
+    for name in ("s0", "s1", "load_pu", "k_d", "k_q", "k_noise", "keys"):
+        np.testing.assert_array_equal(getattr(kept, name), np.asarray(getattr(tset, name))[~out])
+    q = tg.TuningProblem(n_train=9)
+    same, none = _keep_within(q, tg.training_set(q), "train")
+    assert none == 0 and same.n == 9

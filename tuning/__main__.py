@@ -81,9 +81,10 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                    help="validation speeds (p.u., each with both signs)")
     p.add_argument("--low-speed-limit", type=float, default=None, metavar="PU",
                    help="the low-speed rule: validation runs in which a sensored drive "
-                        "turns slower than this (p.u. of rated) are counted apart "
-                        "(default: the observer class's declared limit, 0.05 for li's "
-                        "PLL observers, 0 for the others; 0: judge every run)")
+                        "turns slower than this (p.u. of rated) are counted apart, "
+                        "and such training and held-out runs left out (default: the "
+                        "observer class's declared limit, 0.05 for li's PLL observers, 0 "
+                        "for the others; 0: judge every run)")
     p.add_argument("--seed", type=int, default=d.seed, metavar="N",
                    help="seed of the scenario draws, noise keys and searches")
     p.add_argument("--peers", action=ListOption, default=None, metavar="NAME",

@@ -12,7 +12,10 @@ and returns a `TuningReport` (`tuning.report` turns it into files).
 **The low-speed rule** (`TuningProblem.low_speed_limit_pu`, `low_speed_runs`): before
 any search, every validation run is run once in a sensored drive; a run that takes it
 slower than the observer class's limit is set apart, and the validation accounting
-counts the other runs (`accounting(beyond=...)`, `verdict.low_speed_rule`).
+counts the other runs (`accounting(beyond=...)`, `verdict.low_speed_rule`). The same
+rule leaves such runs out of the training and held-out sets the search sees
+(`verdict.low_speed_rule.left_out`): in them the observer loses lock chaotically, and a
+search pulled by them trades the other runs for noise.
 
 **The rule's floor.** The paper's design is also scored with its coordinates changed by
 1e-9 (relative), `paper-perturbed`: where even that fails the validation rule, the runs in
@@ -44,6 +47,7 @@ from .objective import BASELINE, VOCABULARY, accounting, holds, objective
 from .problem import TuningProblem
 from .scenarios import (
     ScenarioSet,
+    _keep_within,
     _low_speed,
     check_disjoint,
     heldout_set,
@@ -117,12 +121,20 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                  f"; the speed loop on the speed of the observer's angle "
                  f"({problem.speed_from_angle:g} Hz tracking loop)"))
     # the low-speed rule, before any search: validation runs beyond the observer's class
+    # are counted apart; the search's own runs beyond it are left out of its sets
     beyond, lowest, sensored = _low_speed(problem, sets["validation"])
     if beyond.any():
         _say(log, f"low-speed rule: {int(beyond.sum())} of {beyond.size} validation runs "
                   f"turn slower than {problem.low_speed_limit_pu:g} p.u. in a sensored "
                   f"drive (lowest {np.nanmin(lowest):.3g} p.u.), below the limit the "
                   f"observer's class declares: counted apart")
+    left_out = {}
+    for split in ("train", "heldout"):
+        sets[split], left_out[split] = _keep_within(problem, sets[split], split)
+        if left_out[split]:
+            _say(log, f"low-speed rule: {left_out[split]} {split} runs turn slower than "
+                      f"the limit in a sensored drive: left out of the search's "
+                      f"{split} set ({sets[split].n} kept)")
     evs = {k: Evaluator(problem, space, s) for k, s in sets.items()}
     ev = evs["train"]
     z0 = space.to_unconstrained(space.paper_point())
@@ -154,7 +166,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
         _say(log, f"scoring {len(names) + 1} designs on the {split} runs")
         many = e.metrics_many(xs)
         metrics[split] = {"paper": e.reference}
-        obj[split] = {"paper": float(objective(e.reference, e.reference, problem)[0])}
+        obj[split] = {"paper": _objective_kept(e.reference, e.reference, problem,
+                                               beyond if split == "validation" else None)}
         acc[split] = {}
         # the rule's floor: the paper's design with its gains changed by 1e-9 (relative).
         # Where that alone fails the rule, runs that lose lock are chaotic and no design
@@ -163,7 +176,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
         for i, n in enumerate([*names, FLOOR]):
             m = floor if n == FLOOR else jax.tree_util.tree_map(lambda a, i=i: a[i], many)
             metrics[split][n] = m
-            obj[split][n] = float(objective(m, e.reference, problem)[0])
+            obj[split][n] = _objective_kept(m, e.reference, problem,
+                                            beyond if split == "validation" else None)
             acc[split][n] = accounting(m, e.reference, problem.regression_tol,
                                        beyond if split == "validation" else None)
     designs[FLOOR] = None
@@ -171,7 +185,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     verdict["low_speed_rule"] = {
         "limit_pu": float(problem.low_speed_limit_pu),
         "rule": LOW_SPEED_RULE, "runs": [int(j) for j in np.nonzero(beyond)[0]],
-        "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in lowest]}
+        "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in lowest],
+        "left_out": left_out}
     fa = acc["validation"][FLOOR]
     # the per-run parts of the rule (a perturbation is not meant to be better)
     floor_why = [w for w in holds(fa)[1] if not w.startswith("better in")]
@@ -195,6 +210,15 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                         designs=designs, searches=searches, metrics=metrics,
                         objective=obj, accounting=acc, default=default, verdict=verdict,
                         wall_s=time.perf_counter() - t_start)
+
+
+def _objective_kept(m, ref, problem, beyond=None) -> float:
+    """The objective of metrics `m` against `ref` over the runs the low-speed rule keeps
+    (`beyond`: the runs it sets apart; None: every run), as the verdict counts them."""
+    if beyond is not None and beyond.any():
+        keep = np.nonzero(~beyond)[0]
+        m, ref = (jax.tree_util.tree_map(lambda a: a[..., keep], t) for t in (m, ref))
+    return float(objective(m, ref, problem)[0])
 
 
 def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,

@@ -123,8 +123,10 @@ class TuningProblem:
       tuning. A validation run in which the sensored drive (the same controller on the
       true angle and speed, the same noise: `tuning.low_speed_runs`) turns slower than
       this is beyond the observer's class: the verdict's counts leave it out and the
-      report lists it apart. None (default): the limit the observer's class declares
-      (`low_speed_limit_pu`: 0.05 for li's PLL observers, 0, no run, for the others).
+      report lists it apart; such training and held-out runs are left out of the
+      search's sets (`verdict.low_speed_rule.left_out`). None (default): the limit the
+      observer's class declares (`low_speed_limit_pu`: 0.05 for li's PLL observers, 0,
+      no run, for the others).
 
     **Design space** (`tuning.design_space`)
 

@@ -319,6 +319,22 @@ def _low_speed(problem, sset: ScenarioSet):
     return lowest < limit, lowest, found
 
 
+def _keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, int]:
+    """`sset` without its runs beyond the low-speed rule (`low_speed_runs`), and how many
+    were left out: the search's training and held-out runs obey the rule the validation
+    accounting states, so no design is pulled towards runs no observer of the class can
+    hold (in them lock is lost chaotically, and a design's loss there is noise)."""
+    beyond = _low_speed(problem, sset)[0]
+    if not beyond.any():
+        return sset, 0
+    if beyond.all():
+        raise ValueError(
+            f"`TuningProblem.low_speed_limit_pu` = {problem.low_speed_limit_pu:g}: every "
+            f"{split} run turns slower than it in a sensored drive; lower the limit or "
+            f"raise the {split} speeds")
+    return sset.take(np.nonzero(~beyond)[0]), int(beyond.sum())
+
+
 __all__ = ["KINDS", "ScenarioSet", "check_disjoint", "heldout_set", "low_speed_runs",
            "max_acceleration", "observer_model", "scenario", "sensored_lowest_speed",
            "simulate_set", "training_set", "validation_set"]

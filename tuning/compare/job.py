@@ -40,7 +40,7 @@ from pmsmjax.observers import make_observer as registry_observer, observer_class
 
 from ..evaluate import Evaluator
 from ..objective import objective
-from ..scenarios import training_set
+from ..scenarios import _keep_within, training_set
 from ..search import STRATEGIES
 from .config import CASE_NAMES, DESIGNS, CompareConfig, applicable_observers
 from .points import (
@@ -93,7 +93,8 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     space = _space(config, name)
     log(f"tuning {name} ({config.tuner}, {problem.budget} closed-loop simulations) ...")
     t = time.perf_counter()
-    ev = Evaluator(problem, space, training_set(problem))
+    # the tuner's low-speed rule: training runs beyond the observer's class left out
+    ev = Evaluator(problem, space, _keep_within(problem, training_set(problem), "train")[0])
     z0 = space.to_unconstrained(space.paper_point())
     res = STRATEGIES[config.tuner](ev, z0, budget=problem.budget,
                                    population=problem.population,

@@ -8,7 +8,8 @@ fraction_better, worst_rms_change_pct, new_lost_lock}`, the same names as the co
 and the docs. The keys it replaced stay one release (`deprecated_keys`: old key -> new
 key). Other tools also read `verdict.holds`, `verdict.statement` (the verdict as
 counted) and `designs.NAME.validation_loss` (the mean per-run loss on the validation
-runs, dimensionless), with every search strategy (the CMA-ES peer among them) in
+runs the low-speed rule keeps, dimensionless; `validation_objective` and
+`validation_rms_deg` over the same runs), with every search strategy (the CMA-ES peer among them) in
 `designs`.
 """
 
@@ -61,8 +62,8 @@ def summary(report) -> dict:
         row = {f"{s}_rms_deg": float(np.mean(np.asarray(
             report.metrics[s][name].rms_deg)[kept[s]])) for s in SPLITS}
         row |= {f"{s}_objective": report.objective[s][name] for s in SPLITS}
-        row |= {f"{s}_loss": float(np.mean(np.asarray(report.metrics[s][name].loss)))
-                for s in SPLITS}
+        row |= {f"{s}_loss": float(np.mean(np.asarray(
+            report.metrics[s][name].loss)[kept[s]])) for s in SPLITS}
         row["validation_lost_lock"] = int(np.sum(np.asarray(
             report.metrics["validation"][name].lost_lock)[kept["validation"]]))
         if x is None:
