@@ -299,3 +299,18 @@ def test_the_held_out_table_states_no_change_where_a_run_is_lost(tmp_path):
 
     bad = _simulate(["--t-end", "-1", "--no-plot", "--out", str(tmp_path / "run")])
     assert bad["rc"] == 2 and "--t-end" in bad["error"], bad
+
+
+def test_the_verdict_says_when_the_deployed_design_is_the_papers_own():
+    """The searches keep the best design they evaluate, the paper's among them: where the
+    deployed one is no better on the training runs (the rotor-flux observer's job of
+    11-30: 1.7770069135 against 1.7770069134896), the verdict says so; a design lower
+    by more than 1e-9 (relative) is a design of its own."""
+    from tuning.pipeline import _paper_not_bettered
+
+    same = _paper_not_bettered({"paper": 1.7770069134896325,
+                                "tuned": 1.7770069135057542}, "tuned")
+    assert same is not None and "paper's own" in same and "1.77701" in same
+    assert _paper_not_bettered({"paper": 1.78, "front-quiet": 1.78}, "front-quiet")
+    assert _paper_not_bettered({"paper": 1.78, "tuned": 1.68}, "tuned") is None
+    assert _paper_not_bettered({"paper": 1.0, "tuned": 1.0 - 2e-9}, "tuned") is None

@@ -182,6 +182,9 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                                        beyond if split == "validation" else None)
     designs[FLOOR] = None
     default, verdict = _choose(acc["validation"], sets["validation"])
+    same = _paper_not_bettered(obj["train"], default)
+    if not verdict["holds"] and same:
+        verdict["where_not"].append(same)
     verdict["low_speed_rule"] = {
         "limit_pu": float(problem.low_speed_limit_pu),
         "rule": LOW_SPEED_RULE, "runs": [int(j) for j in np.nonzero(beyond)[0]],
@@ -210,6 +213,18 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                         designs=designs, searches=searches, metrics=metrics,
                         objective=obj, accounting=acc, default=default, verdict=verdict,
                         wall_s=time.perf_counter() - t_start)
+
+
+def _paper_not_bettered(obj_train: dict, default: str) -> str | None:
+    """Where the deployed design is no better than the paper's on the training runs (the
+    searches keep the best design they evaluate, the paper's among them), the verdict's
+    reason: the design deployed is the paper's own, to round-off. None otherwise."""
+    tuned, paper = obj_train[default], obj_train["paper"]
+    if tuned < paper - 1e-9 * abs(paper):
+        return None
+    return (f"no search found a design better than the paper's on the training runs "
+            f"(training objective {tuned:.6g} against the paper's {paper:.6g}): the "
+            f"design deployed is the paper's own, to round-off")
 
 
 def _objective_kept(m, ref, problem, beyond=None) -> float:
