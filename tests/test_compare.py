@@ -239,6 +239,12 @@ def test_lock_comparison_from_the_saved_runs(job):
     assert len(c["only_tuned"]) == len(lost["tuned"] - lost["paper"])
     assert len(c["only_paper"]) == len(lost["paper"] - lost["tuned"])
     assert "## Lost lock: tuned against paper" in (out / "comparison.md").read_text()
+    # the tuning record says how many training runs the low-speed rule left out (the ESO
+    # declares no limit: none)
+    problem = config.tuning_problem(OBSERVER)
+    t = s["observers"][OBSERVER]["tuning"]
+    assert (t["train_runs"], t["train_runs_left_out"]) == (problem.n_train, 0)
+    assert t["low_speed_limit_pu"] == problem.low_speed_limit_pu == 0.0
 
 
 def _strip_timing(path):

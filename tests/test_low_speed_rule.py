@@ -2,7 +2,10 @@
 fixed before tuning, from a sensored drive of each validation run; checked on a small
 case against `pmsmjax.simulate` run by run with the sensored observer."""
 
+import dataclasses
+
 import numpy as np
+import pytest
 
 import pmsmjax as pj
 import tuning as tg
@@ -101,3 +104,10 @@ def test_the_search_sets_leave_out_the_runs_beyond_the_rule():
     q = tg.TuningProblem(n_train=9)
     same, none = _keep_within(q, tg.training_set(q), "train")
     assert none == 0 and same.n == 9
+    # a limit above every run's lowest speed would leave nothing to train on: refused,
+    # naming the parameter and its value
+    above = float(lowest.max()) + 0.01
+    assert above < 1, lowest
+    r = dataclasses.replace(p, low_speed_limit_pu=above)
+    with pytest.raises(ValueError, match=rf"low_speed_limit_pu` = {above:g}: every train run"):
+        _keep_within(r, tset, "train")

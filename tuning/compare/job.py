@@ -94,7 +94,8 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     log(f"tuning {name} ({config.tuner}, {problem.budget} closed-loop simulations) ...")
     t = time.perf_counter()
     # the tuner's low-speed rule: training runs beyond the observer's class left out
-    ev = Evaluator(problem, space, _keep_within(problem, training_set(problem), "train")[0])
+    kept, left_out = _keep_within(problem, training_set(problem), "train")
+    ev = Evaluator(problem, space, kept)
     z0 = space.to_unconstrained(space.paper_point())
     res = STRATEGIES[config.tuner](ev, z0, budget=problem.budget,
                                    population=problem.population,
@@ -104,6 +105,8 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     x = np.asarray(space.to_physical(jnp.asarray(res.z)))
     meta = dict(tuned=True, tuner=config.tuner, budget=problem.budget, sims=res.sims,
                 objective="cvar (tuning.objective)",
+                train_runs=kept.n, train_runs_left_out=left_out,
+                low_speed_limit_pu=problem.low_speed_limit_pu,
                 train_objective_paper=float(objective(ev.reference, ev.reference,
                                                       problem)[0]),
                 train_objective_tuned=float(res.value), x=x.tolist(),
