@@ -346,12 +346,15 @@ def test_new_initial_values_do_not_compile_again():
 
 
 def test_new_parameter_values_do_not_compile_again(monkeypatch):
-    """Python floats in the drive, the controller's and the observer's machine model and
+    """Python floats in the drive, the controller's and the observer's machine model,
     the observer's design (a preset, `replace_params`, `scale_motor`, `make_observer(...,
-    zeta1=...)`) are traced values: `simulate`, `replay`, `harmonic_ripple` and the
-    certificate run their compiled program again for new values (one entry in each jit
-    cache), use the values, and give the numbers of the program that baked them in (the
-    conversion patched out) to rounding."""
+    zeta1=...)`) and the measurement chain (`Sensing(noise_std=...)`) are traced values:
+    `simulate`, `replay`, `harmonic_ripple` and the certificate run their compiled
+    program again for new values (one entry in each jit cache), use the values, and give
+    the numbers of the program that baked them in (the conversion patched out) to
+    rounding."""
+    import jax
+
     from pmsmjax._data import _replay
     from pmsmjax._sim import _simulate as S
     from pmsmjax.analysis import _harmonic, _lyapunov
@@ -376,6 +379,18 @@ def test_new_parameter_values_do_not_compile_again(monkeypatch):
         assert size(S._simulate) == n_sim
     errs = [np.asarray(t.theta_err) for t in trs]
     assert min(np.max(np.abs(errs[0] - e)) for e in errs[1:]) > 1e-4  # the values act
+
+    def noisy(std):  # another current-noise level: the same program
+        return pj.simulate(d, foc, mk("leso", d, zeta1=0.7, ratio=1.0), sc, theta0=0.2,
+                           theta_hat0=0.0, w_m0=200.0, sensing=pj.Sensing(noise_std=std),
+                           key=jax.random.PRNGKey(0))
+
+    noisy_errs = [np.asarray(noisy(0.02).theta_err)]
+    n_noisy = size(S._simulate)
+    noisy_errs.append(np.asarray(noisy(0.05).theta_err))
+    assert size(S._simulate) == n_noisy
+    # the same draws scaled: the angle errors differ (by the noise through the observer)
+    assert np.max(np.abs(noisy_errs[0] - noisy_errs[1])) > 1e-6
 
     u, i = np.asarray(trs[0].u_ab), np.asarray(trs[0].i_meas_ab)
 
@@ -413,7 +428,10 @@ def test_new_parameter_values_do_not_compile_again(monkeypatch):
         monkeypatch.setattr(mod, "values_as_arrays", lambda tree, dtype: tree)
     np.testing.assert_allclose(np.asarray(run(*cases[2]).theta_err), errs[2], rtol=0,
                                atol=1e-9)
-    assert size(S._simulate) == n_sim + 1  # a new program: the values baked in
+    assert size(S._simulate) == n_noisy + 1  # a new program: the values baked in
+    np.testing.assert_allclose(np.asarray(noisy(0.05).theta_err), noisy_errs[1], rtol=0,
+                               atol=1e-9)
+    assert size(S._simulate) == n_noisy + 2
     np.testing.assert_allclose(np.asarray(rep(1.3)), reps[1], rtol=0, atol=1e-9)
     np.testing.assert_allclose(
         np.asarray(pj.analysis.harmonic_ripple(mk("eso", d, w2=400.0), d, op, (-5, 7))),

@@ -200,13 +200,14 @@ def simulate(
         if v is not None and is_concrete(v) and not isinstance(v, jax.Array):
             arguments[k] = np.asarray(v, dtype=np.float64)
     # The same for the parameters: a new value of a Python float in the drive, the
-    # controller or the observer (a mismatched model, another design) runs the compiled
-    # program again (pmsmjax._sim._batching.values_as_arrays); checks that need the observer's
-    # concrete values run first
+    # controller, the observer (a mismatched model, another design) or the measurement
+    # chain (another noise level) runs the compiled program again
+    # (pmsmjax._sim._batching.values_as_arrays; zeros stay Python numbers, which skip their
+    # branch); checks that need the observer's concrete values run first
     observer.check_values(T_s)
     recheck((drive, controller))
     dtype = run_dtype(drive, controller)
-    for k in ("drive", "controller", "observer"):
+    for k in ("drive", "controller", "observer", "sensing"):
         arguments[k] = values_as_arrays(arguments[k], dtype)
     arguments["drive"] = without_labels(arguments["drive"])
     return _simulate(arguments)
