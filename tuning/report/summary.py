@@ -9,8 +9,8 @@ and the docs. The keys it replaced stay one release (`deprecated_keys`: old key 
 key). Other tools also read `verdict.holds`, `verdict.statement` (the verdict as
 counted) and `designs.NAME.validation_loss` (the mean per-run loss on the validation
 runs the low-speed rule keeps, dimensionless; `validation_objective` and
-`validation_rms_deg` over the same runs), with every search strategy (the CMA-ES peer among them) in
-`designs`.
+`validation_rms_deg` over the same runs), with every search strategy (the CMA-ES peer
+among them) in `designs`.
 """
 
 from __future__ import annotations
