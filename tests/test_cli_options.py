@@ -224,3 +224,35 @@ def test_compare_runs_on_a_motor_file(tmp_path, capsys):
     assert s["config"]["motor_file"] == str(tmp_path / "m.toml")
     assert s["config"]["set_params"] == [["J", 0.002]]
     assert list(s["observers"]) == ["eso"]
+
+
+def test_wide_mismatch_sets_reach_fifty_percent_and_stay_disjoint():
+    """`python -m tuning --wide-mismatch` (`TuningProblem.wide_mismatch`): training and
+    held-out ratios of L_d and L_q drawn over 0.5..1.5 and reaching past the default
+    +-30 % on both sides; validation with every +-50 % case (both inductances jointly,
+    crossed, one at a time) on top of the default cases; the three sets still share no
+    value; `--quick` with it is refused by name."""
+    from tuning.problem import VALIDATION_CASES, WIDE_CASES
+    from tuning.scenarios import check_disjoint, heldout_set, training_set, validation_set
+
+    p = problem_from_args(tuning_parser().parse_args(["--wide-mismatch",
+                                                      "--regression-tol", "0.05"]))
+    assert p.mismatch_range == (0.5, 1.5) and p.regression_tol == 0.05
+    assert p.val_cases == VALIDATION_CASES + WIDE_CASES
+    wanted = {(a, b) for a in (0.5, 1.0, 1.5) for b in (0.5, 1.0, 1.5)} - {(1.0, 1.0)}
+    assert {(c[0], c[1]) for c in WIDE_CASES} == wanted
+    assert all(c[2:] == (1.0, 1.0, 1.0) for c in WIDE_CASES)
+    sets = [training_set(p), heldout_set(p), validation_set(p)]
+    check_disjoint(*sets)  # raises on any shared value
+    n_speeds = 2 * len(p.val_speeds_pu)
+    assert sets[2].n == n_speeds * (len(VALIDATION_CASES) + len(WIDE_CASES))
+    val = {(r["k_d"], r["k_q"]) for r in sets[2].table()}
+    assert wanted <= val
+    for s in sets[:2]:
+        for k in ("k_d", "k_q"):
+            v = np.asarray(getattr(s, k))
+            assert v.min() >= 0.5 and v.max() <= 1.5
+            assert v.min() < 0.7 and v.max() > 1.3, (k, v)  # beyond the default range
+    assert problem_from_args(tuning_parser().parse_args([])).mismatch_range == (0.7, 1.3)
+    with pytest.raises(ValueError, match="--quick and --wide-mismatch"):
+        problem_from_args(tuning_parser().parse_args(["--quick", "--wide-mismatch"]))

@@ -41,6 +41,8 @@ from .pipeline import TuningReport as TuningReport, tune as tune
 from .problem import (
     SEARCHES as SEARCHES,
     VALIDATION_CASES as VALIDATION_CASES,
+    WIDE_CASES as WIDE_CASES,
+    WIDE_MISMATCH_RANGE as WIDE_MISMATCH_RANGE,
     TuningProblem as TuningProblem,
     sampling_period as sampling_period,
 )

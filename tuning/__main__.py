@@ -91,6 +91,11 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                    help=f"strategies run side by side (default all: {' '.join(SEARCHES)})")
     p.add_argument("--quick", action="store_true",
                    help="a small problem for smoke runs (TuningProblem.quick)")
+    p.add_argument("--wide-mismatch", action="store_true",
+                   help="the observer model's L_d and L_q off by up to +-50 %% in every "
+                        "set: training and held-out draws over 0.5..1.5, validation with "
+                        "the +-50 %% cases, jointly and separately, added "
+                        "(TuningProblem.wide_mismatch)")
     p.add_argument("--no-plot", action="store_true", help="do not write the figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
@@ -122,7 +127,12 @@ def problem_from_args(args) -> TuningProblem:
         kw["motor"] = args.motor
     if args.set_params:
         kw["set_params"] = tuple(args.set_params)
-    return TuningProblem.quick(**kw) if args.quick else TuningProblem(**kw)
+    if args.quick and args.wide_mismatch:
+        raise ValueError("--quick and --wide-mismatch: give one of the two (the quick "
+                         "problem's three validation cases have no +-50 % mismatch)")
+    if args.quick:
+        return TuningProblem.quick(**kw)
+    return TuningProblem.wide_mismatch(**kw) if args.wide_mismatch else TuningProblem(**kw)
 
 
 #: The console table's columns: heading, where summary.json keeps the value
