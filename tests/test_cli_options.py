@@ -256,3 +256,42 @@ def test_wide_mismatch_sets_reach_fifty_percent_and_stay_disjoint():
     assert problem_from_args(tuning_parser().parse_args([])).mismatch_range == (0.7, 1.3)
     with pytest.raises(ValueError, match="--quick and --wide-mismatch"):
         problem_from_args(tuning_parser().parse_args(["--quick", "--wide-mismatch"]))
+
+
+def test_tune_keeps_the_paper_design_outside_the_chosen_coordinates():
+    """`python -m tuning --tune w2 zeta2` (`TuningProblem.tune`): the design space has
+    those coordinates alone, so a design changes w2 and zeta2 and keeps the paper's flux
+    schedule (38) (its gains at every speed are the paper's design's with the new w2,
+    zeta2, built independently here); a name the observer has not, a repeated one, or
+    part of a reparametrised class's coordinates is refused by name."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import tuning as tg
+    from pmsmjax.observers import ESODesign, make_observer
+
+    p = problem_from_args(tuning_parser().parse_args(["--tune", "w2", "zeta2"]))
+    assert p.tune == ("w2", "zeta2")
+    space = tg.DesignSpace(p)
+    assert space.names == ("w2", "zeta2")
+    x = jnp.array([400.0, 0.7])
+    obs = space.observer(x)
+    drive = p.drive()
+    ref = make_observer("eso", drive)
+    ref = eqx.tree_at(lambda o: o.design, ref, ESODesign.zhang38(drive.w_rated, 400.0, 0.7))
+    assert obs.design.schedule == "zhang38"
+    for w in (0.1, 0.5, 1.0):
+        w0 = w * float(drive.w_rated)
+        a, b = obs.linear_gains(w0, jnp.zeros(2)), ref.linear_gains(w0, jnp.zeros(2))
+        for u, v in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+            np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-12)
+    # every coordinate, as before
+    assert tg.DesignSpace(tg.TuningProblem()).names == ("zeta1", "ratio", "w2", "zeta2")
+    for tune, fragment in ((("w3",), "zeta1, ratio, w2, zeta2"),
+                           (("w2", "w2"), "distinct names")):
+        with pytest.raises(ValueError, match=fragment):
+            tg.TuningProblem(tune=tune)
+    joint = tuple(pj.observers.observer_class("rotor-flux").tuning_coordinates)
+    with pytest.raises(ValueError, match="one reparametrisation"):
+        tg.TuningProblem(observer="rotor-flux", tune=joint[:1])

@@ -89,6 +89,10 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                    help="seed of the scenario draws, noise keys and searches")
     p.add_argument("--peers", action=ListOption, default=None, metavar="NAME",
                    help=f"strategies run side by side (default all: {' '.join(SEARCHES)})")
+    p.add_argument("--tune", action=ListOption, default=None, metavar="NAME",
+                   help="the design coordinates the searches change (default all; e.g. "
+                        "w2 zeta2: the zhang2022 family's flux loop keeps the paper's "
+                        "speed schedule (38)); the others keep the paper's design")
     p.add_argument("--quick", action="store_true",
                    help="a small problem for smoke runs (TuningProblem.quick)")
     p.add_argument("--wide-mismatch", action="store_true",
@@ -118,6 +122,8 @@ def problem_from_args(args) -> TuningProblem:
         kw["low_speed_limit_pu"] = args.low_speed_limit
     if args.speed_from_angle is not None:
         kw["speed_from_angle"] = args.speed_from_angle
+    if args.tune is not None:
+        kw["tune"] = tuple(args.tune)
     if args.motor_file is not None:
         if args.motor is not None:
             raise ValueError(f"--motor {args.motor} and --motor-file {args.motor_file}: give "

@@ -105,6 +105,14 @@ def _kind(cls, name: str) -> str:
     return kind
 
 
+def coordinate_names(observer: str) -> tuple[str, ...]:
+    """The names of the design coordinates `DesignSpace` gives observer `observer`, in
+    its order (`TuningProblem.tune` chooses among them)."""
+    cls = observer_class(observer)
+    return (*cls.tuning_coordinates, *cls.tunable_bounds,
+            *(k for k in cls.tunable if k not in cls.tuning_replaces))
+
+
 class DesignSpace:
     """The physical design space of `problem.observer` on `problem.drive()` (see the
     module docstring). Immutable after construction."""
@@ -151,6 +159,8 @@ class DesignSpace:
         self.coordinates = tuple(coords)
         if cls.tuning_spectral:
             self.coordinates = self._stable_bounds()
+        if problem.tune is not None:  # the others keep the paper's design
+            self.coordinates = tuple(c for c in self.coordinates if c.name in problem.tune)
 
     def _coord(self, name, unit, kind, paper, problem, box=None) -> Coordinate:
         w_lo, w_hi = self.w_track

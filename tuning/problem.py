@@ -154,6 +154,13 @@ class TuningProblem:
     - `regression_tol`: no run's RMS angle error may exceed the reference design's by
       more than this (relative); `w_constraint`: the weight of that penalty.
 
+    - `tune`: the design coordinates the searches change (names of
+      `tuning.design_space.coordinate_names(observer)`, e.g. `("w2", "zeta2")` for the
+      zhang2022 family, whose flux loop then keeps the paper's speed schedule (38));
+      the others keep the paper's design. None (default): every coordinate. A class
+      whose coordinates are one reparametrisation of its design
+      (`tuning_coordinates`) changes all of them or none.
+
     **Search** (`tuning.search`)
 
     - `search`: "hybrid" (CMA-ES, then gradient polish; the default), "gradient",
@@ -204,6 +211,8 @@ class TuningProblem:
     cvar_fraction: float = 0.25
     regression_tol: float = 0.10
     w_constraint: float = 20.0
+    # what the searches change
+    tune: tuple | None = None
     # search
     search: str = "hybrid"
     budget: int = 1200
@@ -274,6 +283,21 @@ class TuningProblem:
             _bad("val_speeds_pu", self.val_speeds_pu, "nonzero speeds within 2 p.u.")
         if any(len(r) != 5 or min(r) <= 0 for r in self.val_cases):
             _bad("val_cases", self.val_cases, "rows (k_d, k_q, k_R, k_psi, k_noise) > 0")
+        if self.tune is not None:
+            from .design_space import coordinate_names
+
+            set_("tune", tuple(self.tune) if isinstance(self.tune, (list, tuple))
+                 else (self.tune,))
+            names = coordinate_names(self.observer)
+            bad = [n for n in self.tune if n not in names]
+            if bad or not self.tune or len(set(self.tune)) != len(self.tune):
+                _bad("tune", self.tune, f"distinct names among the {self.observer} "
+                                        f"observer's coordinates: {', '.join(names)}")
+            joint = tuple(observer_class(self.observer).tuning_coordinates)
+            if joint and not set(joint) <= set(self.tune):
+                _bad("tune", self.tune, f"all of {', '.join(joint)} (one "
+                                        f"reparametrisation of the {self.observer} "
+                                        f"observer's design) or None")
         if self.low_speed_limit_pu is None:
             set_("low_speed_limit_pu",
                  float(observer_class(self.observer).low_speed_limit_pu))
