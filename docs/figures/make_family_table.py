@@ -13,11 +13,12 @@ import argparse
 import json
 import os
 import platform
-import re
 import subprocess
 import sys
 import tempfile
 import time
+
+from _page import markdown_table, write_block
 
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -60,17 +61,15 @@ def _beyond(r: dict) -> str:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| observer | motor | paper RMS (deg) | tuned RMS (deg) | `better` | "
-           "`worst_rms_change_pct` | lost lock paper -> tuned (`new_lost_lock`) | "
-           "`beyond_limit` | verdict | wall |",
-           "|---|---|---:|---:|---:|---:|---|---:|---|---:|"]
-    for r in rows:
-        out.append(f"| {r['observer']} | {r['motor']} | {r['paper_rms_deg']:.2f} | "
-                   f"{r['tuned_rms_deg']:.2f} | {r['better']}/{r['n']} | "
-                   f"{r['worst_rms_change_pct']:+.1f} % | {r['lost_lock_paper']} -> "
-                   f"{r['lost_lock_tuned']} ({r['new_lost_lock']} new) | "
-                   f"{_beyond(r)} | {r['verdict']} | {r['wall_s']:.0f} s |")
-    return "\n".join(out)
+    columns = [("observer", "l"), ("motor", "l"), ("paper RMS (deg)", "r"),
+               ("tuned RMS (deg)", "r"), ("`better`", "r"), ("`worst_rms_change_pct`", "r"),
+               ("lost lock paper -> tuned (`new_lost_lock`)", "l"), ("`beyond_limit`", "r"),
+               ("verdict", "l"), ("wall", "r")]
+    return markdown_table(columns, [
+        [r["observer"], r["motor"], f"{r['paper_rms_deg']:.2f}", f"{r['tuned_rms_deg']:.2f}",
+         f"{r['better']}/{r['n']}", f"{r['worst_rms_change_pct']:+.1f} %",
+         f"{r['lost_lock_paper']} -> {r['lost_lock_tuned']} ({r['new_lost_lock']} new)",
+         _beyond(r), r["verdict"], f"{r['wall_s']:.0f} s"] for r in rows])
 
 
 def main(argv=None) -> int:
@@ -112,14 +111,11 @@ def main(argv=None) -> int:
     text = table(rows)
     print(text)
     if not args.speed_from_angle:
-        page = open(PAGE).read()
         dates = sorted({r["date"] for r in rows})
         when = dates[0] if len(dates) == 1 else "; ".join(
             f"{d}: {', '.join(r['observer'] for r in rows if r['date'] == d)}" for d in dates)
         stamp = f"(`docs/figures/make_family_table.py`, {when}, {machine})"
-        page = re.sub(re.escape(BEGIN) + ".*?" + re.escape(END),
-                      f"{BEGIN}\n{stamp}:\n\n{text}\n{END}", page, flags=re.S)
-        open(PAGE, "w").write(page)
+        write_block(PAGE, BEGIN, END, f"{stamp}:\n\n{text}")
     return 0
 
 

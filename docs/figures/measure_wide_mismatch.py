@@ -11,21 +11,23 @@ its load with i_d = 0) beside the simulated RMS angle errors: whether the induct
 error's static error explains the run.
 
 Writes docs/figures/wide_mismatch.json and the table between the page's
-`<!-- wide mismatch -->` markers. About 8 minutes on a 2-core machine:
+`<!-- wide mismatch -->` markers (`--from-json`: only the table, from the JSON). About
+5 minutes on a 2-core machine:
 
     .venv/bin/python docs/figures/measure_wide_mismatch.py
 """
 
+import argparse
 import json
 import math
 import os
 import platform
-import re
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _page import markdown_table, write_block
 
 import pmsmjax as pj
 import tuning as tg
@@ -101,48 +103,54 @@ def _passing(r: dict) -> list[str]:
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| sets | `better` | `worst_rms_change_pct` | `new_lost_lock` | verdict (5 %) | "
-           "blocking runs: (k_d, k_q) | their RMS paper -> tuned (deg) | their static "
-           "error paper -> tuned (deg, analysis) | strategies whose design passes |",
-           "|---|---:|---:|---:|---|---|---|---|---|"]
+    columns = [("sets", "l"), ("`better`", "r"), ("`worst_rms_change_pct`", "r"),
+               ("`new_lost_lock`", "r"), ("verdict (5 %)", "l"),
+               ("blocking runs: (k_d, k_q)", "l"), ("their RMS paper -> tuned (deg)", "l"),
+               ("their static error paper -> tuned (deg, analysis)", "l"),
+               ("strategies whose design passes", "l")]
+    cells = []
     for r in rows:
         b = r["blocking"]
         cases = ", ".join(sorted({f"({x['k_d']:g}, {x['k_q']:g})" for x in b})) or "none"
-        out.append(
-            f"| {r['config']} | {r['better']}/{r['n']} | {r['worst_rms_change_pct']:+.1f} % | "
-            f"{r['new_lost_lock']} | {'holds' if r['holds'] else 'does not hold'} | "
-            f"{len(b)}: {cases} | "
-            + (f"{_span([x['rms_paper_deg'] for x in b])} -> "
-               f"{_span([x['rms_tuned_deg'] for x in b])} | "
-               f"{_span([abs(x['static_paper_deg']) for x in b])} -> "
-               f"{_span([abs(x['static_tuned_deg']) for x in b])} |" if b else "| |")
-            + f" {', '.join(_passing(r)) or 'none'} |")
-    return "\n".join(out)
+        spans = ([f"{_span([x['rms_paper_deg'] for x in b])} -> "
+                  f"{_span([x['rms_tuned_deg'] for x in b])}",
+                  f"{_span([abs(x['static_paper_deg']) for x in b])} -> "
+                  f"{_span([abs(x['static_tuned_deg']) for x in b])}"] if b else ["", ""])
+        cells.append([r["config"], f"{r['better']}/{r['n']}",
+                      f"{r['worst_rms_change_pct']:+.1f} %", str(r["new_lost_lock"]),
+                      "holds" if r["holds"] else "does not hold", f"{len(b)}: {cases}",
+                      *spans, ", ".join(_passing(r)) or "none"])
+    return markdown_table(columns, cells)
 
 
-def main() -> int:
-    pj.runtime.configure()
-    jax.config.update("jax_enable_x64", True)
-    rows = []
-    for label, make in CONFIGS:
-        rows.append(measure(label, make()))
-        r = rows[-1]
-        print(f"{label}: {r['better']}/{r['n']}, {r['worst_rms_change_pct']:+.1f} %, "
-              f"{len(r['blocking'])} blocking, {r['wall_s']:.0f} s", flush=True)
-    machine = f"{platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
-    date = time.strftime("%Y-%m-%d")
-    with open(os.path.join(HERE, "wide_mismatch.json"), "w") as f:
-        json.dump(dict(machine=machine, date=date, observer="eso", motor="zhang750",
-                       rows=rows), f, indent=1)
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--from-json", action="store_true",
+                    help="only write the page's table from wide_mismatch.json")
+    args = ap.parse_args(argv)
+    path = os.path.join(HERE, "wide_mismatch.json")
+    if args.from_json:
+        saved = json.loads(open(path).read())
+        rows, machine, date = saved["rows"], saved["machine"], saved["date"]
+    else:
+        pj.runtime.configure()
+        jax.config.update("jax_enable_x64", True)
+        rows = []
+        for label, make in CONFIGS:
+            rows.append(measure(label, make()))
+            r = rows[-1]
+            print(f"{label}: {r['better']}/{r['n']}, {r['worst_rms_change_pct']:+.1f} %, "
+                  f"{len(r['blocking'])} blocking, {r['wall_s']:.0f} s", flush=True)
+        machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python "
+                   f"{platform.python_version()}")
+        date = time.strftime("%Y-%m-%d")
+        with open(path, "w") as f:
+            json.dump(dict(machine=machine, date=date, observer="eso", motor="zhang750",
+                           rows=rows), f, indent=1)
     text = table(rows)
     print(text)
-    page = open(PAGE).read()
     stamp = f"(`docs/figures/measure_wide_mismatch.py`, {date}, {machine})"
-    page, n = re.subn(re.escape(BEGIN) + ".*?" + re.escape(END),
-                      f"{BEGIN}\n{stamp}:\n\n{text}\n{END}", page, flags=re.S)
-    if n != 1:
-        raise SystemExit(f"{PAGE}: no {BEGIN} ... {END} block to write the table into")
-    open(PAGE, "w").write(page)
+    write_block(PAGE, BEGIN, END, f"{stamp}:\n\n{text}")
     return 0
 
 
