@@ -104,22 +104,19 @@ def _passing(r: dict) -> list[str]:
 
 def table(rows: list[dict]) -> str:
     columns = [("sets", "l"), ("`better`", "r"), ("`worst_rms_change_pct`", "r"),
-               ("`new_lost_lock`", "r"), ("verdict (5 %)", "l"),
-               ("blocking runs: (k_d, k_q)", "l"), ("their RMS paper -> tuned (deg)", "l"),
+               ("verdict (5 %)", "l"), ("blocking runs: (k_d, k_q)", "l"),
                ("their static error paper -> tuned (deg, analysis)", "l"),
                ("strategies whose design passes", "l")]
     cells = []
     for r in rows:
         b = r["blocking"]
         cases = ", ".join(sorted({f"({x['k_d']:g}, {x['k_q']:g})" for x in b})) or "none"
-        spans = ([f"{_span([x['rms_paper_deg'] for x in b])} -> "
-                  f"{_span([x['rms_tuned_deg'] for x in b])}",
-                  f"{_span([abs(x['static_paper_deg']) for x in b])} -> "
-                  f"{_span([abs(x['static_tuned_deg']) for x in b])}"] if b else ["", ""])
+        static = (f"{_span([abs(x['static_paper_deg']) for x in b])} -> "
+                  f"{_span([abs(x['static_tuned_deg']) for x in b])}" if b else "")
         cells.append([r["config"], f"{r['better']}/{r['n']}",
-                      f"{r['worst_rms_change_pct']:+.1f} %", str(r["new_lost_lock"]),
+                      f"{r['worst_rms_change_pct']:+.1f} %",
                       "holds" if r["holds"] else "does not hold", f"{len(b)}: {cases}",
-                      *spans, ", ".join(_passing(r)) or "none"])
+                      static, ", ".join(_passing(r)) or "none"])
     return markdown_table(columns, cells)
 
 
