@@ -82,7 +82,7 @@ def measure(label, problem) -> dict:
                 design=rep.default, coordinates=dict(zip(rep.space.names,
                                                          map(float, rep.designs["tuned"]))),
                 peers={k: dict(better=v["better"], worst_rms_change_pct=v["worst_rms_change_pct"],
-                               new_lost_lock=v["new_lost_lock"])
+                               new_lost_lock=v["new_lost_lock"], passes=tg.holds(v)[0])
                        for k, v in rep.accounting["validation"].items() if k in rep.searches},
                 better=a["better"], n=a["n"], worst_rms_change_pct=a["worst_rms_change_pct"],
                 new_lost_lock=a["new_lost_lock"], holds=bool(rep.verdict["holds"]),
@@ -95,11 +95,9 @@ def _span(vals, fmt="{:.2f}") -> str:
 
 
 def _passing(r: dict) -> list[str]:
-    """The search strategies whose own design passes the row's rule (the report's
-    peers; the verdict judges the deployed one)."""
-    return [k for k, v in r["peers"].items()
-            if v["better"] >= 0.75 * r["n"] and v["new_lost_lock"] == 0
-            and v["worst_rms_change_pct"] <= 100 * r["regression_tol"]]
+    """The search strategies whose own design passes the row's rule (`tuning.holds`; the
+    verdict judges the deployed one)."""
+    return [k for k, v in r["peers"].items() if v["passes"]]
 
 
 def table(rows: list[dict]) -> str:
