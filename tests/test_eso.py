@@ -171,6 +171,43 @@ def test_G1_vanishes_at_standstill_for_proportional_schedules():
     del pa
 
 
+def test_scaled_38_keeps_its_shape_and_scales_damping_and_decay_rate():
+    """zhang38's `zeta1_scale` k_z and `decay_scale` k_s: zeta1 = k_z (1.5 + |w0|/w_r) and
+    zeta1 w1 = 1.5 k_s |w0| at every speed (written out here), both 1 the paper's (38)
+    bit for bit; `with_design` keeps the schedule, reports the scales, and refuses them
+    beside another schedule's parameters."""
+    w0 = jnp.linspace(-1.2, 1.2, 13) * WR
+    z0, w10 = ESODesign.zhang38(WR).zeta1_w1(w0)
+    np.testing.assert_array_equal(z0, 1.5 + jnp.abs(w0) / WR)
+    np.testing.assert_array_equal(
+        ESODesign.zhang38(WR, zeta1_scale=1.0, decay_scale=1.0).zeta1_w1(w0)[1], w10)
+    z, w1 = ESODesign.zhang38(WR, zeta1_scale=0.6, decay_scale=1.7).zeta1_w1(w0)
+    np.testing.assert_allclose(z, 0.6 * (1.5 + np.abs(np.asarray(w0)) / WR), rtol=1e-15)
+    np.testing.assert_allclose(z * w1, 1.7 * 1.5 * np.abs(np.asarray(w0)), rtol=1e-14,
+                               atol=1e-12)
+    obs = pj.observers.make_observer("leso", DRIVE).with_design(zeta1_scale=0.6,
+                                                                decay_scale=1.7)
+    assert obs.design.schedule == "zhang38"
+    p = obs.design_parameters()
+    assert (p["zeta1_scale"], p["decay_scale"], p["w_rated"]) == (0.6, 1.7, WR)
+    # the gains are (17) with the scaled (zeta1, w1): the flux poles at
+    # s^2 + 2 zeta1 w1 s + w1^2 in the estimator frame (trace and determinant of G1 + w0 J)
+    i0 = jnp.array([0.0, 2.0])
+    g = obs.linear_gains(0.5 * WR, i0)
+    A = -(0.5 * WR * jnp.array([[0.0, -1.0], [1.0, 0.0]]) + g.G1)
+    z5, w15 = float(0.6 * (1.5 + 0.5)), 1.7 * 1.5 * 0.5 * WR / (0.6 * 2.0)
+    np.testing.assert_allclose([-jnp.trace(A), jnp.linalg.det(A)],
+                               [2 * z5 * w15, w15 ** 2], rtol=1e-12)
+    back = obs.with_design(w2=300.0)
+    assert back.design_parameters()["decay_scale"] == 1.7  # kept
+    with pytest.raises(ValueError, match="decay_scale.*zhang38.*ratio"):
+        obs.with_design(decay_scale=1.2, ratio=0.5)
+    with pytest.raises(ValueError, match="zeta1_scale"):
+        ESODesign.zhang38(WR, zeta1_scale=-1.0)
+    fixed = obs.with_design(zeta1=0.5, ratio=0.5)  # another schedule: the scales go
+    assert "decay_scale" not in fixed.design_parameters()
+
+
 def test_fixed_w1_is_clamped_at_w_min():
     w_min = 0.05 * WR
     design = ESODesign.fixed_w1(1.0, 200.0, w_min)

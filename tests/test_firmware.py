@@ -114,6 +114,7 @@ MEASURED = {
         "eso-fixed": (0.0, 0.0, 3.35e-6, 3.07e-4),
         "afo-fixed_w1": (4.4e-16, 4.3e-13, 1.09e-6, 5.89e-4),
         "leso-fixed_ratio": (8.9e-16, 2.3e-13, 1.19e-6, 2.45e-4),
+        "leso-scaled38": (8.9e-16, 0.0, 1.16e-6, 2.99e-4),
         "afo-tracked": (4.44e-14, 2.22e-12, 1.84e-6, 1.64e-4),
     },
     "closed loop": {
@@ -161,6 +162,9 @@ def _case(case):
                                               w_min=50.0),
         "leso-fixed_ratio": lambda: make_observer("leso", drive, zeta1=0.8, ratio=1.2,
                                                   n2=10.0),
+        # (38)'s shape with its damping and decay rate scaled (the tuner's coordinates)
+        "leso-scaled38": lambda: make_observer("leso", drive, zeta1_scale=0.6,
+                                               decay_scale=1.7),
         # the speed of the AFO's angle (`SpeedFromAngle`): its C step, then the tracker's
         "afo-tracked": lambda: pj.SpeedFromAngle(make_observer("afo", drive)),
     }[case]()
@@ -184,7 +188,7 @@ def _synthetic(case):
 
 
 @pytest.mark.parametrize("case", [*supported_observers(), "eso-fixed", "afo-fixed_w1",
-                                  "leso-fixed_ratio", "afo-tracked"])
+                                  "leso-fixed_ratio", "leso-scaled38", "afo-tracked"])
 def test_c_observer_equals_replay(case, tmp_path_factory):
     drive, obs, (t, u_ab, i_ab, _, w0), theta_py, w_py = _synthetic(case)
     # the recording exercises the observer: its speed estimate changes by > 0.1 p.u.

@@ -48,9 +48,10 @@ def _schedule_c(design) -> tuple[str, list[str]]:
         sch = design.schedule
         body = []
         if sch == "zhang38":
-            body += [f"    pmsm_real zeta1 = PMSM_R(1.5) + PMSM_FABS(w0) / "
-                     f"{lit(design.w_rated)};",
-                     "    pmsm_real w1 = PMSM_R(1.5) * PMSM_FABS(w0) / zeta1;"]
+            body += [f"    pmsm_real zeta1 = {lit(design.zeta1_scale)} * (PMSM_R(1.5) + "
+                     f"PMSM_FABS(w0) / {lit(design.w_rated)});",
+                     f"    pmsm_real w1 = {lit(design.decay_scale)} * PMSM_R(1.5) * "
+                     f"PMSM_FABS(w0) / zeta1;"]
         elif sch == "fixed_ratio":
             body += [f"    pmsm_real zeta1 = {lit(design.zeta1)};",
                      f"    pmsm_real w1 = {lit(design.ratio)} * PMSM_FABS(w0);"]
@@ -63,8 +64,9 @@ def _schedule_c(design) -> tuple[str, list[str]]:
                  f"    pmsm_real n3 = {lit(design.n3)};"]
         w_min = _f(design.w_min) if sch == "fixed_w1" else 0.0
         if sch == "zhang38":
-            what = (f"zeta1 = 1.5 + |w0|/w_rated, w1 = 1.5 |w0|/zeta1 (zhang2022 (38), "
-                    f"w_rated = {_f(design.w_rated)!r} rad/s)")
+            what = (f"zeta1 = k_zeta (1.5 + |w0|/w_rated), w1 = k_sigma 1.5 |w0|/zeta1 "
+                    f"(zhang2022 (38), w_rated = {_f(design.w_rated)!r} rad/s, k_zeta = "
+                    f"{_f(design.zeta1_scale)!r}, k_sigma = {_f(design.decay_scale)!r})")
         elif sch == "fixed_ratio":
             what = f"zeta1 = {_f(design.zeta1)!r}, w1 = {_f(design.ratio)!r} |w0|"
         else:

@@ -144,6 +144,10 @@ _DESIGN_UNITS = {
     "w2": "rad/s, speed/angle natural frequency zhang2022 (25)",
     "zeta2": "-, speed/angle damping zhang2022 (25)",
     "w_rated": "rad/s, rated electrical speed of the schedule zhang2022 (38)",
+    "zeta1_scale": "-, factor on the flux damping of zhang2022 (38), its shape over speed "
+                   "kept (zhang38 schedule)",
+    "decay_scale": "-, factor on the flux decay rate zeta1 w1 = 1.5 |w0| of zhang2022 (38) "
+                   "(zhang38 schedule)",
     "zeta1": "-, flux damping zhang2022 (17) (fixed_ratio / fixed_w1 schedules)",
     "ratio": "-, w1/|w0| (fixed_ratio schedule, the axes of zhang2022 Fig. 1)",
     "w1": "rad/s, flux natural frequency (fixed_w1 schedule)",
@@ -211,6 +215,8 @@ class AbstractFluxObserver(AbstractObserver):
         if isinstance(d, ESODesign):
             out = {"w2": d.w2, "zeta2": d.zeta2, "n2": d.n2, "n3": d.n3}
             out.update({k: getattr(d, k) for k in SCHEDULE_PARAMS[d.schedule]})
+            if d.schedule == "zhang38":
+                out.update(zeta1_scale=d.zeta1_scale, decay_scale=d.decay_scale)
         out = {k: v for k, v in out.items() if k in self.design_units}
         return {**out, **self._fal_parameters()}
 
@@ -229,13 +235,21 @@ class AbstractFluxObserver(AbstractObserver):
                                  f"the observer from an `ESODesign` to change "
                                  f"{', '.join(sorted(values))}.")
             schedule = schedule_for(values, d.schedule)
+            scales = {k for k in ("zeta1_scale", "decay_scale") if k in values}
+            if scales and schedule != "zhang38":
+                raise ValueError(
+                    f"`{owner}`: {', '.join(sorted(scales))} scale(s) the zhang38 flux "
+                    f"schedule; they cannot be set with the {schedule} schedule's "
+                    f"parameters ({', '.join(sorted(set(values) - scales))}).")
             merged = {k: getattr(d, k) for k in ("w_rated", "zeta1", "ratio", "w1", "w_min",
-                                                 "n2", "n3")}
+                                                 "n2", "n3", "zeta1_scale", "decay_scale")}
             merged.update(values)
             w2 = merged.pop("w2", d.w2)
             zeta2 = merged.pop("zeta2", d.zeta2)
             if schedule == "zhang38":
                 merged.update(zeta1=None, ratio=None, w1=None)
+            else:  # the scales belong to (38)
+                merged.update(zeta1_scale=1.0, decay_scale=1.0)
             missing = [k for k in SCHEDULE_PARAMS[schedule] if merged.get(k) is None]
             if missing:
                 raise ValueError(

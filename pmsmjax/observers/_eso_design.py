@@ -91,15 +91,22 @@ def psi_a(motor: PMSMParams, i_dq):
     return jnp.stack([motor.extended_flux(i_dq[..., 0]), -dL * i_dq[..., 1]], -1)
 
 
-def zhang38(w0, w_rated):
+def zhang38(w0, w_rated, zeta1_scale=1.0, decay_scale=1.0):
     """Suggested design zhang2022 (38): `(zeta1, w1)` for speed `w0` (rad/s), rated speed (rad/s).
 
     `zeta1 = 1.5 + |w0|/w_rated`, `w1 = 1.5 |w0| / zeta1`, so `zeta1 w1 = 1.5 |w0|` and
     `w1 -> 0` (hence G1 -> 0 in zhang2022 (17)) as `w0 -> 0`.
+
+    `zeta1_scale` (-) multiplies the damping and `decay_scale` (-) the decay rate
+    `zeta1 w1` (the flux error's envelope, per radian of rotation 1.5 in (38)), each
+    keeping (38)'s shape over speed: `zeta1 = zeta1_scale (1.5 + |w0|/w_rated)`,
+    `zeta1 w1 = decay_scale 1.5 |w0|`. Both 1 is (38).
     """
     check_positive("zhang38", "w_rated", w_rated, "rad/s")
-    zeta1 = 1.5 + jnp.abs(w0) / w_rated
-    return zeta1, 1.5 * jnp.abs(w0) / zeta1
+    check_positive("zhang38", "zeta1_scale", zeta1_scale, "-")
+    check_positive("zhang38", "decay_scale", decay_scale, "-")
+    zeta1 = zeta1_scale * (1.5 + jnp.abs(w0) / w_rated)
+    return zeta1, decay_scale * 1.5 * jnp.abs(w0) / zeta1
 
 
 def gain_G1(psi_a0, w0, zeta1, w1, w_min=0.0):

@@ -26,14 +26,15 @@ SCHEDULE_PARAMS = {"zhang38": ("w_rated",), "fixed_ratio": ("zeta1", "ratio"),
 
 def schedule_for(values: dict, current: str) -> str:
     """The flux schedule implied by the names being set: `w1` -> fixed_w1, `zeta1` or
-    `ratio` -> fixed_ratio (unless the schedule already is fixed_w1), else unchanged."""
+    `ratio` -> fixed_ratio (unless the schedule already is fixed_w1), `w_rated` or a
+    scale of (38) (`zeta1_scale`, `decay_scale`) -> zhang38, else unchanged."""
     if "w1" in values or "w_min" in values:
         return "fixed_w1"
     if "ratio" in values:
         return "fixed_ratio"
     if "zeta1" in values and current == "zhang38":
         return "fixed_ratio"
-    if "w_rated" in values:
+    if "w_rated" in values or "zeta1_scale" in values or "decay_scale" in values:
         return "zhang38"
     return current
 
@@ -64,7 +65,10 @@ class ESODesign(AbstractGainSchedule):
     space of (19) for comparison). $(\zeta_1, \omega_1)$ follow `schedule`:
 
     - `"zhang38"`: the suggestion (38), $\zeta_1 = 1.5 + |\omega_0|/\omega_r$,
-      $\omega_1 = 1.5|\omega_0|/\zeta_1$ (needs `w_rated`).
+      $\omega_1 = 1.5|\omega_0|/\zeta_1$ (needs `w_rated`); `zeta1_scale` $k_\zeta$ and
+      `decay_scale` $k_\sigma$ keep its shape over speed and scale it:
+      $\zeta_1 = k_\zeta(1.5 + |\omega_0|/\omega_r)$, $\zeta_1\omega_1 =
+      1.5 k_\sigma|\omega_0|$ (both 1: (38)).
     - `"fixed_ratio"`: $\zeta_1$ = `zeta1`, $\omega_1$ = `ratio` $|\omega_0|$ (the axes of
       Fig. 1; Fig. 9's infeasible design is `zeta1=0.5, ratio=0.5`).
     - `"fixed_w1"`: constant `zeta1`, `w1`; $\omega_1^2/\omega_0$ in (17) is evaluated with
@@ -87,6 +91,8 @@ class ESODesign(AbstractGainSchedule):
     - `zeta2`: its damping (-), default 1 (the AFO law (53) is critically damped).
     - `schedule`: see above.
     - `w_rated`: rated electrical speed (rad/s), for `"zhang38"`.
+    - `zeta1_scale`, `decay_scale`: factors (-) on (38)'s damping and decay rate, for
+      `"zhang38"`; default 1.
     - `zeta1`: flux damping (-), for `"fixed_ratio"` and `"fixed_w1"`.
     - `ratio`: $\omega_1/|\omega_0|$ (-), for `"fixed_ratio"`.
     - `w1`: flux natural frequency (rad/s), for `"fixed_w1"`.
@@ -105,10 +111,12 @@ class ESODesign(AbstractGainSchedule):
     w_min: float
     n2: float
     n3: float
+    zeta1_scale: float
+    decay_scale: float
 
     def __init__(self, w2=2 * math.pi * 50.0, zeta2=1.0, schedule="zhang38", *,
                  w_rated=None, zeta1=None, ratio=None, w1=None, w_min=0.0, n2=0.0,
-                 n3=0.0):
+                 n3=0.0, zeta1_scale=1.0, decay_scale=1.0):
         if schedule not in SCHEDULE_PARAMS:
             raise ValueError(
                 f"`ESODesign(schedule=...)` must be one of {', '.join(SCHEDULE_PARAMS)}; "
@@ -126,12 +134,15 @@ class ESODesign(AbstractGainSchedule):
         self.w2, self.zeta2, self.schedule = w2, zeta2, schedule
         self.w_rated, self.zeta1, self.ratio, self.w1 = w_rated, zeta1, ratio, w1
         self.w_min, self.n2, self.n3 = w_min, n2, n3
+        self.zeta1_scale, self.decay_scale = zeta1_scale, decay_scale
 
     def __check_init__(self):
         check_design("ESODesign", zeta1=self.zeta1, w1=self.w1, ratio=self.ratio,
                      zeta2=self.zeta2, w2=self.w2)
         check_positive("ESODesign", "w_rated", self.w_rated, "rad/s")
         check_positive("ESODesign", "w_min", self.w_min, "rad/s", allow_zero=True)
+        check_positive("ESODesign", "zeta1_scale", self.zeta1_scale, "-")
+        check_positive("ESODesign", "decay_scale", self.decay_scale, "-")
 
     @classmethod
     def zhang38(cls, w_rated, w2=2 * math.pi * 50.0, zeta2=1.0, **kw) -> ESODesign:
@@ -153,7 +164,7 @@ class ESODesign(AbstractGainSchedule):
     def zeta1_w1(self, w0):
         """Flux design `(zeta1, w1)` at electrical speed `w0` (rad/s)."""
         if self.schedule == "zhang38":
-            return zhang38(w0, self.w_rated)
+            return zhang38(w0, self.w_rated, self.zeta1_scale, self.decay_scale)
         if self.schedule == "fixed_ratio":
             return self.zeta1 + 0.0 * w0, self.ratio * jnp.abs(w0)
         return self.zeta1 + 0.0 * w0, self.w1 + 0.0 * w0
