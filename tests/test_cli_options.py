@@ -253,6 +253,15 @@ def test_wide_mismatch_sets_reach_fifty_percent_and_stay_disjoint():
             v = np.asarray(getattr(s, k))
             assert v.min() >= 0.5 and v.max() <= 1.5
             assert v.min() < 0.7 and v.max() > 1.3, (k, v)  # beyond the default range
+    # 72 training runs (2.8 times the default's area): every corner of the square has
+    # runs with both inductances beyond +-30 %
+    from tuning import WIDE_N_TRAIN
+
+    assert p.n_train == WIDE_N_TRAIN == 72
+    kd, kq = np.asarray(sets[0].k_d) - 1, np.asarray(sets[0].k_q) - 1
+    for a in (-1, 1):
+        for b in (-1, 1):
+            assert np.any((a * kd >= 0.3) & (b * kq >= 0.3)), (a, b)
     assert problem_from_args(tuning_parser().parse_args([])).mismatch_range == (0.7, 1.3)
     with pytest.raises(ValueError, match="--quick and --wide-mismatch"):
         problem_from_args(tuning_parser().parse_args(["--quick", "--wide-mismatch"]))
@@ -287,8 +296,9 @@ def test_tune_keeps_the_paper_design_outside_the_chosen_coordinates():
         for u, v in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
             np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-12)
     # every coordinate, as before
-    assert tg.DesignSpace(tg.TuningProblem()).names == ("zeta1", "ratio", "w2", "zeta2")
-    for tune, fragment in ((("w3",), "zeta1, ratio, w2, zeta2"),
+    assert tg.DesignSpace(tg.TuningProblem()).names == ("zeta1_scale", "decay_scale", "w2",
+                                                        "zeta2")
+    for tune, fragment in ((("w3",), "zeta1_scale, decay_scale, w2, zeta2"),
                            (("w2", "w2"), "distinct names")):
         with pytest.raises(ValueError, match=fragment):
             tg.TuningProblem(tune=tune)

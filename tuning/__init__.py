@@ -43,6 +43,7 @@ from .problem import (
     VALIDATION_CASES as VALIDATION_CASES,
     WIDE_CASES as WIDE_CASES,
     WIDE_MISMATCH_RANGE as WIDE_MISMATCH_RANGE,
+    WIDE_N_TRAIN as WIDE_N_TRAIN,
     TuningProblem as TuningProblem,
     sampling_period as sampling_period,
 )

@@ -167,12 +167,16 @@ class AbstractFluxObserver(AbstractObserver):
     paper_motor: ClassVar[str | None] = "zhang750"
     paper_T_s: ClassVar[float | None] = 125e-6
     tunable_kinds: ClassVar[dict[str, str]] = {"w2": "tracking", "zeta2": "damping"}
-    #: the flux loop as a fixed-ratio schedule (zeta1, w1/|w0| = ratio); (38) is
-    #: zeta1 = 1.5 + |w0|/w_rated, ratio = 1.5/zeta1, whose values at half the rated speed
-    #: stand for it
+    #: the flux loop as zhang2022 (38)'s schedule with its damping and its decay rate
+    #: zeta1 w1 = 1.5 |w0| scaled (`ESODesign`, `zeta1_scale`, `decay_scale`): the paper's
+    #: design is the point (1, 1), and the tuned flux gains keep (38)'s shape over speed
+    #: (zeta1 rising, w1/|w0| falling with speed), which a fixed ratio cannot (measured in
+    #: docs/tuning.md, "Inductance mismatch up to +-50 %")
     tunable_bounds: ClassVar[dict[str, tuple[float, float, float, str]]] = {
-        "zeta1": (0.5, 4.0, 2.0, "flux damping of zhang2022 (17); (38) spans 1.5..2.5"),
-        "ratio": (0.2, 2.0, 0.75, "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6")}
+        "zeta1_scale": (0.33, 3.0, 1.0, "factor on (38)'s flux damping: zeta1 from 0.5 "
+                        "(the lightest damping of zhang2022 Fig. 1's designs) to 3 x (38)"),
+        "decay_scale": (0.25, 3.0, 1.0, "factor on (38)'s flux decay rate 1.5 |w0|: the "
+                        "flux error's envelope falls by exp(-0.375) to exp(-4.5) per radian")}
     motor: eqx.AbstractVar[PMSMParams]
     design: eqx.AbstractVar[AbstractGainSchedule]
 
