@@ -243,20 +243,20 @@ def test_main_job_quick(tmp_path):
 @pytest.mark.timeout(1200)
 def test_main_job_whose_verdict_fails(tmp_path):
     """A quick job whose verdict does not hold, end to end: random search alone with two
-    evaluations of the training batch, on runs as long as the validation runs (so that
-    the sets share their programs). The design it finds is better on the training runs
-    but makes the RMS angle error worse by more than the 10 % tolerance in two
-    validation runs (measured: +19.8 %). The job still succeeds (exit 0) and deploys it,
+    evaluations of the training batch (seed 1), on runs as long as the validation runs
+    (so that the sets share their programs). The design it finds is better on the
+    training runs but makes the RMS angle error worse by more than the 10 % tolerance in
+    two validation runs (measured: +15.5 %). The job still succeeds (exit 0) and deploys it,
     but says so: the last line, a warning on stderr naming gains.h, the verdict in
     gains.json and gains.h, whose #warning a C compiler prints unless the build accepts
     an unvalidated table."""
     out = tmp_path / "results"
     proc = _job(out, "--search", "random", "--peers", "random", "--budget", "12",
-                "--t-end", "0.25", "--no-plot")
+                "--t-end", "0.25", "--seed", "1", "--no-plot")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
     s = json.loads((out / "summary.json").read_text())
-    p = tg.TuningProblem.quick(search="random", budget=12, t_end=0.25)
+    p = tg.TuningProblem.quick(search="random", budget=12, t_end=0.25, seed=1)
     assert s["problem"] == json.loads(json.dumps(p.to_dict()))  # the problem rebuilt here
     mine = _check_recount(out, p, s)
     assert not mine["holds"] and mine["rms_worse_than_tol"] == 2, mine

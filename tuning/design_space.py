@@ -28,9 +28,11 @@ observer through the contract (`from_drive` + `with_design`).
 - *filter time constant* (stumper's $T_{LP}$): from $T_s$ (the forward-Euler filter's
   stability limit) to $1/\omega_{min}$ of the tracking loop (a slower filter than that
   lags more than the allowed ramp lag);
-- *fixed* (zhang2022's flux damping $\zeta_1$ and ratio $\omega_1/|\omega_0|$ of its
-  fixed-ratio schedule): bounds the observer class states itself (`tunable_bounds`), as
-  physical constants of its design, not derived from the drive;
+- *fixed* (zhang2022's factors on the damping $\zeta_1$ and the decay rate
+  $\zeta_1\omega_1$ of its schedule (38), `zeta1_scale` and `decay_scale`; the AFO's
+  damping and ratio $\omega_1/|\omega_0|$ of a fixed-ratio schedule): bounds the
+  observer class states itself (`tunable_bounds`), as physical constants of its design,
+  not derived from the drive;
 - any other tunable gain (li's FA-LESO $k_1$, $k_2$, morawiec2023's $k_c$): no physical
   rule here; its bounds are the observer contract's factor box around the paper's value
   (`tunable`), and the report says so.
