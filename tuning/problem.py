@@ -72,10 +72,10 @@ WIDE_CASES = tuple((k_d, k_q, 1.0, 1.0, 1.0) for k_d, k_q in (
 #: The observer-model / plant inductance ratios `TuningProblem.wide_mismatch` draws its
 #: training and held-out runs from.
 WIDE_MISMATCH_RANGE = (0.5, 1.5)
-#: Training runs of `TuningProblem.wide_mismatch`: the default 24 per (0.6 / 0.6)^2 of
-#: (k_d, k_q) area, scaled to the +-50 % square's (1.0 / 0.6)^2 = 2.8 times, rounded up
-#: to whole rounds of the three kinds (72): the draws then reach the square's corners
-#: about as densely as the default's reach +-30 %.
+#: Training runs of `TuningProblem.wide_mismatch`: the default 24 over the +-30 % square
+#: of (k_d, k_q), scaled to the +-50 % square's (1.0 / 0.6)^2 = 2.8 times the area and
+#: rounded up to whole rounds of the three kinds (72): about as many draws per unit of
+#: that area as the default.
 WIDE_N_TRAIN = 72
 
 

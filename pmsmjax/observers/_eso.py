@@ -83,7 +83,10 @@ from ._eso_design import (
     psi_a,
 )
 from ._eso_schedules import (
+    FIXED_RATIO_BOUNDS,
+    SCALED_38_BOUNDS,
     SCHEDULE_PARAMS,
+    ZHANG38_SCALES,
     AbstractGainSchedule,
     ESODesign,
     FixedGains,
@@ -157,19 +160,6 @@ _DESIGN_UNITS = {
 }
 _FAL_UNITS = {"a": "-, fal exponent in (0, 1], zhang2022 (9)",
               "eta": "V s, half-width of fal's linear zone, zhang2022 (9)"}
-#: The tuner's flux-loop coordinates (`tunable_bounds`: lo, hi, the paper design's value,
-#: why): (38) scaled, and a fixed-ratio schedule (zeta1, w1/|w0|) whose values at half the
-#: rated speed stand for (38).
-SCALED_38_BOUNDS = {
-    "zeta1_scale": (0.33, 3.0, 1.0, "factor on (38)'s flux damping: zeta1 from 0.5 (the "
-                    "lightest damping of zhang2022 Fig. 1's designs) to 3 x (38)"),
-    "decay_scale": (0.25, 3.0, 1.0, "factor on (38)'s flux decay rate 1.5 |w0|: the flux "
-                    "error's envelope falls by exp(-0.375) to exp(-4.5) per radian")}
-FIXED_RATIO_BOUNDS = {
-    "zeta1": (0.5, 4.0, 2.0, "flux damping of zhang2022 (17); (38) spans 1.5..2.5"),
-    "ratio": (0.2, 2.0, 0.75, "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6")}
-
-
 class AbstractFluxObserver(AbstractObserver):
     """The common base of zhang2022's stator-flux observers (`ESOObserver`,
     `LESOObserver`, `AFOObserver`): the flux estimate, the angle and speed loop (25) and a
@@ -230,7 +220,7 @@ class AbstractFluxObserver(AbstractObserver):
             out = {"w2": d.w2, "zeta2": d.zeta2, "n2": d.n2, "n3": d.n3}
             out.update({k: getattr(d, k) for k in SCHEDULE_PARAMS[d.schedule]})
             if d.schedule == "zhang38":
-                out.update(zeta1_scale=d.zeta1_scale, decay_scale=d.decay_scale)
+                out.update({k: getattr(d, k) for k in ZHANG38_SCALES})
         out = {k: v for k, v in out.items() if k in self.design_units}
         return {**out, **self._fal_parameters()}
 
@@ -249,21 +239,21 @@ class AbstractFluxObserver(AbstractObserver):
                                  f"the observer from an `ESODesign` to change "
                                  f"{', '.join(sorted(values))}.")
             schedule = schedule_for(values, d.schedule)
-            scales = {k for k in ("zeta1_scale", "decay_scale") if k in values}
+            scales = {k for k in ZHANG38_SCALES if k in values}
             if scales and schedule != "zhang38":
                 raise ValueError(
                     f"`{owner}`: {', '.join(sorted(scales))} scale(s) the zhang38 flux "
                     f"schedule; they cannot be set with the {schedule} schedule's "
                     f"parameters ({', '.join(sorted(set(values) - scales))}).")
             merged = {k: getattr(d, k) for k in ("w_rated", "zeta1", "ratio", "w1", "w_min",
-                                                 "n2", "n3", "zeta1_scale", "decay_scale")}
+                                                 "n2", "n3", *ZHANG38_SCALES)}
             merged.update(values)
             w2 = merged.pop("w2", d.w2)
             zeta2 = merged.pop("zeta2", d.zeta2)
             if schedule == "zhang38":
                 merged.update(zeta1=None, ratio=None, w1=None)
             else:  # the scales belong to (38)
-                merged.update(zeta1_scale=1.0, decay_scale=1.0)
+                merged.update(dict.fromkeys(ZHANG38_SCALES, 1.0))
             missing = [k for k in SCHEDULE_PARAMS[schedule] if merged.get(k) is None]
             if missing:
                 raise ValueError(

@@ -22,6 +22,20 @@ from ._eso_design import ESOGains, check_design, eso_gains, gains_pi, psi_a, zha
 #: The design parameters each flux schedule needs (`ESODesign`, `with_design`).
 SCHEDULE_PARAMS = {"zhang38": ("w_rated",), "fixed_ratio": ("zeta1", "ratio"),
                    "fixed_w1": ("zeta1", "w1", "w_min")}
+#: The optional factors of the zhang38 schedule on (38)'s damping and decay rate.
+ZHANG38_SCALES = ("zeta1_scale", "decay_scale")
+
+#: The tuner's flux-loop coordinates (`tunable_bounds`: lo, hi, the paper design's value,
+#: why): (38) scaled, and a fixed-ratio schedule (zeta1, w1/|w0|) whose values at half the
+#: rated speed stand for (38).
+SCALED_38_BOUNDS = {
+    "zeta1_scale": (0.33, 3.0, 1.0, "factor on (38)'s flux damping: zeta1 from 0.5 (the "
+                    "lightest damping of zhang2022 Fig. 1's designs) to 3 x (38)"),
+    "decay_scale": (0.25, 3.0, 1.0, "factor on (38)'s flux decay rate 1.5 |w0|: the flux "
+                    "error's envelope falls by exp(-0.375) to exp(-4.5) per radian")}
+FIXED_RATIO_BOUNDS = {
+    "zeta1": (0.5, 4.0, 2.0, "flux damping of zhang2022 (17); (38) spans 1.5..2.5"),
+    "ratio": (0.2, 2.0, 0.75, "w1/|w0| of zhang2022 Fig. 1; (38) spans 1..0.6")}
 
 
 def schedule_for(values: dict, current: str) -> str:
@@ -34,7 +48,7 @@ def schedule_for(values: dict, current: str) -> str:
         return "fixed_ratio"
     if "zeta1" in values and current == "zhang38":
         return "fixed_ratio"
-    if "w_rated" in values or "zeta1_scale" in values or "decay_scale" in values:
+    if "w_rated" in values or any(k in values for k in ZHANG38_SCALES):
         return "zhang38"
     return current
 

@@ -2,10 +2,9 @@
 one row of the observer's design parameters (constants; zhang2022's flux schedule is
 (38) with its damping and decay rate scaled, `zeta1_scale` and `decay_scale`, or for the
 AFO the fixed-ratio law w1 = ratio x |w0|, which the observer evaluates at run time at
-its speed estimate), with the
-sampling period and the tuner's verdict with its validation counts (`VOCABULARY`, as
-summary.json names them); `gains.h` states them in its header comment and warns when
-compiled if the verdict does not hold."""
+its speed estimate), with the sampling period and the tuner's verdict with its
+validation counts (`VOCABULARY`, as summary.json names them); `gains.h` states them in
+its header comment and warns when compiled if the verdict does not hold."""
 
 from __future__ import annotations
 
