@@ -94,7 +94,11 @@ def _program(case, observer, tmp_path_factory, float32):
 
 
 # Largest deviation of the C output from the package, measured (gcc 12, x86-64; the li
-# observers with the closed-form transition, `firmware/_li_transition.py`): per
+# observers with the closed-form transition, `firmware/_li_transition.py`; where two
+# hosts differ, the larger: XLA's rounding depends on the host CPU, and the FA-LESO's
+# double-precision deviation is 1.2e-10 rad/s on a Xeon against 2.6e-13 on an EPYC, the
+# same with any gcc flags, growing steadily from the first sample: its root near -0.08
+# 1/s keeps a rounding difference instead of forgetting it, and the PLL integrates it): per
 # observer, recording ("synthetic": `_recording` against `replay`; "closed loop": the
 # noisy run against the in-loop estimates) and build: (double: theta rad, w rad/s;
 # float: theta rad, w rad/s). The tests allow three times these, and in double at least
@@ -108,7 +112,7 @@ MEASURED = {
         "parallel-model": (4.4e-16, 1.1e-13, 1.95e-6, 1.16e-4),
         "c-leso": (1.78e-15, 1.99e-13, 1.58e-6, 1.97e-4),
         "gi-leso": (1.6e-14, 7.67e-13, 1.5e-6, 1.23e-4),
-        "fa-leso": (1.78e-15, 2.56e-13, 1.73e-6, 1.03e-4),
+        "fa-leso": (3.26e-12, 1.19e-10, 1.73e-6, 1.25e-4),
         "reduced-order": (1.78e-15, 1.42e-13, 1.28e-6, 2.45e-4),
         "nonlinear-flux": (1.78e-15, 1.14e-13, 9.4e-7, 2.44e-4),
         "eso-fixed": (0.0, 0.0, 3.35e-6, 3.07e-4),
@@ -125,7 +129,7 @@ MEASURED = {
         "parallel-model": (1.8e-15, 2.3e-13, 1.92e-6, 1.92e-4),
         "c-leso": (1.78e-15, 1.99e-13, 2.46e-6, 2.92e-4),
         "gi-leso": (5.06e-14, 1.39e-12, 1.87e-6, 2.12e-4),
-        "fa-leso": (3.11e-15, 5.12e-13, 3.58e-6, 6.79e-4),
+        "fa-leso": (3.34e-12, 1.2e-10, 3.58e-6, 6.79e-4),
         "reduced-order": (1.78e-15, 4.26e-13, 1.62e-6, 3.21e-4),
         "nonlinear-flux": (4.44e-16, 0.0, 1.57e-6, 2.95e-4),
     },
