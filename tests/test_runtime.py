@@ -257,6 +257,7 @@ eq = jax.device_get(equilibria(obs, d.motor, 0.5 * float(d.w_rated),
 v = np.asarray(eq.valid)
 with open(sys.argv[1], "w") as f:
     json.dump(dict(flags=os.environ.get("XLA_FLAGS", ""),
+                   tb_limit=jax.config.jax_traceback_in_locations_limit,
                    theta_err=np.asarray(r.theta_err).tolist(),
                    w_hat=np.asarray(r.w_hat).tolist(), theta=np.asarray(eq.theta)[v].tolist(),
                    stable=np.asarray(eq.stable)[v].tolist(), status=int(eq.status)), f)
@@ -290,6 +291,8 @@ def test_quick_compiles_give_the_same_numbers(env, tmp_path, monkeypatch):
     assert "--xla_cpu_use_fusion_emitters=false" in out["1"]["flags"].split()
     assert "--xla_cpu_parallel_codegen_split_count=1" in out["1"]["flags"].split()
     assert "xla_backend_optimization_level" not in out["0"]["flags"]
+    # no Python tracebacks in the source locations under quick compiles only
+    assert out["1"]["tb_limit"] == 0 and out["0"]["tb_limit"] > 0
     a, b = out["0"], out["1"]
     # They differ in round-off only (measured: 7e-15 rad, 2e-13 rad/s of 505 rad/s, 1e-15
     # rad); 1000x margin, as the order of floating-point operations differs by machine.
@@ -298,6 +301,32 @@ def test_quick_compiles_give_the_same_numbers(env, tmp_path, monkeypatch):
     assert b["status"] == a["status"] == 0 and b["stable"] == a["stable"]
     assert len(a["theta"]) >= 2  # the designed one and at least one other equilibrium
     np.testing.assert_allclose(b["theta"], a["theta"], rtol=0, atol=1e-12)
+
+
+def test_quick_compiles_leave_a_users_jax_traceback_setting(monkeypatch):
+    """Quick compiles set `QUICK_COMPILE_JAX_CONFIG`, except where the user set the same
+    option through JAX's environment variable."""
+    import jax
+
+    from pmsmjax.runtime import _settings as S
+
+    before = jax.config.jax_traceback_in_locations_limit
+    try:
+        monkeypatch.setenv("PMSMJAX_QUICK_COMPILE", "1")
+        monkeypatch.delenv("JAX_TRACEBACK_IN_LOCATIONS_LIMIT", raising=False)
+        jax.config.update("jax_traceback_in_locations_limit", 7)
+        S._apply_quick_jax_config()
+        assert jax.config.jax_traceback_in_locations_limit == 0
+        jax.config.update("jax_traceback_in_locations_limit", 7)
+        monkeypatch.setenv("JAX_TRACEBACK_IN_LOCATIONS_LIMIT", "7")
+        S._apply_quick_jax_config()
+        assert jax.config.jax_traceback_in_locations_limit == 7
+        monkeypatch.setenv("PMSMJAX_QUICK_COMPILE", "0")
+        monkeypatch.delenv("JAX_TRACEBACK_IN_LOCATIONS_LIMIT")
+        S._apply_quick_jax_config()
+        assert jax.config.jax_traceback_in_locations_limit == 7
+    finally:
+        jax.config.update("jax_traceback_in_locations_limit", before)
 
 
 def test_long_run_options_undo_quick_compiles_for_one_program(monkeypatch):

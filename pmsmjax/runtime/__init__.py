@@ -55,8 +55,10 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
 - **Quick compiles (opt-in, `PMSMJAX_QUICK_COMPILE=1`).** XLA's CPU backend spends most
   of a compile in LLVM, once per fused kernel; `QUICK_COMPILE_FLAGS` compile at LLVM's
   lowest optimisation level with XLA's older kernel emitters, one LLVM module per
-  program (fewer memory mappings per compiled program). Programs then compile
-  2 to 3x faster and run 1.3 to 3x slower (BENCHMARKS.md, "Quick compiles"). It pays where
+  program (fewer memory mappings per compiled program), and JAX lowers them without
+  Python tracebacks in their source locations (`QUICK_COMPILE_JAX_CONFIG`: what
+  profilers and HLO dumps read; a user's `JAX_TRACEBACK_IN_LOCATIONS_LIMIT` wins).
+  Programs then compile 2 to 3x faster and run 1.3 to 3x slower (BENCHMARKS.md, "Quick compiles"). It pays where
   thousands of programs each run once, as in the test suite, which turns it on for its
   workers (and the notebooks they run), their subprocesses and the notebook it runs
   in a Jupyter kernel (`tests/conftest.py`); the numbers are the same

@@ -41,6 +41,13 @@ SAFE_FLAGS: tuple[str, ...] = ("--xla_cpu_multi_thread_eigen=false",)
 QUICK_COMPILE_FLAGS: tuple[str, ...] = ("--xla_backend_optimization_level=0",
                                         "--xla_cpu_use_fusion_emitters=false",
                                         "--xla_cpu_parallel_codegen_split_count=1")
+#: JAX settings of quick compiles: no Python traceback in the compiled programs' source
+#: locations (JAX's default keeps up to 100 frames per operation, which lowering turns
+#: into MLIR locations and XLA carries as metadata; only profilers and HLO dumps read
+#: them). Lowering is then faster: a cold run of three compile-bound test modules 4-7 %
+#: shorter (BENCHMARKS.md). The cache key leaves locations out, so the programs and
+#: their cache entries are the same. A user's `JAX_TRACEBACK_IN_LOCATIONS_LIMIT` wins.
+QUICK_COMPILE_JAX_CONFIG: dict[str, object] = {"jax_traceback_in_locations_limit": 0}
 
 #: CPython's collector thresholds that `configure` sets (`gc.set_threshold`; module
 #: docstring, "Fewer garbage collections"). Tracing and lowering a program allocate
@@ -157,6 +164,18 @@ def _backend_started() -> bool:
 _LATE_WARNED = False
 
 
+def _apply_quick_jax_config() -> None:
+    """`QUICK_COMPILE_JAX_CONFIG` under quick compiles, except a setting the user made
+    through JAX's own environment variable."""
+    if not _env_flag("PMSMJAX_QUICK_COMPILE", False):
+        return
+    import jax
+
+    for name, value in QUICK_COMPILE_JAX_CONFIG.items():
+        if name.upper() not in os.environ:
+            jax.config.update(name, value)
+
+
 def _process_flags(fast_loops: bool) -> tuple[list[str], list[str]]:
     """The XLA flags of this process's settings, and those of them not yet in `XLA_FLAGS`
     (a flag the user set, to any value, counts as set)."""
@@ -176,6 +195,7 @@ def apply_xla_flags(fast_loops: bool | None = None, *, stacklevel: int = 2) -> b
     pmsmjax was imported), the flags cannot take effect: a one-time warning says how to
     get them. Returns whether the flags are in effect."""
     global _LATE_WARNED
+    _apply_quick_jax_config()
     if fast_loops is None:
         fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True)
     flags, missing = _process_flags(fast_loops)
@@ -222,6 +242,7 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None,
     fast_loops = _env_flag("PMSMJAX_FAST_LOOPS", True) if fast_loops is None else bool(fast_loops)
     gc_thresholds = (_env_flag("PMSMJAX_GC", True) if gc_thresholds is None
                      else bool(gc_thresholds))
+    _apply_quick_jax_config()
     _, missing = _process_flags(fast_loops)
     started = _backend_started()
     current = os.environ.get("XLA_FLAGS", "")
