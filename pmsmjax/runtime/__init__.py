@@ -58,12 +58,11 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   program (fewer memory mappings per compiled program), and JAX lowers them without
   Python tracebacks in their source locations (`QUICK_COMPILE_JAX_CONFIG`: what
   profilers and HLO dumps read; a user's `JAX_TRACEBACK_IN_LOCATIONS_LIMIT` wins).
-  Programs then compile 2 to 3x faster and run 1.3 to 3x slower (BENCHMARKS.md, "Quick compiles"). It pays where
-  thousands of programs each run once, as in the test suite, which turns it on for its
-  workers (and the notebooks they run), their subprocesses and the notebook it runs
-  in a Jupyter kernel (`tests/conftest.py`); the numbers are the same
-  (`tests/test_runtime.py`). Off by default: a user's sweeps and
-  replays run the compiled programs many times. A program that runs long even there (a
+  Programs then compile 2 to 3x faster and run 1.3 to 3x slower (BENCHMARKS.md, "Quick
+  compiles"). It pays where thousands of programs each run once, as in the test suite,
+  which turns it on for its workers (and the notebooks they run), their subprocesses
+  and the notebook it runs in a Jupyter kernel (`tests/conftest.py`); the numbers are
+  the same (`tests/test_runtime.py`). Off by default: a user's sweeps and replays run the compiled programs many times. A program that runs long even there (a
   batch of 10,000 generic-route designs) passes `long_run_compiler_options()` to its
   `jit`: under quick compiles it is still compiled with full optimisation, and otherwise
   the option changes nothing.
