@@ -62,8 +62,9 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   compiles"). It pays where thousands of programs each run once, as in the test suite,
   which turns it on for its workers (and the notebooks they run), their subprocesses
   and the notebook it runs in a Jupyter kernel (`tests/conftest.py`); the numbers are
-  the same (`tests/test_runtime.py`). Off by default: a user's sweeps and replays run the compiled programs many times. A program that runs long even there (a
-  batch of 10,000 generic-route designs) passes `long_run_compiler_options()` to its
+  the same (`tests/test_runtime.py`). Off by default: a user's sweeps and replays run
+  the compiled programs many times. A program that runs long even there (a batch of
+  10,000 generic-route designs) passes `long_run_compiler_options()` to its
   `jit`: under quick compiles it is still compiled with full optimisation, and otherwise
   the option changes nothing.
 - **Fewer garbage collections.** Tracing, lowering and compiling are allocation-heavy
