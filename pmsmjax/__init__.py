@@ -8,7 +8,7 @@ import importlib.metadata
 from typing import TYPE_CHECKING
 
 from ._lazy import lazy_exports
-from .runtime._settings import apply_xla_flags, enable_x64, settle_x64
+from .runtime._settings import apply_xla_flags, enable_x64, settle_jax_env
 
 
 # The process-wide settings a library import makes: analysis needs float64, and the XLA
@@ -192,7 +192,7 @@ if TYPE_CHECKING:
         SpeedFromAngle as SpeedFromAngle,
     )
 
-__getattr__, __dir__ = lazy_exports(__name__, __file__, globals(), settle_x64)
+__getattr__, __dir__ = lazy_exports(__name__, __file__, globals(), settle_jax_env)
 
 
 try:

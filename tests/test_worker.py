@@ -172,7 +172,8 @@ def test_the_worker_key_follows_the_start_up_settings(monkeypatch):
 def test_import_pmsmjax_loads_no_jax_and_still_gives_float64():
     """The client hands a command over without JAX: `import pmsmjax` loads none of it,
     and float64 is on once JAX comes (through a name of pmsmjax, or imported first), with
-    the user's `JAX_ENABLE_X64` back in the environment."""
+    the user's `JAX_ENABLE_X64` back in the environment; the same with quick compiles,
+    whose JAX option also waits for JAX (it once imported JAX with pmsmjax)."""
     code = (
         "import os, sys\n"
         "import pmsmjax\n"
@@ -182,9 +183,15 @@ def test_import_pmsmjax_loads_no_jax_and_still_gives_float64():
         "pmsmjax.FOC\n"
         "import jax.numpy as jnp\n"
         "assert jnp.ones(2).dtype == jnp.float64\n"
-        "print(os.environ.get('JAX_ENABLE_X64'))\n")
-    for before, shown in ((None, "None"), ("0", "0")):
-        env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+        "import jax\n"
+        "print(os.environ.get('JAX_ENABLE_X64'),\n"
+        "      os.environ.get('JAX_TRACEBACK_IN_LOCATIONS_LIMIT'),\n"
+        "      jax.config.jax_traceback_in_locations_limit == 0)\n")
+    for before, quick, shown in ((None, "0", "None None False"), ("0", "0", "0 None False"),
+                                 (None, "1", "None None True"), ("0", "1", "0 None True")):
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("JAX_ENABLE_X64", "JAX_TRACEBACK_IN_LOCATIONS_LIMIT")}
+        env["PMSMJAX_QUICK_COMPILE"] = quick
         if before is not None:
             env["JAX_ENABLE_X64"] = before
         r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,

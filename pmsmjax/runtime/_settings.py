@@ -108,8 +108,11 @@ def clear_cache() -> int:
     return n
 
 
-#: `JAX_ENABLE_X64` as it was before `enable_x64` set it (None: unset), while set by it.
-_X64_ENV: list = []
+#: JAX options pmsmjax set through JAX's environment variables before JAX was imported
+#: (JAX reads them when it is imported, so setting one imports nothing now): variable ->
+#: (option, value, the variable's value before, None: unset). `settle_jax_env` puts the
+#: variables back once JAX is in, so that child processes see the user's environment.
+_JAX_ENV_SET: dict[str, tuple[str, object, str | None]] = {}
 #: The environment as the process had it when pmsmjax was first imported (`start_environ`).
 _START_ENVIRON: dict = {}
 
@@ -121,36 +124,51 @@ def start_environ() -> dict:
     return dict(_START_ENVIRON or os.environ)
 
 
-def enable_x64() -> None:
-    """What `import pmsmjax` does for float64 (and, the first time, it keeps the
-    environment for `start_environ`): `jax_enable_x64` on. With JAX not yet
-    imported it sets `JAX_ENABLE_X64=1`, which JAX reads when it is imported (the same
-    setting, without importing JAX now); `settle_x64` puts the variable back once JAX is
-    in, so that child processes see the user's environment."""
-    if not _START_ENVIRON:
-        _START_ENVIRON.update(os.environ)
+def _set_jax_option(name: str, value: bool | int) -> None:
+    """JAX's option `name` (e.g. `"jax_enable_x64"`) to `value`: through `jax.config`
+    when JAX is imported, otherwise through its environment variable (`name` upper-case),
+    which JAX reads when it is imported; `settle_jax_env` then restores the variable."""
     if "jax" in sys.modules:
         import jax
 
-        jax.config.update("jax_enable_x64", True)
+        jax.config.update(name, value)
         return
-    if not _X64_ENV:
-        _X64_ENV.append(os.environ.get("JAX_ENABLE_X64"))
-    os.environ["JAX_ENABLE_X64"] = "1"
+    var = name.upper()
+    before = _JAX_ENV_SET[var][2] if var in _JAX_ENV_SET else os.environ.get(var)
+    _JAX_ENV_SET[var] = (name, value, before)
+    os.environ[var] = str(int(value))
 
 
-def settle_x64() -> None:
-    """After JAX is imported: float64 on, and `JAX_ENABLE_X64` as the user had it."""
-    if not _X64_ENV or "jax" not in sys.modules:
+def _user_jax_env(name: str) -> str | None:
+    """The value the user gave JAX's environment variable of option `name` (None: unset),
+    whether or not pmsmjax has set the variable since."""
+    var = name.upper()
+    return _JAX_ENV_SET[var][2] if var in _JAX_ENV_SET else os.environ.get(var)
+
+
+def enable_x64() -> None:
+    """What `import pmsmjax` does for float64 (and, the first time, it keeps the
+    environment for `start_environ`): `jax_enable_x64` on, without importing JAX
+    (`_set_jax_option`)."""
+    if not _START_ENVIRON:
+        _START_ENVIRON.update(os.environ)
+    _set_jax_option("jax_enable_x64", True)
+
+
+def settle_jax_env() -> None:
+    """After JAX is imported: the options `_set_jax_option` set through environment
+    variables in `jax.config`, and those variables as the user had them."""
+    if not _JAX_ENV_SET or "jax" not in sys.modules:
         return
     import jax
 
-    jax.config.update("jax_enable_x64", True)
-    before = _X64_ENV.pop()
-    if before is None:
-        os.environ.pop("JAX_ENABLE_X64", None)
-    else:
-        os.environ["JAX_ENABLE_X64"] = before
+    for var, (name, value, before) in list(_JAX_ENV_SET.items()):
+        jax.config.update(name, value)
+        if before is None:
+            os.environ.pop(var, None)
+        else:
+            os.environ[var] = before
+        del _JAX_ENV_SET[var]
 
 
 def _backend_started() -> bool:
@@ -169,11 +187,10 @@ def _apply_quick_jax_config() -> None:
     through JAX's own environment variable."""
     if not _env_flag("PMSMJAX_QUICK_COMPILE", False):
         return
-    import jax
-
+    settle_jax_env()  # with JAX in, the environment holds the user's variables again
     for name, value in QUICK_COMPILE_JAX_CONFIG.items():
-        if name.upper() not in os.environ:
-            jax.config.update(name, value)
+        if _user_jax_env(name) is None:
+            _set_jax_option(name, value)
 
 
 def _process_flags(fast_loops: bool) -> tuple[list[str], list[str]]:
