@@ -132,6 +132,7 @@ def test_cache_is_filled_reused_and_cleared(env, tmp_path):
     files = [p for p in (tmp_path / "cache").rglob("*") if p.is_file()]
     n, size = len(files), sum(p.stat().st_size for p in files)
     assert n > 0 and size > 0
+    assert not [p for p in files if p.name.endswith(".tmp")]  # every entry renamed in place
     hits1, misses1 = _hits_misses(first)
     assert hits1 == 0 and misses1 > 0  # an empty cache: everything compiled and written
     before = _cache_files(tmp_path / "cache")
@@ -153,6 +154,53 @@ def test_cache_is_filled_reused_and_cleared(env, tmp_path):
     assert not (tmp_path / "cache").exists()
     # opting out (PMSMJAX_CACHE=0, read by configure() as this command calls it):
     # test_configure_in_a_fresh_process, with JAX's counters
+
+
+def test_cache_entries_are_written_whole(tmp_path, monkeypatch):
+    """Processes sharing the compilation cache never read an entry another is still
+    writing (JAX writes in place; once, a cold test run failed on the warning): after
+    `configure`, an entry appears only whole (a reader polling while a large entry is
+    written sees nothing or all of it), a write interrupted before its rename leaves no
+    entry and no temporary file, and the first entry stays (JAX's rule)."""
+    import threading
+
+    from jax._src.lru_cache import LRUCache
+
+    assert pj.runtime.configure()["cache_dir"]  # (the suite runs with the cache on)
+    assert hasattr(LRUCache.put, "_pmsmjax_original")
+    cache = LRUCache(str(tmp_path), max_size=-1)
+    big = bytes(range(256)) * (1 << 17)  # 32 MiB: a write long enough to be seen
+    for i in range(3):
+        key, seen = f"big{i}", []
+        done = threading.Event()
+
+        def read(key=key, seen=seen, done=done):
+            while not done.is_set():
+                v = cache.get(key)
+                if v is not None:
+                    seen.append(len(v))
+
+        t = threading.Thread(target=read)
+        t.start()
+        cache.put(key, big)
+        done.set()
+        t.join()
+        assert set(seen) <= {len(big)}, sorted(set(seen))[:5]
+        assert cache.get(key) == big
+    cache.put("big0", b"other")
+    assert cache.get("big0") == big
+
+    from pmsmjax import _files
+
+    def killed(*a):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(_files.os, "replace", killed)
+    with pytest.raises(KeyboardInterrupt):
+        cache.put("cut", b"x" * 1000)
+    monkeypatch.undo()
+    assert cache.get("cut") is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"big{i}-cache" for i in range(3)]
 
 
 # ---------------------------------------------------------------------------------------

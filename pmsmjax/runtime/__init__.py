@@ -36,7 +36,9 @@ What `configure()` sets, and why (measurements in BENCHMARKS.md):
   (`cache_dir()`: `$PMSMJAX_CACHE_DIR`, else `$XDG_CACHE_HOME/pmsmjax/jax`, else
   `~/.cache/pmsmjax/jax`), so a repeated command skips XLA compilation. Opt out with
   `PMSMJAX_CACHE=0` (or `configure(cache=False)`); clear it with `pmsmjax cache --clear`
-  or `clear_cache()`.
+  or `clear_cache()`. Processes share it: its entries are written whole (a temporary
+  file renamed into place), so one process never reads an entry that another is still
+  writing (JAX writes them in place: `pmsmjax.runtime._cache_writes`).
 - **Stored programs.** The compilation cache skips XLA's compile only: Python still
   traces and lowers the program, seconds for the generic equilibrium analysis and about
   ten for identification's Levenberg-Marquardt solve. So with the cache on, the

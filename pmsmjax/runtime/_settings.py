@@ -253,6 +253,7 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None,
     """
     import jax
 
+    from ._cache_writes import atomic_cache_writes
     from ._stored import STORED_SUBDIR, set_stored_programs_dir
 
     cache = _env_flag("PMSMJAX_CACHE", True) if cache is None else bool(cache)
@@ -280,6 +281,8 @@ def configure(*, cache: bool | None = None, fast_loops: bool | None = None,
                           RuntimeWarning, stacklevel=2)
         else:
             jax.config.update("jax_compilation_cache_dir", str(d))
+            # processes sharing the cache never read an entry another is still writing
+            atomic_cache_writes()
             # cache every compiled program (JAX's default keeps those over 1 s): a
             # command's few dozen small eager programs (array set-up, unit conversions)
             # otherwise compile afresh in every process, about 1.5 s of a warm identify
