@@ -187,9 +187,6 @@ class AbstractObserver(eqx.Module):
     #: operating points (`tuning.DesignSpace`), for a design whose stable region is
     #: narrower than its rules give (morawiec2023's).
     tuning_spectral: ClassVar[bool] = False
-    #: Design parameters that may vary with the observer's own speed estimate (a gain
-    #: schedule in its `design` field, zhang2022 Sec. III). Empty: constants only.
-    speed_scheduled: ClassVar[tuple[str, ...]] = ()
     #: Whether the error dynamics (`error_rhs`, and the step in error coordinates)
     #: depend on the rotor angle (`OperatingPoint.theta`). False: they are rotation
     #: invariant, and the angle-resolved analyses (`analysis.harmonic_ripple`,

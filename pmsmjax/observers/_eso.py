@@ -187,8 +187,6 @@ class AbstractFluxObserver(AbstractObserver):
     # tunable design: factors 1/5..5 keep w2 T_s <= 0.2 at 8 kHz (zhang750)
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
         "w2": (0.2, 5.0), "zeta2": (0.2, 5.0)}
-    speed_scheduled: ClassVar[tuple[str, ...]] = ("zeta1", "ratio", "zeta2", "w2", "n2",
-                                                  "n3")
 
     # --- design -----------------------------------------------------------------------
     @classmethod
@@ -530,8 +528,6 @@ class AFOObserver(AbstractFluxObserver):
 
     motor: PMSMParams
     design: AbstractGainSchedule
-    # the PI law (53) has no null-space components n2, n3
-    speed_scheduled: ClassVar[tuple[str, ...]] = ("zeta1", "ratio", "zeta2", "w2")
     #: the tuner moves the AFO's flux loop along a fixed ratio: measured with the main
     #: job's settings (docs/tuning.md's family table), its design along (38)'s shape is
     #: 14.6 % worse than the paper's in one validation run (the rule allows 10 %), its
