@@ -61,6 +61,27 @@ def parser(doc: str | None, module: str, *, quick_help: str = "a short run (unde
     return ap
 
 
+def size_option(ap: argparse.ArgumentParser, flag: str, *, full: int, quick: int,
+                help: str) -> None:
+    """An integer option `flag` of `ap` whose default is `full`, or `quick` under `--quick`
+    (`parse_args` fills it in)."""
+    action = ap.add_argument(flag, type=int, default=None,
+                             help=f"{help} (default {full}; {quick} with --quick)")
+    ap.set_defaults(**{f"_size_{action.dest}": (full, quick)})
+
+
+def parse_args(ap: argparse.ArgumentParser, argv=None) -> argparse.Namespace:
+    """`ap.parse_args(argv)` with every `size_option` not given set to its default."""
+    a = ap.parse_args(argv)
+    for key, sizes in list(vars(a).items()):
+        if key.startswith("_size_"):
+            (full, quick), dest = sizes, key.removeprefix("_size_")
+            if getattr(a, dest) is None:
+                setattr(a, dest, quick if a.quick else full)
+            delattr(a, key)
+    return a
+
+
 def add_child_options(ap: argparse.ArgumentParser) -> None:
     """`--quick-compile` and `--pythonpath`, the settings of `child_env` that the
     fresh-process benchmarks expose."""

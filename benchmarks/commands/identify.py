@@ -64,9 +64,9 @@ def _make(folder: Path):
 
 def main(argv=None) -> int:
     ap = h.parser(__doc__, MODULE, quick_help="one warm run")
-    ap.add_argument("--repeat", type=int, default=None, help="warm runs (default 2)")
-    args = ap.parse_args(argv)
-    repeat = args.repeat or (1 if args.quick else 2)
+    h.size_option(ap, "--repeat", full=2, quick=1, help="warm runs")
+    args = h.parse_args(ap, argv)
+    repeat = args.repeat
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         true = _make(tmp)

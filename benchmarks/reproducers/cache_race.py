@@ -61,12 +61,10 @@ def start(cache: str, programs: int, jax_writes: bool) -> list[str]:
 
 def main(argv=None) -> int:
     ap = h.parser(__doc__, MODULE, quick_help="4 starts of 20 programs each")
-    ap.add_argument("--starts", type=int, default=None, help="starts per kind (default 10)")
-    ap.add_argument("--programs", type=int, default=None,
-                    help="programs each process compiles (default 40)")
-    a = ap.parse_args(argv)
-    starts = a.starts or (4 if a.quick else 10)
-    programs = a.programs or (20 if a.quick else 40)
+    h.size_option(ap, "--starts", full=10, quick=4, help="starts per kind of write")
+    h.size_option(ap, "--programs", full=40, quick=20, help="programs each process compiles")
+    a = h.parse_args(ap, argv)
+    starts, programs = a.starts, a.programs
     rows = []
     for jax_writes in (True, False):
         t0, failed, messages = time.perf_counter(), 0, []

@@ -87,13 +87,10 @@ def run(headroom: int, programs: int, release: bool, timeout: float = 600) -> di
 
 def main(argv=None) -> int:
     ap = h.parser(__doc__, MODULE, quick_help="60 mappings of headroom, 12 programs")
-    ap.add_argument("--headroom", type=int, default=None, help="mappings left (default 200)")
-    ap.add_argument("--programs", type=int, default=None,
-                    help="programs compiled after (default 100)")
-    a = ap.parse_args(argv)
-    headroom = a.headroom or (60 if a.quick else 200)
-    programs = a.programs or (12 if a.quick else 100)
-    rows = [run(headroom, programs, release) for release in (False, True)]
+    h.size_option(ap, "--headroom", full=200, quick=60, help="mappings left")
+    h.size_option(ap, "--programs", full=100, quick=12, help="programs compiled after")
+    a = h.parse_args(ap, argv)
+    rows = [run(a.headroom, a.programs, release) for release in (False, True)]
     h.table(rows, [("release", lambda r: str(r["release"]), ""),
                    ("maps before", "maps_before", "d"), ("compiled", "compiled", "d"),
                    ("exit", "returncode", "d"),

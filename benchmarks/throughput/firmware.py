@@ -62,11 +62,11 @@ int main(int argc, char **argv)
 
 def main(argv=None) -> int:
     ap = h.parser(__doc__, MODULE, quick_help="20,000 steps instead of 200,000")
-    ap.add_argument("--steps", type=int, default=None, help="steps per timed loop")
+    h.size_option(ap, "--steps", full=200_000, quick=20_000, help="steps per timed loop")
     ap.add_argument("--observers", default=None,
                     help="comma-separated observers (default: every one the export supports)")
-    args = ap.parse_args(argv)
-    steps = args.steps or (20_000 if args.quick else 200_000)
+    args = h.parse_args(ap, argv)
+    steps = args.steps
     import pmsmjax as pj
     from pmsmjax.firmware import export_c, supported_observers
     from pmsmjax.observers import make_observer

@@ -530,9 +530,9 @@ def main(argv=None) -> int:
                   "recordings, 8 traced steps")
     ap.add_argument("--observers", default=None,
                     help="comma-separated observers (default: every one the export supports)")
-    ap.add_argument("--trace-steps", type=int, default=None,
-                    help="steps whose instructions are counted (default 64)")
-    args = ap.parse_args(argv)
+    h.size_option(ap, "--trace-steps", full=64, quick=8,
+                  help="steps whose instructions are counted")
+    args = h.parse_args(ap, argv)
     missing = missing_tools()
     if missing:
         raise SystemExit(f"missing: {', '.join(missing)}; install them with "
@@ -540,7 +540,7 @@ def main(argv=None) -> int:
     from pmsmjax.firmware import supported_observers
 
     names = [n for n in h.observer_names(args.observers) if n in supported_observers()]
-    steps = args.trace_steps or (8 if args.quick else 64)
+    steps = args.trace_steps
     builds = BUILDS[:1] if args.quick else BUILDS
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -39,11 +39,11 @@ def main(argv=None) -> int:
     ap = h.parser(__doc__, MODULE)
     ap.add_argument("--observer", default="eso",
                     help="observer of the loop (a registry name with a C emitter; default eso)")
-    ap.add_argument("--batch", type=int, default=None, help="drives per run (default 1024)")
+    h.size_option(ap, "--batch", full=1024, quick=256, help="drives per run")
     ap.add_argument("--steps", type=int, default=2000, help="sampling periods per run")
     ap.add_argument("--modes", default=",".join(MODES), help="of " + ", ".join(MODES))
-    args = ap.parse_args(argv)
-    B = args.batch or (256 if args.quick else 1024)
+    args = h.parse_args(ap, argv)
+    B = args.batch
     modes = [m for m in args.modes.split(",") if m]
     bad = sorted(set(modes) - set(MODES))
     if bad:
