@@ -27,14 +27,14 @@ from __future__ import annotations
 from .._files import atomic_write
 
 
-def _whole_file_put(original):
-    """`LRUCache.put` that writes an entry of the unlimited cache through `atomic_write`,
-    and leaves every other case to JAX's `original`."""
+def _whole_file_put(original, suffix: str):
+    """`LRUCache.put` that writes an entry of the unlimited cache (file `key + suffix`)
+    through `atomic_write`, and leaves every other case to JAX's `original`."""
 
     def put(self, key: str, value: bytes) -> None:
         if getattr(self, "eviction_enabled", True) or not key:
             return original(self, key, value)
-        path = self.path / f"{key}{_suffix()}"
+        path = self.path / f"{key}{suffix}"
         if not path.exists():  # (JAX's rule: an entry, once written, stays)
             atomic_write(path, value)
 
@@ -43,12 +43,6 @@ def _whole_file_put(original):
                    "(`pmsmjax.runtime._cache_writes`).")
     put._pmsmjax_original = original
     return put
-
-
-def _suffix() -> str:
-    from jax._src import lru_cache
-
-    return lru_cache._CACHE_SUFFIX
 
 
 def atomic_cache_writes() -> bool:
@@ -60,9 +54,9 @@ def atomic_cache_writes() -> bool:
     except ImportError:
         return False
     cls = getattr(lru_cache, "LRUCache", None)
-    put = getattr(cls, "put", None)
-    if put is None or not isinstance(getattr(lru_cache, "_CACHE_SUFFIX", None), str):
+    put, suffix = getattr(cls, "put", None), getattr(lru_cache, "_CACHE_SUFFIX", None)
+    if put is None or not isinstance(suffix, str):
         return False
     if not hasattr(put, "_pmsmjax_original"):
-        cls.put = _whole_file_put(put)
+        cls.put = _whole_file_put(put, suffix)
     return True
