@@ -31,9 +31,9 @@ def _whole_file_put(original, suffix: str):
     """`LRUCache.put` that writes an entry of the unlimited cache (file `key + suffix`)
     through `atomic_write`, and leaves every other case to JAX's `original`."""
 
-    def put(self, key: str, value: bytes) -> None:
-        if getattr(self, "eviction_enabled", True) or not key:
-            return original(self, key, value)
+    def put(self, key: str, value: bytes, *args, **kwargs) -> None:
+        if args or kwargs or getattr(self, "eviction_enabled", True) or not key:
+            return original(self, key, value, *args, **kwargs)  # (extra arguments: a later JAX)
         path = self.path / f"{key}{suffix}"
         if not path.exists():  # (JAX's rule: an entry, once written, stays)
             atomic_write(path, value)
