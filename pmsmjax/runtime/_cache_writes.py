@@ -7,12 +7,12 @@ line's worker beside a script, a sweep's processes) compile the same small progr
 the same moment when the cache is cold, and one of them then reads an entry the other
 is still writing: JAX warns "Error reading persistent compilation cache entry ...
 incomplete or truncated stream" and compiles the program itself. Measured: two
-processes compiling the same 58 small programs on an empty cache, one warning in 1 of
-12 starts (`python -m benchmarks.reproducers.cache_race`); a cold test run failed its
-collection on it (warnings are errors there); a reader polling while one 32 MiB entry
-is written read it at 0, 2, 4, ... MiB (tests/test_runtime.py, which fails on JAX's
-write). A process killed inside the write leaves
-a truncated entry that every later process warns about, since JAX never replaces an
+processes compiling the same 40 small programs on an empty cache read a half-written
+entry in 1 of 12 starts (`python -m benchmarks.reproducers.cache_race`); a cold test
+run failed its collection on it (warnings are errors there); a thread polling while one
+32 MiB entry is written read it at 0, 2, 4, ... MiB (tests/test_runtime.py checks that
+pmsmjax's write never shows a part). A process killed inside JAX's write leaves a
+truncated entry that every later process warns about, since JAX never replaces an
 existing entry.
 
 `atomic_cache_writes()` makes the unlimited cache's `put` write through

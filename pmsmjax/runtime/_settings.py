@@ -134,8 +134,7 @@ def _set_jax_option(name: str, value: bool | int) -> None:
         jax.config.update(name, value)
         return
     var = name.upper()
-    before = _JAX_ENV_SET[var][2] if var in _JAX_ENV_SET else os.environ.get(var)
-    _JAX_ENV_SET[var] = (name, value, before)
+    _JAX_ENV_SET[var] = (name, value, _user_jax_env(name))
     os.environ[var] = str(int(value))
 
 
