@@ -241,6 +241,16 @@ def test_tuning_defaults_for_li_dtp_and_the_tunable_design():
     assert set(space.names) == {"k1", "k2", "w_pll", "zeta_pll"}
     kinds = {c.name: c.kind for c in space.coordinates}
     assert kinds["w_pll"] == "tracking" and kinds["zeta_pll"] == "damping"
+    # the GI-LESO also tunes its resonator, in the contract's box around Table II's
+    gi = tg.DesignSpace(problem_from_args(build_parser().parse_args(["--observer",
+                                                                     "gi-leso"])))
+    c = {x.name: x for x in gi.coordinates}
+    assert set(c) == {"w0", "K_r", "w_c", "w_pll", "zeta_pll"}
+    w0 = 500 * math.pi  # Table II: K_r = 2 w0^2, w_c = pi
+    for name, paper, lo, hi in (("K_r", 2 * w0 ** 2, 0.5, 8.0), ("w_c", math.pi, 0.5, 16.0)):
+        assert c[name].kind == "contract"
+        assert c[name].paper == pytest.approx(paper, rel=1e-12)
+        assert (c[name].lo, c[name].hi) == pytest.approx((lo * paper, hi * paper), rel=1e-12)
 
 
 def _reference_propagator(obs, w, T_s):
