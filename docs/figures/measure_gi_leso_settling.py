@@ -1,13 +1,13 @@
-"""The GI-LESO under load steps (docs/tuning.md, "The GI-LESO under load steps"): the
-command line's load-step run (`pmsmjax simulate --motor morawiec_ipm3k5 --scenario
+"""The li observers under load steps (docs/tuning.md, "The li observers under load
+steps"): the command line's load-step run (`pmsmjax simulate --motor morawiec_ipm3k5 --scenario
 load-step`, 0.5 p.u., a 0.5 p.u. load step at 0.5 s and back at 1 s) with the li observers
 and zhang2022's ESO, the li observers with the PLL's bandwidth w_pll scaled from the
 default's, and the GI-LESO with its resonator's gain K_r and attenuation w_c scaled from
-Table II's. Per design: the static lag of the analysis (`analysis.equilibria`
-at 0.5 p.u. and 0.5 p.u. of i_q, the principal equilibrium), for the GI-LESO the slowest
-decay rate of its linearised error dynamics there (-max Re of the eigenvalues, with the
-next one), and the run's RMS angle error (deg),
-over the whole run and from 0.5 s on (after the start). Each run is a fresh `pmsmjax`
+Table II's. Per design: the static lag of the analysis (`analysis.equilibria` at 0.5 p.u.
+and 0.5 p.u. of i_q, the principal equilibrium), for the GI-LESO the two slowest decay
+rates of its linearised error dynamics there (-Re of the eigenvalues, a complex pair
+once), and the run's RMS angle error (deg), over the whole run and from 0.5 s on (after
+the start). Each run is a fresh `pmsmjax`
 process, as a user runs it; about a minute. Writes the table between the page's
 `<!-- gi-leso settling -->` markers.
 
@@ -63,20 +63,20 @@ if __name__ == "__main__":
         for k, (name, factors) in enumerate(CASES):
             obs = make_observer(name, drive)
             paper = obs.design_parameters()
-            gains = {p: f * float(paper[p]) for p, f in factors.items()}
+            gains = {g: f * float(paper[g]) for g, f in factors.items()}
             obs = obs.with_design(**gains)
             eq = analysis.equilibria(obs, drive.three_phase_motor, w, np.array([0.0, i_q]))
             if int(eq.status) != 0:
                 raise SystemExit(f"{name} {factors}: analysis.equilibria status "
                                  f"{int(eq.status)} at 0.5 p.u.; no static lag to report")
-            p = int(eq.principal)
+            principal = int(eq.principal)
             # decay rates, each complex pair once
-            ev = np.linalg.eigvals(np.asarray(eq.jacobian)[p])
+            ev = np.linalg.eigvals(np.asarray(eq.jacobian)[principal])
             rates = np.unique(np.round(-ev.real, 6))[:2]
             t, e = run(name, gains, os.path.join(tmp, str(k)))
             after = t >= 0.5
-            design = ", ".join(f"{p} x{f:g}" for p, f in factors.items()) or "default"
-            rows.append([name, design, f"{math.degrees(float(eq.theta[p])):.2f}",
+            design = ", ".join(f"{g} x{f:g}" for g, f in factors.items()) or "default"
+            rows.append([name, design, f"{math.degrees(float(eq.theta[principal])):.2f}",
                          " / ".join(f"{r:.1f}" for r in rates) if name == "gi-leso"
                          else "-",
                          f"{np.sqrt(np.mean(e ** 2)):.2f}",

@@ -195,7 +195,7 @@ class GILESOObserver(AbstractBackEMFLESO):
         "w_r": "rad/s, fixed resonant frequency (resonance='fixed'; Table II 100 pi)",
         **PLL_UNITS}
     #: K_r alone sets the lag at resonance and w_c, with K_r, the two slow real modes
-    #: that follow a start or a speed change (-8.6 and -10.1 1/s with Table II's at
+    #: that follow a start or a speed change (about -9 and -10 1/s with Table II's at
     #: 0.5 p.u.; docs/tuning.md, "The li observers under load steps"): both are tuned,
     #: in the contract's box around Table II's values
     tunable: ClassVar[dict[str, tuple[float, float]]] = {
