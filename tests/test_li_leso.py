@@ -606,3 +606,39 @@ def test_gi_leso_settles_to_its_lag_at_its_slowest_eigenvalues():
         if k_c == 1.0:
             rate_paper, lag_paper = rate, lag
     assert lag == lag_paper and rate > 3.5 * rate_paper
+
+
+def test_gi_leso_equilibria_over_its_tuning_box():
+    """Every corner of the GI-LESO's tuning box (w0, K_r, w_c, the PLL's w_pll at their
+    bounds) at 0.5 and 1 p.u. on li_dtp: the analysis finds the equilibria (status 0)
+    and the designed one at the closed-form lag $\\arctan(2\\omega_0\\omega/(K_r +
+    \\omega_0^2 - \\omega^2))$ ($\\omega$ above the resonance's floor $\\omega_c$ at
+    every corner). With the generic route's three Gauss-Newton steps per grid point in
+    the twin's continuation (`GI_TWIN_GAUSS_NEWTON`), two corners at each speed were
+    reported degenerate (w_pll x4 with w0 x0.3, K_r x8, w_c x0.5, and with w0 x3,
+    K_r x0.5, w_c x0.5)."""
+    import itertools
+
+    paper = make_observer("gi-leso", DTP)
+    d = paper.design_parameters()
+    box = paper.tunable
+    corners = np.array(list(itertools.product(*(box[k] for k in ("w0", "K_r", "w_c",
+                                                                   "w_pll")))))
+    x = corners * np.array([float(d[k]) for k in ("w0", "K_r", "w_c", "w_pll")])
+    i0 = jnp.array([0.0, 0.5 * float(DTP.base.I_b)])
+    m = DTP.three_phase_motor
+
+    @jax.jit
+    def classify(x, w):
+        def one(v):
+            obs = paper.with_design(w0=v[0], K_r=v[1], w_c=v[2], w_pll=v[3])
+            c = analysis.classify(obs, m, w, i0)
+            return c.status, c.principal_theta
+        return jax.vmap(one)(x)
+
+    for sp in (0.5, 1.0):
+        w = sp * float(W)
+        status, theta = classify(jnp.asarray(x), jnp.asarray(w))
+        assert np.all(np.asarray(status) == 0), corners[np.asarray(status) != 0]
+        lag = np.arctan2(2 * x[:, 0] * w, x[:, 1] + x[:, 0] ** 2 - w ** 2)
+        np.testing.assert_allclose(np.asarray(theta), lag, atol=1e-9)

@@ -38,7 +38,8 @@ MOTOR = "morawiec_ipm3k5"
 #: (observer, {design parameter: factor on its default}), each run in this order
 CASES = (("eso", {}), ("c-leso", {}), ("fa-leso", {}), ("fa-leso", {"w_pll": 4}),
          ("gi-leso", {}), ("gi-leso", {"w_pll": 4}), ("gi-leso", {"w_c": 4}),
-         ("gi-leso", {"K_r": 4}), ("gi-leso", {"K_r": 4, "w_c": 4}))
+         ("gi-leso", {"K_r": 4}), ("gi-leso", {"K_r": 4, "w_c": 4}),
+         ("gi-leso", {"K_r": 4, "w_c": 4, "w_pll": 4}))
 
 
 def run(name: str, gains: dict, out: str) -> np.ndarray:
