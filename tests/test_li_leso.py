@@ -4,6 +4,7 @@ realisation and the discrete response of the running step, the generalised Routh
 (Table I, corrected) against eigenvalues, FA-LESO's zero steady-state lag in closed loop at
 both signs of speed, the C-LESO's lag as its designed equilibrium, replay = in-loop."""
 
+import itertools
 import math
 
 import equinox as eqx
@@ -566,6 +567,13 @@ def test_gi_leso_equilibria_with_the_resonance_at_the_estimated_speed():
         assert abs(math.remainder(other - lag - math.pi, 2 * math.pi)) < 1e-9
 
 
+def _gi_lag(w0, K_r, w):
+    """The GI-LESO's static lag (rad) at resonance: the steady state of (29) with
+    $G(j\\omega) = K_r$, $\\arctan(2\\omega_0\\omega/(K_r + \\omega_0^2 - \\omega^2))$
+    (NumPy, elementwise)."""
+    return np.arctan2(2 * w0 * w, K_r + w0 ** 2 - w ** 2)
+
+
 def test_gi_leso_settles_to_its_lag_at_its_slowest_eigenvalues():
     """The GI-LESO's angle error after a start (imposed speed, i_q = 0.5 p.u., li_dtp)
     settles to its static lag $\\arctan(2\\omega_0\\omega/(K_r + \\omega_0^2 -
@@ -586,7 +594,7 @@ def test_gi_leso_settles_to_its_lag_at_its_slowest_eigenvalues():
                          save_every=10)
         t, e = np.asarray(tr.t), np.degrees(np.asarray(tr.theta_err))
         K, w0 = float(obs.K_r), float(obs.w0)
-        lag = math.degrees(math.atan2(2 * w0 * w, K + w0 ** 2 - w ** 2))
+        lag = math.degrees(float(_gi_lag(w0, K, w)))
         final = e[t >= 1.5 - 10 * P].mean()
         # the discrete loop's steady state against the continuous one: 6e-4 deg measured
         assert final == pytest.approx(lag, abs=2e-3)
@@ -617,8 +625,6 @@ def test_gi_leso_equilibria_over_its_tuning_box():
     the twin's continuation (`GI_TWIN_GAUSS_NEWTON`), two corners at each speed were
     reported degenerate (w_pll x4 with w0 x0.3, K_r x8, w_c x0.5, and with w0 x3,
     K_r x0.5, w_c x0.5)."""
-    import itertools
-
     paper = make_observer("gi-leso", DTP)
     d = paper.design_parameters()
     box = paper.tunable
@@ -640,5 +646,5 @@ def test_gi_leso_equilibria_over_its_tuning_box():
         w = sp * float(W)
         status, theta = classify(jnp.asarray(x), jnp.asarray(w))
         assert np.all(np.asarray(status) == 0), corners[np.asarray(status) != 0]
-        lag = np.arctan2(2 * x[:, 0] * w, x[:, 1] + x[:, 0] ** 2 - w ** 2)
+        lag = _gi_lag(x[:, 0], x[:, 1], w)
         np.testing.assert_allclose(np.asarray(theta), lag, atol=1e-9)

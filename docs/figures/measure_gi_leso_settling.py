@@ -42,7 +42,7 @@ CASES = (("eso", {}), ("c-leso", {}), ("fa-leso", {}), ("fa-leso", {"w_pll": 4})
          ("gi-leso", {"K_r": 4, "w_c": 4, "w_pll": 4}))
 
 
-def run(name: str, gains: dict, out: str) -> np.ndarray:
+def run(name: str, gains: dict, out: str) -> tuple[np.ndarray, np.ndarray]:
     """The command line's load-step run; returns (t, angle error in deg)."""
     cmd = [sys.executable, "-m", "pmsmjax", "simulate", "--motor", MOTOR, "--observer", name,
            "--scenario", "load-step", "--no-plot", "--out", out]
