@@ -5,7 +5,10 @@ backend compile, each with the name of the function compiled) and, when the sess
 ends, writes `worker-PID.json` into `$PMSMJAX_SUITE_PROFILE_DIR`:
 
 - `tests`: per test id, the seconds of each event while it ran (setup, call, teardown);
-- `functions`: per compiled function name, `[compiles, backend_s, trace_s, lower_s]`.
+- `functions`: per compiled function name, `[compiles, backend_s, trace_s, lower_s]`;
+- `gc`: the seconds Python's garbage collector ran, per generation, and how many
+  collections; `releases`: how many times the worker dropped its compiled programs
+  (`jax.clear_caches`, the suite's guard against the memory-mapping limit).
 
 Only the workers' own compiles are seen: a test's child processes are not (their time
 is in the test's duration).
@@ -14,8 +17,10 @@ is in the test's duration).
 from __future__ import annotations
 
 import collections
+import gc
 import json
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -27,6 +32,17 @@ _EVENTS = {"/jax/core/compile/backend_compile_duration": 1,
 _current: list[str | None] = [None]
 _tests: dict = collections.defaultdict(lambda: collections.defaultdict(float))
 _functions: dict = collections.defaultdict(lambda: [0, 0.0, 0.0, 0.0])
+_gc = {"s": [0.0, 0.0, 0.0], "n": [0, 0, 0], "start": 0.0}
+_releases = [0]
+
+
+def _gc_timer(phase: str, info: dict) -> None:
+    if phase == "start":
+        _gc["start"] = time.perf_counter()
+        return
+    g = info["generation"]
+    _gc["s"][g] += time.perf_counter() - _gc["start"]
+    _gc["n"][g] += 1
 
 
 def _listener(event: str, duration: float, **kwargs) -> None:
@@ -44,6 +60,14 @@ def pytest_configure(config):
     import jax.monitoring
 
     jax.monitoring.register_event_duration_secs_listener(_listener)
+    gc.callbacks.append(_gc_timer)
+    clear = jax.clear_caches
+
+    def counted_clear():
+        _releases[0] += 1
+        clear()
+
+    jax.clear_caches = counted_clear
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -59,4 +83,6 @@ def pytest_sessionfinish(session):
         return
     path = Path(folder) / f"worker-{os.getpid()}.json"
     path.write_text(json.dumps({"tests": {k: dict(v) for k, v in _tests.items()},
-                                "functions": dict(_functions)}))
+                                "functions": dict(_functions),
+                                "gc": {"s": _gc["s"], "n": _gc["n"]},
+                                "releases": _releases[0]}))
