@@ -168,10 +168,12 @@ def test_every_metric_finite_or_flagged(job):
     assert md.count(f"| {OBSERVER} |") == 2
 
 
-def _where(speed, load, k=(1.0, 1.0, 1.0, 1.0), feasible=None):
+def _where(speed, load, k=(1.0, 1.0, 1.0, 1.0), feasible=None, status=None):
     w = dict(speed_pu=speed, load_pu=load, k_d=k[0], k_q=k[1], k_R=k[2], k_psi=k[3])
     if feasible is not None:
         w["feasible"] = feasible
+    if status is not None:
+        w["analysis_status"] = status
     return w
 
 
@@ -199,6 +201,26 @@ def test_lock_comparison_accounting():
                             "analysis finds no stable designed equilibrium for it (it "
                             "cannot hold that point); 1 where it is feasible (lost on the "
                             "way: at the start or the load step)")
+    # a point where the analysis failed (status -1) is infeasible by the map's count but
+    # no physical verdict: counted and reported as a failure of the analysis, not as a
+    # point the design cannot hold; status 2 (no equilibrium at all) is one it cannot
+    e = _where(0.5, 1.0, (1.0, 1.3, 1.0, 1.0), feasible=False, status=-1)
+    f = _where(0.1, 1.0, (1.0, 1.0, 1.5, 1.0), feasible=False, status=2)
+    r = lock_comparison(_entry([], [e, f, dict(d, analysis_status=0)]))
+    assert r["why_not"] == ("3 runs lost only by the tuned design; 1 of them where the "
+                            "analysis finds no stable designed equilibrium for it (it "
+                            "cannot hold that point); 1 where it is feasible (lost on the "
+                            "way: at the start or the load step); 1 where the analysis "
+                            "failed (status -1: no verdict); the paper's design loses none")
+    md = markdown(dict(motor="m", config=dict(noise_std=0.0, T_s=1e-4, t_end=0.1,
+                                              settle_band_deg=2.0, lock_deg=45.0,
+                                              harmonic_orders=[5], tuner="adam",
+                                              tune_steps=2),
+                       grid=dict(n_runs=4, speeds_pu=[0.1], loads_pu=[0.0], cases=[{}]),
+                       skipped={}, observers={"x": dict(_entry([], [e]), lock_comparison=(
+                           lock_comparison(_entry([], [e]))))}))
+    assert ("  - 0.5 p.u., load 1, q 1.3; analysis: failed at this point (status -1): "
+            "no verdict") in md.splitlines()
     r = lock_comparison(_entry([], []))
     assert not r["fewer"] and r["why_not"].startswith("neither design loses a run")
     r = lock_comparison(_entry([], [a]))
@@ -239,6 +261,14 @@ def test_lock_comparison_from_the_saved_runs(job):
     assert len(c["only_tuned"]) == len(lost["tuned"] - lost["paper"])
     assert len(c["only_paper"]) == len(lost["paper"] - lost["tuned"])
     assert "## Lost lock: tuned against paper" in (out / "comparison.md").read_text()
+    # each lost run carries the analysis's status at its grid point, as saved
+    # (the analysis grid is the runs' grid, point for point)
+    for d in DESIGNS:
+        r = read_npz(out / "sweeps" / OBSERVER / d / "runs" / "result.npz")
+        a = read_npz(out / "sweeps" / OBSERVER / d / "analysis" / "result.npz")
+        at = r["lost_lock"].reshape(-1).astype(bool)
+        where = s["observers"][OBSERVER]["designs"][d]["lost_lock_where"]
+        assert [w["analysis_status"] for w in where] == a["status"].reshape(-1)[at].tolist()
     # the tuning record says how many training runs the low-speed rule left out (the ESO
     # declares no limit: none)
     problem = config.tuning_problem(OBSERVER)
@@ -449,6 +479,28 @@ def test_analysis_not_run_is_flagged(job):
     assert m["feasible_fraction"] is None and "feasible_fraction" in m["flags"]
     assert m["static_worst_deg"] == summary["observers"][OBSERVER]["designs"]["paper"][
         "static_worst_deg"]
+
+
+def test_lost_runs_carry_the_analysis_status(job):
+    """`aggregate` attaches to each lost run the analysis's verdict and status at its grid
+    point (saved runs with two of them marked lost, the analysis at those points set to
+    failed and to feasible)."""
+    config, out, summary = job
+    runs = dict(read_npz(out / "sweeps" / OBSERVER / "paper" / "runs" / "result.npz"))
+    feas = dict(read_npz(out / "sweeps" / OBSERVER / "paper" / "analysis" / "result.npz"))
+    n = runs["lost_lock"].size
+    lost = np.zeros(n, bool)
+    lost[[1, n - 1]] = True
+    runs["lost_lock"] = lost.reshape(runs["lost_lock"].shape)
+    status = feas["status"].reshape(-1).copy()
+    feasible = feas["feasible"].reshape(-1).copy()
+    status[[1, n - 1]], feasible[[1, n - 1]] = (-1, 0), (False, True)
+    feas["status"] = status.reshape(feas["status"].shape)
+    feas["feasible"] = feasible.reshape(feas["feasible"].shape)
+    m = aggregate(runs, feas, config, config.grid())
+    assert [(w["analysis_status"], w["feasible"]) for w in m["lost_lock_where"]] == [
+        (-1, False), (0, True)]
+    assert m["analysis_failed"] == int(np.sum(status < 0))
 
 
 def _equilibria_numpy(obs, plant, w, i_dq):

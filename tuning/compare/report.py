@@ -10,7 +10,8 @@ are counted and located instead, their angle error is meaningless):
   the others;
 - `noise_median_rad_s`, `noise_worst_rad_s`;
 - `lost_lock`: count, and `lost_lock_where`: the grid points (speed, load, case), each
-  with `feasible`, the analysis's verdict at that point, when the analysis ran;
+  with `feasible`, the analysis's verdict at that point, and `analysis_status` (its
+  `Equilibria.status`: 0 ok, 2 no equilibrium, -1 failed), when the analysis ran;
 - `feasible_fraction`: the fraction of the analysis grid (the same speeds, both signs,
   loads and mismatch cases, at constant speed and current) where the generic analysis
   (`pmsmjax.analysis.equilibria_traced`, or the family's own route) finds the designed
@@ -29,7 +30,8 @@ section of `comparison.md`): the two designs' counts, whether the tuned design l
 fewer runs, and, where it does not, why: the runs only the tuned design loses, each
 with the reason the analysis gives (no stable designed equilibrium at that point: the
 design cannot hold it; or feasible there: lost on the way, at the start or the load
-step), or that the paper's design loses none.
+step; or that the analysis failed at that point, status -1, which is no verdict at
+all), or that the paper's design loses none.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
     out = {"n_runs": int(lost.size), "lost_lock": int(lost.sum())}
     where = []
     feasible = None if feas is None else np.asarray(feas["feasible"]).reshape(-1)
+    status = None if feas is None else np.asarray(feas["status"]).reshape(-1)
     for j in np.nonzero(lost)[0]:
         c = int(grid["case"][j])
         where.append(dict(speed_pu=float(grid["speed_pu"][j]),
@@ -60,6 +63,7 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
                           **dict(zip(CASE_NAMES, config.cases[c]))))
         if feasible is not None:
             where[-1]["feasible"] = bool(feasible[j])
+            where[-1]["analysis_status"] = int(status[j])
     out["lost_lock_where"] = where
 
     def put(name, values, fn, why):
@@ -116,18 +120,18 @@ def lock_comparison(entry: dict) -> dict | None:
     elif not paper and not tuned:
         out["why_not"] = "neither design loses a run: none to lose fewer of"
     else:
-        infeasible = sum(w.get("feasible") is False for w in only_tuned)
-        unknown = sum("feasible" not in w for w in only_tuned)
+        kinds = [_analysis_kind(w) for w in only_tuned]
         n = len(only_tuned)
         why = [f"{n} run{'s' if n != 1 else ''} lost only by the tuned design"]
-        if infeasible:
-            why.append(f"{infeasible} of them where the analysis finds no stable designed "
-                       f"equilibrium for it (it cannot hold that point)")
-        if n - infeasible - unknown:
-            why.append(f"{n - infeasible - unknown} where it is feasible "
-                       f"(lost on the way: at the start or the load step)")
-        if unknown:
-            why.append(f"{unknown} without the analysis")
+        for kind, text in (
+                ("infeasible", "{} of them where the analysis finds no stable designed "
+                               "equilibrium for it (it cannot hold that point)"),
+                ("feasible", "{} where it is feasible (lost on the way: at the start or "
+                             "the load step)"),
+                ("failed", "{} where the analysis failed (status -1: no verdict)"),
+                ("unknown", "{} without the analysis")):
+            if kinds.count(kind):
+                why.append(text.format(kinds.count(kind)))
         if not paper:
             why.append("the paper's design loses none")
         out["why_not"] = "; ".join(why)
@@ -149,12 +153,27 @@ def _lock_lines(summary: dict) -> list[str]:
             continue
         lines.append(f"{head}: not fewer; {c['why_not']}")
         for w in c["only_tuned"]:
-            f = w.get("feasible")
-            why = ("" if f is None else "; analysis: feasible" if f
-                   else "; analysis: no stable designed equilibrium")
             lines.append(f"  - {w['speed_pu']:g} p.u., load {w['load_pu']:g}, "
-                         f"{case_label(w)}{why}")
+                         f"{case_label(w)}{_REASONS[_analysis_kind(w)]}")
     return lines
+
+
+def _analysis_kind(w: dict) -> str:
+    """The analysis's verdict at a lost run's grid point `w` (an entry of
+    `lost_lock_where`): "feasible", "infeasible" (no stable designed equilibrium, or
+    none at all: the design cannot hold the point), "failed" (status -1, a degenerate
+    point: no verdict, not a physical reason) or "unknown" (the analysis did not run)."""
+    if "feasible" not in w:
+        return "unknown"
+    if w.get("analysis_status", 0) < 0:
+        return "failed"
+    return "feasible" if w["feasible"] else "infeasible"
+
+
+#: The report's words for each `_analysis_kind` of a run lost only by the tuned design.
+_REASONS = {"unknown": "", "feasible": "; analysis: feasible",
+            "infeasible": "; analysis: no stable designed equilibrium",
+            "failed": "; analysis: failed at this point (status -1): no verdict"}
 
 
 COLUMNS = (
