@@ -429,9 +429,11 @@ def test_generic_route_finds_the_equilibria_off_its_branch(ratio):
     obs = obs.with_motor(pj.scale_motor(obs.motor, {"L_q": ratio}))
     w = 0.5 * float(drive.w_rated)
     i0 = np.array([0.0, 0.3 * float(drive.base.I_b)])
-    # without the grid's Newton starts the point is degenerate, not wrong
-    assert int(analysis.equilibria(obs, drive.three_phase_motor, w, i0).status) == -1
-    eq = analysis.equilibria(obs, drive.three_phase_motor, w, i0, n_starts=64)
+    # without the grid's Newton starts the point is degenerate, not wrong; the class
+    # asks for them (`equilibria_starts`), so the default call searches the other branch
+    assert int(analysis.equilibria(obs, drive.three_phase_motor, w, i0,
+                                   n_starts=0).status) == -1
+    eq = analysis.equilibria(obs, drive.three_phase_motor, w, i0)
     assert int(eq.status) == 0
     valid = np.asarray(eq.valid)
     theta, stable = np.asarray(eq.theta)[valid], np.asarray(eq.stable)[valid]
@@ -439,3 +441,28 @@ def test_generic_route_finds_the_equilibria_off_its_branch(ratio):
     assert len(ref_theta) == 2  # the designed one near 0 and one far from it
     np.testing.assert_allclose(theta, ref_theta, atol=1e-9)
     np.testing.assert_array_equal(stable, ref_stable)
+
+
+def test_rotor_flux_equilibria_with_a_matched_model_under_load():
+    """The rotor-flux observer with its model matched (morawiec_ipm3k5, 0.5 and 0.8 p.u.,
+    i_q for 0.4 p.u. of rated torque): the inner problem shows two branches here too, so
+    without the Newton starts both points are degenerate; with the class's default
+    (`equilibria_starts`) the designed equilibrium is found at zero angle error, exactly
+    where a matched model puts it, and stable."""
+    drive = pj.preset("morawiec_ipm3k5")
+    m = drive.three_phase_motor
+    obs = pj.observers.make_observer("rotor-flux", drive)
+    i_q = 0.4 * float(drive.tau_rated) / (1.5 * float(m.n_p) * float(m.psi_f))
+    w = jnp.array([0.5, 0.8]) * float(drive.w_rated)
+    i0 = jnp.array([0.0, i_q])
+
+    def at(n_starts):
+        return jax.vmap(lambda w_: analysis.equilibria_traced(
+            obs, m, analysis.OperatingPoint(w_, i0), n_grid=64, n_starts=n_starts))(w)
+
+    assert np.all(np.asarray(at(0).status) == -1)
+    eq = at(None)
+    assert np.all(np.asarray(eq.status) == 0)
+    p = np.asarray(eq.principal)
+    np.testing.assert_allclose(np.asarray(eq.theta)[[0, 1], p], 0.0, atol=1e-9)
+    assert np.all(np.asarray(eq.stable)[[0, 1], p])

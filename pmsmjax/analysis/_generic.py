@@ -35,10 +35,11 @@ the full system also start from `n_starts` grid points (their angles and the
 continuation's other coordinates there), and every start that converges is an
 equilibrium (duplicates dropped). Under `jax.vmap` every point would pay for the starts,
 so they are asked for (`n_starts`; the `pmsmjax equilibria` command and the saturated
-analysis start from every grid point); without them a jump that does not polish leaves
-the point degenerate, as any unpolished bracket does. The rotor-flux observer with
-inductance mismatch is the case met: checked against SciPy's root finder started from a
-grid of angles (tests/test_equilibria.py).
+analysis start from every grid point, and so does every call for an observer class that
+declares `equilibria_starts`); without them a jump that does not polish leaves the point
+degenerate, as any unpolished bracket does. The rotor-flux observer is the case met, with
+inductance mismatch and even with a matched model under load: checked against SciPy's
+root finder started from a grid of angles (tests/test_equilibria.py).
 Two zeros inside one grid cell leave no sign change but a local minimum of $|r|$ close
 to 0: such cells are searched by Newton steps from both cell ends (`n_crit` slots). All
 shapes are static, so the route jits and vmaps over operating points, designs and
@@ -183,7 +184,7 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
                n_golden: int = 16,
                angle_weight: float = 1000.0, n_gauss_newton: int = 3, n_refine: int = 10,
                n_newton: int = 8, tol: float | None = None,
-               n_starts: int = 0) -> Equilibria:
+               n_starts: int | None = None) -> Equilibria:
     r"""Every equilibrium of `observer`'s error dynamics at one operating point.
 
     **Arguments:**
@@ -197,11 +198,12 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
       Illinois refinement and the final Newton polish (module docstring).
     - `tol`: accepted scaled residual (default eps^0.6: about 4e-10 in float64).
     - `n_starts`: Newton starts on the full system from evenly spaced grid points, used
-      where the inner problem shows two branches (module docstring; static). Default 0:
-      such a point is reported degenerate when a bracket does not polish; `n_starts =
-      n_grid` searches it (the `pmsmjax equilibria` command and the saturated analysis
-      do). Every point of a `jax.vmap` pays for the starts: 1.8x the time of a generic
-      map with 64.
+      where the inner problem shows two branches (module docstring; static). 0: such a
+      point is reported degenerate when a bracket does not polish; `n_starts = n_grid`
+      searches it (the `pmsmjax equilibria` command and the saturated analysis do).
+      Default (None): `n_grid` for an observer class that declares
+      `equilibria_starts` (the rotor-flux observer), else 0. Every point of a
+      `jax.vmap` pays for the starts: 1.8x the time of a generic map with 64.
     - `method`: `"auto"` uses the family's own route where it declares one
       (`observer.fast_equilibria`: zhang2022's reduction for fal feedback), else the
       generic route; `"generic"` forces the generic route.
@@ -230,13 +232,21 @@ def _fast_equilibria(observer, plant, op):
     return observer.fast_equilibria(plant, op)
 
 
+def _starts(observer, n_starts, n_grid):
+    """`n_starts` as given, or its default for `observer`'s class (`equilibria`)."""
+    if n_starts is not None:
+        return n_starts
+    return n_grid if type(observer).equilibria_starts else 0
+
+
 def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n_crit,
                      n_golden, angle_weight, n_gauss_newton, n_refine, n_newton, tol,
-                     n_starts=0):
+                     n_starts=None):
     """`equilibria`'s argument checks and conversions: (observer, plant, op, options of
     the generic route)."""
     check_observer("equilibria", observer)
     check_plant("equilibria", plant)
+    n_starts = _starts(observer, n_starts, n_grid)
     for name, v, lo in (("n_grid", n_grid, 8), ("max_roots", max_roots, 1),
                         ("n_crit", n_crit, 0), ("n_starts", n_starts, 0)):
         if not isinstance(v, int) or v < lo:
@@ -296,9 +306,11 @@ def _equilibria(observer, plant, op, options):
 def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_grid=64,
                       max_roots=6, n_crit=2, n_golden=16, angle_weight=1000.0,
                       n_gauss_newton=3, n_refine=10, n_newton=8, tol=1e-9,
-                      n_starts=0) -> Equilibria:
+                      n_starts=None) -> Equilibria:
     """`equilibria` without argument checks or jit, for use inside a jitted/vmapped
-    function (e.g. a feasibility map or a tuning penalty)."""
+    function (e.g. a feasibility map or a tuning penalty); `n_starts` None: the class's
+    default, as in `equilibria`."""
+    n_starts = _starts(observer, n_starts, n_grid)
     if method == "auto":
         fast = observer.fast_equilibria(plant, op)
         if fast is not None:

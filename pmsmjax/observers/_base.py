@@ -192,6 +192,12 @@ class AbstractObserver(eqx.Module):
     #: invariant, and the angle-resolved analyses (`analysis.harmonic_ripple`,
     #: `analysis.input_matrix`) evaluate them at one angle.
     angle_dependent: ClassVar[bool] = False
+    #: Whether `analysis.equilibria` searches the error dynamics' second branch by
+    #: default (`n_starts = n_grid` Newton starts on the full system; module docstring of
+    #: `pmsmjax.analysis._generic`): for an observer whose inner problem shows two
+    #: branches at ordinary operating points, where the default solve would report them
+    #: degenerate. A caller's `n_starts` wins.
+    equilibria_starts: ClassVar[bool] = False
     #: The speed (p.u. of rated) below which the observer's design does not claim to hold
     #: the angle: the tuner's low-speed rule sets apart the validation runs that take a
     #: sensored drive slower than this (`tuning.TuningProblem.low_speed_limit_pu`,
