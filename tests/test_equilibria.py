@@ -466,3 +466,6 @@ def test_rotor_flux_equilibria_with_a_matched_model_under_load():
     p = np.asarray(eq.principal)
     np.testing.assert_allclose(np.asarray(eq.theta)[[0, 1], p], 0.0, atol=1e-9)
     assert np.all(np.asarray(eq.stable)[[0, 1], p])
+    # a wrapper (the speed from the angle) asks for what the wrapped observer asks for
+    assert pj.SpeedFromAngle(obs, w_track=2 * math.pi * 30.0).equilibria_starts is True
+    assert pj.observers.make_observer("eso", drive).equilibria_starts is False

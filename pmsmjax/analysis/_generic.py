@@ -236,7 +236,7 @@ def _starts(observer, n_starts, n_grid):
     """`n_starts` as given, or its default for `observer`'s class (`equilibria`)."""
     if n_starts is not None:
         return n_starts
-    return n_grid if type(observer).equilibria_starts else 0
+    return n_grid if observer.equilibria_starts else 0  # a wrapper: the wrapped one's
 
 
 def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n_crit,

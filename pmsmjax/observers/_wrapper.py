@@ -56,6 +56,10 @@ class WrappedObserver(AbstractObserver):
     def angle_dependent(self):
         return self.observer.angle_dependent
 
+    @property
+    def equilibria_starts(self):
+        return self.observer.equilibria_starts
+
     # --- design and analysis: the wrapped observer's -----------------------------------
     @classmethod
     def from_drive(cls, drive, *, motor: PMSMParams | None = None, **design):
