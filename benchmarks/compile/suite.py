@@ -14,7 +14,8 @@ written:
 - the workers' garbage collection (seconds and collections per generation) and how
   often they dropped their compiled programs (the suite's memory-mapping guard);
 - the modules and notebooks that take longest, and the functions whose compiles cost
-  most (count and seconds).
+  most (count and seconds); the JSON also lists every test with its duration and its
+  compile time in the worker (`tests`), longest first.
 
 `--quick` runs three small test modules. Other pytest arguments follow `--`:
 `python -m benchmarks.compile.suite -- tests/test_eso.py -k fal`.
@@ -94,8 +95,9 @@ def profile(paths: list[str], workers: int) -> dict:
                 passed=int(passed.group(1)) if passed else None)
 
 
-def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict]]:
-    """(totals, the longest modules and notebooks, the costliest compiled functions)."""
+def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict], list[dict]]:
+    """(totals, the longest modules and notebooks, the costliest compiled functions,
+    every test with its duration and its compile time in the worker, longest first)."""
     fun = p["functions"]
     eager = [r for n, r in fun.items() if _is_eager(n)]
     total = [sum(r[k] for r in fun.values()) for k in range(4)]
@@ -129,7 +131,9 @@ def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict]]:
     funcs = [dict(function=n, compiles=r[0], backend_s=r[1], lower_s=r[3],
                   trace_s=fun.get(n[4:-1], [0, 0, 0, 0])[2] if n.startswith("jit(") else r[2])
              for n, r in sorted(fun.items(), key=lambda x: -(x[1][1] + x[1][3]))[:15]]
-    return totals, units, funcs
+    tests = [dict(test=t, s=s, compile_s=sum(p["tests"].get(t, {}).values()))
+             for t, s in sorted(p["durations"].items(), key=lambda x: -x[1])]
+    return totals, units, funcs, tests
 
 
 def main(argv=None) -> int:
@@ -144,7 +148,7 @@ def main(argv=None) -> int:
     paths = extra or (list(QUICK_TESTS) if args.quick else [])
     print(h.machine_line())
     p = profile(paths, args.workers)
-    totals, units, funcs = summarise(p)
+    totals, units, funcs, tests = summarise(p)
     h.table(totals, [("", "item", ""), ("value", "value", ".1f")],
             title="The suite, cold (" + (" ".join(paths) or "every test") + ")")
     print()
@@ -156,7 +160,7 @@ def main(argv=None) -> int:
                     ("backend s", "backend_s", ".1f"), ("lowering s", "lower_s", ".1f"),
                     ("tracing s", "trace_s", ".1f")],
             title="Costliest compiled functions")
-    h.write_report(args.json, dict(totals=totals, units=units, functions=funcs),
+    h.write_report(args.json, dict(totals=totals, units=units, functions=funcs, tests=tests),
                    paths=paths, workers=args.workers)
     return 1 if p["returncode"] else 0
 
