@@ -8,7 +8,10 @@ ends, writes `worker-PID.json` into `$PMSMJAX_SUITE_PROFILE_DIR`:
 - `functions`: per compiled function name, `[compiles, backend_s, trace_s, lower_s]`;
 - `gc`: the seconds Python's garbage collector ran, per generation, and how many
   collections; `releases`: how many times the worker dropped its compiled programs
-  (`jax.clear_caches`, the suite's guard against the memory-mapping limit).
+  (`jax.clear_caches`, the suite's guard against the memory-mapping limit);
+- `cache`: the persistent compilation cache's hits and misses (a hit is a program the
+  other worker, or a child process, compiled first: its tracing and lowering still run
+  here, XLA's compile does not).
 
 Only the workers' own compiles are seen: a test's child processes are not (their time
 is in the test's duration).
@@ -34,6 +37,9 @@ _tests: dict = collections.defaultdict(lambda: collections.defaultdict(float))
 _functions: dict = collections.defaultdict(lambda: [0, 0.0, 0.0, 0.0])
 _gc = {"s": [0.0, 0.0, 0.0], "n": [0, 0, 0], "start": 0.0}
 _releases = [0]
+_CACHE_EVENTS = {"/jax/compilation_cache/cache_hits": "hits",
+                 "/jax/compilation_cache/cache_misses": "misses"}
+_cache = {"hits": 0, "misses": 0}
 
 
 def _gc_timer(phase: str, info: dict) -> None:
@@ -56,10 +62,17 @@ def _listener(event: str, duration: float, **kwargs) -> None:
     row[k] += duration
 
 
+def _cache_listener(event: str, **kwargs) -> None:
+    k = _CACHE_EVENTS.get(event)
+    if k is not None:
+        _cache[k] += 1
+
+
 def pytest_configure(config):
     import jax.monitoring
 
     jax.monitoring.register_event_duration_secs_listener(_listener)
+    jax.monitoring.register_event_listener(_cache_listener)
     gc.callbacks.append(_gc_timer)
     clear = jax.clear_caches
 
@@ -85,4 +98,4 @@ def pytest_sessionfinish(session):
     path.write_text(json.dumps({"tests": {k: dict(v) for k, v in _tests.items()},
                                 "functions": dict(_functions),
                                 "gc": {"s": _gc["s"], "n": _gc["n"]},
-                                "releases": _releases[0]}))
+                                "releases": _releases[0], "cache": _cache}))

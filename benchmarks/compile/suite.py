@@ -11,8 +11,9 @@ written:
 - the workers' own compile time: tracing, lowering and XLA's backend compile, and the
   part of it in eager operations (one JAX primitive compiled on its own, outside any
   `jit`: each new shape is a program of its own);
-- the workers' garbage collection (seconds and collections per generation) and how
-  often they dropped their compiled programs (the suite's memory-mapping guard);
+- the workers' garbage collection (seconds and collections per generation), how
+  often they dropped their compiled programs (the suite's memory-mapping guard) and
+  the persistent compilation cache's hits and misses;
 - the modules and notebooks that take longest, and the functions whose compiles cost
   most (count and seconds); the JSON also lists every test with its duration and its
   compile time in the worker (`tests`), longest first.
@@ -78,20 +79,21 @@ def profile(paths: list[str], workers: int) -> dict:
                 durations[m.group(3)] += float(m.group(1))
         tests: dict = collections.defaultdict(dict)
         functions = collections.defaultdict(lambda: [0, 0.0, 0.0, 0.0])
-        gc_s, gc_n, releases = [0.0] * 3, [0] * 3, 0
+        gc_s, gc_n, releases, cache = [0.0] * 3, [0] * 3, 0, collections.Counter()
         for f in prof.glob("worker-*.json"):
             data = json.loads(f.read_text())
             tests.update(data["tests"])
             gc_s = [a + b for a, b in zip(gc_s, data["gc"]["s"])]
             gc_n = [a + b for a, b in zip(gc_n, data["gc"]["n"])]
             releases += data["releases"]
+            cache.update(data.get("cache", {}))
             for name, row in data["functions"].items():
                 functions[name] = [a + b for a, b in zip(functions[name], row)]
     passed = _SUMMARY.search(child.stdout)
     return dict(wall_s=child.wall_s, cpu_s=child.cpu_s, durations=dict(durations),
                 returncode=child.returncode,
                 tests=dict(tests), functions=dict(functions), gc_s=gc_s, gc_n=gc_n,
-                releases=releases,
+                releases=releases, cache=dict(cache),
                 passed=int(passed.group(1)) if passed else None)
 
 
@@ -125,6 +127,8 @@ def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict], list[dict]]:
              value=" / ".join(str(v) for v in p["gc_n"])),
         dict(item="compiled programs dropped (memory-mapping guard)",
              value=str(p["releases"])),
+        dict(item="persistent cache: hits / misses",
+             value=f"{p['cache'].get('hits', 0)} / {p['cache'].get('misses', 0)}"),
     ]
     units = [dict(unit=u, s=v[0], compile_s=v[1])
              for u, v in sorted(by_unit.items(), key=lambda x: -x[1][0])[:15]]
