@@ -1,9 +1,10 @@
 """The tuner's rule and sets widened (docs/tuning.md, "Inductance mismatch up to +-50 %"):
-the zhang2022 observers on zhang750 tuned with the 5 % rule (the main job's ESO on the
+observers tuned with the 5 % rule, each on its paper's motor (the main job's ESO on the
 default sets, L_d and L_q off by up to +-30 %, and on `TuningProblem.wide_mismatch`,
 +-50 % with the validation set's +-50 % cases; the ESO also with the default's 24
 training runs and with the flux loop kept as the paper's (38), only w2, zeta2 tuned; the
-LESO on the +-50 % sets). Each row also names the search strategies whose own
+LESO, the AFO, the parallel-model estimator and the two peer observers on the +-50 %
+sets). Each row also names the search strategies whose own
 design passes the rule (the verdict judges the deployed one). For every run that blocks
 the verdict, the analysis' static angle error of both designs (the principal equilibrium
 of `pmsmjax.analysis.equilibria` with the run's observer model, at its final speed, under
@@ -11,8 +12,9 @@ its load with i_d = 0) beside the simulated RMS angle errors: whether the induct
 error's static error explains the run.
 
 Writes docs/figures/wide_mismatch.json and the table between the page's
-`<!-- wide mismatch -->` markers (`--from-json`: only the table, from the JSON). About
-12 minutes on a 2-core machine:
+`<!-- wide mismatch -->` markers (`--from-json`: only the table, from the JSON; `--only
+N ...`: measure only those rows, by their number in `CONFIGS`, and keep the others'
+saved measurement, each row with its own date). About 20 minutes on a 2-core machine:
 
     .venv/bin/python docs/figures/measure_wide_mismatch.py
 """
@@ -38,7 +40,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 PAGE = os.path.join(HERE, os.pardir, "tuning.md")
 BEGIN, END = "<!-- wide mismatch -->", "<!-- /wide mismatch -->"
 #: (label, problem) of each row: the main job's observer (the ESO) first, then the LESO
-#: (the two whose flux loop the tuner moves along (38)'s shape) on the same sets.
+#: (the two whose flux loop the tuner moves along (38)'s shape) on the same sets, then
+#: the other families whose default verdict holds, each on its paper's motor.
 CONFIGS = (
     ("ESO, +-30 % sets (default)", lambda: tg.TuningProblem(regression_tol=0.05)),
     ("ESO, +-50 % sets", lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05)),
@@ -48,6 +51,14 @@ CONFIGS = (
      lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, tune=("w2", "zeta2"))),
     ("LESO, +-50 % sets",
      lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="leso")),
+    ("AFO, +-50 % sets",
+     lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="afo")),
+    ("parallel-model (stumper_mt5), +-50 % sets",
+     lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="parallel-model")),
+    ("reduced-order (morawiec_ipm3k5), +-50 % sets",
+     lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="reduced-order")),
+    ("nonlinear-flux, +-50 % sets",
+     lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="nonlinear-flux")),
 )
 
 
@@ -80,7 +91,8 @@ def measure(label, problem) -> dict:
             rms_tuned_deg=float(rms["tuned"][j]), rms_change_pct=b["rms_change_pct"],
             static_paper_deg=static_error_deg(rep.space, drive, None, r),
             static_tuned_deg=static_error_deg(rep.space, drive, x, r)))
-    return dict(config=label, mismatch_range=list(problem.mismatch_range),
+    return dict(config=label, motor=problem.motor, date=time.strftime("%Y-%m-%d"),
+                mismatch_range=list(problem.mismatch_range),
                 regression_tol=problem.regression_tol, w_constraint=problem.w_constraint,
                 observer=problem.observer, n_train=problem.n_train,
                 design=rep.default, coordinates=dict(zip(rep.space.names,
@@ -126,29 +138,45 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--from-json", action="store_true",
                     help="only write the page's table from wide_mismatch.json")
+    ap.add_argument("--only", type=int, nargs="+", metavar="N",
+                    help=f"measure only these rows (0..{len(CONFIGS) - 1}, CONFIGS' order); "
+                         "the others keep their saved measurement")
     args = ap.parse_args(argv)
     path = os.path.join(HERE, "wide_mismatch.json")
+    saved = json.loads(open(path).read()) if os.path.exists(path) else None
+    only = range(len(CONFIGS)) if args.only is None else args.only
+    for n in only:
+        if not 0 <= n < len(CONFIGS):
+            raise SystemExit(f"--only {n}: rows are 0..{len(CONFIGS) - 1}")
     if args.from_json:
-        saved = json.loads(open(path).read())
-        rows, machine, date = saved["rows"], saved["machine"], saved["date"]
+        rows, machine = saved["rows"], saved["machine"]
     else:
+        old = {r["config"]: r for r in (saved["rows"] if saved and args.only else [])}
+        for r in old.values():  # a row from before rows carried their own date and motor
+            r.setdefault("date", saved["date"])
+            r.setdefault("motor", saved.get("motor"))
         pj.runtime.configure()
         jax.config.update("jax_enable_x64", True)
         rows = []
-        for label, make in CONFIGS:
+        for n, (label, make) in enumerate(CONFIGS):
+            if n not in only:
+                if label not in old:
+                    raise SystemExit(f"row {n} ({label}) has no saved measurement: "
+                                     "measure it too (--only ... {n})")
+                rows.append(old[label])
+                continue
             rows.append(measure(label, make()))
             r = rows[-1]
             print(f"{label}: {r['better']}/{r['n']}, {r['worst_rms_change_pct']:+.1f} %, "
                   f"{len(r['blocking'])} blocking, {r['wall_s']:.0f} s", flush=True)
         machine = (f"{platform.machine()}, {os.cpu_count()} cores, Python "
                    f"{platform.python_version()}")
-        date = time.strftime("%Y-%m-%d")
         with open(path, "w") as f:
-            json.dump(dict(machine=machine, date=date, motor="zhang750", rows=rows), f,
-                      indent=1)
+            json.dump(dict(machine=machine, rows=rows), f, indent=1)
+    dates = sorted({r.get("date", saved and saved.get("date")) for r in rows})
     text = table(rows)
     print(text)
-    stamp = f"(`docs/figures/measure_wide_mismatch.py`, {date}, {machine})"
+    stamp = f"(`docs/figures/measure_wide_mismatch.py`, {', '.join(dates)}, {machine})"
     write_block(PAGE, BEGIN, END, f"{stamp}:\n\n{text}")
     return 0
 
