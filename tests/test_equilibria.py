@@ -457,8 +457,8 @@ def test_rotor_flux_equilibria_with_a_matched_model_under_load():
     i0 = jnp.array([0.0, i_q])
 
     def at(n_starts):
-        return jax.vmap(lambda w_: analysis.equilibria_traced(
-            obs, m, analysis.OperatingPoint(w_, i0), n_grid=64, n_starts=n_starts))(w)
+        return jax.jit(jax.vmap(lambda w_: analysis.equilibria_traced(
+            obs, m, analysis.OperatingPoint(w_, i0), n_grid=64, n_starts=n_starts)))(w)
 
     assert np.all(np.asarray(at(0).status) == -1)
     eq = at(None)
