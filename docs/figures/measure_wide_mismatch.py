@@ -3,8 +3,8 @@ observers tuned with the 5 % rule, each on its paper's motor (the main job's ESO
 default sets, L_d and L_q off by up to +-30 %, and on `TuningProblem.wide_mismatch`,
 +-50 % with the validation set's +-50 % cases; the ESO also with the default's 24
 training runs and with the flux loop kept as the paper's (38), only w2, zeta2 tuned; the
-LESO, the AFO, the parallel-model estimator and the two peer observers on the +-50 %
-sets). Each row also names the search strategies whose own
+LESO, the AFO, the parallel-model estimator, the two peer observers and li's three
+LESOs on the +-50 % sets). Each row also names the search strategies whose own
 design passes the rule (the verdict judges the deployed one). For every run that blocks
 the verdict, the analysis' static angle error of both designs (the principal equilibrium
 of `pmsmjax.analysis.equilibria` with the run's observer model, at its final speed, under
@@ -14,7 +14,7 @@ error's static error explains the run.
 Writes docs/figures/wide_mismatch.json and the table between the page's
 `<!-- wide mismatch -->` markers (`--from-json`: only the table, from the JSON; `--only
 N ...`: measure only those rows, by their number in `CONFIGS`, and keep the others'
-saved measurement, each row with its own date). About 20 minutes on a 2-core machine:
+saved measurement, each row with its own date). About 50 minutes on a 2-core machine:
 
     .venv/bin/python docs/figures/measure_wide_mismatch.py
 """
@@ -59,6 +59,9 @@ CONFIGS = (
      lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="reduced-order")),
     ("nonlinear-flux, +-50 % sets",
      lambda: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer="nonlinear-flux")),
+    *((f"{o} (li_dtp), +-50 % sets",
+       lambda o=o: tg.TuningProblem.wide_mismatch(regression_tol=0.05, observer=o))
+      for o in ("c-leso", "gi-leso", "fa-leso")),
 )
 
 
@@ -153,7 +156,7 @@ def main(argv=None) -> int:
     else:
         old = {r["config"]: r for r in (saved["rows"] if saved and args.only else [])}
         for r in old.values():  # a row from before rows carried their own date and motor
-            r.setdefault("date", saved["date"])
+            r.setdefault("date", saved.get("date"))
             r.setdefault("motor", saved.get("motor"))
         pj.runtime.configure()
         jax.config.update("jax_enable_x64", True)
