@@ -165,7 +165,7 @@ def main(argv=None) -> int:
             if n not in only:
                 if label not in old:
                     raise SystemExit(f"row {n} ({label}) has no saved measurement: "
-                                     "measure it too (--only ... {n})")
+                                     f"measure it too (--only ... {n})")
                 rows.append(old[label])
                 continue
             rows.append(measure(label, make()))
