@@ -9,9 +9,10 @@ ends, writes `worker-PID.json` into `$PMSMJAX_SUITE_PROFILE_DIR`:
 - `gc`: the seconds Python's garbage collector ran, per generation, and how many
   collections; `releases`: how many times the worker dropped its compiled programs
   (`jax.clear_caches`, the suite's guard against the memory-mapping limit);
-- `cache`: the persistent compilation cache's hits and misses (a hit is a program the
-  other worker, or a child process, compiled first: its tracing and lowering still run
-  here, XLA's compile does not).
+- `cache`: the persistent compilation cache's hits and misses (a hit is a program
+  compiled before: by the other worker, a child process, or this worker before it
+  dropped its programs or from another function object with the same program; its
+  tracing and lowering still run here, XLA's compile does not).
 
 Only the workers' own compiles are seen: a test's child processes are not (their time
 is in the test's duration).

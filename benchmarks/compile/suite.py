@@ -104,11 +104,14 @@ def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict], list[dict]]:
     eager = [r for n, r in fun.items() if _is_eager(n)]
     total = [sum(r[k] for r in fun.values()) for k in range(4)]
     eager_t = [sum(r[k] for r in eager) for k in range(4)]
+    def compile_s(test: str) -> float:
+        return sum(p["tests"].get(test, {}).values())
+
     by_unit = collections.defaultdict(lambda: [0.0, 0.0])
     for test, s in p["durations"].items():
         unit = test if "test_notebook_runs[" in test else test.split("::")[0]
         by_unit[unit][0] += s
-        by_unit[unit][1] += sum(p["tests"].get(test, {}).values())
+        by_unit[unit][1] += compile_s(test)
     totals = [
         dict(item="wall (s)", value=p["wall_s"]),
         dict(item="CPU, user + system (s)", value=p["cpu_s"]),
@@ -135,7 +138,7 @@ def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict], list[dict]]:
     funcs = [dict(function=n, compiles=r[0], backend_s=r[1], lower_s=r[3],
                   trace_s=fun.get(n[4:-1], [0, 0, 0, 0])[2] if n.startswith("jit(") else r[2])
              for n, r in sorted(fun.items(), key=lambda x: -(x[1][1] + x[1][3]))[:15]]
-    tests = [dict(test=t, s=s, compile_s=sum(p["tests"].get(t, {}).values()))
+    tests = [dict(test=t, s=s, compile_s=compile_s(t))
              for t, s in sorted(p["durations"].items(), key=lambda x: -x[1])]
     return totals, units, funcs, tests
 
