@@ -104,6 +104,7 @@ def summarise(p: dict) -> tuple[list[dict], list[dict], list[dict], list[dict]]:
     eager = [r for n, r in fun.items() if _is_eager(n)]
     total = [sum(r[k] for r in fun.values()) for k in range(4)]
     eager_t = [sum(r[k] for r in eager) for k in range(4)]
+
     def compile_s(test: str) -> float:
         return sum(p["tests"].get(test, {}).values())
 

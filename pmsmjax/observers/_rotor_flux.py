@@ -370,8 +370,11 @@ class RotorFluxObserver(AbstractObserver):
 
     coordinates: ClassVar[ErrorCoordinates] = _COORDS
     design_units: ClassVar[dict[str, str]] = _DESIGN_UNITS
-    #: per-component gains (4 theta terms); two equilibrium branches even matched (test_equilibria)
-    angle_dependent, equilibria_starts = True, True
+    #: the gains act per stationary-frame component: a 4 theta term in the linearisation
+    angle_dependent: ClassVar[bool] = True
+    #: two branches of the inner problem even with a matched model (morawiec_ipm3k5 at
+    #: 0.5 and 0.8 p.u. under 0.4 p.u. load; tests/test_equilibria.py)
+    equilibria_starts: ClassVar[bool] = True
     extras: ClassVar[dict[str, str]] = {
         "i_ab_hat": "A, estimated stator current, stationary frame (2,)",
         "lambda_ab_hat": "V s, estimated rotor flux vector morawiec2023 (10)-(11) (2,)",
