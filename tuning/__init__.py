@@ -13,13 +13,20 @@ The pipeline, one module per stage (data flows one way):
 - searches (`tuning.search`): gradient, CMA-ES (evosax), hybrid, random, local, each at
   the same budget of closed-loop simulations;
 - `tune` (`tuning.pipeline`) runs them and returns a `TuningReport`; `tuning.report`
-  writes it (summary.json, figures, gains table).
+  writes it (summary.json, figures, gains table); where the verdict fails, each blocking
+  validation run's noise floor and the phase its change comes from (`tuning.blocking`).
 
 `python -m tuning` runs the main job; `python -m tuning compare` the side-by-side
 comparison of every observer (`tuning.compare`).
 """
 
 from . import report as report
+from .blocking import (
+    NOISE_FLOOR_KEYS as NOISE_FLOOR_KEYS,
+    PHASES as PHASES,
+    noise_floor as noise_floor,
+    phase_split as phase_split,
+)
 from .compare import (
     CompareConfig as CompareConfig,
     plot_comparison as plot_comparison,

@@ -41,6 +41,7 @@ import numpy as np
 
 import pmsmjax as pj
 
+from .blocking import NOISE_FLOOR_KEYS, main_phase, noise_floor, phase_split
 from .design_space import DesignSpace
 from .evaluate import Evaluator
 from .objective import BASELINE, VOCABULARY, accounting, holds, objective
@@ -203,7 +204,7 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"are chaotic, so no design passes a per-run rule on them")
     if not verdict["holds"]:
         _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
-                  beyond, sensored)
+                  beyond, sensored, space=space, x=designs["tuned"])
     # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
@@ -237,14 +238,18 @@ def _objective_kept(m, ref, problem, beyond=None) -> float:
 
 
 def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
-              beyond, sensored=None) -> None:
+              beyond, sensored=None, *, space=None, x=None) -> None:
     """The runs that block the verdict (the tuned design's RMS angle error worse than the
     paper's by more than the tolerance, or lock lost that the paper's design holds, among
     the runs the low-speed rule keeps, not `beyond`),
     each measured in a sensored drive of the same scenario (`sensored_lowest_speed`):
     `verdict["blocking_runs"]`, and a line of `where_not` with their lowest speeds and
     back-EMF. `sensored`: the low-speed rule's records of every run, where it measured
-    them (not simulated again)."""
+    them (not simulated again). With the design space `space` and the tuned design `x`,
+    also what each blocking run says (`tuning.blocking`): its noise floor
+    (`noise_floor_pct`: how far the paper design's RMS on it moves with the noise
+    realisation alone) and where in the run the change comes from (`phases`), summed up
+    in a line of `where_not`."""
     m, ref = metrics_val["tuned"], metrics_val["paper"]
     rms_rel = np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1.0
     new_lost = np.asarray(m.lost_lock) & ~np.asarray(ref.lost_lock)
@@ -275,6 +280,35 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
         f"lowest speed {span('lowest_speed_pu')} p.u., back-EMF there "
         f"{span('back_emf_V')} V; the rotor reverses in "
         f"{sum(r['reverses'] for r in found)} of them")
+    if space is not None:
+        _what_blocking_runs_say(problem, space, vset, found, x, verdict, log)
+
+
+def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> None:
+    """The noise floor and the phase split of each blocking run (`tuning.blocking`), into
+    its record and a line of `where_not`."""
+    runs = [r["run"] for r in found]
+    _say(log, f"measuring the noise floor of the {len(runs)} blocking runs "
+              f"({NOISE_FLOOR_KEYS} other noise realisations each) and where in each run "
+              f"the change comes from")
+    floor = (noise_floor(problem, space, vset, runs) if problem.noise_std > 0
+             else np.zeros(len(runs)))
+    splits = phase_split(problem, space, vset, runs, x)
+    within = 0
+    phases: dict[str, int] = {}
+    for r, f, sp in zip(found, floor, splits):
+        r["noise_floor_pct"] = float(100.0 * f)
+        r["phases"] = sp["phases"]
+        within += r["rms_change_pct"] <= 100.0 * f
+        name, _ = main_phase(sp)
+        phases[name] = phases.get(name, 0) + 1
+    where = ", ".join(f"{k} in {v}" for k, v in sorted(phases.items(), key=lambda kv: -kv[1]))
+    verdict["where_not"].append(
+        f"the noise floor of the blocking runs (the paper design's RMS with "
+        f"{NOISE_FLOOR_KEYS} other noise realisations) is "
+        f"{min(floor) * 100:.1f}-{max(floor) * 100:.1f} %: {within} of {len(found)} "
+        f"runs' RMS change lies within it; the phase with the largest share of the "
+        f"change (`phases`): {where}")
 
 
 def _choose(acc_val: dict, vset: ScenarioSet) -> tuple[str, dict]:
