@@ -40,11 +40,6 @@ NOISE_FLOOR_STREAM = max(STREAMS.values()) + 1
 PHASES = ("start", "ramp", "steady", "loaded")
 
 
-def _repeat(sset: ScenarioSet, runs, copies: int) -> ScenarioSet:
-    idx = np.tile(np.asarray(runs, int), copies)
-    return sset.take(idx)
-
-
 def noise_floor(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, runs,
                 n_keys: int = NOISE_FLOOR_KEYS) -> np.ndarray:
     """Per run of `runs` (indices into `sset`), the largest relative change of the paper
@@ -58,7 +53,7 @@ def noise_floor(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, r
     if not runs:
         return np.zeros(0)
     k = len(runs)
-    batch = _repeat(sset, runs, n_keys + 1)
+    batch = sset.take(np.tile(np.asarray(runs), n_keys + 1))
     base = jr.fold_in(jr.PRNGKey(problem.seed), NOISE_FLOOR_STREAM)
     others = jr.split(base, n_keys * k)
     keys = jnp.concatenate([sset.keys[np.asarray(runs)], others])
@@ -73,8 +68,9 @@ def phase_split(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, r
     """Per run of `runs` (indices into `sset`), the RMS angle error (deg) over each of
     `PHASES` for the paper's design and the design `x` (physical coordinates), the
     phase's share of the samples, and its share of the change of the run's mean square
-    (%; the shares add up to 100). Also the whole run's RMS of both (`rms_deg`), the
-    same number as the tuner's `rms_deg` metric."""
+    (%; the shares add up to 100; all 0 where the mean square does not change). Also
+    the whole run's RMS of both (`rms_deg`), the same number as the tuner's `rms_deg`
+    metric."""
     runs = [int(j) for j in runs]
     if not runs:
         return []
