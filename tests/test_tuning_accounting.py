@@ -277,23 +277,27 @@ def test_console_leads_with_the_rms_angle_error_and_uses_the_vocabulary():
 def test_the_held_out_table_states_no_change_where_a_run_is_lost(tmp_path):
     """`heldout_text`: the RMS change only where both designs hold the run; a lost or
     diverged run is marked, not compared."""
-    def run(rms, lost=False, diverged=False):
+    def run(rms, lost=False, diverged=False, acquired=True):
         return {"rms_deg": rms, "max_abs_deg": rms and 2 * rms, "lost_lock": lost,
-                "diverged": diverged}
+                "acquired_lock": acquired, "diverged": diverged}
 
     h = {"what": "the check", "rows": [
         {"L_d": 1.0, "L_q": 1.0, "paper": run(2.0), "tuned": run(1.5)},
         {"L_d": 1.0, "L_q": 1.5, "paper": run(40.0, lost=True), "tuned": run(60.0, lost=True)},
         {"L_d": 0.5, "L_q": 0.5, "paper": run(3.0), "tuned": run(None, diverged=True)},
         {"L_d": 1.5, "L_q": 1.5, "paper": run(3.0),
-         "tuned": dict(run(None), error="pmsmjax simulate: error: --t-end must be > 0")}]}
+         "tuned": dict(run(None), error="pmsmjax simulate: error: --t-end must be > 0")},
+        # a start that never acquires lock (at 180 deg) has lost nothing: marked, not
+        # compared (the LESO's tuned design at L_d x1.5, 12-02: 76 deg RMS)
+        {"L_d": 1.5, "L_q": 0.5, "paper": run(13.9), "tuned": run(76.5, acquired=False)}]}
     lines = tg.report.heldout_text(h).splitlines()
     assert lines[0] == "held out, never trained on: the check"
     assert lines[2].split() == ["1", "1", "2.00", "1.50", "-25", "%"]
     assert lines[3].split() == ["1", "1.5", "40.00", "lost", "60.00", "lost", "-"]
     assert lines[4].split() == ["0.5", "0.5", "3.00", "diverged", "-"]
     assert lines[5].split() == ["1.5", "1.5", "3.00", "failed", "-"]
-    assert lines[6] == "failed: pmsmjax simulate: error: --t-end must be > 0"
+    assert lines[6].split() == ["1.5", "0.5", "13.90", "76.50", "no", "lock", "-"]
+    assert lines[7] == "failed: pmsmjax simulate: error: --t-end must be > 0"
     # a run of the check that fails is reported, not raised (the job keeps its report)
     from tuning.report.corners import _simulate
 

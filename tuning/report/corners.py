@@ -9,7 +9,9 @@ and current noise, once with the paper's design and once with the deployed one
 L_q each x0.5, x1 or x1.5 of the plant's (the matched point, four single and four joint
 mismatches). The tuning sets stop at `TuningProblem.mismatch_range`; this grid reaches
 further, and its scenario is not one the tuner draws. Reported beside each other in
-`summary.json` (`heldout_simulate`) and on the console; it enters no verdict, and a run
+`summary.json` (`heldout_simulate`; per run `acquired_lock` and `lost_lock`, as
+`pmsmjax.lock_status` says: a start that never acquires lock has lost none) and on the
+console ("no lock", "lost"); it enters no verdict, and a run
 that fails (a bad input, an exception) is reported as failed with its message instead of
 costing the job its report.
 """
@@ -66,8 +68,10 @@ def heldout_simulate(out, problem, *, t_end: float | None = None) -> dict:
                 s = _simulate([*common, *extra, "--mismatch", f"L_d={k_d!r}", "--mismatch",
                                f"L_q={k_q!r}", "--out", f"{tmp}/{label}{k}"])
                 err = s.get("angle_error_deg") or {}
+                lock = s.get("lock") or {}
                 row[label] = {"rms_deg": err.get("rms"), "max_abs_deg": err.get("max_abs"),
-                              "lost_lock": bool((s.get("lock") or {}).get("lost")),
+                              "acquired_lock": bool(lock.get("acquired")),
+                              "lost_lock": bool(lock.get("lost")),
                               "diverged": s.get("rc") == 1, "error": s.get("error")}
             rows.append(row)
     return {"what": _what(problem, t_end),
@@ -82,6 +86,14 @@ def _what(problem, t_end) -> str:
             "tuned design, the observer's L_d and L_q x0.5, 1, 1.5")
 
 
+def _never_locked(r: dict) -> bool:
+    """The run never acquired lock (`pmsmjax.lock_status`: a start from standstill that
+    never settles within 45 deg, e.g. at the angle's pi ambiguity). Such a run has lost
+    nothing, so `lost_lock` alone would call it held. Rows written before this key
+    existed count as acquired."""
+    return not r.get("acquired_lock", True)
+
+
 def heldout_text(h: dict) -> str:
     """The console's table of `heldout_simulate`'s result."""
     lines = [f"held out, never trained on: {h['what']}",
@@ -93,12 +105,15 @@ def heldout_text(h: dict) -> str:
             return "failed"
         if r["diverged"]:
             return "diverged"
-        return f"{r['rms_deg']:.2f}" + (" lost" if r["lost_lock"] else "")
+        return f"{r['rms_deg']:.2f}" + (" no lock" if _never_locked(r) else
+                                         " lost" if r["lost_lock"] else "")
 
     for row in h["rows"]:
         p, t = row["paper"], row["tuned"]
-        # a lost or diverged run's RMS error is not an angle error: no change to state
-        gone = any(r["diverged"] or r["lost_lock"] or r.get("error") for r in (p, t))
+        # a run out of lock (lost, never acquired) or diverged: its RMS error is not an
+        # angle error the observer tracks, no change to state
+        gone = any(r["diverged"] or r["lost_lock"] or _never_locked(r) or r.get("error")
+                   for r in (p, t))
         change = ("-" if gone or not p["rms_deg"] else
                   f"{100 * (t['rms_deg'] / p['rms_deg'] - 1):+.0f} %")
         lines.append(f"{row['L_d']:>6g}{row['L_q']:>7g}{cell(p):>15}{cell(t):>15}"
