@@ -147,6 +147,9 @@ def test_main_job_quick(tmp_path):
                  "gains.h", *tg.report.PLOTS):
         assert (out / name).stat().st_size > 0, name
     s = json.loads((out / "summary.json").read_text())
+    # the blocking run's figure only where a run blocks the verdict
+    assert (out / tg.report.BLOCKING_PLOT).exists() is bool(
+        s["verdict"].get("blocking_runs")), s["verdict"]
     p = tg.TuningProblem.quick()
     assert set(tg.REQUIRED_KEYS) <= set(s)
     assert s["observer"] == "eso" and s["motor"] == "zhang750"
@@ -223,6 +226,8 @@ def test_main_job_quick(tmp_path):
     h = s["heldout_simulate"]
     assert [(r["L_d"], r["L_q"]) for r in h["rows"]] == list(tg.report.MISMATCHES)
     assert all(r[k]["rms_deg"] > 0 for r in h["rows"] for k in ("paper", "tuned"))
+    assert all(isinstance(r[k]["acquired_lock"], bool) for r in h["rows"]
+               for k in ("paper", "tuned"))
     assert printed.count("held out, never trained on:") == 1
     row = h["rows"][5]
     assert (row["L_d"], row["L_q"]) == (0.5, 1.5)
@@ -252,7 +257,7 @@ def test_main_job_whose_verdict_fails(tmp_path):
     an unvalidated table."""
     out = tmp_path / "results"
     proc = _job(out, "--search", "random", "--peers", "random", "--budget", "12",
-                "--t-end", "0.25", "--seed", "1", "--no-plot")
+                "--t-end", "0.25", "--seed", "1")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
     s = json.loads((out / "summary.json").read_text())
@@ -282,6 +287,12 @@ def test_main_job_whose_verdict_fails(tmp_path):
                                                      rel=1e-9)
         assert r["back_emf_V"] == pytest.approx(w.min() * float(drive.motor.psi_f), rel=1e-9)
         assert r["rms_change_pct"] > 100 * p.regression_tol or r["new_lost_lock"]
+        # what the run says (tuning.blocking, checked against single runs in
+        # tests/test_blocking_runs.py): its noise floor and its phases' shares
+        assert r["noise_floor_pct"] > 0
+        shares = [ph["share_of_change_pct"] for ph in r["phases"].values()]
+        assert sum(shares) == pytest.approx(100.0, rel=1e-9)
+    assert (out / tg.report.BLOCKING_PLOT).stat().st_size > 0
     assert any(w.startswith(f"the {len(mine['blocking'])} blocking runs in a sensored drive")
                for w in v["where_not"])
     last = proc.stdout.strip().splitlines()[-1]

@@ -64,13 +64,15 @@ def noise_floor(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, r
 
 
 def phase_split(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, runs,
-                x) -> list[dict]:
+                x, *, traces: bool = False) -> list[dict]:
     """Per run of `runs` (indices into `sset`), the RMS angle error (deg) over each of
     `PHASES` for the paper's design and the design `x` (physical coordinates), the
     phase's share of the samples, and its share of the change of the run's mean square
     (%; the shares add up to 100; all 0 where the mean square does not change). Also
     the whole run's RMS of both (`rms_deg`), the same number as the tuner's `rms_deg`
-    metric."""
+    metric. `traces`: each row also carries the run's sample times (`t_s`, s), its
+    phases' start times (`phase_start_s`) and both designs' angle error
+    (`error_deg`, wrapped, true minus estimate), arrays for a figure."""
     runs = [int(j) for j in runs]
     if not runs:
         return []
@@ -102,6 +104,9 @@ def phase_split(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, r
                                                   / change) if change else 0.0}
         out.append({"run": runs[j], "rms_deg": {n: float(np.sqrt(v)) for n, v in
                                                 total.items()}, "phases": rows})
+        if traces:
+            out[-1].update(t_s=t[j], phase_start_s=bounds[j, :-1],
+                           error_deg={n: e[j] for n, e in err.items()})
     return out
 
 

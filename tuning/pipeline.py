@@ -79,6 +79,10 @@ class TuningReport:
     - `default`: the design name deployed; `verdict`: `{"holds", "where_not",
       "statement", ...}` (`statement`: the verdict as counted, `pmsmjax.verdict_text`).
     - `wall_s`: total wall time (s).
+    - `blocking_trace`: where the verdict fails on a run's RMS angle error, the worst
+      blocking run's angle error over time for both designs (`tuning.phase_split` with
+      `traces`, and its `case`: the run's row of the validation table), for the report's
+      `blocking.png`; None otherwise.
     """
 
     problem: TuningProblem
@@ -93,6 +97,7 @@ class TuningReport:
     default: str
     verdict: dict
     wall_s: float
+    blocking_trace: dict | None = None
 
     @property
     def tuned(self):
@@ -202,9 +207,10 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"blocked: the paper's own design with its gains changed by 1e-9 (relative) "
             f"already fails the rule ({'; '.join(floor_why)}): runs in which it loses lock "
             f"are chaotic, so no design passes a per-run rule on them")
+    trace = None
     if not verdict["holds"]:
-        _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
-                  beyond, sensored, space=space, x=designs["tuned"])
+        trace = _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
+                          beyond, sensored, space=space, x=designs["tuned"])
     # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
@@ -213,7 +219,7 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     return TuningReport(problem=problem, space=space, sets=sets, disjoint=disjoint,
                         designs=designs, searches=searches, metrics=metrics,
                         objective=obj, accounting=acc, default=default, verdict=verdict,
-                        wall_s=time.perf_counter() - t_start)
+                        wall_s=time.perf_counter() - t_start, blocking_trace=trace)
 
 
 def _paper_not_bettered(obj_train: dict, default: str) -> str | None:
@@ -238,7 +244,7 @@ def _objective_kept(m, ref, problem, beyond=None) -> float:
 
 
 def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
-              beyond, sensored=None, *, space=None, x=None) -> None:
+              beyond, sensored=None, *, space=None, x=None) -> dict | None:
     """The runs that block the verdict (the tuned design's RMS angle error worse than the
     paper's by more than the tolerance, or lock lost that the paper's design holds, among
     the runs the low-speed rule keeps, not `beyond`),
@@ -249,7 +255,8 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
     also what each blocking run says (`tuning.blocking`): its noise floor
     (`noise_floor_pct`: how far the paper design's RMS on it moves with the noise
     realisation alone) and where in the run the change comes from (`phases`), summed up
-    in a line of `where_not`."""
+    in a line of `where_not`; returns the worst of them over time
+    (`TuningReport.blocking_trace`), else None."""
     m, ref = metrics_val["tuned"], metrics_val["paper"]
     rms_rel = np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1.0
     new_lost = np.asarray(m.lost_lock) & ~np.asarray(ref.lost_lock)
@@ -257,7 +264,7 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
     runs = np.nonzero((worse | new_lost) & ~beyond)[0]
     if not runs.size:
         verdict["blocking_runs"] = []
-        return
+        return None
     rows = vset.table()
     if sensored is None:
         _say(log, f"measuring the {runs.size} blocking validation runs in a sensored drive")
@@ -280,22 +287,28 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
         f"lowest speed {span('lowest_speed_pu')} p.u., back-EMF there "
         f"{span('back_emf_V')} V; the rotor reverses in "
         f"{sum(r['reverses'] for r in found)} of them")
-    if space is not None:
-        _what_blocking_runs_say(problem, space, vset, found, x, verdict, log)
+    if space is None:
+        return None
+    return _what_blocking_runs_say(problem, space, vset, found, x, verdict, log)
 
 
-def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> None:
+def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> dict:
     """The noise floor and the phase split of each blocking run (`tuning.blocking`), into
-    its record and a line of `where_not`."""
+    its record and a line of `where_not`; returns the worst run's angle error over time
+    (its `phase_split` row with `traces`, and `case`, its validation row)."""
     runs = [r["run"] for r in found]
     _say(log, f"measuring the noise floor of the {len(runs)} blocking runs "
               f"({NOISE_FLOOR_KEYS} other noise realisations each) and where in each run "
               f"the change comes from")
     floor = (noise_floor(problem, space, vset, runs) if problem.noise_std > 0
              else np.zeros(len(runs)))
-    splits = phase_split(problem, space, vset, runs, x)
+    splits = phase_split(problem, space, vset, runs, x, traces=True)
     within = 0
     phases: dict[str, int] = {}
+    worst = max(range(len(found)), key=lambda i: found[i]["rms_change_pct"])
+    trace = dict(splits[worst], case=dict(vset.table()[found[worst]["run"]]),
+                 rms_change_pct=found[worst]["rms_change_pct"],
+                 noise_floor_pct=float(100.0 * floor[worst]))
     for r, f, sp in zip(found, floor, splits):
         r["noise_floor_pct"] = float(100.0 * f)
         r["phases"] = sp["phases"]
@@ -309,6 +322,7 @@ def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> Non
         f"{min(floor) * 100:.1f}-{max(floor) * 100:.1f} %: {within} of {len(found)} "
         f"runs' RMS change lies within it; the phase with the largest share of the "
         f"change (`phases`): {where}")
+    return trace
 
 
 def _choose(acc_val: dict, vset: ScenarioSet) -> tuple[str, dict]:

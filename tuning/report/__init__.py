@@ -7,7 +7,7 @@ from .corners import (
     heldout_text as heldout_text,
 )
 from .export import gains_table as gains_table
-from .figures import PLOTS as PLOTS, plot_report as plot_report
+from .figures import BLOCKING_PLOT as BLOCKING_PLOT, PLOTS as PLOTS, plot_report as plot_report
 from .summary import (
     REQUIRED_KEYS as REQUIRED_KEYS,
     load_design as load_design,

@@ -7,7 +7,11 @@ runs (deg, mean over the runs):
 - `front.png`: the tracking-versus-noise front on the validation runs (mean RMS angle
   error against mean speed-estimate noise), the paper design and the default marked;
 - `validation.png`: each validation run's RMS angle error, paper design against the
-  default, with the +tolerance line; the verdict as counted in its title.
+  default, with the +tolerance line; the verdict as counted in its title;
+- `blocking.png` (`BLOCKING_PLOT`, only where the verdict fails on a run's RMS angle
+  error): the worst blocking run's angle error over time, paper design against the
+  tuned one, its phases shaded with each phase's share of the change
+  (`TuningReport.blocking_trace`, `tuning.phase_split`).
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ import numpy as np
 
 
 PLOTS = ("search.png", "front.png", "validation.png")
+#: The figure of the worst blocking run, written only where there is one.
+BLOCKING_PLOT = "blocking.png"
 
 
 def plot_report(report, out) -> None:
@@ -79,4 +85,39 @@ def plot_report(report, out) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(out / "validation.png", dpi=120)
+    plt.close(fig)
+    if report.blocking_trace is not None:
+        _plot_blocking(plt, report.blocking_trace, out / BLOCKING_PLOT)
+
+
+def _plot_blocking(plt, tr: dict, path) -> None:
+    """The worst blocking run over time (`TuningReport.blocking_trace`)."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    t = np.asarray(tr["t_s"])
+    starts = [*np.asarray(tr["phase_start_s"]), t[-1]]
+    for k, (name, ph) in enumerate(tr["phases"].items()):
+        lo, hi = max(starts[k], t[0]), min(starts[k + 1], t[-1])
+        if hi <= lo:
+            continue
+        ax.axvspan(lo, hi, color="0.92" if k % 2 else "white", zorder=0)
+        ax.text(0.5 * (lo + hi), 1.0, f"{name}\n{ph['share_of_change_pct']:.0f} %",
+                transform=ax.get_xaxis_transform(), ha="center", va="top", fontsize=7)
+    for name, style in (("paper", dict(color="k", lw=0.8)),
+                        ("tuned", dict(color="C3", lw=0.8, alpha=0.8))):
+        ax.plot(t, np.abs(np.asarray(tr["error_deg"][name])), label=(
+            f"{name}: RMS {tr['rms_deg'][name]:.2f} deg"), **style)
+    c = tr["case"]
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("|angle error| (deg)")
+    peak = max(float(np.max(np.abs(np.asarray(e)))) for e in tr["error_deg"].values())
+    ax.set_ylim(0, 1.3 * peak if peak > 0 else 1.0)  # room for the phases' labels
+    ax.set_title(f"worst blocking run: speed {c['s0']:+g} -> {c['s1']:+g} p.u., model L_d "
+                 f"x{c['k_d']:g}, L_q x{c['k_q']:g}, R_s x{c['k_R']:g}, psi_f x{c['k_psi']:g}"
+                 f", noise x{c['k_noise']:g}\nRMS {tr['rms_change_pct']:+.1f} % (its noise "
+                 f"floor {tr['noise_floor_pct']:.1f} %); per phase: share of the mean-square "
+                 f"change", fontsize=8)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.15), ncol=2,
+              frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
     plt.close(fig)
