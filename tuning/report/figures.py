@@ -8,9 +8,9 @@ runs (deg, mean over the runs):
   error against mean speed-estimate noise), the paper design and the default marked;
 - `validation.png`: each validation run's RMS angle error, paper design against the
   default, with the +tolerance line; the verdict as counted in its title;
-- `blocking.png` (`BLOCKING_PLOT`, only where the verdict fails on a run's RMS angle
-  error): the worst blocking run's angle error over time, paper design against the
-  tuned one, its phases shaded with each phase's share of the change
+- `blocking.png` (`BLOCKING_PLOT`, only where validation runs block the verdict: worse
+  by more than the tolerance, or newly losing lock): the worst of them over time, the
+  paper's design against the tuned one, its phases shaded with each phase's share of the change
   (`TuningReport.blocking_trace`, `tuning.phase_split`).
 """
 
