@@ -116,4 +116,5 @@ def test_blocking_runs_carry_their_floor_and_phases():
     np.testing.assert_allclose(r["noise_floor_pct"],
                                100 * noise_floor(P, space, vset, [1])[0], rtol=1e-12)
     assert list(r["phases"]) == list(PHASES)
-    assert "0 of 1 runs' RMS change lies within it" in verdict["where_not"][-1]
+    assert (f"is {r['noise_floor_pct']:.1f} %: 0 of 1 runs' RMS change lies within it"
+            in verdict["where_not"][-1]), verdict["where_not"][-1]  # one run: one number

@@ -316,10 +316,11 @@ def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> dic
         name, _ = main_phase(sp)
         phases[name] = phases.get(name, 0) + 1
     where = ", ".join(f"{k} in {v}" for k, v in sorted(phases.items(), key=lambda kv: -kv[1]))
+    lo, hi = (f"{100 * f(floor):.1f}" for f in (min, max))
     verdict["where_not"].append(
         f"the noise floor of the blocking runs (the paper design's RMS with "
         f"{NOISE_FLOOR_KEYS} other noise realisations) is "
-        f"{min(floor) * 100:.1f}-{max(floor) * 100:.1f} %: {within} of {len(found)} "
+        f"{lo if lo == hi else f'{lo}-{hi}'} %: {within} of {len(found)} "
         f"runs' RMS change lies within it; the phase with the largest share of the "
         f"change (`phases`): {where}")
     return trace
