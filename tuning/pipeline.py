@@ -306,7 +306,8 @@ def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> dic
     within = 0
     phases: dict[str, int] = {}
     worst = max(range(len(found)), key=lambda i: found[i]["rms_change_pct"])
-    trace = dict(splits[worst], case=dict(vset.table()[found[worst]["run"]]),
+    case = {k: found[worst][k] for k in ("s0", "s1", "k_d", "k_q", "k_R", "k_psi", "k_noise")}
+    trace = dict(splits[worst], case=case,
                  rms_change_pct=found[worst]["rms_change_pct"],
                  noise_floor_pct=float(100.0 * floor[worst]))
     for r, f, sp in zip(found, floor, splits):
