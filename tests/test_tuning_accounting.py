@@ -70,6 +70,33 @@ def test_a_new_lost_lock_counts_and_one_lost_by_both_does_not():
     assert a["new_lost_lock"] == 0 and tg.holds(a)[0]
 
 
+def test_a_run_lost_by_both_designs_is_a_tie():
+    """Runs 0 and 1 lost by both designs: run 0's RMS 30 % higher and its loss 20 % higher,
+    run 1's loss halved; neither counts as worse or better, and neither is the worst run.
+    Runs 2-5 are held by both: 2 and 3 better, 4 worse by 4 % in RMS (the worst), 5 a tie.
+    Every run lost by both: no worst run, no change."""
+    ref = _metrics(np.ones(6), rms=[60.0, 60.0, 2.0, 2.0, 2.0, 2.0],
+                   lost=[1, 1, 0, 0, 0, 0])
+    m = _metrics([1.2, 0.5, 0.5, 0.5, 1.1, 1.0], rms=[78.0, 40.0, 1.0, 1.0, 2.08, 2.0],
+                 lost=[1, 1, 0, 0, 0, 0])
+    a = tg.accounting(m, ref, 0.1)
+    assert (a["n"], a["better"], a["worse"], a["lost_by_both"]) == (6, 2, 1, 2)
+    assert a["worst_run"] == 4 and a["worst_rms_change_pct"] == pytest.approx(4.0)
+    assert a["rms_worse_than_tol"] == 0 and a["new_lost_lock"] == 0
+    assert (a["lost_lock"], a["lost_lock_reference"]) == (2, 2)
+    assert a["improved"] == 2  # the deprecated count ties them too
+    ok, why = tg.holds(a)
+    assert not ok and why == ["better in 2 of 6 runs (< 75 %)"]
+    # the same runs counted as before the tie (run 0 at +30 % would block the rule)
+    assert np.max(np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1) == pytest.approx(0.3)
+    both = tg.accounting(_metrics([1.2, 0.5], rms=[78.0, 40.0], lost=[1, 1]),
+                         _metrics([1.0, 1.0], rms=[60.0, 60.0], lost=[1, 1]), 0.1)
+    assert (both["better"], both["worse"], both["lost_by_both"]) == (0, 0, 2)
+    assert both["worst_run"] is None and both["worst_rms_change_pct"] == 0.0
+    assert tg.judged([True, True, False, False], [True, False, True, False]).tolist() == [
+        False, True, True, True]
+
+
 def test_worst_rms_change_and_the_rules_thresholds():
     """The worst RMS change is the largest per-run change of the RMS angle error (%), and
     the rule asks for better in at least 75 % of the runs (6 of 8 holds, 5 of 8 does

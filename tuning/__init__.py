@@ -41,6 +41,7 @@ from .objective import (
     accounting as accounting,
     cvar as cvar,
     holds as holds,
+    judged as judged,
     objective as objective,
     run_metrics as run_metrics,
 )

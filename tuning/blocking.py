@@ -13,11 +13,20 @@ report gives beside the sensored drive's lowest speed (`tuning.sensored_lowest_s
   deployed one, and each phase's share of the change of the run's mean square. The
   phases' mean squares, weighted by their samples, add up to the run's: $\mathrm{rms}^2
   = \sum_p (n_p / n)\,\mathrm{rms}_p^2$, so the shares add up to 100 %.
+
+And for a run that both designs lose lock in (a tie of the accounting,
+`tuning.judged`), **what the analysis says at its end** (`end_analysis`): the
+equilibrium analysis of the deployed design with the run's observer model at the
+run's final speed and load (`tuning.scenarios.designed_feasible`). Where it finds no
+equilibrium at all, or no stable designed one, the angle error cannot settle at that
+point whatever happens on the way; where the designed equilibrium is stable, the run
+was lost on the way (the start, the ramp or the load step).
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
@@ -27,7 +36,7 @@ import pmsmjax as pj
 from .design_space import DesignSpace
 from .evaluate import Evaluator
 from .problem import TuningProblem
-from .scenarios import STREAMS, ScenarioSet, simulate_set
+from .scenarios import STREAMS, ScenarioSet, designed_feasible, observer_model, simulate_set
 
 
 #: Other noise realisations per run that measure its noise floor.
@@ -110,6 +119,45 @@ def phase_split(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, r
     return out
 
 
+#: `end_analysis`'s words for the analysis at a run's end.
+END_VERDICTS = {
+    "no equilibrium": "with no equilibrium at all (the angle error drifts)",
+    "infeasible": "with no stable designed equilibrium (or a second stable one)",
+    "feasible": "with the designed equilibrium stable (lost on the way)",
+    "failed": "where the analysis failed (no verdict)",
+}
+
+
+def end_analysis(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, runs,
+                 x=None) -> list[dict]:
+    """Per run of `runs` (indices into `sset`), the equilibrium analysis of the design `x`
+    (physical coordinates; None: the paper's) with the run's observer model at the run's
+    end: its final speed `s1` and the current of its load (signed like the speed,
+    `tuning.scenarios.designed_feasible`). Each row: `run`, `speed_pu`, `load_pu`,
+    `analysis_status` (0 ok, 2 no equilibrium, -1 failed) and `end`, one of
+    `END_VERDICTS`. One vmapped program over the runs."""
+    runs = [int(j) for j in runs]
+    if not runs:
+        return []
+    sub = sset.take(np.asarray(runs))
+    drive = problem.drive()
+
+    def one(s1, load, k_d, k_q, k_R, k_psi):
+        obs = space.observer(x, observer_model(drive, k_d, k_q, k_R, k_psi))
+        return designed_feasible(obs, drive, s1, load * jnp.sign(s1))
+
+    r = jax.jit(jax.vmap(one))(sub.s1, sub.load_pu, sub.k_d, sub.k_q, sub.k_R, sub.k_psi)
+    feasible, status = np.asarray(r["feasible"]), np.asarray(r["status"])
+    out = []
+    for j, run in enumerate(runs):
+        st = int(status[j])
+        end = ("failed" if st < 0 else "no equilibrium" if st == 2 else
+               "feasible" if feasible[j] else "infeasible")
+        out.append(dict(run=run, speed_pu=float(sub.s1[j]), load_pu=float(sub.load_pu[j]),
+                        analysis_status=st, end=end))
+    return out
+
+
 def main_phase(split: dict) -> tuple[str, float]:
     """The phase of a `phase_split` row with the largest share of the change, and that
     share (%)."""
@@ -117,4 +165,5 @@ def main_phase(split: dict) -> tuple[str, float]:
     return name, split["phases"][name]["share_of_change_pct"]
 
 
-__all__ = ["NOISE_FLOOR_KEYS", "PHASES", "noise_floor", "phase_split"]
+__all__ = ["END_VERDICTS", "NOISE_FLOOR_KEYS", "PHASES", "end_analysis", "noise_floor",
+           "phase_split"]

@@ -51,6 +51,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 import pmsmjax as pj
 
@@ -131,12 +132,14 @@ def objective(m: Metrics, ref: Metrics, problem: TuningProblem):
 VOCABULARY = {
     "n": "runs compared (the same runs for both designs)",
     "better": "runs whose loss is lower than the paper design's by more than 0.1 % "
-              "(relative; a smaller change is a tie)",
+              "(relative; a smaller change is a tie, and so is a run both designs lose "
+              "lock in)",
     "worse": "runs whose loss is higher than the paper design's by more than 0.1 % "
-             "(relative)",
+             "(relative; a run both designs lose lock in is a tie)",
     "fraction_better": "better / n",
     "worst_rms_change_pct": "the largest change of a run's RMS angle error against the "
-                            "paper design's on the same run (%, positive: worse)",
+                            "paper design's on the same run, over the runs at least one "
+                            "of them holds in lock (%, positive: worse)",
     "new_lost_lock": "runs that lose lock where the paper design holds it",
     "beyond_limit": "validation runs the low-speed rule, fixed before tuning, puts beyond "
                     "the observer's class (a sensored drive turns slower there than the "
@@ -157,16 +160,23 @@ def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None) -> dict:
     lower / higher by more than `BETTER`, 0.1 %, a change at the level of rounding is a
     tie; `fraction_better`; `worst_rms_change_pct`; `new_lost_lock`), then the
     details: the tolerance (%), runs whose RMS angle error is worse by more than `tol`
-    (relative), the worst run's index, lock lost by each design, the median loss change
-    (%), and the `DEPRECATED_KEYS` (`improved`: loss lower by more than `tol`;
-    `improved_frac` = `fraction_better`).
+    (relative), the worst run's index, lock lost by each design, `lost_by_both`, the
+    median loss change (%), and the `DEPRECATED_KEYS` (`improved`: loss lower by more
+    than `tol`; `improved_frac` = `fraction_better`).
+
+    **Runs both designs lose lock in** (`lost_by_both`, `judged`) are ties: neither
+    `better` nor `worse`, and outside `worst_rms_change_pct` and `rms_worse_than_tol`.
+    After a lock loss the angle error wanders over the whole circle, and its RMS is
+    chaotic: the paper's own design with its gains changed by 1e-9 moves it by several per
+    cent (the rule's floor, `tuning.pipeline`). A run only one design loses is judged:
+    `new_lost_lock` where the paper's design holds it, `better` (a loss far lower) where
+    the tuned design holds it. Where every run is lost by both, `worst_rms_change_pct` is
+    0 and `worst_run` None.
 
     `beyond`: a boolean per run, the runs the low-speed rule puts beyond the observer's
     class (`tuning.low_speed_runs`, decided before tuning): every count above is over the
     other runs (`n` of them; `worst_run` indexes all runs), and `beyond_limit`,
     `lost_lock_beyond`, `lost_lock_beyond_reference` count those apart. None: no run."""
-    import numpy as np
-
     n_all = np.asarray(m.loss).size
     out = np.zeros(n_all, bool) if beyond is None else np.asarray(beyond, bool)
     if out.shape != (n_all,):
@@ -181,25 +191,34 @@ def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None) -> dict:
     lost_all, lost_r_all = np.asarray(m.lost_lock), np.asarray(ref.lost_lock)
     lost, lost_r = lost_all[keep], lost_r_all[keep]
     rel = loss / loss_r - 1.0
-    rms_rel = rms / rms_r - 1.0
-    worst = int(np.argmax(rms_rel))
-    better = int(np.sum(rel < -BETTER))
+    ok = judged(lost, lost_r)
+    rms_rel = np.where(ok, rms / rms_r - 1.0, -np.inf)
+    worst = int(np.argmax(rms_rel)) if ok.any() else None
+    better = int(np.sum(ok & (rel < -BETTER)))
     n = int(keep.size)
     return {"mean_rms_deg": float(np.mean(rms)),
             "mean_rms_deg_reference": float(np.mean(rms_r)),
-            "n": n, "better": better, "worse": int(np.sum(rel > BETTER)),
+            "n": n, "better": better, "worse": int(np.sum(ok & (rel > BETTER))),
             "fraction_better": better / n,
-            "worst_rms_change_pct": float(100.0 * rms_rel[worst]),
+            "worst_rms_change_pct": 0.0 if worst is None else float(100.0 * rms_rel[worst]),
             "new_lost_lock": int(np.sum(lost & ~lost_r)),
             "tolerance_pct": 100.0 * tol,
-            "rms_worse_than_tol": int(np.sum(rms_rel > tol)), "worst_run": int(keep[worst]),
+            "rms_worse_than_tol": int(np.sum(rms_rel > tol)),
+            "worst_run": None if worst is None else int(keep[worst]),
             "lost_lock": int(np.sum(lost)), "lost_lock_reference": int(np.sum(lost_r)),
+            "lost_by_both": int(np.sum(~ok)),
             "median_loss_change_pct": float(100.0 * np.median(rel)),
             "beyond_limit": int(np.sum(out)),
             "lost_lock_beyond": int(np.sum(lost_all[out])),
             "lost_lock_beyond_reference": int(np.sum(lost_r_all[out])),
             # deprecated (DEPRECATED_KEYS), kept one release
-            "improved": int(np.sum(rel < -tol)), "improved_frac": better / n}
+            "improved": int(np.sum(ok & (rel < -tol))), "improved_frac": better / n}
+
+
+def judged(lost, lost_reference):
+    """Per run, whether the accounting judges it: not lost by both designs (`accounting`:
+    a run both lose is a tie). Boolean arrays of the runs' `lost_lock`."""
+    return ~(np.asarray(lost, bool) & np.asarray(lost_reference, bool))
 
 
 def holds(acc: dict, min_frac: float = 0.75) -> tuple[bool, list[str]]:
@@ -219,4 +238,4 @@ def holds(acc: dict, min_frac: float = 0.75) -> tuple[bool, list[str]]:
 
 
 __all__ = ["BASELINE", "BETTER", "DEPRECATED_KEYS", "VOCABULARY", "Metrics", "accounting",
-           "cvar", "holds", "objective", "run_metrics"]
+           "cvar", "holds", "judged", "objective", "run_metrics"]

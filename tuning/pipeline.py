@@ -41,10 +41,17 @@ import numpy as np
 
 import pmsmjax as pj
 
-from .blocking import NOISE_FLOOR_KEYS, main_phase, noise_floor, phase_split
+from .blocking import (
+    END_VERDICTS,
+    NOISE_FLOOR_KEYS,
+    end_analysis,
+    main_phase,
+    noise_floor,
+    phase_split,
+)
 from .design_space import DesignSpace
 from .evaluate import Evaluator
-from .objective import BASELINE, VOCABULARY, accounting, holds, objective
+from .objective import BASELINE, VOCABULARY, accounting, holds, judged, objective
 from .problem import TuningProblem
 from .scenarios import (
     ScenarioSet,
@@ -207,6 +214,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"blocked: the paper's own design with its gains changed by 1e-9 (relative) "
             f"already fails the rule ({'; '.join(floor_why)}): runs in which it loses lock "
             f"are chaotic, so no design passes a per-run rule on them")
+    _lost_by_both(problem, space, sets["validation"], metrics["validation"], default,
+                  designs[default], beyond, verdict, log)
     trace = None
     if not verdict["holds"]:
         trace = _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
@@ -260,7 +269,7 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
     m, ref = metrics_val["tuned"], metrics_val["paper"]
     rms_rel = np.asarray(m.rms_deg) / np.asarray(ref.rms_deg) - 1.0
     new_lost = np.asarray(m.lost_lock) & ~np.asarray(ref.lost_lock)
-    worse = rms_rel > problem.regression_tol
+    worse = (rms_rel > problem.regression_tol) & judged(m.lost_lock, ref.lost_lock)
     runs = np.nonzero((worse | new_lost) & ~beyond)[0]
     if not runs.size:
         verdict["blocking_runs"] = []
@@ -290,6 +299,36 @@ def _blocking(problem, vset: ScenarioSet, metrics_val: dict, verdict: dict, log,
     if space is None:
         return None
     return _what_blocking_runs_say(problem, space, vset, found, x, verdict, log)
+
+
+def _lost_by_both(problem, space, vset: ScenarioSet, metrics_val: dict, name: str, x,
+                  beyond, verdict: dict, log) -> None:
+    """The validation runs (among those the low-speed rule keeps) that both the paper's
+    design and the deployed one (`name`, coordinates `x`) lose lock in, ties of the
+    accounting (`tuning.judged`), with what the analysis says at each one's end
+    (`tuning.end_analysis` of the deployed design): `verdict["lost_by_both"]`, a line
+    of the log, and one of `where_not` where the verdict does not hold."""
+    m, ref = metrics_val[name], metrics_val["paper"]
+    runs = np.nonzero(~judged(m.lost_lock, ref.lost_lock) & ~beyond)[0]
+    if not runs.size:
+        verdict["lost_by_both"] = []
+        return
+    _say(log, f"the analysis at the end of the {runs.size} validation runs both designs "
+              f"lose lock in")
+    rows = vset.table()
+    found = end_analysis(problem, space, vset, runs, x)
+    for r in found:
+        r.update({k: rows[r["run"]][k] for k in ("s0", "k_d", "k_q", "k_R", "k_psi",
+                                                   "k_noise")})
+    verdict["lost_by_both"] = found
+    counts = {k: sum(r["end"] == k for r in found) for k in END_VERDICTS}
+    line = (f"{runs.size} runs lost by both designs are ties (after a lock loss the "
+            f"angle error is chaotic: `verdict.floor`); the analysis at their end, for the "
+            f"deployed design: " + "; ".join(f"{v} {END_VERDICTS[k]}" for k, v in
+                                             counts.items() if v))
+    _say(log, line)
+    if not verdict["holds"]:
+        verdict["where_not"].append(line)
 
 
 def _what_blocking_runs_say(problem, space, vset, found, x, verdict, log) -> dict:
@@ -337,18 +376,20 @@ def _choose(acc_val: dict, vset: ScenarioSet) -> tuple[str, dict]:
                           "rule": RULE}
     ok, why = holds(acc_val["tuned"])
     a = acc_val["tuned"]
-    r = rows[a["worst_run"]]
-    why.append(f"the worst run: speed {r['s0']:+g} -> {r['s1']:+g} p.u., k_d {r['k_d']:g}, "
-               f"k_q {r['k_q']:g}, k_R {r['k_R']:g}, k_psi {r['k_psi']:g}, noise x"
-               f"{r['k_noise']:g}: RMS angle error {a['worst_rms_change_pct']:+.1f} %")
+    if a["worst_run"] is not None and a["worst_rms_change_pct"] > 0:
+        r = rows[a["worst_run"]]
+        why.append(f"the worst run: speed {r['s0']:+g} -> {r['s1']:+g} p.u., k_d "
+                   f"{r['k_d']:g}, k_q {r['k_q']:g}, k_R {r['k_R']:g}, k_psi {r['k_psi']:g}, "
+                   f"noise x{r['k_noise']:g}: RMS angle error "
+                   f"{a['worst_rms_change_pct']:+.1f} %")
     return "tuned", {"holds": False, "design": "tuned", "where_not": why, "rule": RULE}
 
 
 RULE = ("better than the paper's design (validation loss lower by more than 0.1 %) in at "
         "least 75 % of the "
         "validation runs, no run's RMS angle error worse by more than the tolerance, no "
-        "run losing lock that the paper's design holds; runs beyond the observer's class "
-        "by the low-speed rule counted apart")
+        "run losing lock that the paper's design holds; a run both designs lose lock in "
+        "is a tie; runs beyond the observer's class by the low-speed rule counted apart")
 #: The low-speed rule, as the report states it (`TuningProblem.low_speed_limit_pu`).
 LOW_SPEED_RULE = ("written before tuning: a validation run in which the sensored drive "
                   "(the same controller on the true angle and speed, the same noise) turns "

@@ -45,6 +45,8 @@ import jax.random as jr
 import numpy as np
 
 import pmsmjax as pj
+from pmsmjax.analysis import equilibria_traced
+from pmsmjax.observers import OperatingPoint
 
 from .problem import TuningProblem
 
@@ -270,6 +272,36 @@ def simulate_set(make_observer, drive: pj.Drive, foc: pj.FOC, sset: ScenarioSet,
                          sset.k_d, sset.k_q, sset.k_R, sset.k_psi, sset.k_noise, sset.keys)
 
 
+def operating_current(drive: pj.Drive, load_pu):
+    """Controlled current $(i_d, i_q) = (0, \\tau_L / (k_\\tau\\psi_f))$ (A) for a load
+    in p.u. of rated torque ($i_d = 0$)."""
+    i_q = load_pu * drive.tau_rated / (drive.k_tau * drive.three_phase_motor.psi_f)
+    return jnp.stack([jnp.zeros_like(i_q), i_q], -1)
+
+
+def designed_feasible(observer, drive: pj.Drive, speed_pu, load_pu) -> dict:
+    """The equilibrium analysis of `observer` (its design and machine model applied) on
+    `drive`'s machine at constant speed `speed_pu` (p.u. of rated) and the controlled
+    current of the load `load_pu` (`operating_current`): `feasible` where its designed
+    equilibrium (the principal one, nearest zero angle error) is stable and no other
+    one is, else False; `status` the analysis's (0 ok, 2 no equilibrium at all, -1
+    failed: no verdict). The family's own route where it has one, else the generic
+    route (`pmsmjax.analysis.equilibria_traced`). Traceable and vmappable."""
+    op = OperatingPoint(speed_pu * float(drive.w_rated), operating_current(drive, load_pu))
+    plant = drive.three_phase_motor
+    eq = observer.fast_equilibria(plant, op)
+    if eq is None:
+        tol = float(jnp.finfo(op.w_m.dtype).eps) ** 0.6
+        eq = equilibria_traced(observer, plant, op, method="generic", n_grid=64,
+                               max_roots=8, tol=tol)
+    valid = eq.valid & (eq.status == 0)
+    principal = jnp.arange(valid.shape[-1]) == eq.principal
+    p_stable = jnp.any(principal & valid & eq.stable)
+    other_stable = jnp.any(~principal & valid & eq.stable)
+    feasible = (eq.status == 0) & p_stable & ~other_stable
+    return dict(feasible=feasible, status=jnp.asarray(eq.status, jnp.int32))
+
+
 def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
     """The runs `runs` (indices into `sset`) of `problem`'s drive and controller with the
     sensored observer (the true angle and speed; the same noise), a reference no observer
@@ -335,6 +367,7 @@ def _keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, i
     return sset.take(np.nonzero(~beyond)[0]), int(beyond.sum())
 
 
-__all__ = ["KINDS", "ScenarioSet", "check_disjoint", "heldout_set", "low_speed_runs",
-           "max_acceleration", "observer_model", "scenario", "sensored_lowest_speed",
-           "simulate_set", "training_set", "validation_set"]
+__all__ = ["KINDS", "ScenarioSet", "check_disjoint", "designed_feasible", "heldout_set",
+           "low_speed_runs", "max_acceleration", "observer_model", "operating_current",
+           "scenario", "sensored_lowest_speed", "simulate_set", "training_set",
+           "validation_set"]

@@ -33,11 +33,19 @@ import jax.random as jr
 import numpy as np
 
 import pmsmjax as pj
-from pmsmjax.analysis import equilibria_traced, harmonic_ripple
+from pmsmjax.analysis import harmonic_ripple
 from pmsmjax.observers import OperatingPoint
 
 from ..design_space import DesignSpace
-from ..scenarios import VAL_LOAD_STEP, VAL_RAMP, ScenarioSet, observer_model, simulate_set
+from ..scenarios import (
+    VAL_LOAD_STEP,
+    VAL_RAMP,
+    ScenarioSet,
+    designed_feasible,
+    observer_model,
+    operating_current,
+    simulate_set,
+)
 from .config import TRACE_SAMPLES, CompareConfig
 
 
@@ -119,13 +127,6 @@ def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     return out
 
 
-def operating_current(drive: pj.Drive, load_pu):
-    """Controlled current $(i_d, i_q) = (0, \\tau_L / (k_\\tau\\psi_f))$ (A) for a load
-    in p.u. of rated torque ($i_d = 0$)."""
-    i_q = load_pu * drive.tau_rated / (drive.k_tau * drive.three_phase_motor.psi_f)
-    return jnp.stack([jnp.zeros_like(i_q), i_q], -1)
-
-
 def feasibility_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     """The generic analysis at one point of the grid at constant speed and current
     (`feasible`, `status`; see the module docstring)."""
@@ -133,21 +134,7 @@ def feasibility_point(design, config: CompareConfig, kind: str, point: dict) -> 
     k = jnp.asarray(config.cases)[point["case"].astype(int)]
     obs = _space(config, kind).observer(
         design, motor=observer_model(drive, k[0], k[1], k[2], k[3]))
-    op = OperatingPoint(point["speed_pu"] * float(drive.w_rated),
-                        operating_current(drive, point["load_pu"]))
-    plant = drive.three_phase_motor
-    eq = obs.fast_equilibria(plant, op)
-    if eq is None:
-        tol = float(jnp.finfo(op.w_m.dtype).eps) ** 0.6
-        eq = equilibria_traced(obs, plant, op, method="generic", n_grid=64, max_roots=8,
-                               tol=tol)
-    valid = eq.valid & (eq.status == 0)
-    slots = jnp.arange(valid.shape[-1])
-    principal = slots == eq.principal
-    p_stable = jnp.any(principal & valid & eq.stable)
-    other_stable = jnp.any(~principal & valid & eq.stable)
-    feasible = (eq.status == 0) & p_stable & ~other_stable
-    return dict(feasible=feasible, status=jnp.asarray(eq.status, jnp.int32))
+    return designed_feasible(obs, drive, point["speed_pu"], point["load_pu"])
 
 
 def harmonic_sensitivity(design, config: CompareConfig, name: str):
