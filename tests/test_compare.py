@@ -555,7 +555,8 @@ def test_feasibility_against_an_independent_root_search(job):
     for speed, load, k in zip(grid["speed_pu"], grid["load_pu"], cases):
         obs = pj.observers.make_observer(OBSERVER, drive,
                                          motor=observer_model(drive, *map(float, k)))
-        i_q = load * drive.tau_rated / (drive.k_tau * plant.psi_f)
+        # the run's load brakes (its torque opposes the rotation): i_q takes the speed's sign
+        i_q = np.sign(speed) * load * drive.tau_rated / (drive.k_tau * plant.psi_f)
         roots = _equilibria_numpy(obs, plant, speed * drive.w_rated, [0.0, i_q])
         assert roots, (speed, load, k)
         principal = min(roots, key=lambda r: abs(r[0]))

@@ -1,5 +1,5 @@
 """Runs both designs lose lock in (`tuning.judged`: ties of the accounting) and what the
-analysis says at their end (`tuning.blocking.end_analysis`), on morawiec2023's
+analysis says at their end (`tuning.end_analysis`), on morawiec2023's
 rotor-flux observer, whose paper design loses 12 of its 88 validation runs.
 
 The analysis at each run's end is checked against `pmsmjax.analysis.equilibria` called
@@ -13,7 +13,6 @@ import numpy as np
 
 import tuning as tg
 from pmsmjax import analysis
-from tuning.blocking import END_VERDICTS, end_analysis
 from tuning.pipeline import _lost_by_both
 from tuning.scenarios import observer_model, operating_current
 
@@ -56,11 +55,11 @@ def test_the_end_of_a_run_lost_by_both_designs():
     runs = [_run(table, s1=0.4, k_d=1.0, k_q=1.0, k_R=1.0, k_psi=1.0),   # matched
             _run(table, s1=0.4, k_d=0.7, k_q=1.3),                        # L_d low, L_q high
             _run(table, s1=0.1, k_d=1.0, k_q=1.0, k_R=1.0, k_psi=1.1)]    # psi_f 10 % high
-    rows = end_analysis(P, space, vset, runs)
+    rows = tg.end_analysis(P, space, vset, runs)
     assert [r["run"] for r in rows] == runs
     for r in rows:
         assert r["end"] == _by_hand(space, drive, table[r["run"]]), r
-        assert r["end"] in END_VERDICTS
+        assert r["end"] in tg.END_VERDICTS
     assert [r["end"] for r in rows] == ["feasible", "no equilibrium", "no equilibrium"]
     # the closed loop agrees: the two ends with no equilibrium are lost, the matched one held
     ref = tg.Evaluator(P, space, vset.take(np.asarray(runs))).reference
@@ -87,8 +86,8 @@ def test_the_end_of_a_run_lost_by_both_designs():
         r["run"]: r["end"] for r in rows}
     line = verdict["where_not"][0]
     assert line.startswith("3 runs lost by both designs are ties")
-    assert (f"2 {END_VERDICTS['no equilibrium']}" in line
-            and f"1 {END_VERDICTS['feasible']}" in line)
+    assert (f"2 {tg.END_VERDICTS['no equilibrium']}" in line
+            and f"1 {tg.END_VERDICTS['feasible']}" in line)
     assert said[-1] == line
     # runs the low-speed rule sets apart are not in the record (nor analysed)
     verdict = {"holds": True, "where_not": []}

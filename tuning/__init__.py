@@ -14,7 +14,8 @@ The pipeline, one module per stage (data flows one way):
   the same budget of closed-loop simulations;
 - `tune` (`tuning.pipeline`) runs them and returns a `TuningReport`; `tuning.report`
   writes it (summary.json, figures, gains table); where the verdict fails, each blocking
-  validation run's noise floor and the phase its change comes from (`tuning.blocking`).
+  validation run's noise floor and the phase its change comes from, and for runs both
+  designs lose, the analysis at the run's end (`tuning.blocking`).
 
 `python -m tuning` runs the main job; `python -m tuning compare` the side-by-side
 comparison of every observer (`tuning.compare`).
@@ -22,8 +23,10 @@ comparison of every observer (`tuning.compare`).
 
 from . import report as report
 from .blocking import (
+    END_VERDICTS as END_VERDICTS,
     NOISE_FLOOR_KEYS as NOISE_FLOOR_KEYS,
     PHASES as PHASES,
+    end_analysis as end_analysis,
     noise_floor as noise_floor,
     phase_split as phase_split,
 )

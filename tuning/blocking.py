@@ -132,8 +132,8 @@ def end_analysis(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, 
                  x=None) -> list[dict]:
     """Per run of `runs` (indices into `sset`), the equilibrium analysis of the design `x`
     (physical coordinates; None: the paper's) with the run's observer model at the run's
-    end: its final speed `s1` and the current of its load (signed like the speed,
-    `tuning.scenarios.designed_feasible`). Each row: `run`, `speed_pu`, `load_pu`,
+    end: its final speed `s1` and the current of its braking load
+    (`tuning.scenarios.designed_feasible`). Each row: `run`, `speed_pu`, `load_pu`,
     `analysis_status` (0 ok, 2 no equilibrium, -1 failed) and `end`, one of
     `END_VERDICTS`. One vmapped program over the runs."""
     runs = [int(j) for j in runs]
@@ -144,7 +144,7 @@ def end_analysis(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, 
 
     def one(s1, load, k_d, k_q, k_R, k_psi):
         obs = space.observer(x, observer_model(drive, k_d, k_q, k_R, k_psi))
-        return designed_feasible(obs, drive, s1, load * jnp.sign(s1))
+        return designed_feasible(obs, drive, s1, load)
 
     r = jax.jit(jax.vmap(one))(sub.s1, sub.load_pu, sub.k_d, sub.k_q, sub.k_R, sub.k_psi)
     feasible, status = np.asarray(r["feasible"]), np.asarray(r["status"])

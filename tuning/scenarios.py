@@ -281,13 +281,17 @@ def operating_current(drive: pj.Drive, load_pu):
 
 def designed_feasible(observer, drive: pj.Drive, speed_pu, load_pu) -> dict:
     """The equilibrium analysis of `observer` (its design and machine model applied) on
-    `drive`'s machine at constant speed `speed_pu` (p.u. of rated) and the controlled
-    current of the load `load_pu` (`operating_current`): `feasible` where its designed
-    equilibrium (the principal one, nearest zero angle error) is stable and no other
-    one is, else False; `status` the analysis's (0 ok, 2 no equilibrium at all, -1
-    failed: no verdict). The family's own route where it has one, else the generic
-    route (`pmsmjax.analysis.equilibria_traced`). Traceable and vmappable."""
-    op = OperatingPoint(speed_pu * float(drive.w_rated), operating_current(drive, load_pu))
+    `drive`'s machine at constant speed `speed_pu` (p.u. of rated, signed) and the
+    controlled current of the braking load `load_pu` (p.u. of rated torque,
+    `operating_current`). The load opposes the rotation, as in the runs (`scenario`),
+    so the current takes the speed's sign: motoring in both directions. `feasible`
+    where its designed equilibrium (the principal one, nearest zero angle error) is
+    stable and no other one is, else False; `status` the analysis's (0 ok, 2 no
+    equilibrium at all, -1 failed: no verdict). The family's own route where it has
+    one, else the generic route (`pmsmjax.analysis.equilibria_traced`). Traceable and
+    vmappable."""
+    op = OperatingPoint(speed_pu * float(drive.w_rated),
+                        operating_current(drive, load_pu * jnp.sign(speed_pu)))
     plant = drive.three_phase_motor
     eq = observer.fast_equilibria(plant, op)
     if eq is None:

@@ -13,7 +13,8 @@ are counted and located instead, their angle error is meaningless):
   with `feasible`, the analysis's verdict at that point, and `analysis_status` (its
   `Equilibria.status`: 0 ok, 2 no equilibrium, -1 failed), when the analysis ran;
 - `feasible_fraction`: the fraction of the analysis grid (the same speeds, both signs,
-  loads and mismatch cases, at constant speed and current) where the generic analysis
+  loads and mismatch cases, at constant speed and the braking load's current, which
+  takes the speed's sign as in the runs) where the generic analysis
   (`pmsmjax.analysis.equilibria_traced`, or the family's own route) finds the designed
   equilibrium stable and no other stable equilibrium;
 - `harmonic_deg_per_pct`: the largest peak angle-error ripple per 1 % back-EMF harmonic
