@@ -182,7 +182,8 @@ def _continuation(sys: _Scaled, grid, y0, n_iter):
 def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.0), *,
                method: str = "auto", n_grid: int = 64, max_roots: int = 6, n_crit: int = 2,
                n_golden: int = 16,
-               angle_weight: float = 1000.0, n_gauss_newton: int = 3, n_refine: int = 10,
+               angle_weight: float = 1000.0, n_gauss_newton: int | None = None,
+               n_refine: int = 10,
                n_newton: int = 8, tol: float | None = None,
                n_starts: int | None = None) -> Equilibria:
     r"""Every equilibrium of `observer`'s error dynamics at one operating point.
@@ -195,7 +196,9 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     - `n_grid`: bracketing grid on (-pi, pi]; `max_roots`: output slots; `n_crit`:
       slots for close pairs (all static).
     - `angle_weight`, `n_gauss_newton`, `n_refine`, `n_newton`: the inner solve, the
-      Illinois refinement and the final Newton polish (module docstring).
+      Illinois refinement and the final Newton polish (module docstring). Default
+      `n_gauss_newton` (None): the observer class's `equilibria_gauss_newton` (3; 8 for
+      the FA-LESO, whose inner problem is not affine).
     - `tol`: accepted scaled residual (default eps^0.6: about 4e-10 in float64).
     - `n_starts`: Newton starts on the full system from evenly spaced grid points, used
       where the inner problem shows two branches (module docstring; static). 0: such a
@@ -239,6 +242,11 @@ def _starts(observer, n_starts, n_grid):
     return n_grid if observer.equilibria_starts else 0  # a wrapper: the wrapped one's
 
 
+def _gauss_newton(observer, n_gauss_newton):
+    """`n_gauss_newton` as given, or its default for `observer`'s class."""
+    return observer.equilibria_gauss_newton if n_gauss_newton is None else n_gauss_newton
+
+
 def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n_crit,
                      n_golden, angle_weight, n_gauss_newton, n_refine, n_newton, tol,
                      n_starts=None):
@@ -247,8 +255,10 @@ def _equilibria_args(observer, plant, w_m, i_dq, *, method, n_grid, max_roots, n
     check_observer("equilibria", observer)
     check_plant("equilibria", plant)
     n_starts = _starts(observer, n_starts, n_grid)
+    n_gauss_newton = _gauss_newton(observer, n_gauss_newton)
     for name, v, lo in (("n_grid", n_grid, 8), ("max_roots", max_roots, 1),
-                        ("n_crit", n_crit, 0), ("n_starts", n_starts, 0)):
+                        ("n_crit", n_crit, 0), ("n_starts", n_starts, 0),
+                        ("n_gauss_newton", n_gauss_newton, 1)):
         if not isinstance(v, int) or v < lo:
             raise ValueError(f"`equilibria({name}=...)` must be an int >= {lo}; got {v!r}.")
     if method not in ("auto", "generic"):
@@ -305,12 +315,13 @@ def _equilibria(observer, plant, op, options):
 
 def equilibria_traced(observer, plant, op: OperatingPoint, *, method="auto", n_grid=64,
                       max_roots=6, n_crit=2, n_golden=16, angle_weight=1000.0,
-                      n_gauss_newton=3, n_refine=10, n_newton=8, tol=1e-9,
+                      n_gauss_newton=None, n_refine=10, n_newton=8, tol=1e-9,
                       n_starts=None) -> Equilibria:
     """`equilibria` without argument checks or jit, for use inside a jitted/vmapped
     function (e.g. a feasibility map or a tuning penalty); `n_starts` None: the class's
     default, as in `equilibria`."""
     n_starts = _starts(observer, n_starts, n_grid)
+    n_gauss_newton = _gauss_newton(observer, n_gauss_newton)
     if method == "auto":
         fast = observer.fast_equilibria(plant, op)
         if fast is not None:

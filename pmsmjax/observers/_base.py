@@ -198,6 +198,13 @@ class AbstractObserver(eqx.Module):
     #: branches at ordinary operating points, where the default solve would report them
     #: degenerate. A caller's `n_starts` wins.
     equilibria_starts: ClassVar[bool] = False
+    #: Gauss-Newton steps of `analysis.equilibria`'s inner solve per angle of its grid
+    #: (`n_gauss_newton`; module docstring of `pmsmjax.analysis._generic`). One step is
+    #: exact where the error dynamics are affine in the other coordinates at a fixed
+    #: angle; an observer that is not (e.g. a gain scheduled on the speed estimate, one
+    #: of those coordinates) declares more, or the solve leaves most grid points
+    #: unsettled and the point without a verdict. A caller's `n_gauss_newton` wins.
+    equilibria_gauss_newton: ClassVar[int] = 3
     #: The speed (p.u. of rated) below which the observer's design does not claim to hold
     #: the angle: the tuner's low-speed rule sets apart the validation runs that take a
     #: sensored drive slower than this (`tuning.TuningProblem.low_speed_limit_pu`,

@@ -494,6 +494,14 @@ class FALESOObserver(AbstractBackEMFLESO):
     paper_motor: ClassVar[str | None] = "li_dtp"
     paper_T_s: ClassVar[float | None] = 1e-4
     c_emitter: ClassVar[str | None] = "_li:emit"
+    #: (25)'s $-j\hat\omega$ multiplies the resonator's states by the speed estimate,
+    #: itself a coordinate of the error: the inner solve of the equilibrium analysis is
+    #: not affine, and three steps leave most angles unsettled at low speed (measured on
+    #: the comparison grids, 300 points each: paper design on `li_dtp` 22 points without
+    #: a verdict, 2 with 8 steps; a tuned design on `zhang750`, k1 = 208 1/s^2, 138 and
+    #: 0; 12 steps change no verdict of either). The steps are a scan: run time only
+    #: (+45 % for the analysis), no compile time.
+    equilibria_gauss_newton: ClassVar[int] = 8
     motor: PMSMParams
     k1: float
     k2: float

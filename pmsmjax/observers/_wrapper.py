@@ -60,6 +60,10 @@ class WrappedObserver(AbstractObserver):
     def equilibria_starts(self):
         return self.observer.equilibria_starts
 
+    @property
+    def equilibria_gauss_newton(self):
+        return self.observer.equilibria_gauss_newton
+
     # --- design and analysis: the wrapped observer's -----------------------------------
     @classmethod
     def from_drive(cls, drive, *, motor: PMSMParams | None = None, **design):
