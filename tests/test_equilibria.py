@@ -393,7 +393,7 @@ def _scipy_equilibria(obs, plant, w, i0, n_theta=72):
     op = OperatingPoint(jnp.asarray(w), jnp.asarray(i0))
     sc = np.asarray(obs.error_scale(op, plant))
     a = obs.coordinates.angle
-    f = jax.jit(lambda z: obs.error_rhs(z * sc, op, plant) / sc / w)
+    f = jax.jit(lambda z: obs.error_rhs(z * sc, op, plant) / sc / abs(w))  # keeps signs
 
     def jac(z, h=1e-6):
         cols = [(np.asarray(f(z + h * e)) - np.asarray(f(z - h * e))) / (2 * h)
@@ -499,3 +499,26 @@ def test_fa_leso_equilibria_with_a_nonaffine_inner_problem():
     assert abs(theta[int(np.argmin(np.abs(theta)))]) < 1e-9 and stable.sum() == 1
     with pytest.raises(ValueError, match="n_gauss_newton"):
         analysis.equilibria(obs, m, w, i0, n_gauss_newton=0)
+
+
+def test_rotor_flux_equilibria_that_three_inner_steps_miss():
+    """The rotor-flux observer (morawiec_ipm3k5, 0.1 p.u., no load) with its R_s at x0.7:
+    with three Gauss-Newton steps of the inner solve the generic route found three
+    equilibria and missed a stable one at -23 deg, so the point read as feasible (the
+    designed equilibrium the only stable one); with the class's default
+    (`equilibria_gauss_newton`) it finds all four. Every equilibrium against SciPy's
+    root finder from 216 starts, stability against NumPy's eigenvalues."""
+    drive = pj.preset("morawiec_ipm3k5")
+    m = drive.three_phase_motor
+    obs = pj.observers.make_observer("rotor-flux", drive)
+    obs = obs.with_motor(pj.scale_motor(obs.motor, {"R_s": 0.7}))
+    w, i0 = 0.1 * float(drive.w_rated), np.zeros(2)
+    ref_theta, ref_stable = _scipy_equilibria(obs, m, w, i0)
+    assert len(ref_theta) == 4 and ref_stable.sum() == 2
+    three = analysis.equilibria(obs, m, w, i0, n_gauss_newton=3)
+    assert int(three.status) == 0 and int(three.n) == 3
+    eq = analysis.equilibria(obs, m, w, i0)
+    assert int(eq.status) == 0
+    valid = np.asarray(eq.valid)
+    np.testing.assert_allclose(np.asarray(eq.theta)[valid], ref_theta, atol=1e-9)
+    np.testing.assert_array_equal(np.asarray(eq.stable)[valid], ref_stable)

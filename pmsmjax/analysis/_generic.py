@@ -198,7 +198,7 @@ def equilibria(observer: AbstractObserver, plant: PMSMParams, w_m, i_dq=(0.0, 0.
     - `angle_weight`, `n_gauss_newton`, `n_refine`, `n_newton`: the inner solve, the
       Illinois refinement and the final Newton polish (module docstring). Default
       `n_gauss_newton` (None): the observer class's `equilibria_gauss_newton` (3; 8 for
-      the FA-LESO, whose inner problem is not affine).
+      the FA-LESO and the rotor-flux observer, whose inner problems are not affine).
     - `tol`: accepted scaled residual (default eps^0.6: about 4e-10 in float64).
     - `n_starts`: Newton starts on the full system from evenly spaced grid points, used
       where the inner problem shows two branches (module docstring; static). 0: such a
