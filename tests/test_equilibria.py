@@ -522,3 +522,5 @@ def test_rotor_flux_equilibria_that_three_inner_steps_miss():
     valid = np.asarray(eq.valid)
     np.testing.assert_allclose(np.asarray(eq.theta)[valid], ref_theta, atol=1e-9)
     np.testing.assert_array_equal(np.asarray(eq.stable)[valid], ref_stable)
+    # a wrapper (the speed from the angle) asks for what the wrapped observer asks for
+    assert pj.SpeedFromAngle(obs, w_track=2 * math.pi * 30.0).equilibria_gauss_newton == 8
