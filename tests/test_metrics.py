@@ -129,6 +129,10 @@ def test_run_metrics_against_numpy():
         assert m["settle_s"][j] == pytest.approx(settle, abs=1e-12)
         ref = lock_status_loop(t, th[j], ok=bool(ok[j]), lock_deg=30.0, start_locked=True)
         assert bool(m["lost_lock"][j]) == ref[2]
+        if ref[2]:  # when: the plain loop's time of the loss
+            assert m["t_lost"][j] == pytest.approx(ref[3], abs=1e-12)
+        else:
+            assert np.isnan(m["t_lost"][j])
         assert bool(m["ok"][j]) == (j == 0)
     assert not m["lost_lock"][0] and m["lost_lock"][1] and m["lost_lock"][2]
     # the runs start with the observer on the true angle: one that slips at once and only

@@ -339,6 +339,7 @@ def run_metrics(traj, *, lock_deg: float = LOCK_DEG, settle_from=None,
     - `lost_lock`: the run lost lock (`lock_status` with `lock_deg`; a run that starts
       in lock, `start_locked`, as the tuner's and the comparison's runs do: the observer
       starts on the true angle and speed);
+    - `t_lost`: when it lost lock (s; `lock_status`'s `t_lost`, NaN if it did not);
     - `ok`: the run did not diverge and every sample is finite.
 
     The square roots carry 1e-12 (a finite gradient at 0); jit, vmap and grad safe.
@@ -364,10 +365,10 @@ def _run_metrics(t, theta_err, w_m, w_hat, ok, lock_deg, settle_from, settle_ban
     static = _window_mean(th, win)
     noise, _ = _window_std(w_err, win)
     settle = settling_time(t, th - static[..., None], settle_band_deg, settle_from)
-    lost = lock_status(t, theta_err, ok=ok, lock_deg=lock_deg, start_locked=True)["lost"]
+    lock = lock_status(t, theta_err, ok=ok, lock_deg=lock_deg, start_locked=True)
     return dict(static_deg=static, rms_deg=_safe_sqrt(jnp.mean(th ** 2, -1)),
                 max_abs_deg=jnp.max(jnp.abs(th), -1), settle_s=settle, noise_rad_s=noise,
-                lost_lock=lost, ok=ok)
+                lost_lock=lock["lost"], t_lost=lock["t_lost"], ok=ok)
 
 
 def trajectory_metrics(traj, *, t_transient, T_s, save_every=1, theta_err0) -> dict:
