@@ -168,8 +168,10 @@ def test_every_metric_finite_or_flagged(job):
     assert md.count(f"| {OBSERVER} |") == 2
 
 
-def _where(speed, load, k=(1.0, 1.0, 1.0, 1.0), feasible=None, status=None):
-    w = dict(speed_pu=speed, load_pu=load, k_d=k[0], k_q=k[1], k_R=k[2], k_psi=k[3])
+def _where(speed, load, k=(1.0, 1.0, 1.0, 1.0), feasible=None, status=None, t=0.02,
+           phase="ramp"):
+    w = dict(speed_pu=speed, load_pu=load, k_d=k[0], k_q=k[1], k_R=k[2], k_psi=k[3],
+             t_lost_s=t, phase=phase)
     if feasible is not None:
         w["feasible"] = feasible
     if status is not None:
@@ -200,7 +202,7 @@ def test_lock_comparison_accounting():
     assert r["why_not"] == ("2 runs lost only by the tuned design; 1 of them where the "
                             "analysis finds no stable designed equilibrium for it (it "
                             "cannot hold that point); 1 where it is feasible (lost on the "
-                            "way: at the start or the load step)")
+                            "way: 1 in the ramp)")
     # a point where the analysis failed (status -1) is infeasible by the map's count but
     # no physical verdict: counted and reported as a failure of the analysis, not as a
     # point the design cannot hold; status 2 (no equilibrium at all) is one it cannot
@@ -210,8 +212,14 @@ def test_lock_comparison_accounting():
     assert r["why_not"] == ("3 runs lost only by the tuned design; 1 of them where the "
                             "analysis finds no stable designed equilibrium for it (it "
                             "cannot hold that point); 1 where it is feasible (lost on the "
-                            "way: at the start or the load step); 1 where the analysis "
+                            "way: 1 in the ramp); 1 where the analysis "
                             "failed (status -1: no verdict); the paper's design loses none")
+    # feasible points counted by the phase each was lost in
+    g = _where(0.5, 0.0, feasible=True, status=0, t=0.07, phase="load step")
+    h = _where(1.0, 0.0, feasible=True, status=0, t=0.001, phase="start")
+    assert lock_comparison(_entry([], [d, g, h]))["why_not"].endswith(
+        "3 where it is feasible (lost on the way: 1 at the start, 1 in the ramp, 1 at the "
+        "load step); the paper's design loses none")
     md = markdown(dict(motor="m", config=dict(noise_std=0.0, T_s=1e-4, t_end=0.1,
                                               settle_band_deg=2.0, lock_deg=45.0,
                                               harmonic_orders=[5], tuner="adam",
@@ -219,8 +227,8 @@ def test_lock_comparison_accounting():
                        grid=dict(n_runs=4, speeds_pu=[0.1], loads_pu=[0.0], cases=[{}]),
                        skipped={}, observers={"x": dict(_entry([], [e]), lock_comparison=(
                            lock_comparison(_entry([], [e]))))}))
-    assert ("  - 0.5 p.u., load 1, q 1.3; analysis: failed at this point (status -1): "
-            "no verdict") in md.splitlines()
+    assert ("  - 0.5 p.u., load 1, q 1.3; lost at 0.020 s (ramp); analysis: failed at this "
+            "point (status -1): no verdict") in md.splitlines()
     r = lock_comparison(_entry([], []))
     assert not r["fewer"] and r["why_not"].startswith("neither design loses a run")
     r = lock_comparison(_entry([], [a]))
@@ -239,8 +247,9 @@ def test_lock_comparison_accounting():
     md = markdown(summary)
     sec = md.split("## Lost lock: tuned against paper\n\n")[1].split("\n\n")[0].splitlines()
     assert sec[0].startswith("- x: paper 1, tuned 3: not fewer; 2 runs lost only")
-    assert sec[1] == "  - 0.05 p.u., load 1, R 1.5; analysis: no stable designed equilibrium"
-    assert sec[2] == "  - 0.05 p.u., load 0, matched; analysis: feasible"
+    assert sec[1] == ("  - 0.05 p.u., load 1, R 1.5; lost at 0.020 s (ramp); analysis: no "
+                      "stable designed equilibrium")
+    assert sec[2] == "  - 0.05 p.u., load 0, matched; lost at 0.020 s (ramp); analysis: feasible"
     assert sec[3] == "- y: paper 2, tuned 0: fewer"
 
 
@@ -269,6 +278,17 @@ def test_lock_comparison_from_the_saved_runs(job):
         at = r["lost_lock"].reshape(-1).astype(bool)
         where = s["observers"][OBSERVER]["designs"][d]["lost_lock_where"]
         assert [w["analysis_status"] for w in where] == a["status"].reshape(-1)[at].tolist()
+        # and when it lost lock, as saved, with the phase of the run then under way
+        t_lost = r["t_lost"].reshape(-1)
+        assert np.all(np.isnan(t_lost[~at])) and np.all((t_lost[at] >= 0)
+                                                         & (t_lost[at] <= config.t_end))
+        assert [w["t_lost_s"] for w in where] == t_lost[at].tolist()
+        ramp = (0.1 * config.t_end, 0.3 * config.t_end)  # tuning.scenarios.VAL_RAMP
+        for w in where:
+            t = w["t_lost_s"]
+            want = ("start" if t < ramp[0] else "ramp" if t < ramp[1] else "after the ramp"
+                    if t < 0.6 * config.t_end else "load step")
+            assert w["phase"] == want
     # the tuning record says how many training runs the low-speed rule left out (the ESO
     # declares no limit: none)
     problem = config.tuning_problem(OBSERVER)

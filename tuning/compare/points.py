@@ -20,7 +20,8 @@ $\tilde\omega = \omega - \hat\omega$, rad/s, on the saved samples):
 - `lost_lock`: the run lost lock, by the library's one definition (`pmsmjax.lock_status`
   with `start_locked`: every run starts with the observer on the true angle): the mean
   $|\tilde\theta|$ over any 10 ms of the run above `lock_deg`, default 45 deg, or the run
-  diverged or produced a non-finite sample, which counts as 180 deg).
+  diverged or produced a non-finite sample, which counts as 180 deg);
+- `t_lost`: when it lost lock (s, the same definition's; NaN if it kept lock).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from .config import TRACE_SAMPLES, CompareConfig
 
 #: The per-run metrics of the comparison (`run_metrics`), the outputs of its run sweeps.
 RUN_METRICS = ("static_deg", "rms_deg", "max_abs_deg", "settle_s", "noise_rad_s",
-               "lost_lock")
+               "lost_lock", "t_lost")
 
 
 def run_metrics(traj: pj.Trajectory, config: CompareConfig) -> dict:

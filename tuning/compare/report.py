@@ -10,7 +10,10 @@ are counted and located instead, their angle error is meaningless):
   the others;
 - `noise_median_rad_s`, `noise_worst_rad_s`;
 - `lost_lock`: count, and `lost_lock_where`: the grid points (speed, load, case), each
-  with `feasible`, the analysis's verdict at that point, and `analysis_status` (its
+  with `t_lost_s`, when the run lost lock (`pmsmjax.lock_status`), and `phase`, the part
+  of the run that was then under way (`phase_at`: "start", before the ramp; "ramp";
+  "after the ramp", before the load step; "load step", from it on), and with
+  `feasible`, the analysis's verdict at that point, and `analysis_status` (its
   `Equilibria.status`: 0 ok, 2 no equilibrium, -1 failed), when the analysis ran;
 - `feasible_fraction`: the fraction of the analysis grid (the same speeds, both signs,
   loads and mismatch cases, at constant speed and the braking load's current, which
@@ -30,8 +33,8 @@ A metric that cannot be computed is `null` in the JSON with its reason in `flags
 section of `comparison.md`): the two designs' counts, whether the tuned design loses
 fewer runs, and, where it does not, why: the runs only the tuned design loses, each
 with the reason the analysis gives (no stable designed equilibrium at that point: the
-design cannot hold it; or feasible there: lost on the way, at the start or the load
-step; or that the analysis failed at that point, status -1, which is no verdict at
+design cannot hold it; or feasible there: lost on the way, in the phase of the run
+each line names; or that the analysis failed at that point, status -1, which is no verdict at
 all), or that the paper's design loses none.
 """
 
@@ -41,7 +44,22 @@ import numpy as np
 
 import pmsmjax as pj
 
+from ..scenarios import VAL_LOAD_STEP, VAL_RAMP
 from .config import CASE_NAMES, DESIGNS, CompareConfig, case_label
+
+
+#: The phases of a comparison run (fractions of `t_end` at which each begins).
+PHASES = (("start", 0.0), ("ramp", VAL_RAMP[0]), ("after the ramp", VAL_RAMP[1]),
+          ("load step", VAL_LOAD_STEP))
+
+
+def phase_at(t_s: float, t_end: float) -> str:
+    """The phase of a comparison run (`PHASES`: the run starts at `start_frac` of its
+    speed, ramps over `VAL_RAMP` and takes the load at `VAL_LOAD_STEP`, fractions of
+    `t_end`) under way at time `t_s` (s)."""
+    if not np.isfinite(t_s):
+        return "unknown"
+    return [name for name, f in PHASES if t_s >= f * t_end][-1]
 
 
 def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dict:
@@ -51,6 +69,7 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
     is a float, an int, a list or None with its reason in `flags`."""
     flags = {}
     lost = np.asarray(runs["lost_lock"]).reshape(-1)
+    t_lost = np.asarray(runs["t_lost"]).reshape(-1)
     keep = ~lost
     static = np.asarray(runs["static_deg"]).reshape(-1)[keep]
     out = {"n_runs": int(lost.size), "lost_lock": int(lost.sum())}
@@ -61,7 +80,9 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
         c = int(grid["case"][j])
         where.append(dict(speed_pu=float(grid["speed_pu"][j]),
                           load_pu=float(grid["load_pu"][j]),
-                          **dict(zip(CASE_NAMES, config.cases[c]))))
+                          **dict(zip(CASE_NAMES, config.cases[c])),
+                          t_lost_s=float(t_lost[j]),
+                          phase=phase_at(float(t_lost[j]), config.t_end)))
         if feasible is not None:
             where[-1]["feasible"] = bool(feasible[j])
             where[-1]["analysis_status"] = int(status[j])
@@ -127,8 +148,8 @@ def lock_comparison(entry: dict) -> dict | None:
         for kind, text in (
                 ("infeasible", "{} of them where the analysis finds no stable designed "
                                "equilibrium for it (it cannot hold that point)"),
-                ("feasible", "{} where it is feasible (lost on the way: at the start or "
-                             "the load step)"),
+                ("feasible", "{} where it is feasible (lost on the way: "
+                             + _phase_counts(only_tuned) + ")"),
                 ("failed", "{} where the analysis failed (status -1: no verdict)"),
                 ("unknown", "{} without the analysis")):
             if kinds.count(kind):
@@ -155,8 +176,18 @@ def _lock_lines(summary: dict) -> list[str]:
         lines.append(f"{head}: not fewer; {c['why_not']}")
         for w in c["only_tuned"]:
             lines.append(f"  - {w['speed_pu']:g} p.u., load {w['load_pu']:g}, "
-                         f"{case_label(w)}{_REASONS[_analysis_kind(w)]}")
+                         f"{case_label(w)}; lost at {w['t_lost_s']:.3f} s ({w['phase']})"
+                         f"{_REASONS[_analysis_kind(w)]}")
     return lines
+
+
+def _phase_counts(lost: list[dict]) -> str:
+    """How many of the feasible points among `lost` were lost in each phase."""
+    phases = [w["phase"] for w in lost if _analysis_kind(w) == "feasible"]
+    words = {"start": "at the start", "ramp": "in the ramp",
+             "after the ramp": "after the ramp", "load step": "at the load step",
+             "unknown": "at an unknown time"}
+    return ", ".join(f"{phases.count(p)} {words[p]}" for p in words if phases.count(p))
 
 
 def _analysis_kind(w: dict) -> str:
