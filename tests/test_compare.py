@@ -202,7 +202,7 @@ def test_lock_comparison_accounting():
     assert r["why_not"] == ("2 runs lost only by the tuned design; 1 of them where the "
                             "analysis finds no stable designed equilibrium for it (it "
                             "cannot hold that point); 1 where it is feasible (lost on the "
-                            "way: 1 in the ramp)")
+                            "way, by phase: ramp 1)")
     # a point where the analysis failed (status -1) is infeasible by the map's count but
     # no physical verdict: counted and reported as a failure of the analysis, not as a
     # point the design cannot hold; status 2 (no equilibrium at all) is one it cannot
@@ -212,14 +212,14 @@ def test_lock_comparison_accounting():
     assert r["why_not"] == ("3 runs lost only by the tuned design; 1 of them where the "
                             "analysis finds no stable designed equilibrium for it (it "
                             "cannot hold that point); 1 where it is feasible (lost on the "
-                            "way: 1 in the ramp); 1 where the analysis "
+                            "way, by phase: ramp 1); 1 where the analysis "
                             "failed (status -1: no verdict); the paper's design loses none")
     # feasible points counted by the phase each was lost in
-    g = _where(0.5, 0.0, feasible=True, status=0, t=0.07, phase="load step")
+    g = _where(0.5, 0.0, feasible=True, status=0, t=0.07, phase="loaded")
     h = _where(1.0, 0.0, feasible=True, status=0, t=0.001, phase="start")
     assert lock_comparison(_entry([], [d, g, h]))["why_not"].endswith(
-        "3 where it is feasible (lost on the way: 1 at the start, 1 in the ramp, 1 at the "
-        "load step); the paper's design loses none")
+        "3 where it is feasible (lost on the way, by phase: start 1, ramp 1, loaded 1); "
+        "the paper's design loses none")
     md = markdown(dict(motor="m", config=dict(noise_std=0.0, T_s=1e-4, t_end=0.1,
                                               settle_band_deg=2.0, lock_deg=45.0,
                                               harmonic_orders=[5], tuner="adam",
@@ -253,6 +253,16 @@ def test_lock_comparison_accounting():
     assert sec[3] == "- y: paper 2, tuned 0: fewer"
 
 
+def test_phase_at_the_scenario_times():
+    """`tuning.scenarios.phase_at`: each phase begins at its time (inclusive)."""
+    from tuning.scenarios import PHASES, phase_at
+
+    times = (0.01, 0.03, 0.06)
+    got = [phase_at(t, *times) for t in (0.0, 0.0099, 0.01, 0.0299, 0.03, 0.06, 0.1)]
+    assert got == ["start", "start", "ramp", "ramp", "steady", "loaded", "loaded"]
+    assert set(got) == set(PHASES) and phase_at(float("nan"), *times) == "unknown"
+
+
 def test_lock_comparison_from_the_saved_runs(job):
     """comparison.json's lost-lock comparison recomputed from both designs' saved runs."""
     config, out, summary = job
@@ -283,11 +293,13 @@ def test_lock_comparison_from_the_saved_runs(job):
         assert np.all(np.isnan(t_lost[~at])) and np.all((t_lost[at] >= 0)
                                                          & (t_lost[at] <= config.t_end))
         assert [w["t_lost_s"] for w in where] == t_lost[at].tolist()
-        ramp = (0.1 * config.t_end, 0.3 * config.t_end)  # tuning.scenarios.VAL_RAMP
+        # tuning.scenarios.VAL_RAMP, VAL_LOAD_STEP on the sampling grid
+        t0, t1, t_load = (round(f * config.t_end / config.T_s) * config.T_s
+                          for f in (0.1, 0.3, 0.6))
         for w in where:
             t = w["t_lost_s"]
-            want = ("start" if t < ramp[0] else "ramp" if t < ramp[1] else "after the ramp"
-                    if t < 0.6 * config.t_end else "load step")
+            want = ("start" if t < t0 else "ramp" if t < t1 else "steady" if t < t_load
+                    else "loaded")
             assert w["phase"] == want
     # the tuning record says how many training runs the low-speed rule left out (the ESO
     # declares no limit: none)

@@ -36,17 +36,20 @@ import pmsmjax as pj
 from .design_space import DesignSpace
 from .evaluate import Evaluator
 from .problem import TuningProblem
-from .scenarios import STREAMS, ScenarioSet, designed_feasible, observer_model, simulate_set
+from .scenarios import (
+    PHASES,
+    STREAMS,
+    ScenarioSet,
+    designed_feasible,
+    observer_model,
+    simulate_set,
+)
 
 
 #: Other noise realisations per run that measure its noise floor.
 NOISE_FLOOR_KEYS = 4
 #: The noise keys' stream of the noise floor (none of the scenario sets' `STREAMS`).
 NOISE_FLOOR_STREAM = max(STREAMS.values()) + 1
-#: The phases of a run, by its scenario's times: `start` `[0, t0)` (before the speed
-#: ramp), `ramp` `[t0, t1)`, `steady` `[t1, t_load)` (between the ramp and the load
-#: step), `loaded` `[t_load, t_end]` (the load step and after).
-PHASES = ("start", "ramp", "steady", "loaded")
 
 
 def noise_floor(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, runs,

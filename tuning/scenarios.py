@@ -60,6 +60,18 @@ STREAMS = {"train": 1, "heldout": 2, "validation": 3}
 #: Validation: ramp over this fraction of the run, load step at this fraction.
 VAL_RAMP = (0.1, 0.3)
 VAL_LOAD_STEP = 0.6
+#: The phases of a run, by its scenario's times: `start` `[0, t0)` (before the speed
+#: ramp), `ramp` `[t0, t1)`, `steady` `[t1, t_load)` (between the ramp and the load
+#: step), `loaded` `[t_load, t_end]` (the load step and after).
+PHASES = ("start", "ramp", "steady", "loaded")
+
+
+def phase_at(t_s, t0, t1, t_load) -> str:
+    """The phase (`PHASES`) of a run with ramp `[t0, t1)` and load step at `t_load`
+    (s) under way at time `t_s` (s); "unknown" where `t_s` is not finite."""
+    if not np.isfinite(t_s):
+        return "unknown"
+    return PHASES[int(np.searchsorted([t0, t1, t_load], t_s, side="right"))]
 _CASE = ("k_d", "k_q", "k_R", "k_psi", "k_noise")
 
 
@@ -371,7 +383,7 @@ def _keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, i
     return sset.take(np.nonzero(~beyond)[0]), int(beyond.sum())
 
 
-__all__ = ["KINDS", "ScenarioSet", "check_disjoint", "designed_feasible", "heldout_set",
+__all__ = ["KINDS", "PHASES", "ScenarioSet", "check_disjoint", "designed_feasible", "heldout_set",
            "low_speed_runs", "max_acceleration", "observer_model", "operating_current",
-           "scenario", "sensored_lowest_speed", "simulate_set", "training_set",
+           "phase_at", "scenario", "sensored_lowest_speed", "simulate_set", "training_set",
            "validation_set"]

@@ -97,6 +97,13 @@ def _sweep_fns(config: CompareConfig, name: str, n_coords: int):
     return f_runs, f_feas
 
 
+def phase_times(config: CompareConfig) -> tuple[float, float, float]:
+    """`(t0, t1, t_load)` (s) of every run of the grid: the ramp over `VAL_RAMP` and the
+    load step at `VAL_LOAD_STEP` (fractions of `t_end`), on the sampling grid."""
+    return tuple(round(f * config.t_end / config.T_s) * config.T_s
+                 for f in (*VAL_RAMP, VAL_LOAD_STEP))
+
+
 def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     """Simulate one point of the common grid (`tuning.scenarios.simulate_set`, the runs
     of the tuner's validation set) with the design `design` (physical coordinates of the
@@ -109,9 +116,8 @@ def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     k = cases[point["case"].astype(int)]
     sp = jnp.asarray(point["speed_pu"])[None]
     key = jr.fold_in(jr.PRNGKey(config.seed), point["index"].astype(jnp.uint32))
-    q = lambda f: jnp.full(1, round(f * config.t_end / config.T_s) * config.T_s)  # noqa
-    sset = ScenarioSet(s0=config.start_frac * sp, s1=sp, t0=q(VAL_RAMP[0]),
-                       t1=q(VAL_RAMP[1]), t_load=q(VAL_LOAD_STEP),
+    t0, t1, t_load = (jnp.full(1, t) for t in phase_times(config))
+    sset = ScenarioSet(s0=config.start_frac * sp, s1=sp, t0=t0, t1=t1, t_load=t_load,
                        load_pu=jnp.asarray(point["load_pu"])[None],
                        k_d=k[0:1], k_q=k[1:2], k_R=k[2:3], k_psi=k[3:4],
                        k_noise=jnp.ones(1, sp.dtype), keys=key[None],
@@ -158,4 +164,5 @@ def harmonic_sensitivity(design, config: CompareConfig, name: str):
 
 
 __all__ = ["RUN_METRICS", "feasibility_point", "harmonic_sensitivity", "operating_current",
+           "phase_times",
            "run_metrics", "run_point"]

@@ -11,8 +11,9 @@ are counted and located instead, their angle error is meaningless):
 - `noise_median_rad_s`, `noise_worst_rad_s`;
 - `lost_lock`: count, and `lost_lock_where`: the grid points (speed, load, case), each
   with `t_lost_s`, when the run lost lock (`pmsmjax.lock_status`), and `phase`, the part
-  of the run that was then under way (`phase_at`: "start", before the ramp; "ramp";
-  "after the ramp", before the load step; "load step", from it on), and with
+  of the run that was then under way (`tuning.scenarios.PHASES`: "start", before the
+  ramp; "ramp"; "steady", between the ramp and the load step; "loaded", the load step
+  and after), and with
   `feasible`, the analysis's verdict at that point, and `analysis_status` (its
   `Equilibria.status`: 0 ok, 2 no equilibrium, -1 failed), when the analysis ran;
 - `feasible_fraction`: the fraction of the analysis grid (the same speeds, both signs,
@@ -44,22 +45,9 @@ import numpy as np
 
 import pmsmjax as pj
 
-from ..scenarios import VAL_LOAD_STEP, VAL_RAMP
+from ..scenarios import PHASES, phase_at
 from .config import CASE_NAMES, DESIGNS, CompareConfig, case_label
-
-
-#: The phases of a comparison run (fractions of `t_end` at which each begins).
-PHASES = (("start", 0.0), ("ramp", VAL_RAMP[0]), ("after the ramp", VAL_RAMP[1]),
-          ("load step", VAL_LOAD_STEP))
-
-
-def phase_at(t_s: float, t_end: float) -> str:
-    """The phase of a comparison run (`PHASES`: the run starts at `start_frac` of its
-    speed, ramps over `VAL_RAMP` and takes the load at `VAL_LOAD_STEP`, fractions of
-    `t_end`) under way at time `t_s` (s)."""
-    if not np.isfinite(t_s):
-        return "unknown"
-    return [name for name, f in PHASES if t_s >= f * t_end][-1]
+from .points import phase_times
 
 
 def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dict:
@@ -70,6 +58,7 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
     flags = {}
     lost = np.asarray(runs["lost_lock"]).reshape(-1)
     t_lost = np.asarray(runs["t_lost"]).reshape(-1)
+    times = phase_times(config)
     keep = ~lost
     static = np.asarray(runs["static_deg"]).reshape(-1)[keep]
     out = {"n_runs": int(lost.size), "lost_lock": int(lost.sum())}
@@ -82,7 +71,7 @@ def aggregate(runs: dict, feas: dict | None, config: CompareConfig, grid) -> dic
                           load_pu=float(grid["load_pu"][j]),
                           **dict(zip(CASE_NAMES, config.cases[c])),
                           t_lost_s=float(t_lost[j]),
-                          phase=phase_at(float(t_lost[j]), config.t_end)))
+                          phase=phase_at(float(t_lost[j]), *times)))
         if feasible is not None:
             where[-1]["feasible"] = bool(feasible[j])
             where[-1]["analysis_status"] = int(status[j])
@@ -148,7 +137,7 @@ def lock_comparison(entry: dict) -> dict | None:
         for kind, text in (
                 ("infeasible", "{} of them where the analysis finds no stable designed "
                                "equilibrium for it (it cannot hold that point)"),
-                ("feasible", "{} where it is feasible (lost on the way: "
+                ("feasible", "{} where it is feasible (lost on the way, by phase: "
                              + _phase_counts(only_tuned) + ")"),
                 ("failed", "{} where the analysis failed (status -1: no verdict)"),
                 ("unknown", "{} without the analysis")):
@@ -184,10 +173,8 @@ def _lock_lines(summary: dict) -> list[str]:
 def _phase_counts(lost: list[dict]) -> str:
     """How many of the feasible points among `lost` were lost in each phase."""
     phases = [w["phase"] for w in lost if _analysis_kind(w) == "feasible"]
-    words = {"start": "at the start", "ramp": "in the ramp",
-             "after the ramp": "after the ramp", "load step": "at the load step",
-             "unknown": "at an unknown time"}
-    return ", ".join(f"{phases.count(p)} {words[p]}" for p in words if phases.count(p))
+    return ", ".join(f"{p} {phases.count(p)}" for p in (*PHASES, "unknown")
+                     if phases.count(p))
 
 
 def _analysis_kind(w: dict) -> str:
