@@ -64,6 +64,9 @@ def test_the_end_of_a_run_lost_by_both_designs():
     # the closed loop agrees: the two ends with no equilibrium are lost, the matched one held
     ref = tg.Evaluator(P, space, vset.take(np.asarray(runs))).reference
     assert np.asarray(ref.lost_lock).tolist() == [False, True, True]
+    # and says when: the two lost runs inside the run, the held one never
+    t_lost = np.asarray(ref.t_lost)
+    assert np.isnan(t_lost[0]) and np.all((t_lost[1:] >= 0) & (t_lost[1:] <= vset.t_end))
 
     # the report's record: hand-built lock flags, the same three runs lost by both designs
     # and a fourth lost only by the tuned design (judged: not a tie, not in the record)
@@ -74,9 +77,15 @@ def test_the_end_of_a_run_lost_by_both_designs():
     lost_t[_run(table, s1=0.8, k_d=1.0, k_q=1.0, k_R=1.0, k_psi=1.0)] = True
     z = jnp.zeros(n)
 
+    # hand-built times of the losses: the feasible (matched) run lost after its load step
+    t0, t1, t_load = (np.asarray(a) for a in (vset.t0, vset.t1, vset.t_load))
+    t_lost = np.full(n, np.nan)
+    t_lost[runs] = [t_load[runs[0]] + 1e-3, 0.5 * (t0[runs[1]] + t1[runs[1]]), 0.0]
+
     def metrics(flags):
         return tg.Metrics(rms_deg=z + 1, peak_deg=z, static_deg=z, noise_rad_s=z,
-                          out_of_lock=z, lost_lock=jnp.asarray(flags), ok=z == 0, loss=z + 1)
+                          out_of_lock=z, lost_lock=jnp.asarray(flags), ok=z == 0, loss=z + 1,
+                          t_lost=jnp.asarray(t_lost))
 
     verdict, said = {"holds": False, "where_not": []}, []
     _lost_by_both(P, space, vset, {"paper": metrics(lost), "tuned": metrics(lost_t)},
@@ -84,10 +93,14 @@ def test_the_end_of_a_run_lost_by_both_designs():
     assert [r["run"] for r in verdict["lost_by_both"]] == sorted(runs)
     assert {r["run"]: r["end"] for r in verdict["lost_by_both"]} == {
         r["run"]: r["end"] for r in rows}
+    assert {r["run"]: (r["t_lost_s"], r["phase"]) for r in verdict["lost_by_both"]} == {
+        runs[0]: (t_lost[runs[0]], "loaded"), runs[1]: (t_lost[runs[1]], "ramp"),
+        runs[2]: (0.0, "start")}
     line = verdict["where_not"][0]
     assert line.startswith("3 runs lost by both designs are ties")
     assert (f"2 {tg.END_VERDICTS['no equilibrium']}" in line
             and f"1 {tg.END_VERDICTS['feasible']}" in line)
+    assert line.endswith("; those lost on the way, by phase: loaded 1")
     assert said[-1] == line
     # runs the low-speed rule sets apart are not in the record (nor analysed)
     verdict = {"holds": True, "where_not": []}

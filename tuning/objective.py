@@ -81,6 +81,9 @@ class Metrics(eqx.Module):
     lost_lock: jnp.ndarray
     ok: jnp.ndarray
     loss: jnp.ndarray
+    #: when the run lost lock (s; `pmsmjax.run_metrics`; NaN if it kept lock; None where
+    #: the metrics were not computed from runs)
+    t_lost: jnp.ndarray | None = None
 
 
 def run_metrics(traj: pj.Trajectory, problem: TuningProblem) -> Metrics:
@@ -98,7 +101,7 @@ def run_metrics(traj: pj.Trajectory, problem: TuningProblem) -> Metrics:
     loss = jnp.where(ok, loss, jax.lax.stop_gradient(jnp.maximum(loss, worst)))
     return Metrics(rms_deg=rms, peak_deg=peak, static_deg=base["static_deg"],
                    noise_rad_s=noise, out_of_lock=out, lost_lock=base["lost_lock"], ok=ok,
-                   loss=loss)
+                   loss=loss, t_lost=base["t_lost"])
 
 
 def cvar(r, fraction: float):

@@ -54,11 +54,13 @@ from .evaluate import Evaluator
 from .objective import BASELINE, VOCABULARY, accounting, holds, judged, objective
 from .problem import TuningProblem
 from .scenarios import (
+    PHASES,
     ScenarioSet,
     _keep_within,
     _low_speed,
     check_disjoint,
     heldout_set,
+    phase_at,
     sensored_lowest_speed,
     training_set,
     validation_set,
@@ -306,8 +308,10 @@ def _lost_by_both(problem, space, vset: ScenarioSet, metrics_val: dict, name: st
     """The validation runs (among those the low-speed rule keeps) that both the paper's
     design and the deployed one (`name`, coordinates `x`) lose lock in, ties of the
     accounting (`tuning.judged`), with what the analysis says at each one's end
-    (`tuning.end_analysis` of the deployed design): `verdict["lost_by_both"]`, a line
-    of the log, and one of `where_not` where the verdict does not hold."""
+    (`tuning.end_analysis` of the deployed design) and, where the metrics carry it, when
+    the deployed design lost lock (`t_lost_s`) and in which phase of the run (`phase`,
+    `tuning.scenarios.PHASES`): `verdict["lost_by_both"]`, a line of the log, and one of
+    `where_not` where the verdict does not hold."""
     m, ref = metrics_val[name], metrics_val["paper"]
     runs = np.nonzero(~judged(m.lost_lock, ref.lost_lock) & ~beyond)[0]
     if not runs.size:
@@ -320,12 +324,21 @@ def _lost_by_both(problem, space, vset: ScenarioSet, metrics_val: dict, name: st
     for r in found:
         r.update({k: rows[r["run"]][k] for k in ("s0", "k_d", "k_q", "k_R", "k_psi",
                                                    "k_noise")})
+        if m.t_lost is not None:
+            j = r["run"]
+            t = float(np.asarray(m.t_lost)[j])
+            r.update(t_lost_s=t, phase=phase_at(t, *(float(np.asarray(a)[j]) for a in (
+                vset.t0, vset.t1, vset.t_load))))
     verdict["lost_by_both"] = found
     counts = {k: sum(r["end"] == k for r in found) for k in END_VERDICTS}
     line = (f"{runs.size} runs lost by both designs are ties (after a lock loss the "
             f"angle error is chaotic: `verdict.floor`); the analysis at their end, for the "
             f"deployed design: " + "; ".join(f"{v} {END_VERDICTS[k]}" for k, v in
                                              counts.items() if v))
+    on_way = [r["phase"] for r in found if r["end"] == "feasible" and "phase" in r]
+    if on_way:
+        line += ("; those lost on the way, by phase: " + ", ".join(
+            f"{p} {on_way.count(p)}" for p in (*PHASES, "unknown") if on_way.count(p)))
     _say(log, line)
     if not verdict["holds"]:
         verdict["where_not"].append(line)
