@@ -54,13 +54,13 @@ from .evaluate import Evaluator
 from .objective import BASELINE, VOCABULARY, accounting, holds, judged, objective
 from .problem import TuningProblem
 from .scenarios import (
-    PHASES,
     ScenarioSet,
     _keep_within,
     _low_speed,
     check_disjoint,
     heldout_set,
     phase_at,
+    phase_counts,
     sensored_lowest_speed,
     training_set,
     validation_set,
@@ -337,8 +337,7 @@ def _lost_by_both(problem, space, vset: ScenarioSet, metrics_val: dict, name: st
                                              counts.items() if v))
     on_way = [r["phase"] for r in found if r["end"] == "feasible" and "phase" in r]
     if on_way:
-        line += ("; those lost on the way, by phase: " + ", ".join(
-            f"{p} {on_way.count(p)}" for p in (*PHASES, "unknown") if on_way.count(p)))
+        line += "; those lost on the way, by phase: " + phase_counts(on_way)
     _say(log, line)
     if not verdict["holds"]:
         verdict["where_not"].append(line)

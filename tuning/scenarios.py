@@ -72,6 +72,14 @@ def phase_at(t_s, t0, t1, t_load) -> str:
     if not np.isfinite(t_s):
         return "unknown"
     return PHASES[int(np.searchsorted([t0, t1, t_load], t_s, side="right"))]
+
+
+def phase_counts(phases) -> str:
+    """`"ramp 1, loaded 2"`: how many of `phases` (names from `phase_at`) fall in each
+    phase, in the order of `PHASES`, phases without any left out."""
+    phases = list(phases)
+    return ", ".join(f"{p} {phases.count(p)}" for p in (*PHASES, "unknown")
+                     if phases.count(p))
 _CASE = ("k_d", "k_q", "k_R", "k_psi", "k_noise")
 
 
@@ -385,5 +393,5 @@ def _keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, i
 
 __all__ = ["KINDS", "PHASES", "ScenarioSet", "check_disjoint", "designed_feasible", "heldout_set",
            "low_speed_runs", "max_acceleration", "observer_model", "operating_current",
-           "phase_at", "scenario", "sensored_lowest_speed", "simulate_set", "training_set",
-           "validation_set"]
+           "phase_at", "phase_counts", "scenario", "sensored_lowest_speed", "simulate_set",
+           "training_set", "validation_set"]

@@ -35,8 +35,8 @@ section of `comparison.md`): the two designs' counts, whether the tuned design l
 fewer runs, and, where it does not, why: the runs only the tuned design loses, each
 with the reason the analysis gives (no stable designed equilibrium at that point: the
 design cannot hold it; or feasible there: lost on the way, in the phase of the run
-each line names; or that the analysis failed at that point, status -1, which is no verdict at
-all), or that the paper's design loses none.
+each line names; or that the analysis failed at that point, status -1, which is no
+verdict at all), or that the paper's design loses none.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ import numpy as np
 
 import pmsmjax as pj
 
-from ..scenarios import PHASES, phase_at
+from ..scenarios import phase_at, phase_counts
 from .config import CASE_NAMES, DESIGNS, CompareConfig, case_label
 from .points import phase_times
 
@@ -172,9 +172,7 @@ def _lock_lines(summary: dict) -> list[str]:
 
 def _phase_counts(lost: list[dict]) -> str:
     """How many of the feasible points among `lost` were lost in each phase."""
-    phases = [w["phase"] for w in lost if _analysis_kind(w) == "feasible"]
-    return ", ".join(f"{p} {phases.count(p)}" for p in (*PHASES, "unknown")
-                     if phases.count(p))
+    return phase_counts(w["phase"] for w in lost if _analysis_kind(w) == "feasible")
 
 
 def _analysis_kind(w: dict) -> str:
