@@ -263,6 +263,7 @@ def _summary(holds=True):
                    "search": {"sims": 1200, "wall_s": 15.8}}}
     statement = HOLDS if holds else HOLDS.replace("holds", "does NOT hold", 1)
     return {"rms_angle_error_deg": {"paper": 5.73, "tuned": 2.76, "design": "tuned"},
+            "problem": {"search": "hybrid"},
             "accounting": {"validation": acc}, "designs": designs,
             "verdict": {"holds": holds, "statement": statement,
                         "where_not": [] if holds else ["1 runs lose lock"]}}
@@ -272,14 +273,14 @@ def test_console_leads_with_the_rms_angle_error_and_uses_the_vocabulary():
     text = console_summary(_summary())
     lines = text.splitlines()
     assert lines[0] == ("RMS angle error (deg), mean over the 88 validation runs: paper "
-                        "design 5.73, tuned (tuned) 2.76")
+                        "design 5.73, tuned (hybrid search) 2.76")
     apart = _summary()
     apart["accounting"]["validation"] = dict(apart["accounting"]["validation"], n=66,
                                              beyond_limit=22)
     assert console_summary(apart).splitlines()[0] == (
         "RMS angle error (deg), mean over the 66 validation runs (22 more beyond the "
         "observer's low-speed limit, counted apart: `verdict.low_speed_rule`): paper "
-        "design 5.73, tuned (tuned) 2.76")
+        "design 5.73, tuned (hybrid search) 2.76")
     head = lines[2].split()
     assert head[:3] == ["design", "RMS", "deg"]
     # every count but n, the fraction and the low-speed rule's (in the lead line when
@@ -345,3 +346,40 @@ def test_the_verdict_says_when_the_deployed_design_is_the_papers_own():
     assert _paper_not_bettered({"paper": 1.78, "front-quiet": 1.78}, "front-quiet")
     assert _paper_not_bettered({"paper": 1.78, "tuned": 1.68}, "tuned") is None
     assert _paper_not_bettered({"paper": 1.0, "tuned": 1.0 - 2e-9}, "tuned") is None
+
+
+def test_the_failed_verdict_names_the_worst_run_only_where_its_change_shows():
+    """`_choose` falls back to the chosen search's design when no design holds, and names
+    its worst run (speed, model errors, change) when that change is visible at the printed
+    precision; a change of round-off (the paper's design deployed, +1e-9 %) names none.
+    The console names the deployed design by its origin: the search, or a front design."""
+    from tuning.pipeline import FRONT, _choose
+
+    rows = [dict(s0=0.2, s1=0.5, k_d=0.5, k_q=1.0, k_R=1.0, k_psi=1.0, k_noise=1.0),
+            dict(s0=0.06, s1=0.1, k_d=1.0, k_q=1.0, k_R=1.0, k_psi=0.85, k_noise=1.0)]
+
+    class Set:
+        def table(self):
+            return rows
+
+    def acc(worst_pct, worst_run, better=10):
+        return dict(n=88, better=better, rms_worse_than_tol=int(worst_pct > 10),
+                    tolerance_pct=10.0, worst_rms_change_pct=worst_pct, new_lost_lock=0,
+                    worst_run=worst_run)
+
+    failing = {name: acc(0.0, None) for name in FRONT}
+    name, v = _choose(dict(failing, tuned=acc(12.34, 0)), Set())
+    assert (name, v["holds"], v["design"]) == ("tuned", False, "tuned")
+    assert v["where_not"][-1] == ("the worst run: speed +0.2 -> +0.5 p.u., k_d 0.5, k_q 1, "
+                                  "k_R 1, k_psi 1, noise x1: RMS angle error +12.3 %")
+    _, v = _choose(dict(failing, tuned=acc(1e-9, 1, better=0)), Set())
+    assert v["where_not"] == ["better in 0 of 88 runs (< 75 %)"]
+    _, v = _choose(dict(failing, tuned=acc(0.06, 1, better=0)), Set())
+    assert v["where_not"][-1].endswith("k_psi 0.85, noise x1: RMS angle error +0.1 %")
+    # a front design that holds is deployed, and the console names it
+    name, v = _choose(dict(failing, tuned=acc(12.34, 0),
+                           **{"front-quiet": acc(2.0, 0, better=80)}), Set())
+    assert (name, v["holds"]) == ("front-quiet", True)
+    s = _summary()
+    s["rms_angle_error_deg"]["design"] = "front-quiet"
+    assert console_summary(s).splitlines()[0].endswith("tuned (front-quiet) 2.76")

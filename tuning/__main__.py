@@ -163,8 +163,12 @@ def console_summary(s: dict) -> str:
     b = a.get("beyond_limit") or 0
     apart = (f" ({b} more beyond the observer's low-speed limit, counted apart: "
              f"`verdict.low_speed_rule`)" if b else "")
+    # the deployed design by where it came from: the chosen search's design ("tuned") is
+    # named by its search, a design of the front by its own name
+    search = (s.get("problem") or {}).get("search")
+    origin = f"{search} search" if h["design"] == "tuned" and search else h["design"]
     lines = [f"RMS angle error (deg), mean over the {a['n']} validation runs{apart}: paper "
-             f"design {h['paper']:.2f}, tuned ({h['design']}) {h['tuned']:.2f}", ""]
+             f"design {h['paper']:.2f}, tuned ({origin}) {h['tuned']:.2f}", ""]
     widths = [max(len(head) + 2, 8) for head, *_ in COLUMNS]
     lines.append(f"{'design':<16}" + "".join(f"{head:>{w}}" for (head, *_), w in
                                              zip(COLUMNS, widths)) + f"{'sims':>7}{'wall s':>8}")
