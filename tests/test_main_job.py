@@ -196,9 +196,11 @@ def test_main_job_quick(tmp_path):
     lines = printed.splitlines()
     first = lines.index("") + 1  # the summary after the progress lines
     lead = s["rms_angle_error_deg"]
+    origin = (f"{s['problem']['search']} search" if s["default"] == "tuned"
+              else s["default"])  # the deployed design by where it came from
     assert lines[first] == (f"RMS angle error (deg), mean over the {acc['n']} validation "
                             f"runs: paper design {lead['paper']:.2f}, tuned "
-                            f"({s['default']}) {lead['tuned']:.2f}")
+                            f"({origin}) {lead['tuned']:.2f}")
     assert lines[first + 2].split()[:8] == ["design", "RMS", "deg", "better", "worse",
                                             "worst_rms_change_pct", "new_lost_lock",
                                             "train"]
