@@ -81,6 +81,38 @@ def test_sets_are_closed_loop_disjoint_and_of_every_kind():
     assert np.all(a <= a_max * (1 + 1e-9)) and a.max() > 0.5 * a_max
 
 
+def test_structured_errors_come_one_parameter_at_a_time_and_jointly():
+    """`train_errors="structured"`: consecutive triples of runs (one of each kind) take
+    the patterns of `tuning.ERROR_PATTERNS` in turn; a run's model errors are exactly its
+    pattern's parameters (the others matched, 1.0), drawn from the same ranges as the
+    joint draws and equal to them where active; the sets stay disjoint. `"joint"` draws
+    every parameter in every run."""
+    names = ("k_d", "k_q", "k_R", "k_psi", "k_noise")
+    joint = tg.TuningProblem(train_errors="joint")
+    s = tg.TuningProblem(train_errors="structured")
+    assert set(tg.ERROR_PATTERNS[0]) == set(names)
+    assert {p for p in tg.ERROR_PATTERNS if len(p) == 1} == {(n,) for n in names}
+    for draw in (tg.training_set, tg.heldout_set):
+        a, b = draw(joint), draw(s)
+        ka = np.stack([np.asarray(getattr(a, n)) for n in names], -1)
+        kb = np.stack([np.asarray(getattr(b, n)) for n in names], -1)
+        assert np.all(np.abs(ka - 1.0) > 1e-6)  # joint: every parameter off in every run
+        kinds = np.asarray(b.kind)
+        for i in range(b.n):
+            pattern = tg.ERROR_PATTERNS[(i // 3) % len(tg.ERROR_PATTERNS)]
+            active = np.array([n in pattern for n in names])
+            assert np.array_equal(np.abs(kb[i] - 1.0) > 1e-6, active), (i, kb[i])
+            np.testing.assert_array_equal(kb[i][active], ka[i][active])
+            if i % 3 == 2:  # each pattern's triple has the three kinds
+                assert sorted(kinds[i - 2:i + 1]) == [0, 1, 2]
+        for n in ("s0", "s1", "load_pu", "t1"):  # only the errors change
+            np.testing.assert_array_equal(np.asarray(getattr(a, n)), np.asarray(getattr(b, n)))
+    d = tg.check_disjoint(tg.training_set(s), tg.heldout_set(s), tg.validation_set(s))
+    assert d["k_d"] > 1e-3 and d["key"] == "distinct"
+    with pytest.raises(ValueError, match="train_errors"):
+        tg.TuningProblem(train_errors="separate")
+
+
 def test_validation_runs_are_closed_loop(small):
     """Nothing imposed: the rotor speed follows the reference through the speed loop on
     the estimate (it lags the ramp and dips at the load step)."""

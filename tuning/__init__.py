@@ -67,6 +67,7 @@ from .report import (
     write_report as write_report,
 )
 from .scenarios import (
+    ERROR_PATTERNS as ERROR_PATTERNS,
     ScenarioSet as ScenarioSet,
     check_disjoint as check_disjoint,
     heldout_set as heldout_set,

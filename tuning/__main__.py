@@ -31,7 +31,7 @@ from pmsmjax.cli import (
 )
 from pmsmjax.observers import observer_names
 
-from .problem import SEARCHES, TuningProblem
+from .problem import SEARCHES, TRAIN_ERRORS, TuningProblem
 
 
 def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
@@ -100,6 +100,11 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                         "set: training and held-out draws over 0.5..1.5, validation with "
                         "the +-50 %% cases, jointly and separately, added "
                         "(TuningProblem.wide_mismatch)")
+    p.add_argument("--train-errors", choices=TRAIN_ERRORS, default=d.train_errors,
+                   help="the training and held-out runs' model errors: structured (in "
+                        "turn all at once, the inductances, and each parameter alone; "
+                        "the default) or joint (every parameter in every run) "
+                        "(TuningProblem.train_errors)")
     p.add_argument("--no-plot", action="store_true", help="do not write the figures")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     return p
@@ -124,6 +129,8 @@ def problem_from_args(args) -> TuningProblem:
         kw["speed_from_angle"] = args.speed_from_angle
     if args.tune is not None:
         kw["tune"] = tuple(args.tune)
+    if args.train_errors != d.train_errors:
+        kw["train_errors"] = args.train_errors
     if args.motor_file is not None:
         if args.motor is not None:
             raise ValueError(f"--motor {args.motor} and --motor-file {args.motor_file}: give "

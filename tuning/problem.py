@@ -45,6 +45,7 @@ def sampling_period(motor: str) -> float:
 
 #: The search strategies (`tuning.search`).
 SEARCHES = ("hybrid", "gradient", "cmaes", "random", "local")
+TRAIN_ERRORS = ("joint", "structured")
 
 #: Default validation cases `(k_d, k_q, k_R, k_psi, k_noise)` (observer / plant; noise in
 #: units of `noise_std`): matched; both inductances low, high, crossed; R_s high (hot
@@ -130,6 +131,12 @@ class TuningProblem:
     - `mismatch_range`, `resistance_range`, `flux_range`: observer-model / plant ratios of
       $L_d$ and $L_q$, $R_s$, $\\psi_f$ drawn for training and held-out runs.
     - `noise_range`: current noise in units of `noise_std`.
+    - `train_errors`: how the training and held-out runs combine those errors:
+      "structured" (default) in turn every parameter at once, both inductances, and each
+      of $L_d$, $L_q$, $R_s$, $\\psi_f$ and the noise alone, the others matched
+      (`tuning.ERROR_PATTERNS`), so that the search sees the kinds of error the
+      validation cases hold (one at a time, the inductances jointly); "joint" every
+      parameter in every run.
     - Validation (the runs the tuner never sees, `tuning.scenarios.validation_set`):
       `val_speeds_pu` (each with both signs), `val_cases` (rows `(k_d, k_q, k_R, k_psi,
       k_noise)`), `val_t_end` (s), `val_start_frac`, `val_load_pu`.
@@ -196,6 +203,7 @@ class TuningProblem:
     resistance_range: tuple = (0.7, 1.5)
     flux_range: tuple = (0.85, 1.1)
     noise_range: tuple = (1.0, 3.0)
+    train_errors: str = "structured"
     val_speeds_pu: tuple = (0.1, 0.4, 0.5, 0.8)
     val_cases: tuple = VALIDATION_CASES
     val_t_end: float = 0.5
@@ -282,6 +290,8 @@ class TuningProblem:
                                         f"(2 x n_train = {2 * self.n_train}) are needed")
         if not (0 < self.cvar_fraction <= 1):
             _bad("cvar_fraction", self.cvar_fraction, "0 < fraction <= 1 is allowed")
+        if self.train_errors not in TRAIN_ERRORS:
+            _bad("train_errors", self.train_errors, f"choose one of {', '.join(TRAIN_ERRORS)}")
         if self.search not in SEARCHES:
             _bad("search", self.search, f"choose one of {', '.join(SEARCHES)}")
         if not self.val_speeds_pu or any(not (0 < abs(s) <= 2) for s in self.val_speeds_pu):
@@ -376,5 +386,5 @@ class TuningProblem:
         return cls(**kw)
 
 
-__all__ = ["OTHER_T_S", "SEARCHES", "TuningProblem", "VALIDATION_CASES", "WIDE_CASES",
-           "WIDE_MISMATCH_RANGE", "WIDE_N_TRAIN", "sampling_period"]
+__all__ = ["OTHER_T_S", "SEARCHES", "TRAIN_ERRORS", "TuningProblem", "VALIDATION_CASES",
+           "WIDE_CASES", "WIDE_MISMATCH_RANGE", "WIDE_N_TRAIN", "sampling_period"]
