@@ -45,6 +45,8 @@ def sampling_period(motor: str) -> float:
 
 #: The search strategies (`tuning.search`).
 SEARCHES = ("hybrid", "gradient", "cmaes", "random", "local")
+#: How the training and held-out runs combine their model errors
+#: (`TuningProblem.train_errors`; `tuning.ERROR_PATTERNS`).
 TRAIN_ERRORS = ("joint", "structured")
 
 #: Default validation cases `(k_d, k_q, k_R, k_psi, k_noise)` (observer / plant; noise in

@@ -69,14 +69,14 @@ STREAMS = {"train": 1, "heldout": 2, "validation": 3}
 #: Validation: ramp over this fraction of the run, load step at this fraction.
 VAL_RAMP = (0.1, 0.3)
 VAL_LOAD_STEP = 0.6
-#: The phases of a run, by its scenario's times: `start` `[0, t0)` (before the speed
-#: ramp), `ramp` `[t0, t1)`, `steady` `[t1, t_load)` (between the ramp and the load
-#: step), `loaded` `[t_load, t_end]` (the load step and after).
 #: The model errors of the training and held-out runs under `train_errors="structured"`,
 #: in turn, three runs (one of each kind) per pattern: the factors each pattern draws,
 #: the others matched (1.0).
 ERROR_PATTERNS = (("k_d", "k_q", "k_R", "k_psi", "k_noise"), ("k_d", "k_q"), ("k_d",),
                   ("k_q",), ("k_R",), ("k_psi",), ("k_noise",))
+#: The phases of a run, by its scenario's times: `start` `[0, t0)` (before the speed
+#: ramp), `ramp` `[t0, t1)`, `steady` `[t1, t_load)` (between the ramp and the load
+#: step), `loaded` `[t_load, t_end]` (the load step and after).
 PHASES = ("start", "ramp", "steady", "loaded")
 
 
