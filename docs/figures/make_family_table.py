@@ -4,8 +4,11 @@ defaults, each in a fresh process as a user runs it; the table is written betwee
 page's `<!-- family table -->` markers and to docs/figures/tuning_families.json.
 
 Run from the repository root: `python docs/figures/make_family_table.py [--out DIR]
-[--observers a,b] [--speed-from-angle]` (DIR keeps each run's output; default a
-temporary folder). The whole table takes about 35 minutes on a 2-core machine.
+[--observers a,b] [--speed-from-angle] [--motor NAME]` (DIR keeps each run's output;
+default a temporary folder). The whole table takes about 35 minutes on a 2-core machine.
+`--motor NAME` runs every family on that preset instead of its paper's motor; the table
+of `--motor ipm3k5_sat` goes to docs/saturation.md (`SATURATED`) and
+tuning_families_ipm3k5_sat.json.
 `--observers` runs those rows again and keeps the others from the JSON; every row
 carries the date it was measured, and the page says which rows are from which day."""
 
@@ -24,6 +27,10 @@ from _page import markdown_table, write_block
 HERE = os.path.dirname(os.path.abspath(__file__))
 PAGE = os.path.join(HERE, os.pardir, "tuning.md")
 BEGIN, END = "<!-- family table -->", "<!-- /family table -->"
+#: Pages of the tables of other motors (`--motor`): preset -> (page, begin, end).
+SATURATED = {"ipm3k5_sat": (os.path.join(HERE, os.pardir, "saturation.md"),
+                            "<!-- saturated family table -->",
+                            "<!-- /saturated family table -->")}
 
 
 def tunable_observers() -> list[str]:
@@ -79,10 +86,13 @@ def main(argv=None) -> int:
     ap.add_argument("--speed-from-angle", action="store_true",
                     help="every run with the speed loop on the angle's speed (30 Hz); "
                          "written to tuning_families_speed_from_angle.json, page untouched")
+    ap.add_argument("--motor", default=None, choices=sorted(SATURATED),
+                    help="every family on this preset instead of its paper's motor")
     ap.add_argument("--from-json", action="store_true",
                     help="only write the page's table from tuning_families.json")
     args = ap.parse_args(argv)
-    stem = "tuning_families" + ("_speed_from_angle" if args.speed_from_angle else "")
+    stem = ("tuning_families" + ("_speed_from_angle" if args.speed_from_angle else "")
+            + (f"_{args.motor}" if args.motor else ""))
     path = os.path.join(HERE, stem + ".json")
     saved = json.loads(open(path).read()) if os.path.exists(path) else None
     if saved is not None:  # rows written before rows carried their date
@@ -92,7 +102,8 @@ def main(argv=None) -> int:
         rows, machine = saved["rows"], saved["machine"]
     else:
         names = args.observers.split(",") if args.observers else tunable_observers()
-        extra = ["--speed-from-angle"] if args.speed_from_angle else []
+        extra = (["--speed-from-angle"] if args.speed_from_angle else []) + (
+            ["--motor", args.motor] if args.motor else [])
         base = args.out or tempfile.mkdtemp(prefix="families-")
         rows = []
         for name in names:
@@ -115,7 +126,8 @@ def main(argv=None) -> int:
         when = dates[0] if len(dates) == 1 else "; ".join(
             f"{d}: {', '.join(r['observer'] for r in rows if r['date'] == d)}" for d in dates)
         stamp = f"(`docs/figures/make_family_table.py`, {when}, {machine})"
-        write_block(PAGE, BEGIN, END, f"{stamp}:\n\n{text}")
+        page, begin, end = SATURATED[args.motor] if args.motor else (PAGE, BEGIN, END)
+        write_block(page, begin, end, f"{stamp}:\n\n{text}")
     return 0
 
 
