@@ -22,6 +22,7 @@ from tuning.compare import (
     lock_comparison,
     markdown,
     run_comparison,
+    tuned_designs_from,
 )
 from tuning.compare.config import TRACE_SAMPLES
 from tuning.compare.job import STOP_ENV, TIMING_KEYS
@@ -405,6 +406,13 @@ def test_config_errors():
         CompareConfig(cases=((1.0, 1.0, 1.0),))
     with pytest.raises(ValueError, match="tuner"):
         CompareConfig(tuner="sgd")
+    for bad, match in ((((OBSERVER, (("w9", 1.0),)),), "no design coordinate"),
+                       (((OBSERVER, (("w_tf", -1.0),)),), "finite value > 0"),
+                       ((("eso", ()),), "not among the compared observers"),
+                       (((OBSERVER, ()), (OBSERVER, ())), "given twice"),
+                       ((("nope", ()),), "no registered observer")):
+        with pytest.raises(ValueError, match=match):
+            tiny(tuned_designs=bad)
     for bad in (0.0, -30.0, math.inf, "30", True):
         with pytest.raises(ValueError, match=r"speed_from_angle=.*frequency > 0 \(Hz\)"):
             CompareConfig(speed_from_angle=bad)
@@ -444,6 +452,43 @@ def test_speed_from_angle_runs_and_tunes_with_the_tracked_speed(job):
     assert "takes the speed of the observer's angle (30 Hz tracking loop)" in md
 
 
+def test_a_design_tuned_elsewhere_runs_as_the_same_design_tuned_here(job, tmp_path):
+    """`--tuned-from` / `tuned_designs`: the output folder of a tuning run (its
+    design.json and summary.json, as `tuning.report.write_report` names them) gives the
+    observer's "tuned" design; given the coordinates the job's own tuner found, the job
+    runs nothing to tune and its tuned design's metrics equal the job's to round-off.
+    A folder tuned on another drive, or without the files, is refused by name."""
+    from tuning.report.summary import DESIGN_FILE, SUMMARY_FILE
+
+    config, _, summary = job
+    coords = summary["observers"][OBSERVER]["tuning"]["coordinates"]
+    folder = tmp_path / "tuned"
+    folder.mkdir()
+    (folder / DESIGN_FILE).write_text(json.dumps({"observer": OBSERVER,
+                                                  "coordinates": coords}))
+    (folder / SUMMARY_FILE).write_text(json.dumps({"motor": "stumper_mt5"}))
+    with pytest.raises(ValueError, match="tuned on 'stumper_mt5'; this comparison runs"):
+        tuned_designs_from([str(folder)], config.motor)
+    (folder / SUMMARY_FILE).write_text(json.dumps({"motor": config.motor}))
+    with pytest.raises(ValueError, match="not the output folder of a `python -m tuning`"):
+        tuned_designs_from([str(tmp_path)], config.motor)
+    given = tuned_designs_from([str(folder)], config.motor)
+    assert given == ((OBSERVER, tuple(sorted(coords.items()))),)
+    cfg = tiny(tuner="none", analysis=False, tuned_designs=given)
+    assert CompareConfig.from_dict(cfg.to_dict()) == cfg
+    got = run_comparison(cfg, tmp_path / "job", progress=False, log=None, batch_size=2)
+    e = got["observers"][OBSERVER]
+    assert e["tuning"]["tuner"] == "given" and e["tuning"]["coordinates"] == coords
+    want = summary["observers"][OBSERVER]["designs"]
+    for d in DESIGNS:
+        for k in ("lost_lock", "static_rms_deg", "static_worst_deg", "rms_worst_deg",
+                  "noise_median_rad_s", "settle_worst_s"):
+            np.testing.assert_allclose(e["designs"][d][k], want[d][k], rtol=1e-9,
+                                       err_msg=f"{d} {k}")
+    assert f"for {OBSERVER}, the design a full tuning run" in markdown(got)
+    assert "small training problem" in markdown(summary)
+
+
 def test_figures(job):
     from tuning.compare.plots import hardest_point, plot_comparison
 
@@ -469,6 +514,8 @@ def test_cli_dispatch(capsys):
     # the shared sweep options (chunking, resume, several processes) are checked too
     assert main(["compare", "--num-processes", "2", "--no-plot"]) == 2
     assert "--coordinator" in capsys.readouterr().err
+    assert main(["compare", "--tuned-from", "no-such-folder", "--no-plot"]) == 2
+    assert "`--tuned-from no-such-folder`: not the output folder" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         main(["compare", "--jobs", "0", "--no-plot"])
     assert e.value.code == 2 and "--jobs" in capsys.readouterr().err

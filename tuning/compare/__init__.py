@@ -10,6 +10,7 @@ from .config import (
     DESIGNS as DESIGNS,
     TUNERS as TUNERS,
     CompareConfig as CompareConfig,
+    tuned_designs_from as tuned_designs_from,
 )
 from .job import CompareInterrupted as CompareInterrupted, run_comparison as run_comparison
 from .plots import plot_comparison as plot_comparison

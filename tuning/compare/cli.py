@@ -7,6 +7,7 @@ was interrupted on purpose (`PMSMJAX_COMPARE_STOP_AFTER`)."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -55,6 +56,11 @@ def build_parser(prog: str = "python -m tuning compare") -> argparse.ArgumentPar
                    help="search strategy of the closed-loop tuner for the 'tuned' design "
                         "(default: hybrid, CMA-ES then the gradient polish, as python -m "
                         "tuning; none: the paper designs only)")
+    p.add_argument("--tuned-from", nargs="+", default=None, metavar="DIR",
+                   help="output folders of `python -m tuning` runs on this motor: each "
+                        "one's deployed design is its observer's 'tuned' design here "
+                        "(nothing is tuned for those observers; the others are tuned as "
+                        "--tuner says)")
     p.add_argument("--analysis", action=argparse.BooleanOptionalAction, default=None,
                    help="run the generic equilibrium analysis of the grid (the feasible "
                         "fraction; default: on, off with --quick)")
@@ -101,7 +107,7 @@ def jobs_for(value, distributed: bool) -> int:
 def main(argv=None, prog: str = "python -m tuning compare") -> int:
     pj.runtime.configure()
     args = build_parser(prog).parse_args(argv)
-    from .config import CompareConfig
+    from .config import CompareConfig, tuned_designs_from
     from .job import CompareInterrupted, run_comparison
     from .report import markdown
 
@@ -128,6 +134,9 @@ def main(argv=None, prog: str = "python -m tuning compare") -> int:
         sweep_dir = args.sweep_dir
         init_distributed(settings)
         config = CompareConfig.quick(**kw) if args.quick else CompareConfig(**kw)
+        if args.tuned_from:
+            config = dataclasses.replace(config, tuned_designs=tuned_designs_from(
+                args.tuned_from, config.motor))
     except (ValueError, CLIError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2

@@ -22,7 +22,10 @@ hybrid of CMA-ES and the gradient) from it, on the tuner's small problem
 (`tuning_problem`: `TuningProblem.quick` for the drive, `tune_steps` evaluations of its
 training batch), in the tuner's design space (`tuning.DesignSpace`), cached in the job
 folder (`tuned/NAME.json`, the physical coordinates) so that a resumed job does not tune
-again.
+again. Or, for the observers `tuned_designs` names, the design a full tuning run
+(`python -m tuning`) deployed, given by its coordinates (`tuned_designs_from` reads them
+from such runs' output folders: `--tuned-from DIR ...` on the command line); nothing is
+tuned for those.
 
 **Which observers apply.** Every registered observer estimates from the alpha-beta
 subspace (for a dual three-phase machine, the alpha-beta subspace of the VSD), so every
@@ -48,6 +51,7 @@ from pmsmjax.observers import (
     observer_names,
 )
 
+from ..design_space import coordinate_names
 from ..problem import TuningProblem, _drive, _mtime
 
 
@@ -109,6 +113,11 @@ class CompareConfig:
       loop whose speed of the observer's angle closes every run's speed loop
       (`pmsmjax.SpeedFromAngle`) in place of the observer's own speed estimate; the tuned
       design is tuned with it too (`TuningProblem.speed_from_angle`).
+    - `tuned_designs`: `((observer, ((coordinate, value), ...)), ...)`: the "tuned"
+      design of those observers, in the physical coordinates of the tuner's design space
+      (`tuning.DesignSpace`, units as its `bounds_table` gives them; a coordinate not
+      given keeps the paper design's value), e.g. the design a `python -m tuning` run
+      deployed (`tuned_designs_from`); the other observers are tuned as above.
     """
 
     motor: str = "zhang750"
@@ -133,6 +142,7 @@ class CompareConfig:
     chunk_size: int | None = None
     analysis: bool = True
     speed_from_angle: float | None = None
+    tuned_designs: tuple = ()
 
     def __post_init__(self):
         set_ = lambda k, v: object.__setattr__(self, k, v)  # noqa: E731
@@ -203,6 +213,7 @@ class CompareConfig:
                 raise ValueError(f"`CompareConfig(speed_from_angle=...)` must be None or a "
                                  f"frequency > 0 (Hz); got {f!r}.")
             set_("speed_from_angle", float(f))
+        set_("tuned_designs", _check_designs(self.tuned_designs, self.observers))
         # the tuner's problem checks the rest (run length against the sampling period)
         self.tuning_problem(observer_names()[0])
 
@@ -221,11 +232,12 @@ class CompareConfig:
         return cls(**kw)
 
     def to_dict(self) -> dict:
-        """The fields as JSON values; `motor_file`, `set_params` and `speed_from_angle`
-        only when given, so that a preset job keeps the fingerprint (and resumes) it had
-        before they existed."""
+        """The fields as JSON values; `motor_file`, `set_params`, `speed_from_angle` and
+        `tuned_designs` only when given, so that a preset job keeps the fingerprint (and
+        resumes) it had before they existed."""
         d = dataclasses.asdict(self)
-        for k, empty in (("motor_file", None), ("set_params", ()), ("speed_from_angle", None)):
+        for k, empty in (("motor_file", None), ("set_params", ()), ("speed_from_angle", None),
+                         ("tuned_designs", ())):
             if d[k] == empty:
                 del d[k]
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items()}
@@ -273,6 +285,66 @@ class CompareConfig:
         return g
 
 
+def _check_designs(designs, observers) -> tuple:
+    """`CompareConfig.tuned_designs` as nested tuples of (str, float), checked: registered
+    observers, each once and among `observers` (where given), coordinates of its design
+    space, finite values > 0."""
+    where = "`CompareConfig(tuned_designs=...)`"
+    out, seen = [], set()
+    try:
+        items = [(str(n), tuple((str(k), float(v)) for k, v in c)) for n, c in designs]
+    except (TypeError, ValueError):
+        raise ValueError(f"{where} must be (observer, ((coordinate, value), ...)) pairs; "
+                         f"got {designs!r}.") from None
+    for name, coords in items:
+        if name not in observer_names():
+            raise ValueError(f"{where}: {name!r} is no registered observer (registered: "
+                             f"{', '.join(observer_names())}).")
+        if name in seen:
+            raise ValueError(f"{where}: {name!r} is given twice.")
+        if observers is not None and name not in observers:
+            raise ValueError(f"{where}: {name!r} is not among the compared observers "
+                             f"({', '.join(observers)}).")
+        seen.add(name)
+        allowed = coordinate_names(name)
+        for k, v in coords:
+            if k not in allowed:
+                raise ValueError(f"{where}: {k!r} is no design coordinate of {name!r} "
+                                 f"(its coordinates: {', '.join(allowed)}).")
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{where}: {name} {k} = {v!r}; a coordinate is a finite "
+                                 f"value > 0.")
+        out.append((name, coords))
+    return tuple(out)
+
+
+def tuned_designs_from(folders, motor: str) -> tuple:
+    """`CompareConfig.tuned_designs` from the output folders of `python -m tuning` runs
+    (each folder's `design.json`: the deployed design's observer and coordinates), each
+    checked to have been tuned on the drive named `motor` (its `summary.json`).
+    `ValueError` naming the folder where a file is missing or unreadable, or the drive
+    differs."""
+    from ..report.summary import DESIGN_FILE, SUMMARY_FILE
+
+    out = []
+    for folder in folders:
+        try:
+            with open(os.path.join(folder, DESIGN_FILE)) as f:
+                d = json.load(f)
+            with open(os.path.join(folder, SUMMARY_FILE)) as f:
+                tuned_on = json.load(f)["motor"]
+            name, coords = d["observer"], d["coordinates"]
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"`--tuned-from {folder}`: not the output folder of a "
+                             f"`python -m tuning` run ({DESIGN_FILE} and {SUMMARY_FILE} "
+                             f"with the deployed design): {e}") from None
+        if tuned_on != motor:
+            raise ValueError(f"`--tuned-from {folder}`: its {name} design was tuned on "
+                             f"{tuned_on!r}; this comparison runs {motor!r}.")
+        out.append((name, tuple(sorted(coords.items()))))
+    return tuple(out)
+
+
 def applicable_observers(config: CompareConfig) -> tuple[dict, dict]:
     """`({name: class name}, {name: reason})`: the observers of the comparison that apply
     to the motor (their `from_drive` accepts it) and those that do not."""
@@ -291,4 +363,4 @@ def applicable_observers(config: CompareConfig) -> tuple[dict, dict]:
 
 
 __all__ = ["CASES", "CASE_NAMES", "DESIGNS", "TRACE_SAMPLES", "TUNERS", "CompareConfig",
-           "applicable_observers", "case_label"]
+           "applicable_observers", "case_label", "tuned_designs_from"]

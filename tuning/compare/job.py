@@ -86,6 +86,19 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     if meta_path.is_file():
         meta = json.loads(meta_path.read_text())
         return (np.asarray(meta["x"], dtype=float) if meta["tuned"] else None), meta
+    given = dict(config.tuned_designs)
+    if name in given:  # a design tuned elsewhere (`python -m tuning`): nothing to tune
+        space = _space(config, name)
+        coords = dict(zip(space.names, np.asarray(space.paper_point(), float).tolist()))
+        coords.update(dict(given[name]))
+        x = np.asarray([coords[k] for k in space.names])
+        meta = dict(tuned=True, tuner="given", source="CompareConfig.tuned_designs "
+                    "(the design a `python -m tuning` run deployed, `--tuned-from`)",
+                    x=x.tolist(), coordinates=space.as_dict(x),
+                    design={k: float(v) for k, v in space.design(x).items()}, seconds=0.0)
+        folder.mkdir(parents=True, exist_ok=True)
+        write_json(meta_path, meta, indent=1)
+        return x, meta
     if config.tuner == "none":
         return None, dict(tuned=False, reason="no tuner (tuner = none)")
     folder.mkdir(parents=True, exist_ok=True)

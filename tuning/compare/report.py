@@ -263,9 +263,19 @@ def markdown(summary: dict) -> str:
               + ");",
               "- observer step: compute cost of one observer step (replay at batch 1, "
               "best of three; a measurement of this machine);",
-              "- tuned: the existing tuner from the paper design on a small training "
-              f"problem ({c['tuner']}, {c['tune_steps']} steps).", ""]
+              _tuned_line(c), ""]
     return "\n".join(lines)
+
+
+def _tuned_line(c: dict) -> str:
+    """The definitions' line on where the "tuned" designs come from."""
+    given = [n for n, _ in c.get("tuned_designs", ())]
+    small = (f"the existing tuner from the paper design on a small training problem "
+             f"({c['tuner']}, {c['tune_steps']} steps)")
+    if not given:
+        return f"- tuned: {small}."
+    return (f"- tuned: for {', '.join(given)}, the design a full tuning run "
+            f"(`python -m tuning`) deployed (`--tuned-from`); for the others, {small}.")
 
 
 __all__ = ["COLUMNS", "aggregate", "lock_comparison", "markdown"]
