@@ -36,14 +36,13 @@ def _load(paths: list[str]) -> dict:
 
 def _only(c: dict) -> str:
     """The runs lost only by the tuned design: how many, in which phases."""
+    from tuning.scenarios import phase_counts
+
     runs = c["only_tuned"]
     if not runs:
         return "0"
-    phases = {}
-    for w in runs:
-        phases[w["phase"]] = phases.get(w["phase"], 0) + 1
     speeds = sorted({abs(w["speed_pu"]) for w in runs})
-    return (f"{len(runs)} ({', '.join(f'{k} {v}' for k, v in phases.items())}; "
+    return (f"{len(runs)} ({phase_counts(w['phase'] for w in runs)}; "
             f"{', '.join(f'{s:g}' for s in speeds)} p.u.)")
 
 
