@@ -52,10 +52,11 @@ def job(tmp_path_factory):
     return config, out, summary
 
 
-def _direct(config):
+def _direct(config, sensored=False):
     """Every run of the grid with the paper design by direct `pmsmjax.simulate` calls
     (vmapped over points; the scenario built here from `pmsmjax.Scenario`; the observer in
-    `pmsmjax.SpeedFromAngle` when the configuration asks for it)."""
+    `pmsmjax.SpeedFromAngle` when the configuration asks for it). `sensored`: with the
+    sensored observer instead, every sample kept."""
     drive = config.drive()
     foc = pj.FOC.from_drive(drive)
     w_r = float(drive.w_rated)
@@ -67,7 +68,9 @@ def _direct(config):
     def one(j, speed, load, k):
         obs = pj.observers.make_observer(
             OBSERVER, drive, motor=observer_model(drive, k[0], k[1], k[2], k[3]))
-        if config.speed_from_angle is not None:
+        if sensored:
+            obs = pj.SensoredObserver()
+        elif config.speed_from_angle is not None:
             obs = pj.SpeedFromAngle(obs, w_track=2 * math.pi * config.speed_from_angle)
         tau = load * float(drive.tau_rated) * jnp.sign(speed)
         sc = pj.Scenario(t_end=config.t_end,
@@ -79,7 +82,8 @@ def _direct(config):
         return pj.simulate(drive, foc, obs, sc, T_s=config.T_s,
                            sensing=pj.Sensing(noise_std=config.noise_std), key=key,
                            theta0=0.0, w_m0=config.start_frac * speed * float(drive.w_rated),
-                           theta_hat0=0.0, save_every=config.save_every, throw=False)
+                           theta_hat0=0.0, save_every=1 if sensored else config.save_every,
+                           throw=False)
 
     return grid, jax.jit(jax.vmap(one))(jnp.arange(n), jnp.asarray(grid["speed_pu"]),
                                         jnp.asarray(grid["load_pu"]), jnp.asarray(cases))
@@ -252,6 +256,91 @@ def test_lock_comparison_accounting():
                       "stable designed equilibrium")
     assert sec[2] == "  - 0.05 p.u., load 0, matched; lost at 0.020 s (ramp); analysis: feasible"
     assert sec[3] == "- y: paper 2, tuned 0: fewer"
+
+
+def test_lock_comparison_counts_the_runs_beyond_the_low_speed_limit_apart():
+    """Hand-built cases of `lock_comparison` with the low-speed rule: the runs at its
+    points are counted apart (`paper_within`, `tuned_within`), `fewer` compares the
+    others, and a run lost only by the tuned design beyond the limit says so."""
+    a, b = _where(0.1, 1.0), _where(-1.0, 0.0, (0.7, 1.3, 1.0, 1.0))
+    c = _where(0.05, 1.0, (1.0, 1.0, 1.5, 1.0), feasible=False)
+    d = _where(0.05, 0.0, feasible=True)
+    pt = lambda w: (w["speed_pu"], w["load_pu"], w["k_d"], w["k_q"], w["k_R"],  # noqa: E731
+                    w["k_psi"])
+    low = dict(limit_pu=0.05, points={pt(c), (0.05, 0.5, 1.0, 1.0, 1.0, 1.0)})
+    r = lock_comparison(_entry([a, b], [a, c, d]), low)
+    assert (r["paper"], r["tuned"], r["paper_within"], r["tuned_within"]) == (2, 3, 2, 2)
+    assert (r["beyond_limit"], r["low_speed_limit_pu"], r["fewer"]) == (2, 0.05, False)
+    assert [w["beyond_limit"] for w in r["only_tuned"]] == [True, False]
+    assert r["why_not"] == ("2 runs lost only by the tuned design; 1 of them beyond the "
+                            "class's low-speed limit (0.05 p.u.: a sensored drive turns "
+                            "slower there; counted apart); 1 where it is feasible (lost on "
+                            "the way, by phase: ramp 1)")
+    # with d beyond too, the tuned design loses fewer of the runs the rule judges
+    r = lock_comparison(_entry([a, b], [a, c, d]), dict(low, points={pt(c), pt(d)}))
+    assert (r["paper_within"], r["tuned_within"], r["fewer"], r["why_not"]) == (
+        2, 1, True, None)
+    r = lock_comparison(_entry([c], [c, d]), dict(low, points={pt(c), pt(d)}))
+    assert r["why_not"] == ("neither design loses a run within the class's low-speed "
+                            "limit: none to lose fewer of")
+    # the same accounting without the rule is the one above
+    assert lock_comparison(_entry([a, b], [a, c, d]))["tuned"] == 3
+    md = markdown(dict(motor="m", config=dict(noise_std=0.0, T_s=1e-4, t_end=0.1,
+                                              settle_band_deg=2.0, lock_deg=45.0,
+                                              harmonic_orders=[5], tuner="adam",
+                                              tune_steps=2),
+                       grid=dict(n_runs=4, speeds_pu=[0.1], loads_pu=[0.0], cases=[{}]),
+                       skipped={}, observers={"x": dict(
+                           _entry([a, b], [a, c, d]),
+                           lock_comparison=lock_comparison(_entry([a, b], [a, c, d]),
+                                                           low))}))
+    sec = md.split("## Lost lock: tuned against paper\n\n")[1].split("\n\n")[0].splitlines()
+    assert sec[0].startswith("- x: paper 2, tuned 3 (within the class's low-speed limit "
+                             "of 0.05 p.u., 2 grid runs beyond it counted apart: paper 2, "
+                             "tuned 2): not fewer; 2 runs lost only")
+    assert sec[1] == ("  - 0.05 p.u., load 1, R 1.5; lost at 0.020 s (ramp); beyond the "
+                      "class's low-speed limit")
+
+
+def test_low_speed_rule_on_the_grid(job, tmp_path, monkeypatch):
+    """The job's low-speed rule: the sensored drive's lowest speed at every grid point
+    (`sensored_point`, saved in `sweeps/sensored`) equals that of direct `simulate`
+    calls with the sensored observer, and the lost-lock comparison counts the runs
+    below the class's limit apart, as recounted here from both designs' saved runs. The
+    class's declared limit is set here (the parallel-model estimator declares none)."""
+    import shutil
+
+    from pmsmjax.observers import observer_class
+
+    config, out, _ = job
+    part = tmp_path / "job"
+    shutil.copytree(out, part)
+    cls = observer_class(OBSERVER)
+    monkeypatch.setattr(cls, "low_speed_limit_pu", 1e-6)
+    run_comparison(config, part, progress=False, log=None, batch_size=2)
+    sens = read_npz(part / "sweeps" / "sensored" / "runs" / "result.npz")
+    lowest = sens["lowest_speed_pu"].reshape(-1)
+    grid, traj = _direct(config, sensored=True)
+    want = np.min(np.abs(np.asarray(traj.w_m)), axis=-1) / float(config.drive().w_rated)
+    np.testing.assert_allclose(lowest, want, rtol=1e-9)
+    c = json.loads((part / "comparison.json").read_text())["observers"][OBSERVER]
+    assert c["lock_comparison"]["beyond_limit"] == 0
+    # a limit between the measured lowest speeds: some runs beyond it, some not
+    limit = float(np.median(lowest))
+    assert np.any(lowest < limit) and np.any(lowest >= limit)
+    monkeypatch.setattr(cls, "low_speed_limit_pu", limit)
+    (part / "comparison.json").unlink()
+    run_comparison(config, part, progress=False, log=None, batch_size=2)
+    lc = json.loads((part / "comparison.json").read_text())["observers"][OBSERVER][
+        "lock_comparison"]
+    beyond = lowest < limit
+    assert lc["beyond_limit"] == int(beyond.sum()) and lc["low_speed_limit_pu"] == limit
+    within = {}
+    for d in DESIGNS:
+        r = read_npz(part / "sweeps" / OBSERVER / d / "runs" / "result.npz")
+        within[d] = int(np.sum(r["lost_lock"].reshape(-1).astype(bool) & ~beyond))
+    assert (lc["paper_within"], lc["tuned_within"]) == (within["paper"], within["tuned"])
+    assert lc["fewer"] == (within["tuned"] < within["paper"])
 
 
 def test_phase_at_the_scenario_times():

@@ -8,9 +8,10 @@ NAME`, handed over with `--tuned-from`), from the jobs' `comparison.json`.
 
 `--jobs`: default comparison jobs (`pmsmjax compare --motor M`); `--given`: jobs of the
 same drives with `--observers ... --tuned-from DIR ...` (one row per observer given a
-design there). It prints the table, writes it between the page's
-`<!-- tuned comparison -->` markers and the rows to `tuned_comparison.json` beside this
-script.
+design there). Where the observer's class declares a low-speed limit, "fewer" counts the
+runs the low-speed rule judges (the report's `lock_comparison`). It prints the table,
+writes it between the page's `<!-- tuned comparison -->` markers and the rows to
+`tuned_comparison.json` beside this script.
 """
 
 import argparse
@@ -59,6 +60,9 @@ def rows(jobs: dict, given: dict) -> list[dict]:
                 motor=motor, observer=name, n_runs=d["paper"]["n_runs"],
                 lost_paper=c["paper"], lost_small=None if small_c is None else small_c["tuned"],
                 lost_full=c["tuned"], fewer=c["fewer"], why_not=c["why_not"],
+                low_speed_limit_pu=c.get("low_speed_limit_pu"),
+                beyond_limit=c.get("beyond_limit"), lost_paper_within=c.get("paper_within"),
+                lost_full_within=c.get("tuned_within"),
                 only_full=_only(c),
                 static_rms_paper_deg=d["paper"]["static_rms_deg"],
                 static_rms_full_deg=d["tuned"]["static_rms_deg"],
@@ -66,15 +70,25 @@ def rows(jobs: dict, given: dict) -> list[dict]:
     return out
 
 
+def _within(r: dict) -> str:
+    """The lost runs the low-speed rule judges (the class's declared limit; "-" where it
+    declares none, and every run is judged)."""
+    if r["low_speed_limit_pu"] is None:
+        return "-"
+    return (f"{r['lost_paper_within']}, {r['lost_full_within']} "
+            f"(limit {r['low_speed_limit_pu']:g} p.u.; {r['beyond_limit']} runs beyond)")
+
+
 def table(rs: list[dict]) -> str:
     columns = [("drive", "l"), ("observer", "l"),
                ("lost: paper, small-problem tuner, full tuner", "l"),
+               ("within the class's low-speed limit: paper, full tuner", "l"),
                ("fewer (full tuner)", "l"), ("lost only by the full tuner's design", "l"),
                ("RMS static error: paper, full tuner (deg)", "r")]
     return markdown_table(columns, [
         [f"`{r['motor']}`", f"`{r['observer']}`",
          f"{r['lost_paper']}, {'-' if r['lost_small'] is None else r['lost_small']}, "
-         f"{r['lost_full']} of {r['n_runs']}",
+         f"{r['lost_full']} of {r['n_runs']}", _within(r),
          "yes" if r["fewer"] else "no", r["only_full"],
          f"{r['static_rms_paper_deg']:.2f}, {r['static_rms_full_deg']:.2f}"] for r in rs])
 

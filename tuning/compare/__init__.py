@@ -17,6 +17,7 @@ from .plots import plot_comparison as plot_comparison
 from .points import operating_current as operating_current
 from .report import (
     aggregate as aggregate,
+    beyond_points as beyond_points,
     lock_comparison as lock_comparison,
     markdown as markdown,
 )

@@ -13,7 +13,9 @@ The comparison in four modules:
 - this module: the job, `run_comparison`. Per observer (`observer_entry`): tune the
   "tuned" design (or read it from the job folder), measure the cost of one observer
   step, run both designs' sweeps (`pmsmjax.analysis.run_sweep`, resumable chunk by
-  chunk), aggregate; then `comparison.json`, `comparison.md`, `timing.json` and the
+  chunk), aggregate; where an observer class compared declares a low-speed limit, one
+  sweep of the sensored drive over the grid (`points.sensored_point`: the low-speed
+  rule's lowest speeds, `SWEEPS/sensored`); then `comparison.json`, `comparison.md`, `timing.json` and the
   figures (`tuning.compare.plots`). Everything is kept in the job folder, so an
   interrupted job continues where it stopped; `jobs` > 1 computes observers side by side
   in worker processes (`tuning.compare.worker`).
@@ -21,6 +23,7 @@ The comparison in four modules:
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -48,8 +51,9 @@ from .points import (
     _space,
     _sweep_fns,
     harmonic_sensitivity,
+    sensored_point,
 )
-from .report import aggregate, lock_comparison, markdown
+from .report import aggregate, beyond_points, lock_comparison, markdown
 
 
 FORMAT = "pmsmjax-compare/1"
@@ -235,6 +239,27 @@ def observer_entry(ctx: _Context, name: str, units, *, class_name: str | None = 
     return entry, tim
 
 
+@functools.lru_cache(maxsize=8)
+def _sensored_fn(config: CompareConfig):
+    """The per-point function of the sensored sweep (one object per configuration, so
+    that a resumed job in the same process compiles nothing)."""
+    return lambda p: sensored_point(config, p)
+
+
+def _lowest_speeds(ctx: _Context, limits: dict, units):
+    """Per grid point, the lowest speed (p.u.) of the sensored drive on that run
+    (`sensored_point`, one sweep for every observer, kept in `SWEEPS/sensored`), where an
+    observer class compared declares a low-speed limit (`limits`, p.u. by observer);
+    else None (nothing to measure)."""
+    if not any(v > 0 for v in limits.values()):
+        return None
+    ctx.log(f"sensored drive: {len(ctx.grid['case'])} runs (the low-speed rule) ...")
+    md = dict(observer="sensored", design="sensored", config=ctx.config.fingerprint())
+    r = _sweep(_sensored_fn(ctx.config), ctx.grid, ctx.sweeps / "sensored" / "runs",
+               ctx.config, md, ctx.progress, units, ctx.batch_size)
+    return np.asarray(r["lowest_speed_pu"]).reshape(-1)
+
+
 def _run_workers(ctx: _Context, names: list, jobs: int):
     """Run `observer_entry` for `names` in `jobs` worker processes at a time (`python -m
     tuning.compare.worker`); each writes `OUT/observers/NAME.json` and its log to
@@ -342,9 +367,12 @@ def run_comparison(config: CompareConfig, out, *, progress: bool = True, log=pri
     ctx = _Context(config, out, sweeps, grid, progress, log, batch_size)
     if jobs > 1:
         _run_workers(ctx, [n for n in ok if not ctx.entry_path(n).is_file()], jobs)
+    limits = {n: float(observer_class(n).low_speed_limit_pu) for n in ok}
+    lowest = _lowest_speeds(ctx, limits, units)
     for name in ok:
         entry, tim = observer_entry(ctx, name, units, class_name=ok[name])
-        entry["lock_comparison"] = lock_comparison(entry)
+        entry["lock_comparison"] = lock_comparison(
+            entry, beyond_points(lowest, limits[name], grid, config))
         observers[name] = entry
         timing["observers"][name] = tim
     timing["wall_s"] = time.perf_counter() - t_start

@@ -104,6 +104,33 @@ def phase_times(config: CompareConfig) -> tuple[float, float, float]:
                  for f in (*VAL_RAMP, VAL_LOAD_STEP))
 
 
+def _point_set(config: CompareConfig, point: dict) -> ScenarioSet:
+    """The one run of grid point `point` as a `ScenarioSet` (see `run_point`)."""
+    k = jnp.asarray(config.cases)[point["case"].astype(int)]
+    sp = jnp.asarray(point["speed_pu"])[None]
+    key = jr.fold_in(jr.PRNGKey(config.seed), point["index"].astype(jnp.uint32))
+    t0, t1, t_load = (jnp.full(1, t) for t in phase_times(config))
+    return ScenarioSet(s0=config.start_frac * sp, s1=sp, t0=t0, t1=t1, t_load=t_load,
+                       load_pu=jnp.asarray(point["load_pu"])[None],
+                       k_d=k[0:1], k_q=k[1:2], k_R=k[2:3], k_psi=k[3:4],
+                       k_noise=jnp.ones(1, sp.dtype), keys=key[None],
+                       kind=jnp.full(1, 3), t_end=config.t_end)
+
+
+def sensored_point(config: CompareConfig, point: dict) -> dict:
+    """The run of grid point `point` (as `run_point`'s: the same controller, scenario and
+    noise) with the sensored observer (the true angle and speed): `lowest_speed_pu`, the
+    lowest speed magnitude the rotor reaches in it (p.u. of rated, every sample). The
+    low-speed rule of the tuner (`tuning.scenarios.low_speed_runs`) on the common grid:
+    a point where even this drive turns slower than an observer class's declared limit
+    (`low_speed_limit_pu`) is beyond that class."""
+    drive = config.drive()
+    traj = simulate_set(lambda motor: pj.SensoredObserver(), drive,
+                        pj.FOC.from_drive(drive), _point_set(config, point), T_s=config.T_s,
+                        noise_std=config.noise_std, save_every=1)
+    return {"lowest_speed_pu": jnp.min(jnp.abs(traj.w_m[0])) / float(drive.w_rated)}
+
+
 def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     """Simulate one point of the common grid (`tuning.scenarios.simulate_set`, the runs
     of the tuner's validation set) with the design `design` (physical coordinates of the
@@ -112,18 +139,8 @@ def run_point(design, config: CompareConfig, kind: str, point: dict) -> dict:
     noise key)."""
     drive = config.drive()
     space = _space(config, kind)
-    cases = jnp.asarray(config.cases)
-    k = cases[point["case"].astype(int)]
-    sp = jnp.asarray(point["speed_pu"])[None]
-    key = jr.fold_in(jr.PRNGKey(config.seed), point["index"].astype(jnp.uint32))
-    t0, t1, t_load = (jnp.full(1, t) for t in phase_times(config))
-    sset = ScenarioSet(s0=config.start_frac * sp, s1=sp, t0=t0, t1=t1, t_load=t_load,
-                       load_pu=jnp.asarray(point["load_pu"])[None],
-                       k_d=k[0:1], k_q=k[1:2], k_R=k[2:3], k_psi=k[3:4],
-                       k_noise=jnp.ones(1, sp.dtype), keys=key[None],
-                       kind=jnp.full(1, 3), t_end=config.t_end)
     traj = simulate_set(lambda motor: space.observer(design, motor), drive,
-                        pj.FOC.from_drive(drive), sset, T_s=config.T_s,
+                        pj.FOC.from_drive(drive), _point_set(config, point), T_s=config.T_s,
                         noise_std=config.noise_std, save_every=config.save_every,
                         speed_from_angle=config.speed_from_angle)
     out = jax.tree_util.tree_map(lambda a: a[0], run_metrics(traj, config))
@@ -164,5 +181,4 @@ def harmonic_sensitivity(design, config: CompareConfig, name: str):
 
 
 __all__ = ["RUN_METRICS", "feasibility_point", "harmonic_sensitivity", "operating_current",
-           "phase_times",
-           "run_metrics", "run_point"]
+           "phase_times", "run_metrics", "run_point", "sensored_point"]

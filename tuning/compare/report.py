@@ -36,7 +36,11 @@ fewer runs, and, where it does not, why: the runs only the tuned design loses, e
 with the reason the analysis gives (no stable designed equilibrium at that point: the
 design cannot hold it; or feasible there: lost on the way, in the phase of the run
 each line names; or that the analysis failed at that point, status -1, which is no
-verdict at all), or that the paper's design loses none.
+verdict at all), or that the paper's design loses none. Where the observer's class
+declares a low-speed limit (`low_speed_limit_pu`), the tuner's low-speed rule, fixed
+before tuning, applies (`beyond_points`): the runs in which the sensored drive turns
+slower than the limit are beyond the class, counted apart, and "fewer" compares the
+others.
 """
 
 from __future__ import annotations
@@ -113,10 +117,31 @@ def _point(w: dict) -> tuple:
     return (w["speed_pu"], w["load_pu"]) + tuple(w[k] for k in CASE_NAMES)
 
 
-def lock_comparison(entry: dict) -> dict | None:
+def beyond_points(lowest, limit_pu: float, grid, config: CompareConfig) -> dict | None:
+    """The low-speed rule on the common grid for an observer class whose declared limit
+    is `limit_pu` (p.u.; `low_speed_limit_pu`): `{"limit_pu", "points"}`, the grid points
+    (as `lost_lock_where` names them) where the sensored drive's lowest speed `lowest`
+    (per grid point, `tuning.compare.points.sensored_point`) is below the limit; None
+    where the class declares no limit (or nothing was measured)."""
+    if lowest is None or not limit_pu > 0:
+        return None
+    lowest = np.asarray(lowest).reshape(-1)
+    points = {(float(grid["speed_pu"][j]), float(grid["load_pu"][j]),
+               *(float(v) for v in config.cases[int(grid["case"][j])]))
+              for j in np.nonzero(lowest < limit_pu)[0]}
+    return dict(limit_pu=float(limit_pu), points=points)
+
+
+def lock_comparison(entry: dict, low_speed: dict | None = None) -> dict | None:
     """The tuned design's lost runs against the paper design's (module docstring), from
     one observer's entry (`entry["designs"]`); None where a design has no runs (the
-    tuner was not run or failed: its reason is in that design's `flags`)."""
+    tuner was not run or failed: its reason is in that design's `flags`).
+
+    `low_speed` (`beyond_points`): the tuner's low-speed rule, fixed before tuning, on
+    the common grid. The runs at its points are beyond the observer's class and counted
+    apart, as the tuner's accounting counts them (`beyond_limit`): `fewer` compares the
+    lost runs within the limit (`paper_within`, `tuned_within`), and each run lost only
+    by the tuned design says whether it is beyond (`beyond_limit`)."""
     d = entry.get("designs", {})
     if any(d.get(n, {}).get("lost_lock") is None for n in DESIGNS):
         return None
@@ -126,14 +151,31 @@ def lock_comparison(entry: dict) -> dict | None:
     out = dict(paper=len(paper), tuned=len(tuned), fewer=len(tuned) < len(paper),
                only_tuned=only_tuned,
                only_paper=[w for w in paper if _point(w) not in t_at])
+    beyond = set() if low_speed is None else low_speed["points"]
+    if low_speed is not None:
+        within = [sum(_point(w) not in beyond for w in ws) for ws in (paper, tuned)]
+        only_tuned = [dict(w, beyond_limit=_point(w) in beyond) for w in only_tuned]
+        out.update(low_speed_limit_pu=low_speed["limit_pu"], beyond_limit=len(beyond),
+                   paper_within=within[0], tuned_within=within[1],
+                   fewer=within[1] < within[0], only_tuned=only_tuned)
+    n_paper, n_tuned = ((out["paper_within"], out["tuned_within"]) if low_speed
+                        else (len(paper), len(tuned)))
     if out["fewer"]:
         out["why_not"] = None
-    elif not paper and not tuned:
-        out["why_not"] = "neither design loses a run: none to lose fewer of"
+    elif not n_paper and not n_tuned:
+        out["why_not"] = ("neither design loses a run" + (
+            " within the class's low-speed limit" if low_speed else "")
+            + ": none to lose fewer of")
     else:
-        kinds = [_analysis_kind(w) for w in only_tuned]
         n = len(only_tuned)
         why = [f"{n} run{'s' if n != 1 else ''} lost only by the tuned design"]
+        n_beyond = sum(bool(w.get("beyond_limit")) for w in only_tuned)
+        if n_beyond:
+            why.append(f"{n_beyond} of them beyond the class's low-speed limit "
+                       f"({low_speed['limit_pu']:g} p.u.: a sensored drive turns slower "
+                       f"there; counted apart)")
+        only_tuned = [w for w in only_tuned if not w.get("beyond_limit")]
+        kinds = [_analysis_kind(w) for w in only_tuned]
         for kind, text in (
                 ("infeasible", "{} of them where the analysis finds no stable designed "
                                "equilibrium for it (it cannot hold that point)"),
@@ -143,7 +185,7 @@ def lock_comparison(entry: dict) -> dict | None:
                 ("unknown", "{} without the analysis")):
             if kinds.count(kind):
                 why.append(text.format(kinds.count(kind)))
-        if not paper:
+        if not n_paper:
             why.append("the paper's design loses none")
         out["why_not"] = "; ".join(why)
     return out
@@ -159,6 +201,10 @@ def _lock_lines(summary: dict) -> list[str]:
             lines.append(f"- {name}: no tuned design to compare (its flags say why)")
             continue
         head = f"- {name}: paper {c['paper']}, tuned {c['tuned']}"
+        if "low_speed_limit_pu" in c:
+            head += (f" (within the class's low-speed limit of {c['low_speed_limit_pu']:g}"
+                     f" p.u., {c['beyond_limit']} grid runs beyond it counted apart: paper "
+                     f"{c['paper_within']}, tuned {c['tuned_within']})")
         if c["fewer"]:
             lines.append(f"{head}: fewer")
             continue
@@ -166,7 +212,8 @@ def _lock_lines(summary: dict) -> list[str]:
         for w in c["only_tuned"]:
             lines.append(f"  - {w['speed_pu']:g} p.u., load {w['load_pu']:g}, "
                          f"{case_label(w)}; lost at {w['t_lost_s']:.3f} s ({w['phase']})"
-                         f"{_REASONS[_analysis_kind(w)]}")
+                         + ("; beyond the class's low-speed limit" if w.get("beyond_limit")
+                            else _REASONS[_analysis_kind(w)]))
     return lines
 
 
@@ -278,4 +325,4 @@ def _tuned_line(c: dict) -> str:
             f"(`python -m tuning`) deployed (`--tuned-from`); for the others, {small}.")
 
 
-__all__ = ["COLUMNS", "aggregate", "lock_comparison", "markdown"]
+__all__ = ["COLUMNS", "aggregate", "beyond_points", "lock_comparison", "markdown"]
