@@ -15,10 +15,10 @@ The comparison in four modules:
   step, run both designs' sweeps (`pmsmjax.analysis.run_sweep`, resumable chunk by
   chunk), aggregate; where an observer class compared declares a low-speed limit, one
   sweep of the sensored drive over the grid (`points.sensored_point`: the low-speed
-  rule's lowest speeds, `SWEEPS/sensored`); then `comparison.json`, `comparison.md`, `timing.json` and the
-  figures (`tuning.compare.plots`). Everything is kept in the job folder, so an
-  interrupted job continues where it stopped; `jobs` > 1 computes observers side by side
-  in worker processes (`tuning.compare.worker`).
+  rule's lowest speeds, `SWEEPS/sensored`); then `comparison.json`, `comparison.md`,
+  `timing.json` and the figures (`tuning.compare.plots`). Everything is kept in the job
+  folder, so an interrupted job continues where it stopped; `jobs` > 1 computes
+  observers side by side in worker processes (`tuning.compare.worker`).
 """
 
 from __future__ import annotations
