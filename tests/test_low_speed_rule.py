@@ -42,6 +42,10 @@ def test_the_rule_on_a_small_case():
     np.testing.assert_allclose(lowest, _lowest_one_by_one(p, vset), rtol=1e-9)
     assert beyond.tolist() == (np.abs(s1) < 0.2).tolist(), (s1, lowest)
     assert np.all(lowest[np.abs(s1) < 0.2] < 0.02) and np.all(lowest[np.abs(s1) > 0.2] > 0.2)
+    # the speeds a verdict over the judged runs covers: the +-0.4 p.u. runs'
+    assert tg.judged_speeds(vset, beyond) == (0.4, 0.4)
+    assert tg.judged_speeds(vset, np.zeros(vset.n, bool)) is None
+    assert tg.judged_speeds(vset, np.ones(vset.n, bool)) is None
     # an observer that declares no limit (the ESO): nothing simulated
     q = tg.TuningProblem(val_speeds_pu=(0.1, 0.4), val_cases=tg.VALIDATION_CASES[:1])
     none, nan = tg.low_speed_runs(q, tg.validation_set(q))

@@ -166,6 +166,8 @@ def test_main_job_quick(tmp_path):
     assert rule["limit_pu"] == 0.0 == s["problem"]["low_speed_limit_pu"]
     assert rule["runs"] == [] and acc["beyond_limit"] == 0 and acc["n"] == 2 * 2 * 3
     assert rule["lowest_speed_pu"] == [None] * acc["n"]
+    # every run judged: the verdict states no range of judged speeds
+    assert "judged_speeds_pu" not in v and "runs judged" not in v["statement"]
     assert {"improved", "improved_frac"} <= set(acc)
     assert acc["improved_frac"] == acc["fraction_better"]
     for name, row in s["designs"].items():

@@ -143,6 +143,12 @@ def test_runs_beyond_the_low_speed_rule_are_counted_apart():
         "holds: tuned better than the paper's design in 3 of 4 validation runs (2 more "
         "beyond the observer's low-speed limit, counted apart); worst RMS change +5.0 %; "
         "no new lost lock")
+    # with the speeds of the runs judged (the verdict's `judged_speeds_pu`)
+    assert pj.verdict_text({"holds": True, "baseline": BASELINE, "judged_speeds_pu": [0.4, 0.8],
+                            "accounting": {k: a[k] for k in tg.VOCABULARY}}) == (
+        "holds: tuned better than the paper's design in 3 of 4 validation runs (2 more "
+        "beyond the observer's low-speed limit, counted apart; the runs judged end at "
+        "0.4-0.8 p.u.); worst RMS change +5.0 %; no new lost lock")
     with pytest.raises(ValueError, match="one bool per run"):
         tg.accounting(m, ref, 0.1, beyond[:5])
     with pytest.raises(ValueError, match="leaves no run"):
@@ -192,6 +198,17 @@ def test_the_verdict_is_stated_as_counted_in_gains_h():
     assert " * Warning: the eso gains table did NOT beat the paper's design" in text
     assert pj.verdict_text(dict(failed["verdict"], accounting=dict(
         COUNTS, new_lost_lock=1))).endswith("; 1 new lost lock")
+    # the speeds the verdict covers, where the low-speed rule set runs apart: kept by the
+    # table and stated in gains.h; a range that is not [lowest, highest] is refused
+    li = _table({"holds": True, "baseline": BASELINE, "where_not": [],
+                 "accounting": dict(COUNTS, n=66, better=66, beyond_limit=22),
+                 "judged_speeds_pu": (0.4, 0.8)})
+    assert li["verdict"]["judged_speeds_pu"] == [0.4, 0.8]
+    assert ("(22 more beyond the observer's low-speed limit, counted apart; the runs "
+            "judged end at 0.4-0.8 p.u.)") in gains_c_header(li)
+    for bad in ([0.8, 0.4], [0.4], [0.4, float("nan")], "0.4-0.8"):
+        with pytest.raises(ValueError, match="judged_speeds_pu"):
+            _table({"holds": True, "judged_speeds_pu": bad})
     # a table written before the counts were recorded, and one with no verdict at all
     old = _table({"holds": True, "baseline": "paper design", "where_not": []})
     assert "accounting" not in old["verdict"]

@@ -71,6 +71,7 @@ from .scenarios import (
     ScenarioSet as ScenarioSet,
     check_disjoint as check_disjoint,
     heldout_set as heldout_set,
+    judged_speeds as judged_speeds,
     low_speed_runs as low_speed_runs,
     simulate_set as simulate_set,
     training_set as training_set,

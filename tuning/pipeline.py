@@ -59,6 +59,7 @@ from .scenarios import (
     _low_speed,
     check_disjoint,
     heldout_set,
+    judged_speeds,
     phase_at,
     phase_counts,
     sensored_lowest_speed,
@@ -200,11 +201,15 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     same = _paper_not_bettered(obj["train"], default)
     if not verdict["holds"] and same:
         verdict["where_not"].append(same)
+    judged = judged_speeds(sets["validation"], beyond)
     verdict["low_speed_rule"] = {
         "limit_pu": float(problem.low_speed_limit_pu),
         "rule": LOW_SPEED_RULE, "runs": [int(j) for j in np.nonzero(beyond)[0]],
         "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in lowest],
         "left_out": left_out}
+    if judged is not None:
+        # the speeds the verdict covers, where the rule sets runs apart
+        verdict["judged_speeds_pu"] = list(judged)
     fa = acc["validation"][FLOOR]
     # the per-run parts of the rule (a perturbation is not meant to be better)
     floor_why = [w for w in holds(fa)[1] if not w.startswith("better in")]
@@ -226,7 +231,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
         "holds": verdict["holds"], "baseline": BASELINE,
-        "accounting": {k: a[k] for k in VOCABULARY}})
+        "accounting": {k: a[k] for k in VOCABULARY},
+        **({"judged_speeds_pu": list(judged)} if judged is not None else {})})
     return TuningReport(problem=problem, space=space, sets=sets, disjoint=disjoint,
                         designs=designs, searches=searches, metrics=metrics,
                         objective=obj, accounting=acc, default=default, verdict=verdict,

@@ -384,6 +384,17 @@ def low_speed_runs(problem, sset: ScenarioSet) -> tuple[np.ndarray, np.ndarray]:
     return _low_speed(problem, sset)[:2]
 
 
+def judged_speeds(sset: ScenarioSet, beyond) -> tuple[float, float] | None:
+    """The final speeds (p.u., magnitudes) of the runs of `sset` the low-speed rule
+    judges, `(lowest, highest)`: the speeds a verdict over them covers. None where the
+    rule sets no run apart (the verdict covers every run) or every run."""
+    beyond = np.asarray(beyond, bool)
+    if not beyond.any() or beyond.all():
+        return None
+    s = np.abs(np.asarray(sset.s1, float))[~beyond]
+    return float(s.min()), float(s.max())
+
+
 def _low_speed(problem, sset: ScenarioSet):
     """`low_speed_runs` and the sensored records it measured (`sensored_lowest_speed` of
     every run; None where the limit is 0), which the report reuses for blocking runs."""
@@ -411,7 +422,7 @@ def _keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, i
     return sset.take(np.nonzero(~beyond)[0]), int(beyond.sum())
 
 
-__all__ = ["KINDS", "PHASES", "ScenarioSet", "check_disjoint", "designed_feasible", "heldout_set",
-           "low_speed_runs", "max_acceleration", "observer_model", "operating_current",
-           "phase_at", "phase_counts", "scenario", "sensored_lowest_speed", "simulate_set",
-           "training_set", "validation_set"]
+__all__ = ["KINDS", "PHASES", "ScenarioSet", "check_disjoint", "designed_feasible",
+           "heldout_set", "judged_speeds", "low_speed_runs", "max_acceleration",
+           "observer_model", "operating_current", "phase_at", "phase_counts", "scenario",
+           "sensored_lowest_speed", "simulate_set", "training_set", "validation_set"]

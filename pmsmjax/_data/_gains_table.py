@@ -38,7 +38,9 @@ whether the tuned design passed the tuner's rule against the baseline on closed-
 validation runs (`where_not` says where it did not), optionally with `accounting`, its
 counts under the names summary.json gives them (`VERDICT_COUNTS`: `n` runs, `better` /
 `worse`: loss lower / higher than the baseline's by more than 0.1 %, `fraction_better`,
-`worst_rms_change_pct`, `new_lost_lock`: runs losing lock that the baseline holds).
+`worst_rms_change_pct`, `new_lost_lock`: runs losing lock that the baseline holds),
+and where the low-speed rule set runs apart, `judged_speeds_pu`, the lowest and highest
+final speed (p.u.) of the runs it judged: the speeds the verdict covers.
 `verdict_text(verdict)` states it as counted (the tuner's last line, `gains.h`'s header
 comment, `pmsmjax gains`); `speed_from_angle_Hz`, the speed the design's speed loop was
 tuned on (null: the observer's own estimate; a number: the speed of its angle through a
@@ -226,14 +228,25 @@ def _check_verdict(verdict, source: str) -> dict:
                 raise ValueError(f"{source}: `verdict.accounting.{k}` must be an integer "
                                  f">= 0; got {a[k]!r}")
             out["accounting"][k] = a[k]
+    if "judged_speeds_pu" in verdict:
+        r = verdict["judged_speeds_pu"]
+        ok = (isinstance(r, list | tuple) and len(r) == 2
+              and all(isinstance(v, int | float) and not isinstance(v, bool)
+                      and math.isfinite(v) and v >= 0 for v in r) and r[0] <= r[1])
+        if not ok:
+            raise ValueError(f"{source}: `verdict.judged_speeds_pu` must be [lowest, highest]"
+                             f", finite speeds >= 0 (p.u.) in that order; got {r!r}")
+        out["judged_speeds_pu"] = [float(v) for v in r]
     return out
 
 
 def verdict_text(verdict: dict | None) -> str:
     """The tuner's verdict stated as counted, one line: "holds: tuned better than the
     paper's design in 74 of 88 validation runs; worst RMS change +7.6 %; no new lost
-    lock" (from `verdict.accounting`; "holds (no counts recorded)" for a table that
-    records none, "not recorded" without a verdict). The tuner's last line, `gains.h`'s
+    lock" (from `verdict.accounting`; where the low-speed rule set runs apart, how many,
+    and the final speeds of the runs judged, `verdict.judged_speeds_pu`, when recorded;
+    "holds (no counts recorded)" for a table that records none, "not recorded" without a
+    verdict). The tuner's last line, `gains.h`'s
     header comment and `pmsmjax gains` print it."""
     if verdict is None:
         return "not recorded"
@@ -244,8 +257,10 @@ def verdict_text(verdict: dict | None) -> str:
     k = int(a["new_lost_lock"])
     lost = "no new lost lock" if k == 0 else f"{k} new lost lock{'s' if k > 1 else ''}"
     b = int(a.get("beyond_limit") or 0)
-    apart = (f" ({b} more beyond the observer's low-speed limit, counted apart)" if b
-             else "")
+    r = verdict.get("judged_speeds_pu")
+    judged = "" if r is None else f"; the runs judged end at {r[0]:g}-{r[1]:g} p.u."
+    apart = (f" ({b} more beyond the observer's low-speed limit, counted apart{judged})"
+             if b else "")
     return (f"{word}: tuned better than {verdict.get('baseline') or 'the paper design'} "
             f"in {int(a['better'])} of {int(a['n'])} validation runs{apart}; worst RMS "
             f"change {a['worst_rms_change_pct']:+.1f} %; {lost}")

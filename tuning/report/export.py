@@ -33,6 +33,8 @@ def gains_table(report, name: str | None = None) -> dict:
     verdict = {"holds": bool(report.verdict["holds"]), "baseline": BASELINE,
                "where_not": list(report.verdict["where_not"]),
                "accounting": {k: acc[k] for k in VOCABULARY}}
+    if "judged_speeds_pu" in report.verdict:
+        verdict["judged_speeds_pu"] = list(report.verdict["judged_speeds_pu"])
     return pj.gains_table_constant(problem.observer, values, units, drive=drive.name,
                                    notes=notes, T_s=float(problem.T_s),
                                    objective="cvar", verdict=verdict,
