@@ -187,6 +187,13 @@ def console_summary(s: dict) -> str:
         wall = f"{sr['wall_s']:.1f}" if "wall_s" in sr else "-"
         lines.append(f"{name:<16}" + "".join(f"{c:>{w}}" for c, w in zip(cells, widths))
                      + f"{sr.get('sims', '-'):>7}{wall:>8}")
+    u = s["verdict"].get("unloaded_low_speed")
+    if u:
+        from .blocking import unloaded_text
+
+        lines += ["", f"not judged by the verdict (`verdict.unloaded_low_speed`): the "
+                      f"validation runs the low-speed rule sets apart, without their load "
+                      f"step: {unloaded_text(u)}"]
     lines += ["", "RMS deg: each validation run's RMS angle error, mean over the runs (deg)"]
     lines += [f"{key}: {VOCABULARY[key]}" for _, _, key, _ in COLUMNS if key in VOCABULARY]
     lines.append("train objective: what the searches minimise on the training runs "

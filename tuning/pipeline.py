@@ -48,6 +48,8 @@ from .blocking import (
     main_phase,
     noise_floor,
     phase_split,
+    unloaded_low_speed,
+    unloaded_text,
 )
 from .design_space import DesignSpace
 from .evaluate import Evaluator
@@ -223,6 +225,13 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"are chaotic, so no design passes a per-run rule on them")
     _lost_by_both(problem, space, sets["validation"], metrics["validation"], default,
                   designs[default], beyond, verdict, log)
+    if judged is not None:
+        # what the verdict does not judge: the runs set apart, without their load step
+        u = unloaded_low_speed(problem, space, sets["validation"], beyond,
+                               designs[default])
+        verdict["unloaded_low_speed"] = u
+        _say(log, f"not judged: the {int(beyond.sum())} runs the low-speed rule sets "
+                  f"apart, without their load step: {unloaded_text(u)}")
     trace = None
     if not verdict["holds"]:
         trace = _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
