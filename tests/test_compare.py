@@ -391,11 +391,12 @@ def test_lock_comparison_from_the_saved_runs(job):
             want = ("start" if t < t0 else "ramp" if t < t1 else "steady" if t < t_load
                     else "loaded")
             assert w["phase"] == want
-    # the tuning record says how many training runs the low-speed rule left out (the ESO
-    # declares no limit: none)
+    # the tuning record says how many training runs the low-speed rule left out and how
+    # many it kept without their load step (the ESO declares no limit: none)
     problem = config.tuning_problem(OBSERVER)
     t = s["observers"][OBSERVER]["tuning"]
-    assert (t["train_runs"], t["train_runs_left_out"]) == (problem.n_train, 0)
+    assert (t["train_runs"], t["train_runs_left_out"], t["train_runs_unloaded"]) == (
+        problem.n_train, 0, 0)
     assert t["low_speed_limit_pu"] == problem.low_speed_limit_pu == 0.0
 
 

@@ -1,9 +1,12 @@
-"""The tuner's low-speed rule (`tuning.low_speed_runs`, `TuningProblem.low_speed_limit_pu`):
-fixed before tuning, from a sensored drive of each validation run; checked on a small
-case against `pmsmjax.simulate` run by run with the sensored observer."""
+"""The tuner's low-speed rule (`tuning.low_speed_runs`, `tuning.apply_low_speed_rule`,
+`TuningProblem.low_speed_limit_pu`): fixed before tuning, from a sensored drive of each
+run; checked on small cases against `pmsmjax.simulate` run by run with the sensored
+observer."""
 
 import dataclasses
 
+import equinox as eqx
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -29,6 +32,10 @@ def _lowest_one_by_one(p, sset):
     return np.asarray(out)
 
 
+def _unloaded(sset):
+    return eqx.tree_at(lambda s: s.load_pu, sset, jnp.zeros_like(sset.load_pu))
+
+
 def test_the_rule_on_a_small_case():
     """li's drive, the nominal case at +-0.1 and +-0.4 p.u.: the load step takes the
     sensored drive to about 1 % of rated speed at +-0.1 p.u. (below the li observers'
@@ -46,24 +53,40 @@ def test_the_rule_on_a_small_case():
     assert tg.judged_speeds(vset, beyond) == (0.4, 0.4)
     assert tg.judged_speeds(vset, np.zeros(vset.n, bool)) is None
     assert tg.judged_speeds(vset, np.ones(vset.n, bool)) is None
+    # the rule as the sets meet it: the +-0.1 p.u. runs' load step alone takes them below
+    # the limit, and their unloaded twins (from 0.06 p.u. on) stay above it, so both are
+    # judged without their load step; the +-0.4 p.u. runs are unchanged
+    rule_set, rule = tg.apply_low_speed_rule(p, vset)
+    slow = np.abs(s1) < 0.2
+    assert rule["unloaded"].tolist() == slow.tolist() and not rule["beyond"].any()
+    np.testing.assert_array_equal(np.asarray(rule_set.load_pu),
+                                  np.where(slow, 0.0, np.asarray(vset.load_pu)))
+    for name in ("s0", "s1", "t0", "t1", "t_load", "k_d", "k_noise", "keys"):
+        np.testing.assert_array_equal(getattr(rule_set, name), getattr(vset, name))
+    twin_lowest = _lowest_one_by_one(p, _unloaded(vset))
+    np.testing.assert_allclose(rule["lowest_pu"][slow], twin_lowest[slow], rtol=1e-9)
+    np.testing.assert_allclose(rule["lowest_pu"][~slow], lowest[~slow], rtol=1e-9)
+    assert np.all(twin_lowest[slow] > p.low_speed_limit_pu), twin_lowest
+    assert [r["run"] for r in rule["sensored"]] == list(range(vset.n))
     # an observer that declares no limit (the ESO): nothing simulated
     q = tg.TuningProblem(val_speeds_pu=(0.1, 0.4), val_cases=tg.VALIDATION_CASES[:1])
     none, nan = tg.low_speed_runs(q, tg.validation_set(q))
     assert not none.any() and np.all(np.isnan(nan))
+    same, rule = tg.apply_low_speed_rule(q, tg.validation_set(q))
+    assert rule["sensored"] is None and not (rule["beyond"].any() or rule["unloaded"].any())
 
 
 def test_blocking_runs_reuse_the_rules_sensored_records():
     """Where the rule measured every run, the blocking runs' report takes its records
-    instead of simulating them again: the same numbers as measured afresh (a run worse by
-    more than the tolerance at +0.4 p.u., kept by the rule, and one at +0.1 p.u., beyond
-    it, which is not a blocking run)."""
+    instead of simulating them again: the same numbers as measured afresh on the runs as
+    the rule left them (a run worse by more than the tolerance at +0.4 p.u., and one at
+    +0.1 p.u., judged without its load step: its record is its unloaded twin's)."""
     from tuning.pipeline import _blocking
-    from tuning.scenarios import _low_speed
 
     p = tg.TuningProblem(observer="c-leso", val_speeds_pu=(0.1, 0.4),
                          val_cases=tg.VALIDATION_CASES[:1])
-    vset = tg.validation_set(p)
-    beyond, _, records = _low_speed(p, vset)
+    vset, rule = tg.apply_low_speed_rule(p, tg.validation_set(p))
+    beyond, records = rule["beyond"], rule["sensored"]
     s1 = np.asarray(vset.s1)
     ones = np.ones(vset.n)
     rms = np.where(np.isclose(s1, 0.4) | np.isclose(s1, 0.1), 1.5, 1.0)  # +50 %
@@ -78,7 +101,8 @@ def test_blocking_runs_reuse_the_rules_sensored_records():
     reused, fresh = {"where_not": []}, {"where_not": []}
     _blocking(p, vset, m, reused, lambda *a: None, beyond, records)
     _blocking(p, vset, m, fresh, lambda *a: None, beyond)
-    assert [r["run"] for r in reused["blocking_runs"]] == [int(np.argmax(np.isclose(s1, 0.4)))]
+    assert [r["run"] for r in reused["blocking_runs"]] == sorted(
+        np.nonzero(np.isclose(s1, 0.4) | np.isclose(s1, 0.1))[0].tolist())
     assert reused["where_not"] == fresh["where_not"]
     for a, b in zip(reused["blocking_runs"], fresh["blocking_runs"]):
         assert a.keys() == b.keys()
@@ -86,47 +110,52 @@ def test_blocking_runs_reuse_the_rules_sensored_records():
             np.testing.assert_allclose(a[k], b[k], rtol=1e-9)
 
 
-def test_the_search_sets_leave_out_the_runs_beyond_the_rule():
+def test_the_search_sets_under_the_rule():
     """The training set the search sees obeys the rule the validation accounting states:
     for li's C-LESO (limit 0.05 p.u.) every reversal of the training set passes through
-    zero speed in the sensored drive and is left out, and so is any other run slower than
-    the limit there, each checked against `pmsmjax.simulate` run by run; the kept runs
-    are the others, unchanged and in order. The ESO (no limit) keeps every run."""
-    from tuning.scenarios import _keep_within
+    zero speed in the sensored drive even unloaded and is left out; a run that only its
+    load step takes below the limit is kept without it; each checked against
+    `pmsmjax.simulate` run by run, loaded and unloaded; the kept runs are the others,
+    unchanged and in order. The ESO (no limit) keeps every run as drawn."""
+    from tuning.scenarios import keep_within
 
     p = tg.TuningProblem(observer="c-leso", n_train=9)
     tset = tg.training_set(p)
-    kept, n_out = _keep_within(p, tset, "train")
+    kept, counts = keep_within(p, tset, "train")
     lowest = _lowest_one_by_one(p, tset)
-    out = lowest < p.low_speed_limit_pu
+    twin = _lowest_one_by_one(p, _unloaded(tset))
+    limit = p.low_speed_limit_pu
+    out, unloaded = (lowest < limit) & (twin < limit), (lowest < limit) & (twin >= limit)
     reversal = np.asarray(tset.kind) == 1
-    assert reversal.any() and np.all(out[reversal]), (lowest, np.asarray(tset.kind))
+    assert reversal.any() and np.all(out[reversal]), (lowest, twin, np.asarray(tset.kind))
     assert not out.all()
-    assert n_out == int(out.sum()) and kept.n == tset.n - n_out
-    for name in ("s0", "s1", "load_pu", "k_d", "k_q", "k_noise", "keys"):
+    assert counts == {"left_out": int(out.sum()), "unloaded": int(unloaded.sum())}
+    assert kept.n == tset.n - int(out.sum())
+    for name in ("s0", "s1", "k_d", "k_q", "k_noise", "keys"):
         np.testing.assert_array_equal(getattr(kept, name), np.asarray(getattr(tset, name))[~out])
+    np.testing.assert_array_equal(kept.load_pu, np.where(unloaded, 0.0,
+                                                         np.asarray(tset.load_pu))[~out])
     q = tg.TuningProblem(n_train=9)
-    same, none = _keep_within(q, tg.training_set(q), "train")
-    assert none == 0 and same.n == 9
-    # a limit above every run's lowest speed would leave nothing to train on: refused,
-    # naming the parameter and its value
-    above = float(lowest.max()) + 0.01
-    assert above < 1, lowest
+    same, none = keep_within(q, tg.training_set(q), "train")
+    assert none == {"left_out": 0, "unloaded": 0} and same.n == 9
+    # a limit above every run's lowest speed, loaded or not, would leave nothing to train
+    # on: refused, naming the parameter and its value
+    above = float(max(lowest.max(), twin.max())) + 0.01
+    assert above < 1, (lowest, twin)
     r = dataclasses.replace(p, low_speed_limit_pu=above)
     with pytest.raises(ValueError, match=rf"low_speed_limit_pu` = {above:g}: every train run"):
-        _keep_within(r, tset, "train")
+        keep_within(r, tset, "train")
 
 
-def test_what_the_verdict_does_not_judge():
-    """The validation runs the rule sets apart, run again without their load step
-    (`tuning.blocking.unloaded_low_speed`): li's C-LESO, the nominal case at +-0.1 and
-    +-0.4 p.u. The two +-0.1 p.u. runs come back (unloaded, the sensored drive stays at
-    their start's 0.06 p.u. and above, over the class's 0.05), and both designs' lost runs
-    and RMS errors there are those of `pmsmjax.simulate` run by run, lock judged by a
-    plain loop. The design: the one the family table deployed for the C-LESO (a faster
-    PLL and a slower ESO than Table II's)."""
+def test_the_unloaded_twins_are_judged_like_any_run():
+    """The validation runs the rule judges without their load step: li's C-LESO, the
+    nominal case at +-0.1 and +-0.4 p.u. The tuner's metrics of the two +-0.1 p.u. twins,
+    for the paper's design and the one the family table deployed for the C-LESO before
+    the rule judged them (a faster PLL and a slower ESO than Table II's), are those of
+    `pmsmjax.simulate` run by run without the load step, lock judged by a plain loop: the
+    paper's design holds both, the deployed one loses lock in at least one, so a verdict
+    over them would have said so."""
     from pmsmjax.observers import make_observer
-    from tuning.blocking import unloaded_low_speed, unloaded_text
     from tuning.design_space import DesignSpace
     from tuning.scenarios import observer_model
 
@@ -135,16 +164,18 @@ def test_what_the_verdict_does_not_judge():
     p = tg.TuningProblem(observer="c-leso", val_speeds_pu=(0.1, 0.4),
                          val_cases=tg.VALIDATION_CASES[:1])
     vset = tg.validation_set(p)
-    beyond, _ = tg.low_speed_runs(p, vset)
+    rule_set, rule = tg.apply_low_speed_rule(p, vset)
+    idx = np.nonzero(rule["unloaded"])[0]
+    assert idx.tolist() == np.nonzero(np.abs(np.asarray(vset.s1)) < 0.2)[0].tolist()
     space = DesignSpace(p)
     design = {"w0": 5228.5, "w_pll": 265.3, "zeta_pll": 0.716}
     x = np.array([design[k] for k in space.names])
-    u = unloaded_low_speed(p, space, vset, beyond, x)
-    assert (u["runs"], u["still_beyond"], u["speeds_pu"]) == (2, 0, [0.1])
+    ev = tg.Evaluator(p, space, rule_set.take(idx))
+    got = {"paper": ev.reference, "tuned": ev.metrics(x)}
     drive, foc = p.drive(), p.controller()
     w_r = float(drive.w_rated)
     lost, rms = {"paper": [], "tuned": []}, {"paper": [], "tuned": []}
-    for j in np.nonzero(beyond)[0]:
+    for j in idx:
         sc = scenario(drive, vset.s0[j], vset.s1[j], vset.t0[j], vset.t1[j],
                       vset.t_load[j], 0.0, vset.t_end)
         model = observer_model(drive, vset.k_d[j], vset.k_q[j], vset.k_R[j], vset.k_psi[j])
@@ -160,17 +191,11 @@ def test_what_the_verdict_does_not_judge():
             lost[name].append(lock_status_loop(np.asarray(tr.t), th, ok=bool(tr.ok),
                                                start_locked=True)[2])
             rms[name].append(np.sqrt(np.mean(np.degrees(np.angle(np.exp(1j * th))) ** 2)))
-    assert u["lost_lock_reference"] == sum(lost["paper"])
-    assert u["lost_lock"] == sum(lost["tuned"])
-    assert u["new_lost_lock"] == sum(t and not q for t, q in zip(lost["tuned"],
-                                                                 lost["paper"]))
-    # the RMS error where a design kept lock in every run (after a lock loss the angle
-    # error is chaotic: the batch and the single run part at round-off)
-    for name, key in (("paper", "mean_rms_deg_reference"), ("tuned", "mean_rms_deg")):
-        if not any(lost[name]):
-            assert u[key] == pytest.approx(np.mean(rms[name]), rel=1e-6), name
-    # the paper's design holds both unloaded runs, the deployed design loses them
-    assert lost["paper"] == [False, False] and u["new_lost_lock"] >= 1
-    assert unloaded_text(u).startswith("2 runs at 0.1 p.u., lost lock paper ")
-    # nothing set apart: nothing to report
-    assert unloaded_low_speed(p, space, vset, np.zeros(vset.n, bool), x) is None
+    for name in ("paper", "tuned"):
+        assert np.asarray(got[name].lost_lock).tolist() == lost[name], name
+        # the RMS error where the design kept lock (after a lock loss the angle error is
+        # chaotic: the batch and the single run part at round-off)
+        held = ~np.asarray(lost[name])
+        np.testing.assert_allclose(np.asarray(got[name].rms_deg)[held],
+                                   np.asarray(rms[name])[held], rtol=1e-6)
+    assert lost["paper"] == [False, False] and any(lost["tuned"])

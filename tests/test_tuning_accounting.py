@@ -149,8 +149,26 @@ def test_runs_beyond_the_low_speed_rule_are_counted_apart():
         "holds: tuned better than the paper's design in 3 of 4 validation runs (2 more "
         "beyond the observer's low-speed limit, counted apart; the runs judged end at "
         "0.4-0.8 p.u.); worst RMS change +5.0 %; no new lost lock")
+    # runs 0 and 3 judged without their load step (the rule's unloaded twins), and run 4,
+    # beyond, marked so too: only those among the `n` are counted
+    twins = np.array([True, False, False, True, True, False])
+    u = tg.accounting(m, ref, 0.1, beyond, twins)
+    assert u["unloaded"] == 2 and {k: u[k] for k in a if k != "unloaded"} == {
+        k: a[k] for k in a if k != "unloaded"} and a["unloaded"] == 0
+    assert pj.verdict_text({"holds": True, "baseline": BASELINE,
+                            "accounting": {k: u[k] for k in tg.VOCABULARY}}) == (
+        "holds: tuned better than the paper's design in 3 of 4 validation runs (2 of them "
+        "without their load step; 2 more beyond the observer's low-speed limit, counted "
+        "apart); worst RMS change +5.0 %; no new lost lock")
+    u["beyond_limit"] = 0
+    assert pj.verdict_text({"holds": True, "baseline": BASELINE,
+                            "accounting": {k: u[k] for k in tg.VOCABULARY}}) == (
+        "holds: tuned better than the paper's design in 3 of 4 validation runs (2 of them "
+        "without their load step); worst RMS change +5.0 %; no new lost lock")
     with pytest.raises(ValueError, match="one bool per run"):
         tg.accounting(m, ref, 0.1, beyond[:5])
+    with pytest.raises(ValueError, match=r"accounting\(unloaded=...\)"):
+        tg.accounting(m, ref, 0.1, beyond, twins[:4])
     with pytest.raises(ValueError, match="leaves no run"):
         tg.accounting(m, ref, 0.1, np.ones(6, bool))
 
@@ -160,7 +178,8 @@ def test_the_vocabulary_and_the_deprecated_keys():
     gains table's verdict records the same), and each deprecated key names one of them."""
     a = tg.accounting(_metrics([0.5, 2.0]), _metrics([1.0, 1.0]), 0.1)
     assert tuple(tg.VOCABULARY) == ("n", "better", "worse", "fraction_better",
-                                    "worst_rms_change_pct", "new_lost_lock", "beyond_limit")
+                                    "worst_rms_change_pct", "new_lost_lock", "beyond_limit",
+                                    "unloaded")
     assert tuple(tg.VOCABULARY) == VERDICT_COUNTS + VERDICT_OPTIONAL
     assert set(tg.VOCABULARY) <= set(a)
     assert "0.1 %" in tg.VOCABULARY["better"] and "0.1 %" in tg.VOCABULARY["worse"]
@@ -298,11 +317,16 @@ def test_console_leads_with_the_rms_angle_error_and_uses_the_vocabulary():
         "RMS angle error (deg), mean over the 66 validation runs (22 more beyond the "
         "observer's low-speed limit, counted apart: `verdict.low_speed_rule`): paper "
         "design 5.73, tuned (hybrid search) 2.76")
+    apart["accounting"]["validation"]["unloaded"] = 20
+    assert console_summary(apart).splitlines()[0].startswith(
+        "RMS angle error (deg), mean over the 66 validation runs (20 of them without their "
+        "load step; 22 more beyond the observer's low-speed limit, counted apart: ")
     head = lines[2].split()
     assert head[:3] == ["design", "RMS", "deg"]
     # every count but n, the fraction and the low-speed rule's (in the lead line when
     # it sets runs apart) is a column
-    assert [k for k in tg.VOCABULARY if k not in ("n", "fraction_better", "beyond_limit")] \
+    assert [k for k in tg.VOCABULARY if k not in ("n", "fraction_better", "beyond_limit",
+                                                       "unloaded")] \
         == [h for h in head if h in tg.VOCABULARY]
     assert "loss" not in lines[0] + lines[2]  # no loss shown as if it were degrees
     assert "train objective: " in text and "(dimensionless, not degrees" in text

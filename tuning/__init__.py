@@ -69,6 +69,7 @@ from .report import (
 from .scenarios import (
     ERROR_PATTERNS as ERROR_PATTERNS,
     ScenarioSet as ScenarioSet,
+    apply_low_speed_rule as apply_low_speed_rule,
     check_disjoint as check_disjoint,
     heldout_set as heldout_set,
     judged_speeds as judged_speeds,

@@ -167,9 +167,10 @@ def console_summary(s: dict) -> str:
     from .objective import VOCABULARY
 
     a, h = s["accounting"]["validation"], s["rms_angle_error_deg"]
-    b = a.get("beyond_limit") or 0
-    apart = (f" ({b} more beyond the observer's low-speed limit, counted apart: "
-             f"`verdict.low_speed_rule`)" if b else "")
+    b, u = a.get("beyond_limit") or 0, a.get("unloaded") or 0
+    rule = ([f"{u} of them without their load step"] if u else []) + (
+        [f"{b} more beyond the observer's low-speed limit, counted apart"] if b else [])
+    apart = f" ({'; '.join(rule)}: `verdict.low_speed_rule`)" if rule else ""
     # the deployed design by where it came from: the chosen search's design ("tuned") is
     # named by its search, a design of the front by its own name
     search = (s.get("problem") or {}).get("search")
@@ -187,13 +188,6 @@ def console_summary(s: dict) -> str:
         wall = f"{sr['wall_s']:.1f}" if "wall_s" in sr else "-"
         lines.append(f"{name:<16}" + "".join(f"{c:>{w}}" for c, w in zip(cells, widths))
                      + f"{sr.get('sims', '-'):>7}{wall:>8}")
-    u = s["verdict"].get("unloaded_low_speed")
-    if u:
-        from .blocking import unloaded_text
-
-        lines += ["", f"not judged by the verdict (`verdict.unloaded_low_speed`): the "
-                      f"validation runs the low-speed rule sets apart, without their load "
-                      f"step: {unloaded_text(u)}"]
     lines += ["", "RMS deg: each validation run's RMS angle error, mean over the runs (deg)"]
     lines += [f"{key}: {VOCABULARY[key]}" for _, _, key, _ in COLUMNS if key in VOCABULARY]
     lines.append("train objective: what the searches minimise on the training runs "

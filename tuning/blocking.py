@@ -22,13 +22,6 @@ equilibrium at all, or no stable designed one, the angle error cannot settle at 
 point whatever happens on the way; where the designed equilibrium is stable, the run
 was lost on the way (the start, the ramp or the load step).
 
-And for the validation runs the low-speed rule sets apart, **what the verdict does not
-judge** (`unloaded_low_speed`): the same runs without their load step. A slow run's load
-step can stall even the sensored drive (li's observers at 0.1 p.u. under the 0.4 p.u.
-step), so the rule sets the whole run apart and the verdict judges no run at that
-speed; unloaded, the run stays above the class's limit, and both designs' lost runs
-there say whether the deployed design keeps the lock the paper's keeps. Reported beside
-the verdict, never part of it (it is not the rule's set of runs).
 """
 
 from __future__ import annotations
@@ -49,7 +42,6 @@ from .scenarios import (
     STREAMS,
     ScenarioSet,
     designed_feasible,
-    low_speed_runs,
     observer_model,
     simulate_set,
 )
@@ -170,48 +162,6 @@ def end_analysis(problem: TuningProblem, space: DesignSpace, sset: ScenarioSet, 
     return out
 
 
-def unloaded_low_speed(problem: TuningProblem, space: DesignSpace, vset: ScenarioSet,
-                       beyond, x) -> dict | None:
-    """The validation runs of `vset` that the low-speed rule sets apart (`beyond`), run
-    again without their load step, with the paper's design and the design `x` (physical
-    coordinates; None: the paper's). Those still beyond the rule unloaded (their start
-    is below the limit) are left out. Returns None where the rule sets no run apart,
-    else `runs` (the unloaded runs kept), `still_beyond`, `speeds_pu` (their final
-    speeds, magnitudes), `lost_lock_reference` and `lost_lock` (the paper's and the
-    design's lost runs), `new_lost_lock` (lost by the design where the paper's design
-    holds lock) and the mean RMS angle errors `mean_rms_deg_reference`, `mean_rms_deg`
-    (deg). One batch of the kept runs per design."""
-    idx = np.nonzero(np.asarray(beyond, bool))[0]
-    if not idx.size:
-        return None
-    sub = vset.take(idx)
-    sub = eqx.tree_at(lambda s: s.load_pu, sub, jnp.zeros_like(sub.load_pu))
-    still = low_speed_runs(problem, sub)[0]
-    out = dict(runs=int(np.sum(~still)), still_beyond=int(still.sum()))
-    if not out["runs"]:
-        return dict(out, speeds_pu=[], lost_lock_reference=0, lost_lock=0, new_lost_lock=0,
-                    mean_rms_deg_reference=None, mean_rms_deg=None)
-    sub = sub.take(np.nonzero(~still)[0])
-    ev = Evaluator(problem, space, sub)
-    m, ref = ev.metrics(x), ev.reference
-    lost, lost_r = np.asarray(m.lost_lock, bool), np.asarray(ref.lost_lock, bool)
-    return dict(out, speeds_pu=sorted({round(float(v), 6) for v in np.abs(sub.s1)}),
-                lost_lock_reference=int(lost_r.sum()), lost_lock=int(lost.sum()),
-                new_lost_lock=int(np.sum(lost & ~lost_r)),
-                mean_rms_deg_reference=float(np.mean(ref.rms_deg)),
-                mean_rms_deg=float(np.mean(m.rms_deg)))
-
-
-def unloaded_text(u: dict) -> str:
-    """`unloaded_low_speed`'s result in one line (the log and the console)."""
-    if not u["runs"]:
-        return f"none stays above the limit unloaded ({u['still_beyond']} runs)"
-    speeds = ", ".join(f"{v:g}" for v in u["speeds_pu"])
-    return (f"{u['runs']} runs at {speeds} p.u., lost lock paper {u['lost_lock_reference']}"
-            f", tuned {u['lost_lock']} ({u['new_lost_lock']} new); mean RMS angle error "
-            f"{u['mean_rms_deg_reference']:.2f} -> {u['mean_rms_deg']:.2f} deg")
-
-
 def main_phase(split: dict) -> tuple[str, float]:
     """The phase of a `phase_split` row with the largest share of the change, and that
     share (%)."""
@@ -220,4 +170,4 @@ def main_phase(split: dict) -> tuple[str, float]:
 
 
 __all__ = ["END_VERDICTS", "NOISE_FLOOR_KEYS", "PHASES", "end_analysis", "noise_floor",
-           "phase_split", "unloaded_low_speed", "unloaded_text"]
+           "phase_split"]

@@ -147,6 +147,9 @@ VOCABULARY = {
     "beyond_limit": "validation runs the low-speed rule, fixed before tuning, puts beyond "
                     "the observer's class (a sensored drive turns slower there than the "
                     "class's limit); every other count is over the remaining runs",
+    "unloaded": "validation runs, among the n, judged without their load step: the "
+                "low-speed rule's twin of a run whose load step alone takes a sensored "
+                "drive below the class's limit",
 }
 #: The reference's name in the reports (the verdict's baseline).
 BASELINE = "the paper's design"
@@ -156,7 +159,7 @@ BASELINE = "the paper's design"
 DEPRECATED_KEYS = {"improved": "better", "improved_frac": "fraction_better"}
 
 
-def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None) -> dict:
+def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None, unloaded=None) -> dict:
     """Per-metric comparison of `m` with `ref` over the same runs (plain numbers): first
     the RMS angle error (deg, mean over the runs: `mean_rms_deg`, and the reference's
     `mean_rms_deg_reference`), then the keys of `VOCABULARY` (`better`, `worse`: loss
@@ -179,12 +182,18 @@ def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None) -> dict:
     `beyond`: a boolean per run, the runs the low-speed rule puts beyond the observer's
     class (`tuning.low_speed_runs`, decided before tuning): every count above is over the
     other runs (`n` of them; `worst_run` indexes all runs), and `beyond_limit`,
-    `lost_lock_beyond`, `lost_lock_beyond_reference` count those apart. None: no run."""
+    `lost_lock_beyond`, `lost_lock_beyond_reference` count those apart. None: no run.
+    `unloaded`: a boolean per run, the runs the rule judges without their load step
+    (`tuning.apply_low_speed_rule`); `unloaded` counts those among the `n`. None: no run."""
     n_all = np.asarray(m.loss).size
     out = np.zeros(n_all, bool) if beyond is None else np.asarray(beyond, bool)
     if out.shape != (n_all,):
         raise ValueError(f"`accounting(beyond=...)` must hold one bool per run ({n_all}); "
                          f"got shape {out.shape}.")
+    twin = np.zeros(n_all, bool) if unloaded is None else np.asarray(unloaded, bool)
+    if twin.shape != (n_all,):
+        raise ValueError(f"`accounting(unloaded=...)` must hold one bool per run ({n_all}); "
+                         f"got shape {twin.shape}.")
     keep = np.nonzero(~out)[0]
     if not keep.size:
         raise ValueError("`accounting`: the low-speed rule leaves no run to compare (every "
@@ -212,6 +221,7 @@ def accounting(m: Metrics, ref: Metrics, tol: float, beyond=None) -> dict:
             "lost_by_both": int(np.sum(~ok)),
             "median_loss_change_pct": float(100.0 * np.median(rel)),
             "beyond_limit": int(np.sum(out)),
+            "unloaded": int(np.sum(twin & ~out)),
             "lost_lock_beyond": int(np.sum(lost_all[out])),
             "lost_lock_beyond_reference": int(np.sum(lost_r_all[out])),
             # deprecated (DEPRECATED_KEYS), kept one release

@@ -9,13 +9,16 @@ simulations (`tuning.search`), polishes the chosen strategy's design towards bot
 the tracking-versus-noise front, scores every design on the held-out and validation runs
 and returns a `TuningReport` (`tuning.report` turns it into files).
 
-**The low-speed rule** (`TuningProblem.low_speed_limit_pu`, `low_speed_runs`): before
-any search, every validation run is run once in a sensored drive; a run that takes it
-slower than the observer class's limit is set apart, and the validation accounting
-counts the other runs (`accounting(beyond=...)`, `verdict.low_speed_rule`). The same
-rule leaves such runs out of the training and held-out sets the search sees
-(`verdict.low_speed_rule.left_out`): in them the observer loses lock chaotically, and a
-search pulled by them trades the other runs for noise.
+**The low-speed rule** (`TuningProblem.low_speed_limit_pu`, `apply_low_speed_rule`):
+before any search, every run is run once in a sensored drive. A run that takes it
+slower than the observer class's limit only because its load step stalls it is replaced
+by its unloaded twin, which is judged like any other run (`verdict.low_speed_rule.
+unloaded`, the accounting's `unloaded`); a run slower than the limit even unloaded (a
+reversal, a start below it) is set apart, and the validation accounting counts the
+other runs (`accounting(beyond=...)`). The same rule shapes the training and held-out
+sets the search sees (`verdict.low_speed_rule.left_out`, `unloaded_search`): in runs
+beyond the limit the observer loses lock chaotically, and a search pulled by them
+trades the other runs for noise.
 
 **The rule's floor.** The paper's design is also scored with its coordinates changed by
 1e-9 (relative), `paper-perturbed`: where even that fails the validation rule, the runs in
@@ -48,8 +51,6 @@ from .blocking import (
     main_phase,
     noise_floor,
     phase_split,
-    unloaded_low_speed,
-    unloaded_text,
 )
 from .design_space import DesignSpace
 from .evaluate import Evaluator
@@ -57,11 +58,11 @@ from .objective import BASELINE, VOCABULARY, accounting, holds, judged, objectiv
 from .problem import TuningProblem
 from .scenarios import (
     ScenarioSet,
-    _keep_within,
-    _low_speed,
+    apply_low_speed_rule,
     check_disjoint,
     heldout_set,
     judged_speeds,
+    keep_within,
     phase_at,
     phase_counts,
     sensored_lowest_speed,
@@ -138,21 +139,28 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
               + ("" if problem.speed_from_angle is None else
                  f"; the speed loop on the speed of the observer's angle "
                  f"({problem.speed_from_angle:g} Hz tracking loop)"))
-    # the low-speed rule, before any search: validation runs beyond the observer's class
-    # are counted apart; the search's own runs beyond it are left out of its sets
-    beyond, lowest, sensored = _low_speed(problem, sets["validation"])
+    # the low-speed rule, before any search: a run whose load step alone takes even a
+    # sensored drive below the observer's class's limit is judged without it; validation
+    # runs still beyond the limit are counted apart, the search's own left out
+    sets["validation"], rule = apply_low_speed_rule(problem, sets["validation"])
+    beyond, unloaded = rule["beyond"], rule["unloaded"]
+    limit = f"{problem.low_speed_limit_pu:g} p.u."
+    if unloaded.any():
+        _say(log, f"low-speed rule: {int(unloaded.sum())} of {unloaded.size} validation "
+                  f"runs' load step takes a sensored drive below {limit}, the limit the "
+                  f"observer's class declares: judged without their load step")
     if beyond.any():
         _say(log, f"low-speed rule: {int(beyond.sum())} of {beyond.size} validation runs "
-                  f"turn slower than {problem.low_speed_limit_pu:g} p.u. in a sensored "
-                  f"drive (lowest {np.nanmin(lowest):.3g} p.u.), below the limit the "
-                  f"observer's class declares: counted apart")
-    left_out = {}
+                  f"turn slower than {limit} in a sensored drive even without their load "
+                  f"step (lowest {np.nanmin(rule['lowest_pu'][beyond]):.3g} p.u.): "
+                  f"counted apart")
+    searched = {}
     for split in ("train", "heldout"):
-        sets[split], left_out[split] = _keep_within(problem, sets[split], split)
-        if left_out[split]:
-            _say(log, f"low-speed rule: {left_out[split]} {split} runs turn slower than "
-                      f"the limit in a sensored drive: left out of the search's "
-                      f"{split} set ({sets[split].n} kept)")
+        sets[split], searched[split] = keep_within(problem, sets[split], split)
+        c = searched[split]
+        if c["left_out"] or c["unloaded"]:
+            _say(log, f"low-speed rule: of the {split} runs, {c['unloaded']} judged without "
+                      f"their load step, {c['left_out']} left out ({sets[split].n} kept)")
     evs = {k: Evaluator(problem, space, s) for k, s in sets.items()}
     ev = evs["train"]
     z0 = space.to_unconstrained(space.paper_point())
@@ -184,8 +192,9 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
         _say(log, f"scoring {len(names) + 1} designs on the {split} runs")
         many = e.metrics_many(xs)
         metrics[split] = {"paper": e.reference}
-        obj[split] = {"paper": _objective_kept(e.reference, e.reference, problem,
-                                               beyond if split == "validation" else None)}
+        apart = beyond if split == "validation" else None
+        twins = unloaded if split == "validation" else None
+        obj[split] = {"paper": _objective_kept(e.reference, e.reference, problem, apart)}
         acc[split] = {}
         # the rule's floor: the paper's design with its gains changed by 1e-9 (relative).
         # Where that alone fails the rule, runs that lose lock are chaotic and no design
@@ -194,10 +203,9 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
         for i, n in enumerate([*names, FLOOR]):
             m = floor if n == FLOOR else jax.tree_util.tree_map(lambda a, i=i: a[i], many)
             metrics[split][n] = m
-            obj[split][n] = _objective_kept(m, e.reference, problem,
-                                            beyond if split == "validation" else None)
-            acc[split][n] = accounting(m, e.reference, problem.regression_tol,
-                                       beyond if split == "validation" else None)
+            obj[split][n] = _objective_kept(m, e.reference, problem, apart)
+            acc[split][n] = accounting(m, e.reference, problem.regression_tol, apart,
+                                       twins)
     designs[FLOOR] = None
     default, verdict = _choose(acc["validation"], sets["validation"])
     same = _paper_not_bettered(obj["train"], default)
@@ -207,8 +215,10 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     verdict["low_speed_rule"] = {
         "limit_pu": float(problem.low_speed_limit_pu),
         "rule": LOW_SPEED_RULE, "runs": [int(j) for j in np.nonzero(beyond)[0]],
-        "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in lowest],
-        "left_out": left_out}
+        "unloaded": [int(j) for j in np.nonzero(unloaded)[0]],
+        "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in rule["lowest_pu"]],
+        "left_out": {k: c["left_out"] for k, c in searched.items()},
+        "unloaded_search": {k: c["unloaded"] for k, c in searched.items()}}
     if judged is not None:
         # the speeds the verdict covers, where the rule sets runs apart
         verdict["judged_speeds_pu"] = list(judged)
@@ -225,17 +235,10 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
             f"are chaotic, so no design passes a per-run rule on them")
     _lost_by_both(problem, space, sets["validation"], metrics["validation"], default,
                   designs[default], beyond, verdict, log)
-    if judged is not None:
-        # what the verdict does not judge: the runs set apart, without their load step
-        u = unloaded_low_speed(problem, space, sets["validation"], beyond,
-                               designs[default])
-        verdict["unloaded_low_speed"] = u
-        _say(log, f"not judged: the {int(beyond.sum())} runs the low-speed rule sets "
-                  f"apart, without their load step: {unloaded_text(u)}")
     trace = None
     if not verdict["holds"]:
         trace = _blocking(problem, sets["validation"], metrics["validation"], verdict, log,
-                          beyond, sensored, space=space, x=designs["tuned"])
+                          beyond, rule["sensored"], space=space, x=designs["tuned"])
     # the verdict as counted (the console's last line, gains.h, `pmsmjax gains`)
     a = acc["validation"][default]
     verdict["statement"] = pj.verdict_text({
@@ -422,9 +425,11 @@ RULE = ("better than the paper's design (validation loss lower by more than 0.1 
 #: The low-speed rule, as the report states it (`TuningProblem.low_speed_limit_pu`).
 LOW_SPEED_RULE = ("written before tuning: a validation run in which the sensored drive "
                   "(the same controller on the true angle and speed, the same noise) turns "
-                  "slower than `limit_pu` of rated speed is beyond the observer's class, "
-                  "whose declared limit it is (`low_speed_limit_pu`: li's PLL observers "
-                  "0.05, below which their PLL's loop gain fades; 0 for the others)")
+                  "slower than `limit_pu` of rated speed is judged without its load step "
+                  "(`unloaded`) where that keeps the sensored drive above the limit, and is "
+                  "otherwise beyond the observer's class, whose declared limit it is "
+                  "(`low_speed_limit_pu`: li's PLL observers 0.05, below which their PLL's "
+                  "loop gain fades; 0 for the others)")
 
 
 __all__ = ["FRONT", "PEERS", "TuningReport", "tune"]

@@ -376,12 +376,50 @@ def sensored_lowest_speed(problem, sset: ScenarioSet, runs) -> list[dict]:
 
 
 def low_speed_runs(problem, sset: ScenarioSet) -> tuple[np.ndarray, np.ndarray]:
-    """The low-speed rule (`TuningProblem.low_speed_limit_pu`, fixed before tuning): per
-    run of `sset`, whether the sensored drive (`sensored_lowest_speed`: the same
-    controller on the true angle and speed, the same noise) turns slower than the limit
-    at some sample, and that lowest speed (p.u. of rated; NaN where the limit is 0 and
-    nothing is simulated). Returns `(beyond, lowest_pu)`."""
-    return _low_speed(problem, sset)[:2]
+    """The low-speed rule's first test (`TuningProblem.low_speed_limit_pu`, fixed before
+    tuning): per run of `sset`, whether the sensored drive (`sensored_lowest_speed`: the
+    same controller on the true angle and speed, the same noise) turns slower than the
+    limit at some sample, and that lowest speed (p.u. of rated; NaN where the limit is 0
+    and nothing is simulated). Returns `(beyond, lowest_pu)`. `apply_low_speed_rule`
+    gives such a run its unloaded twin where that one stays above the limit."""
+    beyond, lowest, _ = _sensored_rule(problem, sset)
+    return beyond, lowest
+
+
+def apply_low_speed_rule(problem, sset: ScenarioSet) -> tuple[ScenarioSet, dict]:
+    """The low-speed rule (`TuningProblem.low_speed_limit_pu`, fixed before tuning), as
+    every set meets it: a run in which the sensored drive turns slower than the limit
+    (`low_speed_runs`) is replaced by its **unloaded twin**, the same run without its load
+    step, where that twin stays above the limit in the sensored drive; a slow run's load
+    step stalls even the sensored drive (at 0.1 p.u. under 0.4 p.u. load it falls to about
+    1 % of rated speed), so the loaded run says nothing of the observer while the twin
+    judges it at the run's own speed. A run whose twin is still beyond (a reversal, a start
+    below the limit) is beyond the observer's class.
+
+    Returns `(rule_set, rule)`: `rule_set` is `sset` with the twins in place (same runs,
+    same order, `load_pu` 0 where a twin replaced a run), and `rule` holds `beyond` (per
+    run: still beyond the class), `unloaded` (per run: replaced by its twin), `lowest_pu`
+    (the lowest speed in the sensored drive of the run as it stands in `rule_set`, p.u.;
+    NaN where the limit is 0) and `sensored` (`sensored_lowest_speed`'s record of every run
+    of `rule_set`; None where the limit is 0)."""
+    beyond, lowest, found = _sensored_rule(problem, sset)
+    unloaded = np.zeros(sset.n, bool)
+    if beyond.any():
+        idx = np.nonzero(beyond)[0]
+        twins = eqx.tree_at(lambda s: s.load_pu, sset.take(idx),
+                            jnp.zeros(idx.size, dtype=jnp.asarray(sset.load_pu).dtype))
+        still, low_t, found_t = _sensored_rule(problem, twins)
+        ok = idx[~still]
+        unloaded[ok] = True
+        beyond[ok] = False
+        lowest[ok] = low_t[~still]
+        for j, r in zip(idx, found_t):
+            if not beyond[j]:
+                found[j] = dict(r, run=int(j))
+        load = np.where(unloaded, 0.0, np.asarray(sset.load_pu))
+        sset = eqx.tree_at(lambda s: s.load_pu, sset,
+                           jnp.asarray(load, dtype=jnp.asarray(sset.load_pu).dtype))
+    return sset, dict(beyond=beyond, unloaded=unloaded, lowest_pu=lowest, sensored=found)
 
 
 def judged_speeds(sset: ScenarioSet, beyond) -> tuple[float, float] | None:
@@ -395,9 +433,9 @@ def judged_speeds(sset: ScenarioSet, beyond) -> tuple[float, float] | None:
     return float(s.min()), float(s.max())
 
 
-def _low_speed(problem, sset: ScenarioSet):
+def _sensored_rule(problem, sset: ScenarioSet):
     """`low_speed_runs` and the sensored records it measured (`sensored_lowest_speed` of
-    every run; None where the limit is 0), which the report reuses for blocking runs."""
+    every run; None where the limit is 0)."""
     limit = float(problem.low_speed_limit_pu)
     if limit <= 0:
         return np.zeros(sset.n, bool), np.full(sset.n, np.nan), None
@@ -406,23 +444,27 @@ def _low_speed(problem, sset: ScenarioSet):
     return lowest < limit, lowest, found
 
 
-def _keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, int]:
-    """`sset` without its runs beyond the low-speed rule (`low_speed_runs`), and how many
-    were left out: the search's training and held-out runs obey the rule the validation
-    accounting states, so no design is pulled towards runs no observer of the class can
-    hold (in them lock is lost chaotically, and a design's loss there is noise)."""
-    beyond = _low_speed(problem, sset)[0]
+def keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, dict]:
+    """The search's `split` set under the low-speed rule (`apply_low_speed_rule`): runs
+    with their unloaded twin in place where the rule gives one, runs still beyond the
+    rule left out (in them the observer loses lock chaotically, and a design's loss
+    there is noise). Returns the set and `{"left_out": n, "unloaded": n}` (among the
+    kept runs). `ValueError` where the rule leaves no run."""
+    rule_set, rule = apply_low_speed_rule(problem, sset)
+    beyond = rule["beyond"]
+    counts = {"left_out": int(beyond.sum()), "unloaded": int(rule["unloaded"].sum())}
     if not beyond.any():
-        return sset, 0
+        return rule_set, counts
     if beyond.all():
         raise ValueError(
             f"`TuningProblem.low_speed_limit_pu` = {problem.low_speed_limit_pu:g}: every "
-            f"{split} run turns slower than it in a sensored drive; lower the limit or "
-            f"raise the {split} speeds")
-    return sset.take(np.nonzero(~beyond)[0]), int(beyond.sum())
+            f"{split} run turns slower than it in a sensored drive, even without its load "
+            f"step; lower the limit or raise the {split} speeds")
+    return rule_set.take(np.nonzero(~beyond)[0]), counts
 
 
-__all__ = ["KINDS", "PHASES", "ScenarioSet", "check_disjoint", "designed_feasible",
-           "heldout_set", "judged_speeds", "low_speed_runs", "max_acceleration",
+__all__ = ["KINDS", "PHASES", "ScenarioSet", "apply_low_speed_rule", "check_disjoint",
+           "designed_feasible", "heldout_set", "judged_speeds", "keep_within",
+           "low_speed_runs", "max_acceleration",
            "observer_model", "operating_current", "phase_at", "phase_counts", "scenario",
            "sensored_lowest_speed", "simulate_set", "training_set", "validation_set"]

@@ -54,6 +54,7 @@ def run_one(name: str, out: str, extra: list[str]) -> dict:
                 worst_rms_change_pct=a["worst_rms_change_pct"],
                 lost_lock_paper=a["lost_lock_reference"], lost_lock_tuned=a["lost_lock"],
                 new_lost_lock=a["new_lost_lock"], beyond_limit=a.get("beyond_limit", 0),
+                unloaded=a.get("unloaded", 0),
                 lost_lock_beyond=a.get("lost_lock_beyond", 0),
                 lost_lock_beyond_reference=a.get("lost_lock_beyond_reference", 0),
                 verdict="holds" if s["verdict"]["holds"] else "does not hold", wall_s=wall,
@@ -61,16 +62,19 @@ def run_one(name: str, out: str, extra: list[str]) -> dict:
 
 
 def _beyond(r: dict) -> str:
-    """The runs the low-speed rule set apart, and their lost locks (paper -> tuned)."""
-    b = r.get("beyond_limit", 0)
-    return (f"{b} (lost {r['lost_lock_beyond_reference']} -> {r['lost_lock_beyond']})" if b
-            else "0")
+    """The low-speed rule's runs: those judged without their load step (counted among the
+    n; rows measured before the rule had twins have none), those set apart and their lost
+    locks (paper -> tuned)."""
+    b, u = r.get("beyond_limit", 0), r.get("unloaded", 0)
+    apart = (f"{b} apart (lost {r['lost_lock_beyond_reference']} -> "
+             f"{r['lost_lock_beyond']})" if b else "")
+    return ", ".join(([f"{u} unloaded"] if u else []) + ([apart] if apart else [])) or "0"
 
 
 def table(rows: list[dict]) -> str:
     columns = [("observer", "l"), ("motor", "l"), ("paper RMS (deg)", "r"),
                ("tuned RMS (deg)", "r"), ("`better`", "r"), ("`worst_rms_change_pct`", "r"),
-               ("lost lock paper -> tuned (`new_lost_lock`)", "l"), ("`beyond_limit`", "r"),
+               ("lost lock paper -> tuned (`new_lost_lock`)", "l"), ("low-speed rule (`unloaded`, `beyond_limit`)", "r"),
                ("verdict", "l"), ("wall", "r")]
     return markdown_table(columns, [
         [r["observer"], r["motor"], f"{r['paper_rms_deg']:.2f}", f"{r['tuned_rms_deg']:.2f}",

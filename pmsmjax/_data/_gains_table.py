@@ -94,8 +94,9 @@ DESIGN_COLUMNS = {"w_m": "rad/s", "zeta1": "-", "w1": "rad/s", "zeta2": "-", "w2
 VERDICT_COUNTS = ("n", "better", "worse", "fraction_better", "worst_rms_change_pct",
                   "new_lost_lock")
 #: Counts a verdict records where they apply (a table written before them has none):
-#: `beyond_limit`, the validation runs the low-speed rule counts apart.
-VERDICT_OPTIONAL = ("beyond_limit",)
+#: `beyond_limit`, the validation runs the low-speed rule counts apart; `unloaded`, those
+#: among the `n` it judged without their load step.
+VERDICT_OPTIONAL = ("beyond_limit", "unloaded")
 GAIN_COLUMNS = {"G1_11": "1/s", "G1_12": "1/s", "G1_21": "1/s", "G1_22": "1/s",
                 "g2_1": "rad/s per V s", "g2_2": "rad/s per V s",
                 "g3_1": "rad/s^2 per V s", "g3_2": "rad/s^2 per V s",
@@ -243,7 +244,8 @@ def _check_verdict(verdict, source: str) -> dict:
 def verdict_text(verdict: dict | None) -> str:
     """The tuner's verdict stated as counted, one line: "holds: tuned better than the
     paper's design in 74 of 88 validation runs; worst RMS change +7.6 %; no new lost
-    lock" (from `verdict.accounting`; where the low-speed rule set runs apart, how many,
+    lock" (from `verdict.accounting`; where the low-speed rule judged runs without their
+    load step, how many; where it set runs apart, how many,
     and the final speeds of the runs judged, `verdict.judged_speeds_pu`, when recorded;
     "holds (no counts recorded)" for a table that records none, "not recorded" without a
     verdict). The tuner's last line, `gains.h`'s
@@ -256,11 +258,13 @@ def verdict_text(verdict: dict | None) -> str:
         return f"{word} (no counts recorded)"
     k = int(a["new_lost_lock"])
     lost = "no new lost lock" if k == 0 else f"{k} new lost lock{'s' if k > 1 else ''}"
-    b = int(a.get("beyond_limit") or 0)
+    b, u = int(a.get("beyond_limit") or 0), int(a.get("unloaded") or 0)
     r = verdict.get("judged_speeds_pu")
     judged = "" if r is None else f"; the runs judged end at {r[0]:g}-{r[1]:g} p.u."
-    apart = (f" ({b} more beyond the observer's low-speed limit, counted apart{judged})"
-             if b else "")
+    rule = ([f"{u} of them without their load step"] if u else []) + (
+        [f"{b} more beyond the observer's low-speed limit, counted apart{judged}"] if b
+        else [])
+    apart = f" ({'; '.join(rule)})" if rule else ""
     return (f"{word}: tuned better than {verdict.get('baseline') or 'the paper design'} "
             f"in {int(a['better'])} of {int(a['n'])} validation runs{apart}; worst RMS "
             f"change {a['worst_rms_change_pct']:+.1f} %; {lost}")

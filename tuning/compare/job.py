@@ -43,7 +43,7 @@ from pmsmjax.observers import make_observer as registry_observer, observer_class
 
 from ..evaluate import Evaluator
 from ..objective import objective
-from ..scenarios import _keep_within, training_set
+from ..scenarios import keep_within, training_set
 from ..search import STRATEGIES
 from .config import CASE_NAMES, DESIGNS, CompareConfig, applicable_observers
 from .points import (
@@ -110,8 +110,9 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     space = _space(config, name)
     log(f"tuning {name} ({config.tuner}, {problem.budget} closed-loop simulations) ...")
     t = time.perf_counter()
-    # the tuner's low-speed rule: training runs beyond the observer's class left out
-    kept, left_out = _keep_within(problem, training_set(problem), "train")
+    # the tuner's low-speed rule: training runs beyond the observer's class left out,
+    # those a load step alone takes below it unloaded
+    kept, rule = keep_within(problem, training_set(problem), "train")
     ev = Evaluator(problem, space, kept)
     z0 = space.to_unconstrained(space.paper_point())
     res = STRATEGIES[config.tuner](ev, z0, budget=problem.budget,
@@ -122,7 +123,8 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     x = np.asarray(space.to_physical(jnp.asarray(res.z)))
     meta = dict(tuned=True, tuner=config.tuner, budget=problem.budget, sims=res.sims,
                 objective="cvar (tuning.objective)",
-                train_runs=kept.n, train_runs_left_out=left_out,
+                train_runs=kept.n, train_runs_left_out=rule["left_out"],
+                train_runs_unloaded=rule["unloaded"],
                 low_speed_limit_pu=problem.low_speed_limit_pu,
                 train_objective_paper=float(objective(ev.reference, ev.reference,
                                                       problem)[0]),
