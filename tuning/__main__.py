@@ -52,7 +52,8 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
             "validation runs it never saw against the paper's design: better in at least "
             "75 % of them, no run's RMS angle error worse by more than the tolerance, no "
             "lock lost that the paper's design holds; runs beyond the observer's "
-            "low-speed limit, by a rule fixed before tuning, counted apart."),
+            "low-speed limit, by a rule fixed before tuning, judged without their load "
+            "step or counted apart."),
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--out", default="results/tuning", metavar="DIR",
                    help="output folder (summary.json, gains table, figures)")
@@ -80,9 +81,10 @@ def build_parser(prog: str = "python -m tuning") -> argparse.ArgumentParser:
                    default=d.val_speeds_pu, metavar="PU",
                    help="validation speeds (p.u., each with both signs)")
     p.add_argument("--low-speed-limit", type=float, default=None, metavar="PU",
-                   help="the low-speed rule: validation runs in which a sensored drive "
-                        "turns slower than this (p.u. of rated) are counted apart, "
-                        "and such training and held-out runs left out (default: the "
+                   help="the low-speed rule: a run in which a sensored drive turns "
+                        "slower than this (p.u. of rated) is judged without its load "
+                        "step where that keeps the drive above it, else counted apart "
+                        "(validation) or left out (training, held-out) (default: the "
                         "observer class's declared limit, 0.05 for li's PLL observers, 0 "
                         "for the others; 0: judge every run)")
     p.add_argument("--seed", type=int, default=d.seed, metavar="N",

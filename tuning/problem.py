@@ -143,11 +143,13 @@ class TuningProblem:
       `val_speeds_pu` (each with both signs), `val_cases` (rows `(k_d, k_q, k_R, k_psi,
       k_noise)`), `val_t_end` (s), `val_start_frac`, `val_load_pu`.
     - `low_speed_limit_pu` (p.u. of rated speed): the low-speed rule, fixed before
-      tuning. A validation run in which the sensored drive (the same controller on the
-      true angle and speed, the same noise: `tuning.low_speed_runs`) turns slower than
-      this is beyond the observer's class: the verdict's counts leave it out and the
-      report lists it apart; such training and held-out runs are left out of the
-      search's sets (`verdict.low_speed_rule.left_out`). None (default): the limit the
+      tuning (`tuning.apply_low_speed_rule`). A run in which the sensored drive (the same
+      controller on the true angle and speed, the same noise: `tuning.low_speed_runs`)
+      turns slower than this is judged without its load step where that keeps the
+      sensored drive above it (`verdict.low_speed_rule.unloaded`); otherwise it is beyond
+      the observer's class: the verdict's counts leave it out and the report lists it
+      apart, and such training and held-out runs are left out of the search's sets
+      (`verdict.low_speed_rule.left_out`). None (default): the limit the
       observer's class declares (`low_speed_limit_pu`: 0.05 for li's PLL observers, 0,
       no run, for the others).
 
