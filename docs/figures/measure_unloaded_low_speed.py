@@ -16,7 +16,7 @@ coordinate of the deployed design taken over, and of the deployed design with on
 coordinate set back to the paper's: which of the design's changes loses the slow runs.
 About five minutes on two cores. Writes the tables between the page's
 `<!-- unloaded low speed -->` and `<!-- low speed cause -->` markers and the rows to
-`unloaded_low_speed.json`.
+`unloaded_low_speed.json` (`--from-json`: only the tables, from it).
 
     .venv/bin/python docs/figures/measure_unloaded_low_speed.py --designs DIR
 """
@@ -75,41 +75,64 @@ def cause(name: str, coordinates: dict, speed: float = SPEEDS_PU[0]) -> dict:
         designs[f"paper, {k} tuned"] = dict(paper, **{k: tuned[k]})
         designs[f"tuned, {k} as paper"] = dict(tuned, **{k: paper[k]})
     xs = np.asarray([[d[k] for k in space.names] for d in designs.values()])
-    lost = np.asarray(ev.metrics_many(xs).lost_lock).sum(axis=-1)
+    m = ev.metrics_many(xs)
+    lost = np.asarray(m.lost_lock).sum(axis=-1)
+    rms = np.asarray(m.rms_deg).mean(axis=-1)
     return dict(observer=name, speed_pu=speed, runs=ev.sset.n, paper=paper, tuned=tuned,
-                lost={n: int(v) for n, v in zip(designs, lost)})
+                lost={n: int(v) for n, v in zip(designs, lost)},
+                mean_rms_deg={n: float(v) for n, v in zip(designs, rms)})
 
 
 def cause_table(rows: list[dict]) -> str:
+    """Per observer: lost runs (mean RMS angle error, deg) of each design of `cause`."""
+    def cell(r, name):
+        return f"{r['lost'][name]} ({r['mean_rms_deg'][name]:.2f})"
+
     out = []
     for r in rows:
-        one = ", ".join(f"{k} {r['lost'][f'paper, {k} tuned']}" for k in r["tuned"])
-        back = ", ".join(f"{k} {r['lost'][f'tuned, {k} as paper']}" for k in r["tuned"])
+        one = ", ".join(f"{k} {cell(r, f'paper, {k} tuned')}" for k in r["tuned"])
+        back = ", ".join(f"{k} {cell(r, f'tuned, {k} as paper')}" for k in r["tuned"])
         coords = ", ".join(f"{k} {r['paper'][k]:.4g} -> {r['tuned'][k]:.4g}"
                            for k in r["tuned"])
         out.append([f"`{r['observer']}`", coords,
-                    f"{r['lost']['paper']} -> {r['lost']['tuned']}", one, back])
+                    f"{cell(r, 'paper')} -> {cell(r, 'tuned')}", one, back])
     return markdown_table(
         [("observer", "l"), ("design: paper -> deployed", "l"),
-         (f"lost of {rows[0]['runs']}: paper -> deployed", "l"),
+         (f"lost of {rows[0]['runs']} (mean RMS, deg): paper -> deployed", "l"),
          ("the paper's with one coordinate deployed", "l"),
          ("the deployed with one coordinate the paper's", "l")], out)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--designs", required=True, metavar="DIR",
+    ap.add_argument("--designs", metavar="DIR",
                     help="a family-table run's output folder (DIR/NAME/design.json)")
+    ap.add_argument("--from-json", action="store_true",
+                    help="only write the page's tables from unloaded_low_speed.json")
     args = ap.parse_args(argv)
-    rows, causes = [], []
-    for name in OBSERVERS:
-        with open(os.path.join(args.designs, name, "design.json")) as f:
-            coords = json.load(f)["coordinates"]
-        for s in SPEEDS_PU:
-            rows.append(measure(name, coords, s))
-            print(rows[-1], flush=True)
-        causes.append(cause(name, coords))
-        print(causes[-1], flush=True)
+    path = os.path.join(HERE, "unloaded_low_speed.json")
+    if args.from_json:
+        with open(path) as f:
+            saved = json.load(f)
+        rows, causes, stamp = saved["rows"], saved["cause"], saved["stamp"]
+    elif args.designs is None:
+        ap.error("--designs DIR is needed (or --from-json)")
+    else:
+        rows, causes = [], []
+        for name in OBSERVERS:
+            with open(os.path.join(args.designs, name, "design.json")) as f:
+                coords = json.load(f)["coordinates"]
+            for s in SPEEDS_PU:
+                rows.append(measure(name, coords, s))
+                print(rows[-1], flush=True)
+            causes.append(cause(name, coords))
+            print(causes[-1], flush=True)
+        stamp = (f"(`docs/figures/measure_unloaded_low_speed.py`, "
+                 f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, Python "
+                 f"{platform.python_version()}):")
+        with open(path, "w") as f:
+            json.dump({"stamp": stamp, "rows": rows, "cause": causes}, f, indent=1)
+            f.write("\n")
     table = markdown_table(
         [("observer", "l"), ("speed (p.u.), from 0.6 of it", "r"), ("runs", "r"),
          ("beyond the rule", "r"), ("lost lock: paper -> tuned", "l"),
@@ -119,14 +142,9 @@ def main(argv=None) -> int:
           str(r["beyond_limit"]), f"{r['lost_paper']} -> {r['lost_tuned']}",
           str(r["new_lost_lock"]), f"{r['better']}/{r['runs'] - r['beyond_limit']}",
           f"{r['mean_rms_paper_deg']:.2f} -> {r['mean_rms_tuned_deg']:.2f}"] for r in rows])
-    stamp = (f"(`docs/figures/measure_unloaded_low_speed.py`, {time.strftime('%Y-%m-%d')}, "
-             f"{platform.machine()}, Python {platform.python_version()}):")
     write_block(PAGE, BEGIN, END, f"{stamp}\n\n{table}")
     write_block(PAGE, *CAUSE, f"{stamp}\n\n{cause_table(causes)}")
-    with open(os.path.join(HERE, "unloaded_low_speed.json"), "w") as f:
-        json.dump({"rows": rows, "cause": causes}, f, indent=1)
-        f.write("\n")
-    print(f"wrote {PAGE} and unloaded_low_speed.json")
+    print(f"wrote {PAGE}" + ("" if args.from_json else " and unloaded_low_speed.json"))
     return 0
 
 
