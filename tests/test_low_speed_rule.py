@@ -147,6 +147,28 @@ def test_the_search_sets_under_the_rule():
         keep_within(r, tset, "train")
 
 
+def test_the_search_sees_as_many_runs_within_the_rule():
+    """`search_set`: where the rule leaves runs out, the draw is made larger and the
+    search still sees `n_train` runs, every one within the rule (its lowest speed in a
+    sensored drive, `pmsmjax.simulate` run by run, at or above the limit) and none a
+    reversal for li's C-LESO; the counts add up (`drawn` - `left_out` = the runs kept).
+    A class without a limit (the ESO) gets `training_set` unchanged."""
+    from tuning.scenarios import search_set
+
+    p = tg.TuningProblem(observer="c-leso", n_train=9)
+    sset, c = search_set(p, "train")
+    assert sset.n == 9 and c["drawn"] - c["left_out"] == 9 and c["left_out"] > 0, c
+    assert not np.any(np.asarray(sset.kind) == 1)
+    lowest = _lowest_one_by_one(p, sset)
+    assert np.all(lowest >= p.low_speed_limit_pu), lowest
+    assert int(np.sum(np.asarray(sset.load_pu) == 0.0)) >= c["unloaded"]
+    q = tg.TuningProblem(n_train=9)
+    same, none = search_set(q, "train")
+    assert none == {"left_out": 0, "unloaded": 0, "drawn": 9}
+    for name in ("s0", "s1", "load_pu", "k_d", "k_q", "k_noise", "keys"):
+        np.testing.assert_array_equal(getattr(same, name), getattr(tg.training_set(q), name))
+
+
 def test_the_unloaded_twins_are_judged_like_any_run():
     """The validation runs the rule judges without their load step: li's C-LESO, the
     nominal case at +-0.1 and +-0.4 p.u. The tuner's metrics of the two +-0.1 p.u. twins,

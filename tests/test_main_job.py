@@ -167,6 +167,7 @@ def test_main_job_quick(tmp_path):
     assert rule["runs"] == [] and acc["beyond_limit"] == 0 and acc["n"] == 2 * 2 * 3
     assert rule["unloaded"] == [] and acc["unloaded"] == 0
     assert rule["unloaded_search"] == {"train": 0, "heldout": 0} == rule["left_out"]
+    assert rule["drawn"] == {"train": p.n_train, "heldout": p.n_heldout}
     assert rule["lowest_speed_pu"] == [None] * acc["n"]
     # every run judged: the verdict states no range of judged speeds
     assert "judged_speeds_pu" not in v and "runs judged" not in v["statement"]

@@ -18,7 +18,8 @@ reversal, a start below it) is set apart, and the validation accounting counts t
 other runs (`accounting(beyond=...)`). The same rule shapes the training and held-out
 sets the search sees (`verdict.low_speed_rule.left_out`, `unloaded_search`): in runs
 beyond the limit the observer loses lock chaotically, and a search pulled by them
-trades the other runs for noise.
+trades the other runs for noise; the search's sets are then drawn larger, so that it
+sees `n_train` and `n_heldout` runs within the rule (`search_set`).
 
 **The rule's floor.** The paper's design is also scored with its coordinates changed by
 1e-9 (relative), `paper-perturbed`: where even that fails the validation rule, the runs in
@@ -60,13 +61,11 @@ from .scenarios import (
     ScenarioSet,
     apply_low_speed_rule,
     check_disjoint,
-    heldout_set,
     judged_speeds,
-    keep_within,
     phase_at,
     phase_counts,
+    search_set,
     sensored_lowest_speed,
-    training_set,
     validation_set,
 )
 from .search import STRATEGIES, SearchResult, gradient_search
@@ -129,8 +128,14 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
     runs)."""
     t_start = time.perf_counter()
     space = DesignSpace(problem)
-    sets = {"train": training_set(problem), "heldout": heldout_set(problem),
-            "validation": validation_set(problem)}
+    # the low-speed rule, before any search: a run whose load step alone takes even a
+    # sensored drive below the observer's class's limit is judged without it; validation
+    # runs still beyond the limit are counted apart, the search's own left out (and drawn
+    # anew, so that the search sees as many runs)
+    sets, searched = {}, {}
+    for split in ("train", "heldout"):
+        sets[split], searched[split] = search_set(problem, split)
+    sets["validation"], rule = apply_low_speed_rule(problem, validation_set(problem))
     disjoint = check_disjoint(*sets.values())
     _say(log, f"tuning the {problem.observer} observer on {problem.drive().name}: "
               f"{space.n} coordinates ({', '.join(space.names)}); "
@@ -139,10 +144,6 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
               + ("" if problem.speed_from_angle is None else
                  f"; the speed loop on the speed of the observer's angle "
                  f"({problem.speed_from_angle:g} Hz tracking loop)"))
-    # the low-speed rule, before any search: a run whose load step alone takes even a
-    # sensored drive below the observer's class's limit is judged without it; validation
-    # runs still beyond the limit are counted apart, the search's own left out
-    sets["validation"], rule = apply_low_speed_rule(problem, sets["validation"])
     beyond, unloaded = rule["beyond"], rule["unloaded"]
     limit = f"{problem.low_speed_limit_pu:g} p.u."
     if unloaded.any():
@@ -154,13 +155,11 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
                   f"turn slower than {limit} in a sensored drive even without their load "
                   f"step (lowest {np.nanmin(rule['lowest_pu'][beyond]):.3g} p.u.): "
                   f"counted apart")
-    searched = {}
-    for split in ("train", "heldout"):
-        sets[split], searched[split] = keep_within(problem, sets[split], split)
-        c = searched[split]
+    for split, c in searched.items():
         if c["left_out"] or c["unloaded"]:
-            _say(log, f"low-speed rule: of the {split} runs, {c['unloaded']} judged without "
-                      f"their load step, {c['left_out']} left out ({sets[split].n} kept)")
+            _say(log, f"low-speed rule: {c['unloaded']} of the {sets[split].n} {split} runs "
+                      f"judged without their load step; {c['left_out']} runs left out, "
+                      f"of {c['drawn']} drawn")
     evs = {k: Evaluator(problem, space, s) for k, s in sets.items()}
     ev = evs["train"]
     z0 = space.to_unconstrained(space.paper_point())
@@ -218,7 +217,8 @@ def tune(problem: TuningProblem, *, progress: bool = True, log=print,
         "unloaded": [int(j) for j in np.nonzero(unloaded)[0]],
         "lowest_speed_pu": [None if np.isnan(v) else float(v) for v in rule["lowest_pu"]],
         "left_out": {k: c["left_out"] for k, c in searched.items()},
-        "unloaded_search": {k: c["unloaded"] for k, c in searched.items()}}
+        "unloaded_search": {k: c["unloaded"] for k, c in searched.items()},
+        "drawn": {k: c["drawn"] for k, c in searched.items()}}
     if judged is not None:
         # the speeds the verdict covers, where the rule sets runs apart
         verdict["judged_speeds_pu"] = list(judged)

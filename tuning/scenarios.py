@@ -74,6 +74,10 @@ VAL_LOAD_STEP = 0.6
 #: the others matched (1.0).
 ERROR_PATTERNS = (("k_d", "k_q", "k_R", "k_psi", "k_noise"), ("k_d", "k_q"), ("k_d",),
                   ("k_q",), ("k_R",), ("k_psi",), ("k_noise",))
+#: The search's sets under the low-speed rule (`search_set`): at most this many larger
+#: draws, and at most this many times the runs asked for.
+SEARCH_REDRAWS = 4
+SEARCH_DRAW_MAX = 4
 #: The phases of a run, by its scenario's times: `start` `[0, t0)` (before the speed
 #: ramp), `ramp` `[t0, t1)`, `steady` `[t1, t_load)` (between the ramp and the load
 #: step), `loaded` `[t_load, t_end]` (the load step and after).
@@ -444,6 +448,38 @@ def _sensored_rule(problem, sset: ScenarioSet):
     return lowest < limit, lowest, found
 
 
+def search_set(problem, split: str) -> tuple[ScenarioSet, dict]:
+    """The search's `split` set ("train" or "heldout") under the low-speed rule: its
+    `n_train` / `n_heldout` runs, all within the rule (`keep_within`: unloaded twins in
+    place, runs beyond the limit even unloaded left out). Where the rule leaves runs out,
+    the draw is made larger (the same stream, `SEARCH_REDRAWS` times at most) and its
+    first runs within the rule are kept, so the rule does not shrink what the search
+    sees (li's observers leave out every reversal: a third of the runs). Returns the set
+    and `{"left_out": n, "unloaded": n, "drawn": n}`: the runs of the draw up to the
+    last one kept that were left out, the kept runs judged without their load step, and
+    how many runs that draw took. A class without a limit gets `training_set` /
+    `heldout_set` unchanged."""
+    n = {"train": problem.n_train, "heldout": problem.n_heldout}[split]
+    m = n
+    for _ in range(SEARCH_REDRAWS):
+        rule_set, rule = apply_low_speed_rule(problem, _draw(problem, split, m))
+        kept = np.nonzero(~rule["beyond"])[0]
+        if kept.size >= n or m >= SEARCH_DRAW_MAX * n:
+            break
+        m = min(SEARCH_DRAW_MAX * n, len(KINDS) * math.ceil(
+            1.25 * m * n / max(kept.size, 1) / len(KINDS)))
+    if not kept.size:
+        raise ValueError(
+            f"`TuningProblem.low_speed_limit_pu` = {problem.low_speed_limit_pu:g}: every "
+            f"{split} run turns slower than it in a sensored drive, even without its load "
+            f"step; lower the limit or raise the {split} speeds")
+    idx = kept[:n]
+    last = int(idx[-1]) + 1
+    counts = {"left_out": int(rule["beyond"][:last].sum()),
+              "unloaded": int(rule["unloaded"][idx].sum()), "drawn": last}
+    return rule_set.take(idx), counts
+
+
 def keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, dict]:
     """The search's `split` set under the low-speed rule (`apply_low_speed_rule`): runs
     with their unloaded twin in place where the rule gives one, runs still beyond the
@@ -465,6 +501,6 @@ def keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, di
 
 __all__ = ["KINDS", "PHASES", "ScenarioSet", "apply_low_speed_rule", "check_disjoint",
            "designed_feasible", "heldout_set", "judged_speeds", "keep_within",
-           "low_speed_runs", "max_acceleration",
+           "low_speed_runs", "max_acceleration", "search_set",
            "observer_model", "operating_current", "phase_at", "phase_counts", "scenario",
            "sensored_lowest_speed", "simulate_set", "training_set", "validation_set"]

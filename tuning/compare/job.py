@@ -43,7 +43,7 @@ from pmsmjax.observers import make_observer as registry_observer, observer_class
 
 from ..evaluate import Evaluator
 from ..objective import objective
-from ..scenarios import keep_within, training_set
+from ..scenarios import search_set
 from ..search import STRATEGIES
 from .config import CASE_NAMES, DESIGNS, CompareConfig, applicable_observers
 from .points import (
@@ -110,9 +110,9 @@ def _tuned(config: CompareConfig, name: str, folder: pathlib.Path, units, progre
     space = _space(config, name)
     log(f"tuning {name} ({config.tuner}, {problem.budget} closed-loop simulations) ...")
     t = time.perf_counter()
-    # the tuner's low-speed rule: training runs beyond the observer's class left out,
-    # those a load step alone takes below it unloaded
-    kept, rule = keep_within(problem, training_set(problem), "train")
+    # the tuner's low-speed rule: training runs beyond the observer's class left out (and
+    # drawn anew), those a load step alone takes below it unloaded
+    kept, rule = search_set(problem, "train")
     ev = Evaluator(problem, space, kept)
     z0 = space.to_unconstrained(space.paper_point())
     res = STRATEGIES[config.tuner](ev, z0, budget=problem.budget,
