@@ -110,18 +110,15 @@ def test_blocking_runs_reuse_the_rules_sensored_records():
             np.testing.assert_allclose(a[k], b[k], rtol=1e-9)
 
 
-def test_the_search_sets_under_the_rule():
-    """The training set the search sees obeys the rule the validation accounting states:
-    for li's C-LESO (limit 0.05 p.u.) every reversal of the training set passes through
-    zero speed in the sensored drive even unloaded and is left out; a run that only its
-    load step takes below the limit is kept without it; each checked against
-    `pmsmjax.simulate` run by run, loaded and unloaded; the kept runs are the others,
-    unchanged and in order. The ESO (no limit) keeps every run as drawn."""
-    from tuning.scenarios import keep_within
-
+def test_the_rule_on_training_runs():
+    """On the training runs: for li's C-LESO (limit 0.05 p.u.) every reversal passes
+    through zero speed in the sensored drive even unloaded and is beyond the rule; a run
+    that only its load step takes below the limit gets its unloaded twin; each checked
+    against `pmsmjax.simulate` run by run, loaded and unloaded. The ESO (no limit) keeps
+    every run as drawn."""
     p = tg.TuningProblem(observer="c-leso", n_train=9)
     tset = tg.training_set(p)
-    kept, counts = keep_within(p, tset, "train")
+    rule_set, rule = tg.apply_low_speed_rule(p, tset)
     lowest = _lowest_one_by_one(p, tset)
     twin = _lowest_one_by_one(p, _unloaded(tset))
     limit = p.low_speed_limit_pu
@@ -129,22 +126,13 @@ def test_the_search_sets_under_the_rule():
     reversal = np.asarray(tset.kind) == 1
     assert reversal.any() and np.all(out[reversal]), (lowest, twin, np.asarray(tset.kind))
     assert not out.all()
-    assert counts == {"left_out": int(out.sum()), "unloaded": int(unloaded.sum())}
-    assert kept.n == tset.n - int(out.sum())
-    for name in ("s0", "s1", "k_d", "k_q", "k_noise", "keys"):
-        np.testing.assert_array_equal(getattr(kept, name), np.asarray(getattr(tset, name))[~out])
-    np.testing.assert_array_equal(kept.load_pu, np.where(unloaded, 0.0,
-                                                         np.asarray(tset.load_pu))[~out])
+    assert rule["beyond"].tolist() == out.tolist()
+    assert rule["unloaded"].tolist() == unloaded.tolist()
+    np.testing.assert_array_equal(rule_set.load_pu, np.where(unloaded, 0.0,
+                                                             np.asarray(tset.load_pu)))
     q = tg.TuningProblem(n_train=9)
-    same, none = keep_within(q, tg.training_set(q), "train")
-    assert none == {"left_out": 0, "unloaded": 0} and same.n == 9
-    # a limit above every run's lowest speed, loaded or not, would leave nothing to train
-    # on: refused, naming the parameter and its value
-    above = float(max(lowest.max(), twin.max())) + 0.01
-    assert above < 1, (lowest, twin)
-    r = dataclasses.replace(p, low_speed_limit_pu=above)
-    with pytest.raises(ValueError, match=rf"low_speed_limit_pu` = {above:g}: every train run"):
-        keep_within(r, tset, "train")
+    _, none = tg.apply_low_speed_rule(q, tg.training_set(q))
+    assert not (none["beyond"].any() or none["unloaded"].any())
 
 
 def test_the_search_sees_as_many_runs_within_the_rule():
@@ -167,6 +155,11 @@ def test_the_search_sees_as_many_runs_within_the_rule():
     assert none == {"left_out": 0, "unloaded": 0, "drawn": 9}
     for name in ("s0", "s1", "load_pu", "k_d", "k_q", "k_noise", "keys"):
         np.testing.assert_array_equal(getattr(same, name), getattr(tg.training_set(q), name))
+    # a limit above every run's lowest speed, loaded or not, would leave nothing to train
+    # on: refused, naming the parameter and its value
+    r = dataclasses.replace(p, low_speed_limit_pu=0.999)
+    with pytest.raises(ValueError, match=r"low_speed_limit_pu` = 0.999: every train run"):
+        search_set(r, "train")
 
 
 def test_the_unloaded_twins_are_judged_like_any_run():

@@ -450,11 +450,13 @@ def _sensored_rule(problem, sset: ScenarioSet):
 
 def search_set(problem, split: str) -> tuple[ScenarioSet, dict]:
     """The search's `split` set ("train" or "heldout") under the low-speed rule: its
-    `n_train` / `n_heldout` runs, all within the rule (`keep_within`: unloaded twins in
-    place, runs beyond the limit even unloaded left out). Where the rule leaves runs out,
+    `n_train` / `n_heldout` runs, all within the rule (`apply_low_speed_rule`: unloaded
+    twins in place, runs beyond the limit even unloaded left out). Where the rule leaves runs out,
     the draw is made larger (the same stream, `SEARCH_REDRAWS` times at most) and its
     first runs within the rule are kept, so the rule does not shrink what the search
-    sees (li's observers leave out every reversal: a third of the runs). Returns the set
+    sees (li's observers leave out every reversal: a third of the runs; in runs beyond
+    the limit the observer loses lock chaotically, and a design's loss there is noise).
+    `ValueError` where the rule leaves no run. Returns the set
     and `{"left_out": n, "unloaded": n, "drawn": n}`: the runs of the draw up to the
     last one kept that were left out, the kept runs judged without their load step, and
     how many runs that draw took. A class without a limit gets `training_set` /
@@ -480,27 +482,8 @@ def search_set(problem, split: str) -> tuple[ScenarioSet, dict]:
     return rule_set.take(idx), counts
 
 
-def keep_within(problem, sset: ScenarioSet, split: str) -> tuple[ScenarioSet, dict]:
-    """The search's `split` set under the low-speed rule (`apply_low_speed_rule`): runs
-    with their unloaded twin in place where the rule gives one, runs still beyond the
-    rule left out (in them the observer loses lock chaotically, and a design's loss
-    there is noise). Returns the set and `{"left_out": n, "unloaded": n}` (among the
-    kept runs). `ValueError` where the rule leaves no run."""
-    rule_set, rule = apply_low_speed_rule(problem, sset)
-    beyond = rule["beyond"]
-    counts = {"left_out": int(beyond.sum()), "unloaded": int(rule["unloaded"].sum())}
-    if not beyond.any():
-        return rule_set, counts
-    if beyond.all():
-        raise ValueError(
-            f"`TuningProblem.low_speed_limit_pu` = {problem.low_speed_limit_pu:g}: every "
-            f"{split} run turns slower than it in a sensored drive, even without its load "
-            f"step; lower the limit or raise the {split} speeds")
-    return rule_set.take(np.nonzero(~beyond)[0]), counts
-
-
 __all__ = ["KINDS", "PHASES", "ScenarioSet", "apply_low_speed_rule", "check_disjoint",
-           "designed_feasible", "heldout_set", "judged_speeds", "keep_within",
+           "designed_feasible", "heldout_set", "judged_speeds",
            "low_speed_runs", "max_acceleration", "search_set",
            "observer_model", "operating_current", "phase_at", "phase_counts", "scenario",
            "sensored_lowest_speed", "simulate_set", "training_set", "validation_set"]
