@@ -74,7 +74,8 @@ def _beyond(r: dict) -> str:
 def table(rows: list[dict]) -> str:
     columns = [("observer", "l"), ("motor", "l"), ("paper RMS (deg)", "r"),
                ("tuned RMS (deg)", "r"), ("`better`", "r"), ("`worst_rms_change_pct`", "r"),
-               ("lost lock paper -> tuned (`new_lost_lock`)", "l"), ("low-speed rule (`unloaded`, `beyond_limit`)", "r"),
+               ("lost lock paper -> tuned (`new_lost_lock`)", "l"),
+               ("low-speed rule (`unloaded`, `beyond_limit`)", "r"),
                ("verdict", "l"), ("wall", "r")]
     return markdown_table(columns, [
         [r["observer"], r["motor"], f"{r['paper_rms_deg']:.2f}", f"{r['tuned_rms_deg']:.2f}",
