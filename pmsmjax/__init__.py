@@ -63,6 +63,7 @@ if TYPE_CHECKING:
         gains_table_constant as gains_table_constant,
         gains_table_scheduled as gains_table_scheduled,
         load_gains_table as load_gains_table,
+        low_speed_text as low_speed_text,
         speed_loop_text as speed_loop_text,
         verdict_text as verdict_text,
         verdict_warning as verdict_warning,

@@ -169,10 +169,8 @@ def console_summary(s: dict) -> str:
     from .objective import VOCABULARY
 
     a, h = s["accounting"]["validation"], s["rms_angle_error_deg"]
-    b, u = a.get("beyond_limit") or 0, a.get("unloaded") or 0
-    rule = ([f"{u} of them without their load step"] if u else []) + (
-        [f"{b} more beyond the observer's low-speed limit, counted apart"] if b else [])
-    apart = f" ({'; '.join(rule)}: `verdict.low_speed_rule`)" if rule else ""
+    rule = pj.low_speed_text(a)
+    apart = f" ({rule}: `verdict.low_speed_rule`)" if rule else ""
     # the deployed design by where it came from: the chosen search's design ("tuned") is
     # named by its search, a design of the front by its own name
     search = (s.get("problem") or {}).get("search")

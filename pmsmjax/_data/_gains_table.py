@@ -258,16 +258,25 @@ def verdict_text(verdict: dict | None) -> str:
         return f"{word} (no counts recorded)"
     k = int(a["new_lost_lock"])
     lost = "no new lost lock" if k == 0 else f"{k} new lost lock{'s' if k > 1 else ''}"
-    b, u = int(a.get("beyond_limit") or 0), int(a.get("unloaded") or 0)
-    r = verdict.get("judged_speeds_pu")
-    judged = "" if r is None else f"; the runs judged end at {r[0]:g}-{r[1]:g} p.u."
-    rule = ([f"{u} of them without their load step"] if u else []) + (
-        [f"{b} more beyond the observer's low-speed limit, counted apart{judged}"] if b
-        else [])
-    apart = f" ({'; '.join(rule)})" if rule else ""
+    rule = low_speed_text(a, verdict.get("judged_speeds_pu"))
+    apart = f" ({rule})" if rule else ""
     return (f"{word}: tuned better than {verdict.get('baseline') or 'the paper design'} "
             f"in {int(a['better'])} of {int(a['n'])} validation runs{apart}; worst RMS "
             f"change {a['worst_rms_change_pct']:+.1f} %; {lost}")
+
+
+def low_speed_text(accounting: dict, judged_speeds_pu=None) -> str:
+    """What the tuner's low-speed rule did to the validation runs a verdict counts, in the
+    verdict's words: "22 of them without their load step; 2 more beyond the observer's
+    low-speed limit, counted apart; the runs judged end at 0.4-0.8 p.u." (the parts that
+    apply: `accounting`'s `unloaded` and `beyond_limit`, and the final speeds (p.u.) of the
+    runs judged where given, after the runs set apart); "" where it did neither."""
+    b, u = int(accounting.get("beyond_limit") or 0), int(accounting.get("unloaded") or 0)
+    r = judged_speeds_pu
+    judged = "" if r is None else f"; the runs judged end at {r[0]:g}-{r[1]:g} p.u."
+    return "; ".join(([f"{u} of them without their load step"] if u else []) + (
+        [f"{b} more beyond the observer's low-speed limit, counted apart{judged}"] if b
+        else []))
 
 
 def verdict_warning(table: dict) -> str | None:
